@@ -1,0 +1,28 @@
+"""Exceptions a user can cause, one type per kind.
+
+Every message names the file / key / value at fault and how to fix it; the CLI prints the
+message without a traceback.
+"""
+
+
+class MsDrakeError(Exception):
+    """Base class of every error ms_drake raises on bad user input."""
+
+
+class ScenarioError(MsDrakeError, ValueError):
+    """A scenario file or scenario value is malformed (unknown key, wrong type, bad value)."""
+
+
+class ObjectSetError(MsDrakeError, KeyError):
+    """An unknown object set or object name, a missing mesh, or an impossible object count."""
+
+    def __str__(self):  # KeyError would repr() the message; keep it readable.
+        return str(self.args[0]) if self.args else ""
+
+
+class HeapError(MsDrakeError, RuntimeError):
+    """A heap could not be generated (e.g. more objects than fit, every resample invalid)."""
+
+
+class ModelNotFoundError(MsDrakeError, FileNotFoundError):
+    """A model file (mesh, SDF, URDF, weights) is missing."""

@@ -1,0 +1,265 @@
+"""Registry of named object sets, each split into train and test *by object*.
+
+Sets:
+- ``procedural``: boxes, cylinders and "packaged" objects (a shape glued on a flat cardboard
+  backing, as in the reference's Dex-Net / Thingiverse "packaged" models), 2-20 cm, made by
+  code from the object index (deterministic, no files). Density 400 kg/m^3 (a typical
+  household item's average density), masses clipped to [0.02, 1.0] kg.
+- mesh sets: any folder ``models/objects/<set>/`` with an ``index.json`` written by the
+  converter (``python -m ms_drake.objects.convert``). The index format is::
+
+      {"set": "ycb", "source": "...", "license": "...", "density": 500.0,
+       "objects": [{"name": "003_cracker_box", "split": "train", "mass": 0.41,
+                    "com": [x, y, z], "inertia": [ixx, iyy, izz, ixy, ixz, iyz],
+                    "extents": [dx, dy, dz], "visual": "003_cracker_box/visual.obj",
+                    "collision": ["003_cracker_box/collision_00.obj", ...]}, ...]}
+
+  paths relative to the set folder; inertia about the COM in the object frame.
+
+An object's full name is ``<set>/<name>``.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ms_drake.errors import ObjectSetError, ModelNotFoundError
+from ms_drake.objects.sdf import Inertia, Shape, object_sdf
+from ms_drake.paths import PACKAGE_NAME, models_dir
+
+PROCEDURAL_COUNT = 400
+PROCEDURAL_DENSITY = 400.0  # kg/m^3
+CARDBOARD_DENSITY = 250.0
+TEST_FRACTION = 0.2
+
+# Object colours: muted, never saturated red (red is reserved for the target detector).
+_PALETTE = [
+    (0.85, 0.75, 0.45), (0.35, 0.55, 0.80), (0.45, 0.70, 0.45), (0.70, 0.55, 0.75),
+    (0.90, 0.90, 0.85), (0.55, 0.45, 0.35), (0.30, 0.65, 0.65), (0.80, 0.65, 0.30),
+    (0.50, 0.50, 0.55), (0.65, 0.80, 0.90), (0.75, 0.85, 0.55), (0.40, 0.40, 0.70),
+]
+TARGET_RGBA = (0.9, 0.08, 0.08, 1.0)
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    """One object of a set: everything needed to add it to a plant or analyse its mesh."""
+
+    set: str
+    name: str
+    split: str
+    inertia: Inertia
+    extents: tuple[float, float, float]
+    visuals: tuple[Shape, ...]
+    collisions: tuple[Shape, ...]
+    rgba: tuple[float, float, float, float] = (0.7, 0.7, 0.7, 1.0)
+    mesh_file: str = ""  # absolute path of the visual mesh for mesh sets
+    meta: dict = field(default_factory=dict, compare=False, hash=False)
+
+    @property
+    def full_name(self) -> str:
+        return f"{self.set}/{self.name}"
+
+    @property
+    def mass(self) -> float:
+        return self.inertia.mass
+
+    def sdf(self, model_name: str, rgba=None, friction: float = 0.5) -> str:
+        colors = [tuple(rgba) if rgba is not None else self.rgba] * len(self.visuals)
+        if rgba is None and "backing_rgba" in self.meta:
+            colors[0] = self.meta["backing_rgba"]
+        return object_sdf(model_name, self.inertia, list(zip(self.visuals, colors)),
+                          list(self.collisions), friction=friction)
+
+    def trimesh(self):
+        """The object's surface as a trimesh.Trimesh in the object frame (watertight for
+        primitives; for mesh sets the converted visual mesh)."""
+        import trimesh
+
+        if self.mesh_file:
+            if not Path(self.mesh_file).is_file():
+                raise ModelNotFoundError(f"object {self.full_name}: mesh file {self.mesh_file} is missing; "
+                                         "rebuild the set with `python -m ms_drake.objects.convert`")
+            return trimesh.load(self.mesh_file, force="mesh", process=True)
+        parts = []
+        for s in self.collisions:
+            if s.kind == "box":
+                m = trimesh.creation.box(extents=s.size)
+            elif s.kind == "cylinder":
+                m = trimesh.creation.cylinder(radius=s.size[0], height=s.size[1], sections=32)
+            elif s.kind == "sphere":
+                m = trimesh.creation.icosphere(subdivisions=3, radius=s.size[0])
+            else:
+                raise ValueError(f"cannot mesh shape kind {s.kind}")
+            from scipy.spatial.transform import Rotation
+
+            T = np.eye(4)
+            T[:3, :3] = Rotation.from_euler("xyz", s.pose[3:]).as_matrix()
+            T[:3, 3] = s.pose[:3]
+            m.apply_transform(T)
+            parts.append(m)
+        if len(parts) == 1:
+            return parts[0]
+        return trimesh.boolean.union(parts, engine="manifold")
+
+
+def _box_inertia(m, x, y, z):
+    return m * (y * y + z * z) / 12, m * (x * x + z * z) / 12, m * (x * x + y * y) / 12
+
+
+def _cyl_inertia(m, r, h):
+    ixx = m * (3 * r * r + h * h) / 12
+    return ixx, ixx, m * r * r / 2
+
+
+def _procedural(index: int) -> ObjectSpec:
+    """Object `index` of the procedural set (deterministic in the index)."""
+    rng = np.random.default_rng([20260101, index])
+    kind = ("box", "cylinder", "packaged")[index % 3]
+    split = "test" if (index % int(round(1 / TEST_FRACTION))) == 0 else "train"
+    rgba = (*_PALETTE[index % len(_PALETTE)], 1.0)
+    if kind == "box":
+        dims = np.sort(rng.uniform(0.02, 0.20, 3))[::-1]
+        dims[0] = max(dims[0], 0.04)
+        x, y, z = (float(d) for d in dims)
+        m = float(np.clip(PROCEDURAL_DENSITY * x * y * z, 0.02, 1.0))
+        ixx, iyy, izz = _box_inertia(m, x, y, z)
+        shape = Shape("box", (x, y, z))
+        return ObjectSpec("procedural", f"box_{index:03d}", split, Inertia(m, (0, 0, 0), ixx, iyy, izz),
+                          (x, y, z), (shape,), (shape,), rgba)
+    if kind == "cylinder":
+        r = float(rng.uniform(0.01, 0.05))
+        h = float(rng.uniform(0.02, 0.20))
+        m = float(np.clip(PROCEDURAL_DENSITY * np.pi * r * r * h, 0.02, 1.0))
+        ixx, iyy, izz = _cyl_inertia(m, r, h)
+        shape = Shape("cylinder", (r, h))
+        return ObjectSpec("procedural", f"cylinder_{index:03d}", split, Inertia(m, (0, 0, 0), ixx, iyy, izz),
+                          (2 * r, 2 * r, h), (shape,), (shape,), rgba)
+    # packaged: cardboard backing (thin box) with a box or cylinder glued on top of it.
+    bx, by = (float(v) for v in np.sort(rng.uniform(0.08, 0.20, 2))[::-1])
+    bt = float(rng.uniform(0.003, 0.006))
+    backing = Shape("box", (bx, by, bt), pose=(0, 0, bt / 2, 0, 0, 0))
+    if rng.random() < 0.5:
+        sx, sy = float(rng.uniform(0.03, bx * 0.8)), float(rng.uniform(0.03, by * 0.8))
+        sz = float(rng.uniform(0.02, 0.06))
+        item = Shape("box", (sx, sy, sz), pose=(0, 0, bt + sz / 2, 0, 0, 0))
+        vi = sx * sy * sz
+        ii = _box_inertia(1.0, sx, sy, sz)
+    else:
+        r = float(rng.uniform(0.015, min(bx, by) * 0.4))
+        sz = float(rng.uniform(0.03, 0.10))
+        item = Shape("cylinder", (r, sz), pose=(0, 0, bt + r, np.pi / 2, 0, 0))  # lying on the backing
+        vi = np.pi * r * r * sz
+        a, _, c = _cyl_inertia(1.0, r, sz)
+        ii = (a, c, a)  # the roll turns the cylinder axis onto y
+        sz = 2 * r
+    mb = CARDBOARD_DENSITY * bx * by * bt
+    mi = PROCEDURAL_DENSITY * vi
+    m_total = mb + mi
+    scale = float(np.clip(m_total, 0.02, 1.0)) / m_total
+    mb, mi = mb * scale, mi * scale
+    zb, zi = bt / 2, bt + sz / 2
+    zc = (mb * zb + mi * zi) / (mb + mi)
+    ib = _box_inertia(mb, bx, by, bt)
+    ixx = ib[0] + mb * (zb - zc) ** 2 + mi * ii[0] + mi * (zi - zc) ** 2
+    iyy = ib[1] + mb * (zb - zc) ** 2 + mi * ii[1] + mi * (zi - zc) ** 2
+    izz = ib[2] + mi * ii[2]
+    cardboard = (0.72, 0.58, 0.40, 1.0)
+    spec = ObjectSpec(
+        "procedural", f"packaged_{index:03d}", split, Inertia(mb + mi, (0, 0, zc), ixx, iyy, izz),
+        (bx, by, bt + sz), (backing, item), (backing, item), rgba,
+        meta={"backing_rgba": cardboard},
+    )
+    return spec
+
+
+@dataclass(frozen=True)
+class ObjectSet:
+    name: str
+    objects: tuple[ObjectSpec, ...]
+    source: str = ""
+    license: str = ""
+
+    def names(self, split: str = "all") -> list[str]:
+        return [o.name for o in self.split(split)]
+
+    def split(self, split: str = "all") -> tuple[ObjectSpec, ...]:
+        if split == "all":
+            return self.objects
+        if split not in ("train", "test"):
+            raise ObjectSetError(f"unknown split {split!r} for object set {self.name!r}; use train, test or all")
+        return tuple(o for o in self.objects if o.split == split)
+
+    def get(self, name: str) -> ObjectSpec:
+        for o in self.objects:
+            if o.name == name:
+                return o
+        raise ObjectSetError(f"object set {self.name!r} has no object {name!r} "
+                             f"({len(self.objects)} objects, e.g. {', '.join(self.names()[:3])})")
+
+    def sample(self, count: int, rng: np.random.Generator, split: str = "all") -> list[ObjectSpec]:
+        """`count` objects drawn uniformly with replacement from the split."""
+        pool = self.split(split)
+        if not pool:
+            raise ObjectSetError(f"object set {self.name!r} has no {split} objects")
+        idx = rng.integers(0, len(pool), size=count)
+        return [pool[i] for i in idx]
+
+
+def _load_mesh_set(folder: Path) -> ObjectSet:
+    index_file = folder / "index.json"
+    try:
+        data = json.loads(index_file.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise ObjectSetError(f"{index_file}: cannot read the object-set index ({e}); rebuild it with "
+                             "`python -m ms_drake.objects.convert`") from None
+    set_name = data.get("set", folder.name)
+    objs = []
+    rel_root = folder.relative_to(models_dir()).as_posix()
+    for k, o in enumerate(data["objects"]):
+        uri = lambda p: f"package://{PACKAGE_NAME}/{rel_root}/{p}"  # noqa: E731
+        i = o["inertia"]
+        inertia = Inertia(o["mass"], tuple(o["com"]), i[0], i[1], i[2], i[3], i[4], i[5])
+        objs.append(ObjectSpec(
+            set_name, o["name"], o["split"], inertia, tuple(o["extents"]),
+            (Shape("mesh", uri=uri(o["visual"])),),
+            tuple(Shape("convex", uri=uri(c)) for c in o["collision"]),
+            rgba=tuple(o.get("rgba", (*_PALETTE[k % len(_PALETTE)], 1.0))),
+            mesh_file=str(folder / o["visual"]),
+            meta={k2: v for k2, v in o.items() if k2 not in ("name", "split", "mass", "com", "inertia",
+                                                          "extents", "visual", "collision", "rgba")},
+        ))
+    return ObjectSet(set_name, tuple(objs), data.get("source", ""), data.get("license", ""))
+
+
+def available_sets() -> list[str]:
+    """Names of all registered object sets."""
+    root = models_dir() / "objects"
+    mesh_sets = sorted(p.parent.name for p in root.glob("*/index.json")) if root.is_dir() else []
+    return ["procedural", *mesh_sets]
+
+
+@functools.cache
+def get_object_set(name: str) -> ObjectSet:
+    """The object set called `name` (see available_sets())."""
+    if name == "procedural":
+        return ObjectSet("procedural", tuple(_procedural(i) for i in range(PROCEDURAL_COUNT)),
+                         source="generated by ms_drake.objects.registry", license="BSD-3-Clause")
+    folder = models_dir() / "objects" / name
+    if not (folder / "index.json").is_file():
+        raise ObjectSetError(f"unknown object set {name!r}; available: {', '.join(available_sets())}. "
+                             "Mesh sets are built with `python -m ms_drake.objects.convert`.")
+    return _load_mesh_set(folder)
+
+
+def get_object(full_name: str) -> ObjectSpec:
+    """An object by its full name ``<set>/<name>``."""
+    if "/" not in full_name:
+        raise ObjectSetError(f"object name {full_name!r} must be '<set>/<name>', e.g. 'procedural/box_001'")
+    set_name, obj = full_name.split("/", 1)
+    return get_object_set(set_name).get(obj)
