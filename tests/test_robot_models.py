@@ -1,0 +1,85 @@
+"""Converted robot models: they parse with package:// URIs, keep limits, and match the source FK.
+
+The reference poses in tests/data/fk_<robot>.json were computed from the SOURCE models (MuJoCo for
+the MJCF sources, Drake's URDF parser for the Panda URDF) by ms_drake/station/convert_robots.py;
+this test needs only our converted files.
+"""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pydrake.multibody.plant import MultibodyPlant
+from pydrake.multibody.tree import JointIndex
+
+from ms_drake.paths import make_parser, models_dir
+
+DATA = Path(__file__).parent / "data"
+ROBOTS = ["panda", "yumi", "fetch"]
+
+
+def _load(robot):
+    plant = MultibodyPlant(0.0)
+    parser = make_parser(plant)
+    (model,) = parser.AddModels(str(models_dir() / "robots" / robot / f"{robot}.sdf"))
+    plant.Finalize()
+    return plant, model
+
+
+@pytest.mark.parametrize("robot", ROBOTS)
+def test_fk_matches_source(robot):
+    ref = json.loads((DATA / f"fk_{robot}.json").read_text())
+    plant, model = _load(robot)
+    root = plant.GetFrameByName(ref["root"], model)
+    checked = 0
+    for cfg in ref["configs"]:
+        ctx = plant.CreateDefaultContext()
+        for name, value in cfg["q"].items():
+            joint = plant.GetJointByName(name, model)
+            q = plant.GetPositions(ctx).copy()
+            q[joint.position_start()] = value
+            plant.SetPositions(ctx, q)
+        for frame_name, X in cfg["X_root_frame"].items():
+            X_ref = np.array(X)
+            X_ours = plant.GetFrameByName(frame_name, model).CalcPose(ctx, root).GetAsMatrix4()
+            err_p = np.linalg.norm(X_ours[:3, 3] - X_ref[:3, 3])
+            err_R = np.linalg.norm(X_ours[:3, :3] - X_ref[:3, :3])
+            assert err_p < ref["tolerance_m"], f"{robot} {frame_name} q={cfg['q']}: {err_p * 1e3:.3f} mm"
+            assert err_R < 1e-3, f"{robot} {frame_name}: rotation error {err_R:.2e}"
+            checked += 1
+    assert checked >= 4 * 8
+
+
+@pytest.mark.parametrize("robot", ROBOTS)
+def test_model_is_well_formed(robot):
+    plant, model = _load(robot)
+    text = (models_dir() / "robots" / robot / f"{robot}.sdf").read_text()
+    assert "package://drake_models" not in text and "package://ms_drake_models/robots/" in text
+    assert ".stl" not in text.lower() and ".dae" not in text.lower()
+    assert "drake:declare_convex" in text
+    assert (models_dir() / "robots" / robot / "NOTICE").read_text().count("Licen") >= 1
+    # every movable joint has finite velocity limits; revolute limits within the source ranges
+    for i in range(plant.num_joints()):
+        j = plant.get_joint(JointIndex(i))
+        if j.num_velocities() == 1:
+            assert np.isfinite(j.velocity_upper_limits()[0]), j.name()
+    # positive mass and a valid spatial inertia on every body with geometry
+    ctx = plant.CreateDefaultContext()
+    total = sum(plant.get_body(b).get_mass(ctx) for b in plant.GetBodyIndices(model))
+    assert total > 5.0
+    for b in plant.GetBodyIndices(model):
+        body = plant.get_body(b)
+        if body.get_mass(ctx) > 0:
+            M = body.CalcSpatialInertiaInBodyFrame(ctx)
+            assert M.IsPhysicallyValid(), body.name()
+
+
+def test_arm_joint_counts():
+    plant, _ = _load("yumi")
+    assert plant.num_positions() == 7 + 7 + 7  # two arms + floating base quaternion/position
+    plant, _ = _load("fetch")
+    names = {plant.get_joint(JointIndex(i)).name() for i in range(plant.num_joints())}
+    for n in ["base_x", "base_y", "base_yaw", "torso_lift_joint", "head_pan_joint", "head_tilt_joint",
+              "shoulder_pan_joint", "wrist_roll_joint"]:
+        assert n in names
