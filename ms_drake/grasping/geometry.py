@@ -1,0 +1,264 @@
+"""Mesh queries shared by the contact models: ray casting and jaw contact patches.
+
+`MeshData.of(mesh)` caches, per trimesh.Trimesh object, everything the models need (triangle
+arrays for vectorized Moller-Trumbore ray casting, watertightness, the volume centroid, a
+manifold3d Manifold for CSG). The cache is keyed by object identity: do not mutate a mesh
+after evaluating grasps on it (make a copy instead).
+
+Contact patches (REACH, elliptical, MFE, 6DFC) follow Ch. 2.3.1 of the reference (lines
+143-146): the patch is the constructive-solid-geometry intersection of the object with the
+jaw pad polygon extruded along the closing direction, sliced at the first-contact distance
+d_con and at d_con + d_def (d_def = kappa * f_C, saturated at the pad thickness). Choices the
+text leaves open, recorded here:
+- One prism spans both jaws (their pads face each other and share one outline when projected
+  along the grasp axis), so a single manifold3d boolean serves the two jaws.
+- A jaw's patch keeps the object faces that face that jaw (n . closing direction < 0): a face
+  turned away from the jaw cannot be pressed by it.
+- d_con is the smallest depth, along the closing direction, of the intersection volume; if the
+  object already crosses the open jaw's pad (d_con ~ 0) the grasp is in collision.
+- Pressure follows line 144: p = k * delta * (n . a) with delta = d_con + d_def - depth, the
+  pad's penetration (largest at the first contact point, zero at the far slice).
+"""
+
+from __future__ import annotations
+
+import weakref
+from dataclasses import dataclass
+
+import numpy as np
+
+_CACHE: dict[int, tuple[weakref.ref, "MeshData"]] = {}
+_CACHE_MAX = 64
+COLLISION_DEPTH = 1e-7  # m: an object this close to the open jaw's pad touches it already
+
+
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """np.cross for (..., 3) arrays with broadcasting, without np.cross's per-call overhead."""
+    a, b = np.broadcast_arrays(np.asarray(a, float), np.asarray(b, float))
+    out = np.empty(a.shape)
+    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
+    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
+    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    return out
+
+
+@dataclass
+class Patch:
+    """One jaw's contact patch in the object frame.
+
+    triangles (P, 3, 3); normals (P, 3) outward object normals; areas (P,);
+    penetration (P, 3): pad penetration delta at each vertex (m); closing (3,): the jaw's
+    closing direction; d_con: first-contact distance from the open jaw (m).
+    """
+
+    triangles: np.ndarray
+    normals: np.ndarray
+    areas: np.ndarray
+    penetration: np.ndarray
+    closing: np.ndarray
+    d_con: float
+
+    @property
+    def area(self) -> float:
+        return float(self.areas.sum())
+
+    def pressure_at_vertices(self) -> np.ndarray:
+        """delta * (n . a) at each vertex (P, 3): the pressure up to the constant k (line 144)."""
+        cos = np.abs(self.normals @ self.closing)
+        return self.penetration * cos[:, None]
+
+
+class MeshData:
+    """Cached arrays of one mesh (object frame)."""
+
+    def __init__(self, mesh):
+        self.mesh = mesh
+        self.vertices = np.asarray(mesh.vertices, dtype=float)
+        self.faces = np.asarray(mesh.faces, dtype=np.int64)
+        tri = self.vertices[self.faces]
+        self.v0 = tri[:, 0]
+        self.e1 = tri[:, 1] - tri[:, 0]
+        self.e2 = tri[:, 2] - tri[:, 0]
+        nrm = cross(self.e1, self.e2)
+        norm = np.linalg.norm(nrm, axis=1)
+        self.areas = 0.5 * norm
+        with np.errstate(invalid="ignore", divide="ignore"):
+            self.normals = np.where(norm[:, None] > 0, nrm / norm[:, None], 0.0)
+        self.watertight = bool(len(self.faces) > 0 and mesh.is_watertight)
+        self.volume = float(mesh.volume) if self.watertight else 0.0
+        if self.watertight and self.volume > 0:
+            self.centroid = np.asarray(mesh.center_mass, dtype=float)
+        elif len(self.vertices):
+            self.centroid = self.vertices.mean(axis=0)
+        else:
+            self.centroid = np.zeros(3)
+        if len(self.vertices):
+            lo, hi = self.vertices.min(axis=0), self.vertices.max(axis=0)
+            self.length_scale = max(0.5 * float(np.linalg.norm(hi - lo)), 1e-3)
+        else:
+            self.length_scale = 1e-3
+        self._manifold = None
+        self._face_normal_by_id = None
+
+    @staticmethod
+    def of(mesh) -> "MeshData":
+        key = id(mesh)
+        hit = _CACHE.get(key)
+        if hit is not None and hit[0]() is mesh:
+            return hit[1]
+        data = MeshData(mesh)
+        if len(_CACHE) >= _CACHE_MAX:
+            for k in [k for k, (r, _) in _CACHE.items() if r() is None] or list(_CACHE)[: _CACHE_MAX // 2]:
+                _CACHE.pop(k, None)
+        _CACHE[key] = (weakref.ref(mesh), data)
+        return data
+
+    # ---------------------------------------------------------------- rays
+    def raycast(self, origins: np.ndarray, directions: np.ndarray, max_distance) -> tuple[np.ndarray, np.ndarray]:
+        """First hit of each ray (Moller-Trumbore over all triangles, vectorized).
+
+        origins, directions: (R, 3) (directions unit); max_distance: scalar or (R,).
+        Returns (t, face): distance (inf if none within (0, max_distance]) and face index (-1).
+        """
+        o = np.atleast_2d(origins)[:, None, :]
+        d = np.atleast_2d(directions)[:, None, :]
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            p = cross(d, self.e2[None])
+            det = np.einsum("rtk,tk->rt", p, self.e1)
+            inv = 1.0 / det
+            s = o - self.v0[None]
+            u = np.einsum("rtk,rtk->rt", s, p) * inv
+            q = cross(s, self.e1[None])
+            v = np.einsum("rtk,rtk->rt", d, q) * inv
+            t = np.einsum("tk,rtk->rt", self.e2, q) * inv
+            eps = 1e-12
+            ok = (np.abs(det) > 1e-18) & (u >= -eps) & (v >= -eps) & (u + v <= 1 + eps) & (t > 1e-9)
+        t = np.where(ok, t, np.inf)
+        face = np.argmin(t, axis=1)
+        tmin = t[np.arange(len(face)), face]
+        tmin = np.where(tmin <= np.broadcast_to(max_distance, tmin.shape), tmin, np.inf)
+        face = np.where(np.isfinite(tmin), face, -1)
+        return tmin, face
+
+    # ---------------------------------------------------------------- CSG
+    def manifold(self):
+        """The mesh as a manifold3d Manifold (built once; raises ValueError if not a valid solid)."""
+        if self._manifold is None:
+            import manifold3d as m3
+
+            m = m3.Manifold(m3.Mesh64(vert_properties=self.vertices, tri_verts=self.faces.astype(np.uint64)))
+            if m.status() != m3.Error.NoError or m.is_empty():
+                raise ValueError(f"mesh is not a valid closed solid for CSG ({m.status()})")
+            m = m.as_original()
+            own = m.to_mesh64()
+            vp = np.asarray(own.vert_properties)[:, :3]
+            tri = vp[np.asarray(own.tri_verts, dtype=np.int64)]
+            n = cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+            fid = np.asarray(own.face_id, dtype=np.int64)
+            table = np.zeros((int(fid.max()) + 1 if len(fid) else 1, 3))
+            table[fid] = n
+            self._face_normal_by_id = table
+            self._manifold = m
+        return self._manifold
+
+
+def jaw_frame(center, axis, approach, width):
+    """Rotation (columns x = approach, y = z x x, z = axis) and origin of jaw 1's open pad."""
+    z = np.asarray(axis, float)
+    x = np.asarray(approach, float) - np.dot(approach, z) * z
+    x /= np.linalg.norm(x)
+    y = cross(z, x)
+    R = np.column_stack([x, y, z])
+    origin = np.asarray(center, float) - 0.5 * width * z
+    return R, origin
+
+
+def clip_below(tri: np.ndarray, dist: np.ndarray):
+    """Clip triangles to the half-space dist <= 0, where dist (P, 3) is an affine function's value
+    at the vertices. Returns (triangles (Q, 3, 3), dist at their vertices (Q, 3), parent (Q,))."""
+    inside = dist <= 0
+    n_in = inside.sum(axis=1)
+    out_t, out_d, out_p = [tri[n_in == 3]], [dist[n_in == 3]], [np.nonzero(n_in == 3)[0]]
+    for count in (1, 2):
+        idx = np.nonzero(n_in == count)[0]
+        if len(idx) == 0:
+            continue
+        t, d, ins = tri[idx], dist[idx], inside[idx]
+        # roll each triangle so that the odd vertex (the lone inside one for count 1, the lone
+        # outside one for count 2) comes first; rolling keeps the winding.
+        odd = np.argmax(ins if count == 1 else ~ins, axis=1)
+        order = (odd[:, None] + np.arange(3)[None]) % 3
+        t = np.take_along_axis(t, order[:, :, None], axis=1)
+        d = np.take_along_axis(d, order, axis=1)
+        a, b, c = t[:, 0], t[:, 1], t[:, 2]
+        da, db, dc = d[:, 0:1], d[:, 1:2], d[:, 2:3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sab = np.nan_to_num(da / (da - db))
+            sac = np.nan_to_num(da / (da - dc))
+        pab = a + sab * (b - a)
+        pac = a + sac * (c - a)
+        z = np.zeros_like(da[:, 0])
+        if count == 1:  # keep the corner at a
+            out_t.append(np.stack([a, pab, pac], axis=1))
+            out_d.append(np.stack([da[:, 0], z, z], axis=1))
+            out_p.append(idx)
+        else:  # a is outside: keep the quad pab, b, c, pac
+            out_t.append(np.stack([pab, b, c], axis=1))
+            out_d.append(np.stack([z, db[:, 0], dc[:, 0]], axis=1))
+            out_t.append(np.stack([pab, c, pac], axis=1))
+            out_d.append(np.stack([z, dc[:, 0], z], axis=1))
+            out_p.extend([idx, idx])
+    return np.concatenate(out_t), np.concatenate(out_d), np.concatenate(out_p)
+
+
+def triangle_areas(tri: np.ndarray) -> np.ndarray:
+    return 0.5 * np.linalg.norm(cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+
+
+def jaw_patches(data: MeshData, center, axis, approach, width, pad_polygon, d_def: float):
+    """Contact patches of the two jaws (object frame), or a failure reason.
+
+    Returns ((patch1, patch2), "") on success or (None, reason) with reason in
+    {"miss", "jaw_collision", "zero_area_patch"}. Jaw 1 starts at center - width/2 * axis and
+    closes along +axis; jaw 2 starts at center + width/2 * axis and closes along -axis.
+    """
+    import manifold3d as m3
+
+    R, origin = jaw_frame(center, axis, approach, width)
+    cs = m3.CrossSection([np.asarray(pad_polygon, float)])
+    T = np.column_stack([R, origin])
+    prism = m3.Manifold.extrude(cs, float(width)).transform(T)
+    inter = data.manifold() ^ prism
+    if inter.is_empty():
+        return None, "miss"
+    mg = inter.to_mesh64()
+    verts = np.asarray(mg.vert_properties)[:, :3]
+    tv = np.asarray(mg.tri_verts, dtype=np.int64)
+    obj_id = data.manifold().original_id()
+    keep = np.zeros(len(tv), bool)
+    for k, oid in enumerate(mg.run_original_id):
+        if oid == obj_id:
+            keep[mg.run_index[k] // 3: mg.run_index[k + 1] // 3] = True
+    axis = R[:, 2]
+    depth1 = (verts - origin) @ axis
+    d_con = (float(depth1.min()), float((width - depth1).min()))
+    if min(d_con) < COLLISION_DEPTH:
+        return None, "jaw_collision"
+    fid = np.asarray(mg.face_id, dtype=np.int64)[keep]
+    normals = data._face_normal_by_id[np.minimum(fid, len(data._face_normal_by_id) - 1)]
+    tri = verts[tv[keep]]
+    depth_tri = depth1[tv[keep]]
+    patches = []
+    for jaw, closing in ((0, axis), (1, -axis)):
+        facing = normals @ closing < 0
+        d = depth_tri[facing] if jaw == 0 else width - depth_tri[facing]
+        limit = d_con[jaw] + d_def
+        t, dd, parent = clip_below(tri[facing], d - limit)
+        areas = triangle_areas(t)
+        good = areas > 1e-14
+        if good.sum() == 0 or areas[good].sum() < 1e-10:
+            return None, "zero_area_patch"
+        patches.append(Patch(t[good], normals[facing][parent[good]], areas[good],
+                             np.maximum(-dd[good], 0.0), closing.copy(), d_con[jaw]))
+    return tuple(patches), ""

@@ -1,0 +1,94 @@
+"""Point, soft point and elliptical contact wrench sets (vertex form, physical units).
+
+- Point contact (reference line 333, eq. 3.3.1): Coulomb cone around the inward normal,
+  linearized by `edges` generators on its surface (an inner approximation), normal force
+  0 <= f_n <= f_C: conv({0} u {f_C (n + mu (cos t1 + sin t2))}).
+- Soft point contact (line 213; Fig. 3.2b): the 4D cone ||f_t||^2 / mu^2 + tau^2 / gamma^2
+  <= f_n^2, 0 <= f_n <= f_C, gamma = `torsional_friction` in metres (torsion <= gamma f_n),
+  linearized by the 18 ellipsoid samples at f_n = f_C (generators of the cone).
+- Elliptical area contact (line 217, after Ciocarlie et al. 2007): an ellipse fitted to the
+  patch (area second moments: a uniform ellipse has variance a^2 / 4 along its axis), Hertzian
+  pressure p0 sqrt(1 - x^2/a^2 - y^2/b^2). Its maximal torsion is closed form,
+      tau_max = mu N (3/8) a E(1 - b^2/a^2)    (a >= b, E the complete elliptic integral),
+  from int p sqrt(x^2+y^2) dA = p0 a b (pi/16) 4 a E and N = int p dA = (2 pi / 3) p0 a b
+  (circle: 3 pi mu N a / 16, Ciocarlie's value). The wrench set is the maximal ellipsoid
+  (f_t,max = mu f_C, tau_max at N = f_C) plus the normal force 0 <= f_n <= f_C at the patch
+  centroid along the fitted plane's normal.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.special import ellipe
+
+from ms_drake.grasping.geometry import MeshData, Patch, cross
+from ms_drake.grasping.wrench_qp import WrenchProblem
+from ms_drake.grasping.wrench_sets import ellipsoid_generators, hull, sphere_samples, tangent_basis, wrench
+
+
+def ray_contacts(data: MeshData, center, axis, width):
+    """Where the two jaws first touch the object along the grasp axis.
+
+    Returns ((points (2,3), inward normals (2,3)), "") or (None, reason), reason in
+    {"miss", "jaw_collision"}: a jaw whose first hit is an exit face starts inside the object;
+    a jaw with no entry within the opening misses."""
+    origins = np.stack([center - 0.5 * width * axis, center + 0.5 * width * axis])
+    dirs = np.stack([axis, -axis])
+    t, face = data.raycast(origins, dirs, np.inf)
+    if np.any(face < 0):
+        return None, "miss"
+    n_out = data.normals[face]
+    if np.any(np.sum(n_out * dirs, axis=1) >= 0):
+        return None, "jaw_collision"
+    if np.any(t > width):
+        return None, "miss"
+    return (origins + t[:, None] * dirs, -n_out), ""
+
+
+def point_contact(point, n_in, com, mu, closing_force, edges: int = 8) -> WrenchProblem:
+    t1, t2 = tangent_basis(n_in)
+    th = 2 * np.pi * np.arange(edges) / edges
+    forces = closing_force * (n_in + mu * (np.cos(th)[:, None] * t1 + np.sin(th)[:, None] * t2))
+    return hull(wrench(np.broadcast_to(point, forces.shape), forces, com), include_origin=True)
+
+
+def soft_point_contact(point, n_in, com, mu, closing_force, gamma, samples: int = 18) -> WrenchProblem:
+    u = sphere_samples(samples)
+    normal = wrench(point[None], (closing_force * n_in)[None], com)
+    fric = ellipsoid_generators(point, n_in, com, mu * closing_force, gamma * closing_force, u)
+    return hull(normal + fric, include_origin=True)
+
+
+def fit_ellipse(patch: Patch):
+    """(centroid, inward normal, a, b, t1, t2) of the ellipse with the patch's area moments."""
+    tri, areas = patch.triangles, patch.areas
+    A = areas.sum()
+    cent = (areas[:, None] * tri.mean(axis=1)).sum(axis=0) / A
+    rel = tri - cent
+    s = rel.sum(axis=1)
+    # E[x x^T] over a uniform triangle = (sum_i v_i v_i^T + s s^T) / 12 (about `cent`)
+    M = (np.einsum("p,pvi,pvj->ij", areas, rel, rel) + np.einsum("p,pi,pj->ij", areas, s, s)) / (12.0 * A)
+    ev, V = np.linalg.eigh(M)
+    n = V[:, 0]
+    if n @ patch.closing < 0:
+        n = -n
+    a = 2.0 * np.sqrt(max(ev[2], 0.0))
+    b = 2.0 * np.sqrt(max(ev[1], 0.0))
+    return cent, n, a, b, V[:, 2], cross(n, V[:, 2])
+
+
+def elliptical_torsion(mu, normal_force, a, b):
+    """tau_max of a Hertzian ellipse (a >= b): mu N (3/8) a E(1 - b^2/a^2)."""
+    m = 1.0 - (b / a) ** 2 if a > 0 else 0.0
+    return mu * normal_force * 3.0 / 8.0 * a * ellipe(m)
+
+
+def elliptical_contact(patch: Patch, com, mu, closing_force, samples: int = 18) -> list[WrenchProblem]:
+    cent, n_in, a, b, t1, t2 = fit_ellipse(patch)
+    if not (a > 1e-6 and np.isfinite(a)):
+        raise ValueError("degenerate ellipse fit")
+    tau = elliptical_torsion(mu, closing_force, a, b)
+    normal = hull(wrench(cent[None], (closing_force * n_in)[None], com), include_origin=True)
+    fric = hull(ellipsoid_generators(cent, n_in, com, mu * closing_force, tau, sphere_samples(samples), t1, t2),
+                include_origin=False)
+    return [normal, fric]
