@@ -1,0 +1,144 @@
+"""Grasp samplers (mesh, point cloud, depth + mask) and the suction model."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from ms_drake.grasping import GraspEvaluator, ParallelJawGrasp, SuctionGrasp
+from ms_drake.grasping.geometry import MeshData
+from ms_drake.grasping.samplers import (depth_normals, depth_to_points, sample_antipodal_grasps,
+                                        sample_antipodal_grasps_depth, sample_antipodal_grasps_point_cloud,
+                                        sample_suction_grasps, sample_suction_grasps_depth)
+from ms_drake.grasping.suction import SuctionEvaluator
+
+BOX = trimesh.creation.box(extents=(0.04, 0.06, 0.03))
+
+
+def pose_xyz_yaw(x, y, z, yaw):
+    X = np.eye(4)
+    c, s = np.cos(yaw), np.sin(yaw)
+    X[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+    X[:3, 3] = [x, y, z]
+    return X
+
+
+def test_mesh_antipodal_grasps_are_antipodal_narrow_unique_and_seeded():
+    X = pose_xyz_yaw(0.4, -0.1, 0.05, 0.3)
+    mu = 0.5
+    gs = sample_antipodal_grasps(BOX, X, 30, friction=mu, max_width=0.08, seed=1)
+    assert len(gs) == 30
+    again = sample_antipodal_grasps(BOX, X, 30, friction=mu, max_width=0.08, seed=1)
+    assert all(np.allclose(a.center, b.center) for a, b in zip(gs, again))
+    other = sample_antipodal_grasps(BOX, X, 30, friction=mu, max_width=0.08, seed=2)
+    assert not np.allclose(gs[0].center, other[0].center)
+    data = MeshData.of(BOX)
+    Xinv = np.linalg.inv(X)
+    cos_h = np.cos(np.arctan(mu))
+    for g in gs:
+        assert g.width <= 0.08 + 1e-12
+        go = g.transformed(Xinv)
+        t, f = data.raycast(np.stack([go.center - go.width / 2 * go.axis, go.center + go.width / 2 * go.axis]),
+                            np.stack([go.axis, -go.axis]), go.width)
+        assert np.all(f >= 0)
+        # both contact normals inside the friction cone about the axis
+        assert -data.normals[f[0]] @ go.axis >= cos_h - 1e-9 and data.normals[f[1]] @ go.axis >= cos_h - 1e-9
+        assert abs(g.approach @ g.axis) < 1e-9
+    centers = np.array([g.center for g in gs])
+    axes = np.array([g.axis for g in gs])
+    for i in range(len(gs)):
+        for j in range(i):
+            assert np.linalg.norm(centers[i] - centers[j]) >= 0.004 or abs(axes[i] @ axes[j]) <= np.cos(0.2)
+    # the 6 cm side needs a 6 cm + 2 cm opening: never with max_width 0.07
+    narrow = sample_antipodal_grasps(BOX, np.eye(4), 40, friction=0.3, max_width=0.07, seed=0)
+    assert all(abs(g.axis[1]) < 0.9 for g in narrow)
+
+
+def test_point_cloud_sampler():
+    rng = np.random.default_rng(0)
+    pts, faces = trimesh.sample.sample_surface(BOX, 3000, seed=0)
+    normals = BOX.face_normals[faces]
+    gs = sample_antipodal_grasps_point_cloud(pts, normals, 20, friction=0.3, max_width=0.1, seed=0)
+    assert len(gs) >= 10
+    ev = GraspEvaluator("soft_point", friction=0.8)
+    qualities = [ev.quality(BOX, np.eye(4), g, 0.1) for g in gs]
+    assert np.mean(qualities) > 0.5
+    del rng
+
+
+def _render_depth(mesh, X_WO, K, X_WC, h, w):
+    """Depth image by ray casting the mesh (camera z forward)."""
+    data = MeshData.of(mesh)
+    u, v = np.meshgrid(np.arange(w), np.arange(h))
+    d_C = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, float)], -1).reshape(-1, 3)
+    X_OC = np.linalg.inv(X_WO) @ X_WC
+    d_O = d_C @ X_OC[:3, :3].T
+    n = np.linalg.norm(d_O, axis=1, keepdims=True)
+    t, f = data.raycast(np.broadcast_to(X_OC[:3, 3], d_O.shape), d_O / n, np.inf)
+    z = t / n[:, 0]
+    return np.where(f >= 0, z, np.inf).reshape(h, w)
+
+
+def overhead_camera(height=0.5):
+    K = np.array([[300.0, 0, 64], [0, 300.0, 48], [0, 0, 1]])
+    X_WC = np.eye(4)
+    X_WC[:3, :3] = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]  # looking down
+    X_WC[:3, 3] = [0, 0, height]
+    return K, X_WC
+
+
+def test_depth_sampler_restricted_to_mask():
+    K, X_WC = overhead_camera()
+    X_WO = pose_xyz_yaw(0.0, 0.0, 0.015, 0.2)
+    other = pose_xyz_yaw(0.12, 0.0, 0.015, 0.0)
+    d1 = _render_depth(BOX, X_WO, K, X_WC, 96, 128)
+    d2 = _render_depth(BOX, other, K, X_WC, 96, 128)
+    depth = np.minimum(d1, d2)
+    mask = np.isfinite(d1) & (d1 <= d2)
+    assert mask.sum() > 100 and (np.isfinite(d2)).sum() > 100
+    gs = sample_antipodal_grasps_depth(depth, K, X_WC, mask, 10, friction=0.5, max_width=0.1, seed=0)
+    assert len(gs) >= 5
+    ev = GraspEvaluator("soft_point", friction=0.8)
+    for g in gs:
+        assert np.allclose(g.approach, [0, 0, -1], atol=1e-9)  # top-down
+        assert abs(g.axis[2]) < 1e-9
+        assert np.linalg.norm(g.center[:2] - X_WO[:2, 3]) < 0.04  # on the masked box, not the other
+        assert 0.0 < g.center[2] < 0.03
+    assert np.mean([ev.quality(BOX, X_WO, g, 0.1) for g in gs]) > 0.5
+    # points and normals of the depth image: the box top faces the camera
+    P = depth_to_points(depth, K)
+    N = depth_normals(P)
+    top = N[48, 64] @ X_WC[:3, :3].T
+    assert top @ [0, 0, 1] > 0.99
+    sg = sample_suction_grasps_depth(depth, K, X_WC, mask, 5, seed=0)
+    assert len(sg) == 5 and all(np.linalg.norm(s.point[:2] - X_WO[:2, 3]) < 0.04 for s in sg)
+
+
+def test_suction_seal_and_wrench():
+    ev = SuctionEvaluator(vacuum_force=30.0, cup_radius=0.01)
+    top = SuctionGrasp([0, 0, 0.015], [0, 0, -1])
+    r = ev.evaluate(BOX, np.eye(4), top, 0.2)
+    assert (r.quality, r.reason) == (1.0, "resisted")
+    edge = SuctionGrasp([0.015, 0, 0.015], [0, 0, -1])  # the cup overhangs the 2 cm edge
+    assert ev.evaluate(BOX, np.eye(4), edge, 0.2).reason == "no_seal"
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.012)
+    assert ev.evaluate(ball, np.eye(4), SuctionGrasp([0, 0, 0.012], [0, 0, -1]), 0.01).reason == "no_seal"
+    # heavier than the vacuum can hold
+    assert ev.evaluate(BOX, np.eye(4), top, 4.0).reason == "slips"
+    # side grasp far from the COM: the weight's moment exceeds the cup's restoring moment
+    side = SuctionGrasp([-0.02, 0.0, 0.0], [1, 0, 0])
+    big = trimesh.creation.box(extents=(0.04, 0.3, 0.03))
+    far = SuctionGrasp([-0.02, 0.13, 0.0], [1, 0, 0])
+    assert ev.quality(big, np.eye(4), side, 0.1) == 1.0
+    assert ev.evaluate(big, np.eye(4), far, 0.5).reason == "slips"
+    assert ev.evaluate(BOX, np.eye(4), SuctionGrasp([0, 0, 0.5], [0, 0, -1]), 0.2).reason == "miss"
+    rq = ev.evaluate(BOX, np.eye(4), SuctionGrasp([0.0105, 0, 0.015], [0, 0, -1]), 0.2, robust_samples=10, seed=0)
+    assert 0.0 < rq.quality < 1.0 and rq.trials == 10
+
+
+def test_suction_sampler():
+    gs = sample_suction_grasps(BOX, np.eye(4), 20, seed=0, max_approach_angle=0.3)
+    assert len(gs) == 20
+    assert all(g.approach @ [0, 0, -1] > np.cos(0.3) for g in gs)
+    assert all(abs(g.point[2] - 0.015) < 1e-9 for g in gs)
+    with pytest.raises(Exception):
+        ParallelJawGrasp([0, 0, 0], [0, 0, 0], [1, 0, 0], 0.05)
