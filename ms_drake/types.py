@@ -142,3 +142,17 @@ class Heap:
 
     def object_names(self) -> list[str]:
         return [o.name for o in self.objects]
+
+
+@dataclass(frozen=True, eq=False)
+class ObjectGeometry:
+    """Simulation ground truth for grasp planners: an object's surface mesh in its own frame
+    (vertices (V, 3) float, faces (F, 3) int), its 4x4 world pose, mass and optional centre of
+    mass (object frame; None = the mesh's volume centroid). `id` matches InstanceMasks.ids."""
+
+    id: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    X_WO: np.ndarray
+    mass: float
+    com: tuple[float, float, float] | None = None
