@@ -22,12 +22,14 @@ text leaves open, recorded here:
 
 from __future__ import annotations
 
+import atexit
 import weakref
 from dataclasses import dataclass
 
 import numpy as np
 
 _CACHE: dict[int, tuple[weakref.ref, "MeshData"]] = {}
+atexit.register(_CACHE.clear)  # free manifold3d objects before interpreter teardown (nanobind leak report)
 _CACHE_MAX = 64
 COLLISION_DEPTH = 1e-7  # m: an object this close to the open jaw's pad touches it already
 
