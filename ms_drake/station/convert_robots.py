@@ -494,7 +494,7 @@ def convert_panda():
             link.mass = 0.0
     frames = _fold_fixed_massless(links, keep=set())
     out = MODELS / "panda"
-    summary = write_model("panda", links, frames, out, {"base": ["panda_link0", "panda_link1"]}, set(), 0)
+    summary = write_model("panda", links, frames, out, {"base": ["panda_link0", "panda_link1"], "wrist": ["panda_link5", "panda_link6", "panda_link7"]}, set(), 0)
     notice = f"""Franka Emika Panda arm (7 DoF, without the Franka hand)
 Converted by ms_drake/station/convert_robots.py (python -m ms_drake.station.convert_robots --robot panda).
 
@@ -617,7 +617,9 @@ def convert_yumi():
         links[h].mass = 0.0
     frames = _fold_fixed_massless(links, keep=set())
     out = MODELS / "yumi"
-    groups = {"body": ["yumi_body", "yumi_link_1_r", "yumi_link_1_l", "yumi_link_2_r", "yumi_link_2_l"]}
+    groups = {"body": ["yumi_body", "yumi_link_1_r", "yumi_link_1_l", "yumi_link_2_r", "yumi_link_2_l"],
+              "wrist_r": ["yumi_link_5_r", "yumi_link_6_r", "yumi_link_7_r"],
+              "wrist_l": ["yumi_link_5_l", "yumi_link_6_l", "yumi_link_7_l"]}
     summary = write_model("yumi", links, frames, out, groups,
                           inertia_from_mesh=set(links), density=YUMI_DENSITY)
     notice = f"""ABB YuMi (IRB 14000), two 7-DoF arms, without grippers

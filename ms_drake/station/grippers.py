@@ -276,6 +276,10 @@ def parallel_jaw_sdf(config: ParallelJawConfig = ParallelJawConfig(), model_name
             "<dynamics><damping>0.5</damping></dynamics></axis>",
             "</joint>",
         ]
+    parts += ['<drake:collision_filter_group name="jaw">', "<drake:member>body</drake:member>",
+              "<drake:member>left_finger</drake:member>", "<drake:member>right_finger</drake:member>",
+              "<drake:ignored_collision_filter_group>jaw</drake:ignored_collision_filter_group>",
+              "</drake:collision_filter_group>"]
     return _sdf(model_name, "\n".join(parts))
 
 

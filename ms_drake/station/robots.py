@@ -147,8 +147,31 @@ def add_arm_gripper(plant, parser, robot_instance, robot_name: str, arm: str, gr
     if arm not in spec.arms:
         raise ScenarioError(f"robot {robot_name!r} has no arm {arm!r}; arms: {', '.join(spec.arms)}")
     a = spec.arms[arm]
-    return add_gripper(plant, parser, gripper_name or a.default_gripper,
-                       plant.GetFrameByName(a.flange, robot_instance), a.X_FG(), model_name)
+    flange = plant.GetFrameByName(a.flange, robot_instance)
+    gripper = add_gripper(plant, parser, gripper_name or a.default_gripper, flange, a.X_FG(), model_name)
+    exclude_gripper_wrist_collisions(plant, parser, gripper, flange.body())
+    return gripper
+
+
+def exclude_gripper_wrist_collisions(plant, parser, gripper_instance, flange_body, levels: int = 3):
+    """Filter collisions between the gripper's bodies and the last `levels` links of the arm (the
+    flange body and its parents): their convex hulls overlap by construction at the mount."""
+    sg = parser.scene_graph()
+    if sg is None or not plant.geometry_source_is_registered():
+        return
+    from pydrake.geometry import CollisionFilterDeclaration
+
+    wrist, body = [], flange_body
+    for _ in range(levels):
+        wrist.append(body)
+        joint = next((plant.get_joint(j) for j in plant.GetJointIndices(body.model_instance())
+                      if plant.get_joint(j).child_body().index() == body.index()), None)
+        if joint is None or joint.parent_body().index() == plant.world_body().index():
+            break
+        body = joint.parent_body()
+    tool = [plant.get_body(b) for b in plant.GetBodyIndices(gripper_instance)]
+    sg.collision_filter_manager().Apply(CollisionFilterDeclaration().ExcludeBetween(
+        plant.CollectRegisteredGeometries(wrist), plant.CollectRegisteredGeometries(tool)))
 
 
 def add_floating_gripper(plant, parser, gripper_name: str, X_WB=None, model_name: str | None = None):

@@ -1,0 +1,19 @@
+"""Motion: IK (Drake InverseKinematics), ruckig timing, Cartesian lines, trajectory streaming."""
+
+from ms_drake.planning.cartesian import (  # noqa: F401
+    CartesianPlan,
+    approach_pose,
+    ik_pose,
+    plan_approach,
+    plan_cartesian_line,
+    plan_lift,
+    plan_push,
+)
+from ms_drake.planning.ik import ArmIk, IkResult, make_ik_diagram  # noqa: F401
+from ms_drake.planning.streamer import DrakeTrajectoryAdapter, TimedTrajectory, TrajectoryStreamer  # noqa: F401
+from ms_drake.planning.trajectories import (  # noqa: F401
+    JointLimits,
+    JointTrajectory,
+    plan_joint_motion,
+    plan_path_motion,
+)

@@ -1,0 +1,94 @@
+"""Cartesian straight-line motions (approach, lift, push) as a sequence of IK solves.
+
+The tool frame moves along a straight line with a fixed orientation; every `step` metres the arm
+IK is solved seeded with the previous solution and no random restarts, so the joint path stays
+continuous (a jump larger than `max_joint_step` rad between successive solves counts as a
+failure: the line would pass a singularity or a branch change). The joint path is then timed by
+`plan_path_motion` under the arm's joint limits and the tool's Cartesian speed limit.
+A line that cannot be followed returns `CartesianPlan(success=False, status="unreachable", ...)`
+with the fraction of the line that was solved; nothing raises.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydrake.math import RigidTransform
+
+from ms_drake.planning.ik import ArmIk
+from ms_drake.planning.trajectories import JointLimits, JointTrajectory, plan_path_motion
+
+
+@dataclass(frozen=True, eq=False)
+class CartesianPlan:
+    success: bool
+    status: str  # ok | unreachable | collision
+    qs: np.ndarray  # (N, dof) joint path (the solved prefix when unsuccessful)
+    trajectory: JointTrajectory | None = None
+    fraction: float = 0.0  # of the line solved
+
+
+def plan_cartesian_line(ik: ArmIk, X_start: RigidTransform, displacement, q_start, limits: JointLimits,
+                        step: float = 0.01, max_joint_step: float = 0.3, axis_only: bool = False,
+                        max_speed: float = 0.25) -> CartesianPlan:
+    """Move the tool from X_start by `displacement` (world frame, metres) along a straight line."""
+    d = np.asarray(displacement, float)
+    length = float(np.linalg.norm(d))
+    n = max(1, int(np.ceil(length / step)))
+    qs = [np.asarray(q_start, float)]
+    restarts, ik.restarts = ik.restarts, 0
+    try:
+        for k in range(1, n + 1):
+            X = RigidTransform(X_start.rotation(), X_start.translation() + d * k / n)
+            res = ik.solve(X, q_seed=qs[-1], axis_only=axis_only)
+            if not res.success or np.max(np.abs(res.q - qs[-1])) > max_joint_step:
+                status = res.status if not res.success else "unreachable"
+                return CartesianPlan(False, status, np.array(qs), None, (k - 1) / n)
+            qs.append(res.q)
+    finally:
+        ik.restarts = restarts
+    Q = np.array(qs)
+    return CartesianPlan(True, "ok", Q, plan_path_motion(Q, limits, length, max_speed=max_speed), 1.0)
+
+
+def approach_pose(X_WT: RigidTransform, distance: float) -> RigidTransform:
+    """The pre-grasp pose `distance` back along the tool's approach axis (its +z)."""
+    z = X_WT.rotation().matrix()[:, 2]
+    return RigidTransform(X_WT.rotation(), X_WT.translation() - distance * z)
+
+
+def plan_approach(ik: ArmIk, X_WT: RigidTransform, limits: JointLimits, distance: float = 0.10,
+                  q_seed=None, axis_only: bool = False, **kw) -> tuple[np.ndarray | None, CartesianPlan]:
+    """IK at the pre-grasp pose, then a straight line along the approach axis to X_WT.
+    Returns (q_pregrasp or None, plan)."""
+    pre = approach_pose(X_WT, distance)
+    res = ik.solve(pre, q_seed=q_seed, axis_only=axis_only)
+    if not res.success:
+        return None, CartesianPlan(False, res.status, np.zeros((0, len(ik.idx))))
+    z = X_WT.rotation().matrix()[:, 2]
+    X_pre = ik_pose(ik, res.q) if axis_only else pre
+    return res.q, plan_cartesian_line(ik, X_pre, distance * z, res.q, limits, axis_only=axis_only, **kw)
+
+
+def plan_lift(ik: ArmIk, q_grasp, limits: JointLimits, height: float = 0.10, **kw) -> CartesianPlan:
+    """Straight up (world +z) by `height` from the tool pose at q_grasp."""
+    return plan_cartesian_line(ik, ik_pose(ik, q_grasp), [0, 0, height], q_grasp, limits, **kw)
+
+
+def plan_push(ik: ArmIk, q_start, direction, distance: float, limits: JointLimits, **kw) -> CartesianPlan:
+    """Straight push from the tool pose at q_start along `direction` (world) by `distance`."""
+    u = np.asarray(direction, float)
+    u = u / np.linalg.norm(u)
+    return plan_cartesian_line(ik, ik_pose(ik, q_start), u * distance, q_start, limits, **kw)
+
+
+def ik_pose(ik: ArmIk, q_arm) -> RigidTransform:
+    """Tool pose at arm joints q_arm (other joints at their current values)."""
+    old = ik.plant.GetPositions(ik.context).copy()
+    q = old.copy()
+    q[ik.idx] = q_arm
+    ik.plant.SetPositions(ik.context, q)
+    X = ik.frame.CalcPoseInWorld(ik.context)
+    ik.plant.SetPositions(ik.context, old)
+    return X
