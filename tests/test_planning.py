@@ -54,7 +54,8 @@ def test_ik_every_arm(robot, arm):
     pc = plant.GetMyMutableContextFromRoot(diagram.CreateDefaultContext())
     spec = ROBOTS[robot].arms[arm]
     ik = ArmIk(plant, pc, spec.joints, plant.GetFrameByName("tcp", g[arm]), seed=2)
-    mid = np.where(np.isfinite(ik.lower), (ik.lower + ik.upper) / 2, 0.0)
+    finite = np.isfinite(ik.lower) & np.isfinite(ik.upper)
+    mid = np.where(finite, (np.where(finite, ik.lower, 0) + np.where(finite, ik.upper, 0)) / 2, 0.0)
     q_goal = np.clip(mid + np.random.default_rng(3).uniform(-0.3, 0.3, len(mid)), ik.lower, ik.upper)
     X = ik_pose(ik, q_goal)
     res = ik.solve(X, q_seed=mid)
