@@ -308,11 +308,16 @@ def _decimate(m, faces: int):
 _WRITTEN: dict[str, Path] = {}  # obj text -> first file with that text (identical meshes shared)
 
 
-def _write_obj(m, path: Path) -> str:
-    """Write `m` as .obj unless an identical mesh was already written; returns the file name."""
+def _write_obj(m, path: Path, normals: bool = False) -> str:
+    """Write `m` as .obj unless an identical mesh was already written; returns the file name.
+    Visual meshes carry vertex normals (Drake's VTK renderer refuses OBJ files without)."""
     lines = ["# ms_drake convert_robots.py"]
     lines += [f"v {x:.5f} {y:.5f} {z:.5f}" for x, y, z in m.vertices]
-    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in m.faces]
+    if normals:
+        lines += [f"vn {x:.4f} {y:.4f} {z:.4f}" for x, y, z in m.vertex_normals]
+        lines += [f"f {a + 1}//{a + 1} {b + 1}//{b + 1} {c + 1}//{c + 1}" for a, b, c in m.faces]
+    else:
+        lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in m.faces]
     text = "\n".join(lines) + "\n"
     if text in _WRITTEN and _WRITTEN[text].parent == path.parent:
         return _WRITTEN[text].name
@@ -391,7 +396,7 @@ def write_model(robot: str, links: dict[str, Link], frames: dict[str, tuple[str,
         summary[name] = link.mass
         if vis is not None:
             vis = _decimate(vis, VISUAL_FACES)
-            vis_file = _write_obj(vis, out_dir / "meshes" / "visual" / f"{name}.obj")
+            vis_file = _write_obj(vis, out_dir / "meshes" / "visual" / f"{name}.obj", normals=True)
             rgba = " ".join(_fmt(c) for c in link.rgba)
             xml += ['    <visual name="visual">', "      <geometry><mesh><uri>"
                     f"{PKG}/{robot}/meshes/visual/{vis_file}</uri></mesh></geometry>",
@@ -699,6 +704,11 @@ def convert_fetch():
     # keep the gripper link's pose as a frame (the tool flange)
     frames_extra = {"gripper_link": ("wrist_roll_link", gripper.X_PL)}
     frames = _fold_fixed_massless(links, keep={"base_origin", "base_x_link", "base_yaw_link"})
+    # Tool flange: the outer face of wrist_roll_link's mesh along its x axis (where the Fetch gripper
+    # mounts); tools weld here instead of at gripper_link, which is the centre of the Fetch gripper.
+    wrist = links["wrist_roll_link"]
+    x_face = float(max(_mesh_union(wrist.collisions).vertices[:, 0]))
+    frames_extra["wrist_flange"] = ("wrist_roll_link", _tf(p=[round(x_face, 4), 0.0, 0.0]))
     frames.update(frames_extra)
     out = MODELS / "fetch"
     groups = {"torso": ["base_link", "torso_fixed_link", "torso_lift_link", "shoulder_pan_link", "head_pan_link"]}
@@ -713,9 +723,9 @@ from fetch_description (Fetch Robotics, BSD-3-Clause). This folder is a derivati
 
 Changes: the source's three slide joints are replaced by a planar base: joints base_x, base_y
 (prismatic, through massless links base_x_link and base_yaw_link) and base_yaw (revolute) above
-base_link; the model root is base_origin. The two-finger gripper was removed (the bluction tool
-welds to frame gripper_link, the source gripper_link pose on wrist_roll_link); estop and laser
-bodies removed; zero-mass camera bodies became frames (head_camera_*). MuJoCo's ref=0.06 on
+base_link; the model root is base_origin. The two-finger gripper was removed; frame gripper_link keeps
+its pose on wrist_roll_link and the new frame wrist_flange marks the outer face of wrist_roll_link
+along x (where tools such as the bluction weld); estop and laser bodies removed; zero-mass camera bodies became frames (head_camera_*). MuJoCo's ref=0.06 on
 head_tilt_joint is folded in (our angle = MuJoCo qpos - 0.06, limits shifted alike).
 Meshes: the source collision .stl decimated to <= {VISUAL_FACES} triangles for visuals; collision
 = convex hull per link (drake:declare_convex). Inertias from the source (fetch_description).
@@ -731,7 +741,7 @@ Link masses [kg]: {json.dumps({k: round(v, 4) for k, v in summary.items()})}
     for n in names:
         j = next(l.joint for l in links.values() if l.joint is not None and l.joint.name == n)
         lims.append((j.lower, j.upper))
-    bodies = [n for n in links if not n.startswith("base_")] + [f for f in frames if f != "gripper_link"]
+    bodies = [n for n in links if not n.startswith("base_")] + [f for f in frames if f not in frames_extra]
     wrapper = f"""<mujoco><compiler angle="radian" meshdir="{meshdir}" texturedir="{src / "textures"}"/>
       <include file="{src / 'fetch' / 'shared.xml'}"/>
       <worldbody><include file="{src / 'fetch' / 'robot.xml'}"/></worldbody></mujoco>"""

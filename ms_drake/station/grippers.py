@@ -204,17 +204,24 @@ def pad_prism_obj(pads: PadConfig) -> str:
         raise ScenarioError("PadConfig.polygon must be convex (its convex hull drops points)")
     n = len(pts)
     t = pads.thickness / 2
-    lines = ["# ms_drake pad prism"]
-    for x in (-t, t):
-        lines += [f"v {x:.6g} {u:.6g} {v:.6g}" for u, v in pts]
-    # side faces and caps (orientation is irrelevant for a declared-convex mesh)
-    for i in range(n):
+    if np.cross(pts[1] - pts[0], pts[2] - pts[1]) < 0:  # counter-clockwise in (u, v)
+        pts = pts[::-1]
+    V = [(x, u, v) for x in (-t, t) for u, v in pts]
+    faces = []  # outward-facing triangles (vertex indices) with their normals
+    for i in range(n):  # sides
         j = (i + 1) % n
-        lines.append(f"f {i + 1} {j + 1} {n + j + 1}")
-        lines.append(f"f {i + 1} {n + j + 1} {n + i + 1}")
-    for i in range(1, n - 1):
-        lines.append(f"f 1 {i + 2} {i + 1}")
-        lines.append(f"f {n + 1} {n + i + 1} {n + i + 2}")
+        du, dv = pts[j] - pts[i]
+        normal = (0.0, dv, -du)
+        faces += [((i, j, n + j), normal), ((i, n + j, n + i), normal)]
+    for i in range(1, n - 1):  # caps at x = -t (normal -x) and x = +t (normal +x)
+        faces += [((0, i + 1, i), (-1.0, 0.0, 0.0)), ((n, n + i, n + i + 1), (1.0, 0.0, 0.0))]
+    lines = ["# ms_drake pad prism"]
+    lines += [f"v {x:.6g} {u:.6g} {v:.6g}" for x, u, v in V]
+    for k, (_, nrm) in enumerate(faces):
+        nrm = np.asarray(nrm) / np.linalg.norm(nrm)
+        lines.append(f"vn {nrm[0]:.6g} {nrm[1]:.6g} {nrm[2]:.6g}")
+    for k, (f, _) in enumerate(faces):
+        lines.append("f " + " ".join(f"{a + 1}//{k + 1}" for a in f))
     return "\n".join(lines) + "\n"
 
 

@@ -12,7 +12,8 @@ the gripper's `body` frame G, whose +z is the approach direction, see grippers.p
   * YuMi: F = yumi_link_7_r / yumi_link_7_l; X_FG = RotZ(pi), 7 mm along z (the gripper base
     offset of ROS yumi_description). Defaults: parallel_jaw on the right arm, suction_cup on the
     left arm (the reference's YuMi carries one of each; which arm is not stated).
-  * Fetch: F = gripper_link (the Fetch gripper's pose on wrist_roll_link; x out of the wrist);
+  * Fetch: F = wrist_flange (outer face of wrist_roll_link, x out of the wrist; the converter adds
+    it; gripper_link, the removed Fetch gripper's centre, is 0.147 m further out);
     X_FG = RotY(pi/2) so the tool's +z points along the wrist's x. Default gripper: bluction.
 Roots: Panda panda_link0 and YuMi yumi_body are welded to the world at X_WR; the Fetch's
 `base_origin` is welded to the world at X_WR and the planar joints base_x, base_y, base_yaw move
@@ -92,7 +93,7 @@ ROBOTS: dict[str, RobotSpec] = {
         arms={"fetch": ArmSpec(
             joints=("torso_lift_joint", "shoulder_pan_joint", "shoulder_lift_joint", "upperarm_roll_joint",
                     "elbow_flex_joint", "forearm_roll_joint", "wrist_flex_joint", "wrist_roll_joint"),
-            flange="gripper_link", X_FG_rpy_xyz=((0, np.pi / 2, 0), (0, 0, 0)), default_gripper="bluction",
+            flange="wrist_flange", X_FG_rpy_xyz=((0, np.pi / 2, 0), (0, 0, 0)), default_gripper="bluction",
             velocity_limits=(0.1, 1.256, 1.454, 1.571, 1.521, 1.571, 2.268, 2.268),
             # fetch_description gives no acceleration limits; conservative choices (MoveIt config
             # of the Fetch uses 1.5 rad/s^2 for the arm).
