@@ -1,0 +1,43 @@
+"""simulate_grasp: compliant hydroelastic jaws close, lift and report (one plant per call)."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from ms_drake.grasping import GraspError, ParallelJawGrasp
+from ms_drake.grasping.physics import PadConfig, label_grasp, simulate_grasp
+
+BOX = trimesh.creation.box(extents=(0.04, 0.06, 0.03))
+X = np.eye(4)
+X[2, 3] = 0.1
+CENTER = ParallelJawGrasp([0, 0, 0.1], [1, 0, 0], [0, 0, -1], 0.07)
+
+
+def test_friction_limit_decides_the_lift():
+    """Two pads squeezing with f_C and mu hold at most 2 mu f_C / g = 1.63 kg."""
+    light = simulate_grasp(BOX, X, CENTER, 0.8, closing_force=10.0)
+    heavy = simulate_grasp(BOX, X, CENTER, 2.5, closing_force=10.0)
+    assert light.success and light.contact and light.lifted > 0.07 and light.slip < 1e-3
+    assert not heavy.success and heavy.contact and heavy.slip > 0.02
+
+
+def test_miss_and_seeded_perturbations():
+    miss = ParallelJawGrasp([0, 0, 0.2], [1, 0, 0], [0, 0, -1], 0.07)
+    out = simulate_grasp(BOX, X, miss, 0.3)
+    assert not out.success and not out.contact
+    a = label_grasp(BOX, X, CENTER, 0.3, trials=2, seed=5)
+    b = label_grasp(BOX, X, CENTER, 0.3, trials=2, seed=5)
+    assert [o.slip for o in a] == [o.slip for o in b]  # same seed, same physics
+    assert all(o.success for o in a)
+
+
+def test_polygon_pad_and_bad_input():
+    hexagon = tuple((0.01 * np.cos(t), 0.01 * np.sin(t)) for t in np.linspace(0, 2 * np.pi, 7)[:-1])
+    out = simulate_grasp(BOX, X, CENTER, 0.3, pad=PadConfig(polygon=hexagon, hydroelastic_modulus=3e5))
+    assert out.success
+    with pytest.raises(GraspError, match="PadConfig.depth"):
+        PadConfig(depth=0.0)
+    open_box = BOX.copy()
+    open_box.update_faces(np.arange(12) != 0)
+    with pytest.raises(GraspError, match="watertight"):
+        simulate_grasp(open_box, X, CENTER, 0.3)
