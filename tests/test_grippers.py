@@ -17,7 +17,7 @@ from ms_drake.paths import make_parser, models_dir
 from ms_drake.station.grippers import (BluctionConfig, PadConfig, ParallelJawConfig, bluction_sdf,
                                        gripper_spec, parallel_jaw_sdf, write_default_models)
 from ms_drake.station.robots import (FLOATING_JOINTS, ROBOTS, add_arm_gripper, add_floating_gripper,
-                                     add_robot)
+                                     add_robot, floating_gripper_positions)
 
 
 def box_sdf(mass, size=0.05, name="box"):
@@ -168,6 +168,11 @@ def test_floating_gripper_has_six_actuated_joints():
     X = plant.GetFrameByName("body", grip).CalcPoseInWorld(ctx)
     np.testing.assert_allclose(X.translation(), [0.1, 0.2, 0.3], atol=1e-12)
     np.testing.assert_allclose(X.rotation().matrix()[:, 2], [0, 0, -1], atol=1e-12)
+    from pydrake.math import RollPitchYaw
+    target = RigidTransform(RollPitchYaw(0.3, -0.7, 2.0), [0.2, -0.1, 0.4])
+    plant.SetPositions(ctx, base, floating_gripper_positions(target))
+    X = plant.GetFrameByName("body", grip).CalcPoseInWorld(ctx)
+    np.testing.assert_allclose(X.GetAsMatrix4(), target.GetAsMatrix4(), atol=1e-12)
 
 
 def test_unknown_names_list_the_valid_ones():

@@ -13,8 +13,8 @@ from pydrake.systems.primitives import Multiplexer
 
 from ms_drake.paths import make_parser
 from ms_drake.planning import (ArmIk, JointLimits, TimedTrajectory, TrajectoryStreamer, ik_pose,
-                               make_ik_diagram, plan_cartesian_line, plan_joint_motion, plan_lift,
-                               plan_path_motion)
+                               make_ik_diagram, plan_approach, plan_cartesian_line, plan_joint_motion,
+                               plan_lift, plan_path_motion, plan_push)
 from ms_drake.station.robots import ROBOTS, add_robot
 
 Q_PANDA = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 1.9, 0.785])
@@ -131,6 +131,22 @@ def test_cartesian_lift_is_a_straight_line(panda):
     # a line into the table fails with a status, not an exception
     down = plan_cartesian_line(ik, X0, [0, 0, -1.0], Q_PANDA, limits, step=0.05)
     assert not down.success and 0 < down.fraction < 1
+
+
+@pytest.mark.parametrize("axis_only", [False, True])
+def test_approach_then_push(panda, axis_only):
+    _, _, ik = panda
+    limits = JointLimits.for_arm("panda")
+    X_grasp = RigidTransform(RollPitchYaw(np.pi, 0, 0.4), [0.45, -0.1, 0.04])
+    q_pre, plan = plan_approach(ik, X_grasp, limits, distance=0.1, q_seed=Q_PANDA, axis_only=axis_only)
+    assert q_pre is not None and plan.success
+    X_end = ik_pose(ik, plan.trajectory.final())
+    assert np.linalg.norm(X_end.translation() - X_grasp.translation()) < 2e-3
+    assert ik_pose(ik, q_pre).translation()[2] == pytest.approx(0.14, abs=2e-3)  # 10 cm above
+    push = plan_push(ik, plan.trajectory.final(), [1, 0, 0], 0.1, limits)
+    assert push.success
+    p = ik_pose(ik, push.trajectory.final()).translation()
+    np.testing.assert_allclose(p, X_end.translation() + [0.1, 0, 0], atol=2e-3)
 
 
 def test_streamer_unit_outputs_trajectory_samples():

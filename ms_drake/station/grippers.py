@@ -29,7 +29,8 @@ suction cup at the tip.
 
 Floating gripper: any gripper welded to `floating_yaw_link` of a `floating_base` model with 6
 PD-actuated joints floating_x, floating_y, floating_z (prismatic, world axes) and floating_roll,
-floating_pitch, floating_yaw (revolute x, y, z in that chain order). Its actuators carry
+floating_pitch, floating_yaw (revolute x, y, z in that chain order, so R_WG = Rx Ry Rz;
+`robots.floating_gripper_positions(X_WG)` converts a pose). Its actuators carry
 `drake:controller_gains`, so a discrete (SAP) plant drives them by its desired-state input.
 """
 

@@ -195,3 +195,15 @@ def add_floating_gripper(plant, parser, gripper_name: str, X_WB=None, model_name
 
 
 FLOATING_JOINTS = ("floating_x", "floating_y", "floating_z", "floating_roll", "floating_pitch", "floating_yaw")
+
+
+def floating_gripper_positions(X_WG) -> np.ndarray:
+    """Joint positions [x, y, z, roll, pitch, yaw] of the floating base that put the gripper's
+    `body` frame at X_WG. The revolute chain is roll about x, then pitch about the rolled y, then
+    yaw about the resulting z, so R_WG = Rx(roll) Ry(pitch) Rz(yaw) (intrinsic x-y-z Euler angles,
+    not Drake's extrinsic RollPitchYaw)."""
+    from scipy.spatial.transform import Rotation
+
+    R = X_WG.rotation().matrix()
+    rpy = Rotation.from_matrix(R).as_euler("XYZ")
+    return np.concatenate([X_WG.translation(), rpy])
