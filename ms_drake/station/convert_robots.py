@@ -13,6 +13,16 @@ Sources (pip install them into the converter venv, e.g. /work/venvs/robots):
          inertias; zero-mass camera bodies become frames.
 Converter needs: numpy, scipy, trimesh, fast-simplification (decimation), pycollada (.dae), mujoco
 (reference kinematics of the MJCF sources) and drake (reference kinematics of the Panda URDF).
+The venv used for the committed files (only the model assets of the three source packages are
+read, so they are installed without their dependencies):
+
+    python3.11 -m venv /work/venvs/robots
+    /work/venvs/robots/bin/pip install --no-deps example-robot-data==6.0.0 robosuite-models==1.0.0 \
+        gymnasium-robotics==1.4.2
+    /work/venvs/robots/bin/pip install numpy==2.4.6 scipy==1.17.1 trimesh==5.2.0 manifold3d==3.5.4 \
+        fast-simplification==0.2.0 pycollada==0.9.3 mujoco==4.0.0 drake==1.51.1
+    cd <checkout> && /work/venvs/robots/bin/python -m ms_drake.station.convert_robots --robot all
+The output is deterministic (re-running reproduces the committed files byte for byte).
 
 What the converter does, robot by robot:
   * reads the source kinematic tree (its own small URDF / MJCF readers, see `read_urdf`,
@@ -382,7 +392,6 @@ def write_model(robot: str, links: dict[str, Link], frames: dict[str, tuple[str,
             hull = _hull(col_src)
             col_file = _write_obj(hull, out_dir / "meshes" / "collision" / f"{name}.obj")
         if name in inertia_from_mesh and hull is not None:
-            mp = hull.mass_properties
             link.mass = float(hull.volume * density)
             link.com = np.asarray(hull.center_mass)
             link.inertia = np.asarray(hull.moment_inertia) * density  # trimesh: unit density
@@ -474,10 +483,6 @@ def _fold_fixed_massless(links: dict[str, Link], keep: set[str]) -> dict[str, tu
         while att in frames:
             att, X = frames[att][0], frames[att][1] @ X
         frames[fname] = (att, X)
-    return frames
-
-
-def _frame_poses(links, frames) -> dict[str, tuple[str, np.ndarray]]:
     return frames
 
 
@@ -615,8 +620,6 @@ def convert_yumi():
             num = l.joint.name.split("_")[2]
             l.joint.velocity, l.joint.effort = VELOCITY_LIMITS["yumi"][num]
             l.rgba = (0.85, 0.85, 0.85, 1.0) if num in ("1", "3", "5", "6") else (0.6, 0.6, 0.62, 1.0)
-        for v in l.visuals:
-            pass
     links["yumi_body"].rgba = (0.85, 0.85, 0.85, 1.0)
     for h in ("right_hand", "left_hand"):
         links[h].mass = 0.0

@@ -111,15 +111,29 @@ def robot_spec(name: str) -> RobotSpec:
     return ROBOTS[name]
 
 
+def _add_file(parser, path):
+    """Parse one model file with auto-renaming on (several grippers of one kind may coexist),
+    restoring the parser's previous auto-renaming setting."""
+    from ms_drake.errors import ModelNotFoundError
+
+    if not path.is_file():
+        raise ModelNotFoundError(f"model file {path} is missing; regenerate it (robots: python -m "
+                                 "ms_drake.station.convert_robots; grippers: python -m ms_drake.station.grippers)")
+    old = parser.GetAutoRenaming()
+    parser.SetAutoRenaming(True)
+    try:
+        (instance,) = parser.AddModels(str(path))
+    finally:
+        parser.SetAutoRenaming(old)
+    return instance
+
+
 def add_robot(plant, parser, robot_name: str, X_WR=None, model_name: str | None = None):
     """Add robot `robot_name`, weld its root to the world at X_WR; returns its ModelInstanceIndex."""
     from pydrake.math import RigidTransform
 
     spec = robot_spec(robot_name)
-    path = models_dir() / spec.file
-    if model_name is not None:
-        parser.SetAutoRenaming(True)
-    (instance,) = parser.AddModels(str(path))
+    instance = _add_file(parser, models_dir() / spec.file)
     if model_name is not None:
         plant.RenameModelInstance(instance, model_name)
     plant.WeldFrames(plant.world_frame(), plant.GetFrameByName(spec.root, instance),
@@ -132,8 +146,7 @@ def add_gripper(plant, parser, gripper_name: str, weld_to_frame, X_FG=None, mode
     from pydrake.math import RigidTransform
 
     spec = gripper_spec(gripper_name)
-    parser.SetAutoRenaming(True)
-    (instance,) = parser.AddModels(str(models_dir() / spec.file))
+    instance = _add_file(parser, models_dir() / spec.file)
     if model_name is not None:
         plant.RenameModelInstance(instance, model_name)
     plant.WeldFrames(weld_to_frame, plant.GetFrameByName("body", instance),
@@ -183,8 +196,7 @@ def add_floating_gripper(plant, parser, gripper_name: str, X_WB=None, model_name
     """
     from pydrake.math import RigidTransform
 
-    parser.SetAutoRenaming(True)
-    (base,) = parser.AddModels(str(models_dir() / "grippers" / "floating_base.sdf"))
+    base = _add_file(parser, models_dir() / "grippers" / "floating_base.sdf")
     if model_name is not None:
         plant.RenameModelInstance(base, f"{model_name}_base")
     plant.WeldFrames(plant.world_frame(), plant.GetFrameByName("floating_origin_link", base),
