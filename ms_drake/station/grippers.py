@@ -205,7 +205,8 @@ def pad_prism_obj(pads: PadConfig) -> str:
         raise ScenarioError("PadConfig.polygon must be convex (its convex hull drops points)")
     n = len(pts)
     t = pads.thickness / 2
-    if np.cross(pts[1] - pts[0], pts[2] - pts[1]) < 0:  # counter-clockwise in (u, v)
+    a, b = pts[1] - pts[0], pts[2] - pts[1]
+    if a[0] * b[1] - a[1] * b[0] < 0:  # make the outline counter-clockwise in (u, v)
         pts = pts[::-1]
     V = [(x, u, v) for x in (-t, t) for u, v in pts]
     faces = []  # outward-facing triangles (vertex indices) with their normals
