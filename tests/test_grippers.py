@@ -100,9 +100,12 @@ def test_pads_are_configurable_and_polygon_pads_parse(tmp_path):
     poly = ParallelJawConfig(pads=PadConfig(polygon=hexagon))
     text = parallel_jaw_sdf(poly, mesh_dir=tmp_path)
     assert "drake:declare_convex" in text and list(tmp_path.glob("pad_*.obj"))
-    plant = MultibodyPlant(1e-3)
+    builder = DiagramBuilder()  # with a SceneGraph, so the compliant convex pad is meshed
+    plant, _ = AddMultibodyPlant(MultibodyPlantConfig(time_step=1e-3, contact_model="hydroelastic_with_fallback"),
+                                 builder)
     make_parser(plant).AddModelsFromString(text, "sdf")
     plant.Finalize()
+    builder.Build()
     assert plant.num_actuators() == 2
     with pytest.raises(ScenarioError, match="mu_dynamic"):
         PadConfig(mu_static=0.3, mu_dynamic=0.5)

@@ -235,7 +235,7 @@ def _pad_geometry(pads: PadConfig, mesh_dir: Path | None, uri_prefix: str | None
     target = mesh_dir if mesh_dir is not None else Path(tempfile.gettempdir()) / "ms_drake_pads"
     target.mkdir(parents=True, exist_ok=True)
     (target / name).write_text(text)
-    uri = f"{uri_prefix}/{name}" if uri_prefix else str(target / name)
+    uri = f"{uri_prefix}/{name}" if uri_prefix else f"file://{(target / name).resolve()}"
     return f"<mesh><uri>{uri}</uri><drake:declare_convex/></mesh>"
 
 
