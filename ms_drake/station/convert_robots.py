@@ -27,7 +27,7 @@ The output is deterministic (re-running reproduces the committed files byte for 
 What the converter does, robot by robot:
   * reads the source kinematic tree (its own small URDF / MJCF readers, see `read_urdf`,
     `read_mjcf`) into `Link` records with poses at the zero configuration;
-  * visual meshes -> one decimated .obj per link (at most `VISUAL_FACES` triangles), geometry
+  * visual meshes -> one decimated .obj per link (at most `VISUAL_FACES[robot]` triangles), geometry
     baked into the link frame so the SDF needs no geometry poses;
   * collision -> one convex hull .obj per link, declared with `<drake:declare_convex/>`;
   * inertia: kept where the source has real values; where it has placeholders (YuMi) it is
@@ -67,7 +67,7 @@ MODELS = REPO / "models" / "robots"
 TESTDATA = REPO / "tests" / "data"
 PKG = "package://ms_drake_models/robots"
 
-VISUAL_FACES = 3000  # decimation target per link (triangles)
+VISUAL_FACES = {"panda": 3000, "yumi": 6000, "fetch": 3000}  # decimation target per link (triangles)
 HULL_MAX_VERTICES = 120  # collision hull: computed on a mesh decimated to about this many
 YUMI_DENSITY = 1000.0  # kg/m^3 on the convex hull of the coarse link mesh (hollow cast links)
 SEED = 20260701
@@ -404,7 +404,7 @@ def write_model(robot: str, links: dict[str, Link], frames: dict[str, tuple[str,
                     "      </inertia>", "    </inertial>"]
         summary[name] = link.mass
         if vis is not None:
-            vis = _decimate(vis, VISUAL_FACES)
+            vis = _decimate(vis, VISUAL_FACES[robot])
             vis_file = _write_obj(vis, out_dir / "meshes" / "visual" / f"{name}.obj", normals=True)
             rgba = " ".join(_fmt(c) for c in link.rgba)
             xml += ['    <visual name="visual">', "      <geometry><mesh><uri>"
@@ -515,7 +515,7 @@ https://www.apache.org/licenses/LICENSE-2.0 ; it applies to the meshes and kinem
 data in this folder, which are a derivative work (format conversion).
 
 Changes: the hand and fingers were removed (ms_drake welds its own grippers to frame
-panda_link8, the flange); .dae visual meshes converted to .obj and decimated to <= {VISUAL_FACES}
+panda_link8, the flange); .dae visual meshes converted to .obj and decimated to <= {VISUAL_FACES["panda"]}
 triangles; collision geometry is the convex hull of each franka_ros collision .stl
 (drake:declare_convex). Inertias, joint position, velocity and effort limits are franka_ros values.
 Link masses [kg]: {json.dumps({k: round(v, 4) for k, v in summary.items()})}
@@ -638,7 +638,7 @@ meshes/*.stl full, meshes/coarse/*.stl coarse), https://github.com/ARISE-Initiat
 Licence: MIT (robosuite-models). The YuMi geometry derives from ROS yumi_description
 (OrebroUniversity/yumi, BSD-2-Clause). This folder is a derivative work (format conversion).
 
-Changes: full .stl visual meshes decimated to <= {VISUAL_FACES} triangles and written as .obj;
+Changes: full .stl visual meshes decimated to <= {VISUAL_FACES["yumi"]} triangles and written as .obj;
 collision = convex hull of each coarse .stl (drake:declare_convex). The source inertias are
 placeholders (2 kg, 0.1 kg m^2 on every link), so every inertia was recomputed from the convex hull
 of the coarse mesh at a uniform density of {YUMI_DENSITY:g} kg/m^3 (hollow cast links; the arm then
@@ -730,7 +730,7 @@ base_link; the model root is base_origin. The two-finger gripper was removed; fr
 its pose on wrist_roll_link and the new frame wrist_flange marks the outer face of wrist_roll_link
 along x (where tools such as the bluction weld); estop and laser bodies removed; zero-mass camera bodies became frames (head_camera_*). MuJoCo's ref=0.06 on
 head_tilt_joint is folded in (our angle = MuJoCo qpos - 0.06, limits shifted alike).
-Meshes: the source collision .stl decimated to <= {VISUAL_FACES} triangles for visuals; collision
+Meshes: the source collision .stl decimated to <= {VISUAL_FACES["fetch"]} triangles for visuals; collision
 = convex hull per link (drake:declare_convex). Inertias from the source (fetch_description).
 Velocity / effort limits (absent from the MJCF) from fetch_description:
 {json.dumps(VELOCITY_LIMITS['fetch'])}.
