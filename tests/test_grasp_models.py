@@ -198,14 +198,21 @@ def test_reach_structure_23_constraints_per_triangle():
     patches, reason = jaw_patches(data, CENTER.center, CENTER.axis, CENTER.approach, CENTER.width,
                                   ev.pad.polygon, ev.deformation)
     assert reason == "" and len(patches) == 2
-    blocks = reach_contact(patches[0], data.centroid, 0.5, 10.0)
+    (p,) = reach_contact(patches[0], data.centroid, 0.5, 10.0)
     n_tri = min(10, len(patches[0].areas))
-    assert len(blocks) == 2 * n_tri
-    explicit = sum(b.A.shape[0] + np.isfinite(b.lb).sum() + np.isfinite(b.ub).sum() for b in blocks)
+    assert len(p.blocks) == 2 * n_tri and p.G.shape[1] == 19 * n_tri
+    explicit = p.A.shape[0] + np.isfinite(p.lb).sum() + np.isfinite(p.ub).sum()
     assert explicit == 21 * n_tri
-    # tau_x = tau_y = 0 in each triangle frame: generator torques about the barycentre lie along n
-    fz = sum(b.G[:3, 0] @ -patches[0].normals[0] for b in blocks[::2])
-    assert fz == pytest.approx(10.0)  # k normalizes the kept triangles to f_C (line 183)
+    # the normal generators carry f_z,max along each triangle's inward normal and sum to f_C
+    order = np.argsort(-patches[0].areas)[:n_tri]
+    fz = [p.G[:3, 19 * i] @ -patches[0].normals[order[i]] for i in range(n_tri)]
+    assert sum(fz) == pytest.approx(10.0)  # k normalizes the kept triangles to f_C (line 183)
+    # tau_x = tau_y = 0 in each triangle frame: ellipsoid torques about the barycentre lie along n
+    bary = patches[0].triangles[order].mean(axis=1)
+    for i in range(n_tri):
+        cols = p.G[:, 19 * i + 1: 19 * i + 19]
+        tau_b = cols[3:] - np.cross(bary[i] - data.centroid, cols[:3].T).T
+        assert np.allclose(np.cross(tau_b.T, patches[0].normals[order[i]]), 0, atol=1e-12)
 
 
 def test_patch_is_pad_square_and_pressure_peaks_at_first_contact():
@@ -270,3 +277,36 @@ def test_6dfc_planar_patch_fit_matches_limit_surface():
     mean_r = 0.3826 * s  # mean distance from the centre of a square of side s
     assert fx_axis == pytest.approx(mu, rel=0.1)
     assert tz_axis == pytest.approx(mu * mean_r, rel=0.15)
+
+
+def test_clipped_patches_equal_the_csg_boolean():
+    """The fast triangle clipper and the manifold3d boolean give the same patches."""
+    from ms_drake.grasping.geometry import jaw_patches_clip, jaw_patches_csg
+    from ms_drake.grasping.samplers import sample_antipodal_grasps
+    from ms_drake.objects import get_object
+
+    meshes = [trimesh.creation.icosphere(subdivisions=2, radius=0.03),
+              trimesh.creation.cylinder(radius=0.025, height=0.08, sections=20),
+              get_object("procedural/packaged_002").trimesh()]
+    pad = PadGeometry().polygon
+    seen = set()
+    for k, mesh in enumerate(meshes):
+        data = MeshData.of(mesh)
+        grasps = sample_antipodal_grasps(mesh, np.eye(4), 12, friction=0.8, max_width=0.12, seed=k,
+                                         center_noise=0.012, approach=None)
+        grasps.append(ParallelJawGrasp(data.centroid + [0, 0, 0.3], [1, 0, 0], [0, 0, -1], 0.1))  # miss
+        grasps.append(ParallelJawGrasp(data.centroid, [1, 0, 0], [0, 0, -1], 0.01))  # collision
+        for g in grasps:
+            a, ra = jaw_patches_clip(data, g.center, g.axis, g.approach, g.width, pad, 0.003)
+            b, rb = jaw_patches_csg(data, g.center, g.axis, g.approach, g.width, pad, 0.003)
+            assert ra == rb, (k, g)
+            seen.add(ra)
+            if a is None:
+                continue
+            for pa, pb in zip(a, b):
+                assert pa.area == pytest.approx(pb.area, rel=1e-5, abs=1e-11)
+                assert pa.d_con == pytest.approx(pb.d_con, abs=1e-7)  # manifold3d snaps to ~1e-9
+                fa = (pa.areas[:, None] * pa.pressure_at_vertices()).sum()
+                fb = (pb.areas[:, None] * pb.pressure_at_vertices()).sum()
+                assert fa == pytest.approx(fb, rel=1e-4, abs=1e-14)
+    assert {"", "miss", "jaw_collision"} <= seen

@@ -89,7 +89,8 @@ class GraspEvaluator:
       max_triangles (REACH), default 10
       k1, k2 (MFE/6DFC rotation and translation samples), default 60, 30
       cone_planes (MFE/6DFC extra tangent planes), default 64
-      solver: auto | nnls | clarabel | osqp (auto: NNLS for vertex-form models, Clarabel else)
+      solver: auto | support | nnls | clarabel | osqp | naive (auto: the support-function path for
+        point / soft point / elliptical / REACH, Clarabel on the MathematicalProgram for MFE / 6DFC)
       sigma_t (m), sigma_r (rad), sigma_friction, sigma_mass (relative): robust perturbations,
         default 0.003, 0.05, 0.1, 0.1
     """

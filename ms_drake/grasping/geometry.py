@@ -99,6 +99,9 @@ class MeshData:
             self.length_scale = max(0.5 * float(np.linalg.norm(hi - lo)), 1e-3)
         else:
             self.length_scale = 1e-3
+        # bounding spheres of the triangles, to cull ray candidates
+        self.tri_center = tri.mean(axis=1)
+        self.tri_radius = np.linalg.norm(tri - self.tri_center[:, None, :], axis=2).max(axis=1) + 1e-12
         self._manifold = None
         self._face_normal_by_id = None
 
@@ -117,30 +120,47 @@ class MeshData:
 
     # ---------------------------------------------------------------- rays
     def raycast(self, origins: np.ndarray, directions: np.ndarray, max_distance) -> tuple[np.ndarray, np.ndarray]:
-        """First hit of each ray (Moller-Trumbore over all triangles, vectorized).
+        """First hit of each ray (Moller-Trumbore, vectorized over the triangles whose bounding
+        sphere meets the ray's line).
 
         origins, directions: (R, 3) (directions unit); max_distance: scalar or (R,).
         Returns (t, face): distance (inf if none within (0, max_distance]) and face index (-1).
         """
-        o = np.atleast_2d(origins)[:, None, :]
-        d = np.atleast_2d(directions)[:, None, :]
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            p = cross(d, self.e2[None])
-            det = np.einsum("rtk,tk->rt", p, self.e1)
-            inv = 1.0 / det
-            s = o - self.v0[None]
-            u = np.einsum("rtk,rtk->rt", s, p) * inv
-            q = cross(s, self.e1[None])
-            v = np.einsum("rtk,rtk->rt", d, q) * inv
-            t = np.einsum("tk,rtk->rt", self.e2, q) * inv
-            eps = 1e-12
-            ok = (np.abs(det) > 1e-18) & (u >= -eps) & (v >= -eps) & (u + v <= 1 + eps) & (t > 1e-9)
-        t = np.where(ok, t, np.inf)
-        face = np.argmin(t, axis=1)
-        tmin = t[np.arange(len(face)), face]
-        tmin = np.where(tmin <= np.broadcast_to(max_distance, tmin.shape), tmin, np.inf)
-        face = np.where(np.isfinite(tmin), face, -1)
-        return tmin, face
+        origins = np.atleast_2d(np.asarray(origins, float))
+        directions = np.atleast_2d(np.asarray(directions, float))
+        R = len(origins)
+        maxd = np.broadcast_to(np.asarray(max_distance, float), (R,))
+        t_out = np.full(R, np.inf)
+        f_out = np.full(R, -1, dtype=np.int64)
+        if len(self.faces) == 0:
+            return t_out, f_out
+        for r in range(R):
+            o, d = origins[r], directions[r]
+            rel = self.tri_center - o
+            along = rel @ d
+            perp2 = np.einsum("ij,ij->i", rel, rel) - along * along
+            cand = np.nonzero((perp2 <= self.tri_radius ** 2) & (along >= -self.tri_radius))[0]
+            if len(cand) == 0:
+                continue
+            e1, e2, v0 = self.e1[cand], self.e2[cand], self.v0[cand]
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                p = cross(d, e2)
+                det = np.einsum("ij,ij->i", p, e1)
+                inv = 1.0 / det
+                s = o - v0
+                u = np.einsum("ij,ij->i", s, p) * inv
+                q = cross(s, e1)
+                v = (q @ d) * inv
+                t = np.einsum("ij,ij->i", e2, q) * inv
+                eps = 1e-12
+                ok = (np.abs(det) > 1e-18) & (u >= -eps) & (v >= -eps) & (u + v <= 1 + eps) & (t > 1e-9)
+            if not ok.any():
+                continue
+            t = np.where(ok, t, np.inf)
+            k = int(np.argmin(t))
+            if t[k] <= maxd[r]:
+                t_out[r], f_out[r] = t[k], cand[k]
+        return t_out, f_out
 
     # ---------------------------------------------------------------- CSG
     def manifold(self):
@@ -181,7 +201,10 @@ def clip_below(tri: np.ndarray, dist: np.ndarray):
     at the vertices. Returns (triangles (Q, 3, 3), dist at their vertices (Q, 3), parent (Q,))."""
     inside = dist <= 0
     n_in = inside.sum(axis=1)
-    out_t, out_d, out_p = [tri[n_in == 3]], [dist[n_in == 3]], [np.nonzero(n_in == 3)[0]]
+    if len(n_in) == 0 or n_in.min() == 3:
+        return tri, dist, np.arange(len(tri))
+    full = np.nonzero(n_in == 3)[0]
+    out_t, out_d, out_p = [tri[full]], [dist[full]], [full]
     for count in (1, 2):
         idx = np.nonzero(n_in == count)[0]
         if len(idx) == 0:
@@ -191,16 +214,17 @@ def clip_below(tri: np.ndarray, dist: np.ndarray):
         # outside one for count 2) comes first; rolling keeps the winding.
         odd = np.argmax(ins if count == 1 else ~ins, axis=1)
         order = (odd[:, None] + np.arange(3)[None]) % 3
-        t = np.take_along_axis(t, order[:, :, None], axis=1)
-        d = np.take_along_axis(d, order, axis=1)
+        rows = np.arange(len(idx))[:, None]
+        t = t[rows, order]
+        d = d[rows, order]
         a, b, c = t[:, 0], t[:, 1], t[:, 2]
         da, db, dc = d[:, 0:1], d[:, 1:2], d[:, 2:3]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            sab = np.nan_to_num(da / (da - db))
-            sac = np.nan_to_num(da / (da - dc))
+        den_b, den_c = da - db, da - dc
+        sab = np.divide(da, den_b, out=np.zeros_like(da), where=den_b != 0)
+        sac = np.divide(da, den_c, out=np.zeros_like(da), where=den_c != 0)
         pab = a + sab * (b - a)
         pac = a + sac * (c - a)
-        z = np.zeros_like(da[:, 0])
+        z = np.zeros(len(idx))
         if count == 1:  # keep the corner at a
             out_t.append(np.stack([a, pab, pac], axis=1))
             out_d.append(np.stack([da[:, 0], z, z], axis=1))
@@ -218,7 +242,98 @@ def triangle_areas(tri: np.ndarray) -> np.ndarray:
     return 0.5 * np.linalg.norm(cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
 
 
+def is_convex_ccw(polygon) -> bool:
+    p = np.asarray(polygon, float)
+    e = np.roll(p, -1, axis=0) - p
+    turn = e[:, 0] * np.roll(e, -1, axis=0)[:, 1] - e[:, 1] * np.roll(e, -1, axis=0)[:, 0]
+    return bool(np.all(turn >= -1e-15))
+
+
 def jaw_patches(data: MeshData, center, axis, approach, width, pad_polygon, d_def: float):
+    """Contact patches of the two jaws: `jaw_patches_clip` for convex pads (exact and fast),
+    the manifold3d CSG boolean `jaw_patches_csg` for any other polygon. Same results (tested)."""
+    if is_convex_ccw(pad_polygon):
+        return jaw_patches_clip(data, center, axis, approach, width, pad_polygon, d_def)
+    return jaw_patches_csg(data, center, axis, approach, width, pad_polygon, d_def)
+
+
+def _patches_from_pieces(tri, depth1, normals, width, d_con, d_def, closing_axis):
+    """Facing filter + slab clipping [d_con, d_con + d_def] for both jaws (object frame)."""
+    patches = []
+    for jaw, closing in ((0, closing_axis), (1, -closing_axis)):
+        facing = normals @ closing < 0
+        d = depth1[facing] if jaw == 0 else width - depth1[facing]
+        t, dd, parent = clip_below(tri[facing], d - (d_con[jaw] + d_def))
+        areas = triangle_areas(t)
+        good = areas > 1e-14
+        if good.sum() == 0 or areas[good].sum() < 1e-10:
+            return None, "zero_area_patch"
+        patches.append(Patch(t[good], normals[facing][parent[good]], areas[good],
+                             np.maximum(-dd[good], 0.0), closing.copy(), d_con[jaw]))
+    return tuple(patches), ""
+
+
+def _inside(data: MeshData, point, direction) -> bool:
+    """Is `point` inside the (closed) mesh? The first face hit along `direction` is an exit."""
+    t, f = data.raycast(np.asarray(point)[None], np.asarray(direction)[None], np.inf)
+    return bool(f[0] >= 0 and data.normals[f[0]] @ direction > 0)
+
+
+def jaw_patches_clip(data: MeshData, center, axis, approach, width, pad_polygon, d_def: float):
+    """The CSG patch computed by clipping the object's surface triangles to the pad prism
+    (convex pad polygons, counter-clockwise): surface n prism is exactly the object-surface part
+    of the boolean intersection. d_con is the smallest depth of that surface; a jaw collides when
+    the surface crosses its open pad or its pad lies wholly inside the object."""
+    R, origin = jaw_frame(center, axis, approach, width)
+    V = (data.vertices - origin) @ R  # jaw frame: x approach, y lateral, z depth from jaw 1
+    tri = V[data.faces]
+    poly = np.asarray(pad_polygon, float)
+    lo, hi = poly.min(axis=0), poly.max(axis=0)
+    tmin, tmax = tri.min(axis=1), tri.max(axis=1)
+    cand = np.nonzero((tmax[:, 0] >= lo[0]) & (tmin[:, 0] <= hi[0]) & (tmax[:, 1] >= lo[1]) & (tmin[:, 1] <= hi[1])
+                      & (tmax[:, 2] >= 0) & (tmin[:, 2] <= width))[0]
+    t, parent = tri[cand], cand
+    # signed distances to the footprint's edge planes (<= 0 inside), all at once: triangles
+    # inside every plane are kept as they are, triangles outside one plane are dropped, only
+    # the straddling rest is clipped edge by edge
+    edges = [(a, b - a) for a, b in zip(poly, np.roll(poly, -1, axis=0))]
+    D = np.stack([-(e[0] * (t[..., 1] - a[1]) - e[1] * (t[..., 0] - a[0])) for a, e in edges], axis=-1)
+    inside_all = np.all(D <= 0, axis=(1, 2))
+    outside_any = np.any(np.all(D > 0, axis=1), axis=1)
+    straddle = ~inside_all & ~outside_any
+    ts, ps = t[straddle], parent[straddle]
+    for a, e in edges:
+        if len(ts) == 0:
+            break
+        ts, _, par = clip_below(ts, -(e[0] * (ts[..., 1] - a[1]) - e[1] * (ts[..., 0] - a[0])))
+        ps = ps[par]
+    t = np.concatenate([t[inside_all], ts])
+    parent = np.concatenate([parent[inside_all], ps])
+    if len(t) == 0:
+        pad_mid = R @ np.array([*poly.mean(axis=0), 0.5 * width]) + origin
+        return None, ("jaw_collision" if _inside(data, pad_mid, R[:, 2]) else "miss")
+    zmin, zmax = t[..., 2].min(axis=1), t[..., 2].max(axis=1)
+    mid = poly.mean(axis=0)
+    # the surface crosses an open pad's plane inside the footprint: that pad starts in the object
+    if np.any((zmin < 0) & (zmax > 0)) or np.any((zmin < width) & (zmax > width)):
+        return None, "jaw_collision"
+    keep = (zmin >= 0) & (zmax <= width)
+    keep[keep] = triangle_areas(t[keep]) > 0
+    t, parent = t[keep], parent[keep]
+    if len(t) == 0:
+        pad_mid = R @ np.array([mid[0], mid[1], 0.5 * width]) + origin
+        return None, ("jaw_collision" if _inside(data, pad_mid, R[:, 2]) else "miss")
+    depth1 = t[..., 2]
+    d_con = (float(depth1.min()), float((width - depth1).min()))
+    c1 = R @ np.array([mid[0], mid[1], 0.0]) + origin
+    c2 = c1 + width * R[:, 2]
+    if min(d_con) < COLLISION_DEPTH or _inside(data, c1, R[:, 2]) or _inside(data, c2, -R[:, 2]):
+        return None, "jaw_collision"
+    tri_O = t @ R.T + origin
+    return _patches_from_pieces(tri_O, depth1, data.normals[parent], width, d_con, d_def, R[:, 2])
+
+
+def jaw_patches_csg(data: MeshData, center, axis, approach, width, pad_polygon, d_def: float):
     """Contact patches of the two jaws (object frame), or a failure reason.
 
     Returns ((patch1, patch2), "") on success or (None, reason) with reason in
@@ -249,18 +364,4 @@ def jaw_patches(data: MeshData, center, axis, approach, width, pad_polygon, d_de
         return None, "jaw_collision"
     fid = np.asarray(mg.face_id, dtype=np.int64)[keep]
     normals = data._face_normal_by_id[np.minimum(fid, len(data._face_normal_by_id) - 1)]
-    tri = verts[tv[keep]]
-    depth_tri = depth1[tv[keep]]
-    patches = []
-    for jaw, closing in ((0, axis), (1, -axis)):
-        facing = normals @ closing < 0
-        d = depth_tri[facing] if jaw == 0 else width - depth_tri[facing]
-        limit = d_con[jaw] + d_def
-        t, dd, parent = clip_below(tri[facing], d - limit)
-        areas = triangle_areas(t)
-        good = areas > 1e-14
-        if good.sum() == 0 or areas[good].sum() < 1e-10:
-            return None, "zero_area_patch"
-        patches.append(Patch(t[good], normals[facing][parent[good]], areas[good],
-                             np.maximum(-dd[good], 0.0), closing.copy(), d_con[jaw]))
-    return tuple(patches), ""
+    return _patches_from_pieces(verts[tv[keep]], depth1[tv[keep]], normals, width, d_con, d_def, axis)

@@ -32,7 +32,7 @@ import numpy as np
 
 from ms_drake.grasping.geometry import Patch, cross
 from ms_drake.grasping.wrench_qp import WrenchProblem
-from ms_drake.grasping.wrench_sets import ellipsoid_generators, hull, sphere_samples, wrench
+from ms_drake.grasping.wrench_sets import sphere_samples
 
 
 def triangle_frames(tri: np.ndarray, normals: np.ndarray):
@@ -93,8 +93,9 @@ def tau_z_lower_bound(area, abd, xy, mu, k=1.0):
 
 def reach_contact(patch: Patch, com: np.ndarray, mu: float, closing_force: float,
                   max_triangles: int = 10, samples: int = 18) -> list[WrenchProblem]:
-    """Vertex-form wrench sets (physical units, about `com`) of one REACH contact: per kept
-    triangle a normal segment [0, f_z,max] and the 18-sample max-force limit ellipsoid."""
+    """The vertex-form wrench set (physical units, about `com`) of one REACH contact: per kept
+    triangle a normal segment [0, f_z,max] and the 18-sample max-force limit ellipsoid (one
+    WrenchProblem whose `blocks` are these 2 T hulls)."""
     order = np.argsort(-patch.areas)[:max_triangles]
     tri, normals, areas = patch.triangles[order], patch.normals[order], patch.areas[order]
     p_vert = patch.pressure_at_vertices()[order]
@@ -108,10 +109,26 @@ def reach_contact(patch: Patch, com: np.ndarray, mu: float, closing_force: float
     fz = f1 * k
     tz = tau_z_lower_bound(areas, abd, xy, mu, k)
     u = sphere_samples(samples)
+    n_in = -normals
+    T, J = len(tri), len(u)
+    # normal segment generators (6, T) and ellipsoid generators (6, T, J), about `com`
+    fN = fz[:, None] * n_in
+    normal = np.vstack([fN.T, cross(bary - com, fN).T])
+    f_fric = mu * fz[:, None, None] * (u[None, :, 0:1] * ex[:, None, :] + u[None, :, 1:2] * ey[:, None, :])
+    tau = cross((bary - com)[:, None, :], f_fric) + tz[:, None, None] * u[None, :, 2:3] * n_in[:, None, :]
+    ell = np.concatenate([f_fric, tau], axis=2)  # (T, J, 6)
+    # columns per triangle: [normal, J ellipsoid samples]; blocks: the segment (with the
+    # origin) and the ellipsoid hull (without)
+    G = np.concatenate([normal.T[:, None, :], ell], axis=1).reshape(T * (J + 1), 6).T
+    n = G.shape[1]
+    A = np.zeros((2 * T, n))
+    lo = np.empty(2 * T)
     blocks = []
-    for i in range(len(tri)):
-        n_in = -normals[i]
-        blocks.append(hull(wrench(bary[i][None], (fz[i] * n_in)[None], com), include_origin=True))
-        blocks.append(hull(ellipsoid_generators(bary[i], n_in, com, mu * fz[i], tz[i], u, ex[i], ey[i]),
-                           include_origin=False))
-    return blocks
+    for i in range(T):
+        c0 = i * (J + 1)
+        A[2 * i, c0] = 1.0
+        A[2 * i + 1, c0 + 1: c0 + 1 + J] = 1.0
+        lo[2 * i], lo[2 * i + 1] = -np.inf, 1.0
+        blocks += [(c0, c0 + 1, True), (c0 + 1, c0 + 1 + J, False)]
+    return [WrenchProblem(G=G, t=np.zeros(6), A=A, lo=lo, hi=np.ones(2 * T), lb=np.zeros(n),
+                          ub=np.full(n, np.inf), blocks=blocks)]

@@ -73,12 +73,13 @@ def sample_antipodal_grasps(mesh, X_WO, count: int, friction: float = 0.5, max_w
                             min_width: float = 0.0, seed: int = 0, approach=(0.0, 0.0, -1.0),
                             center_noise: float = 0.0, jaw_margin: float = 0.01,
                             dedupe_distance: float = 0.004, dedupe_angle: float = 0.2,
-                            max_attempts: int | None = None) -> list[ParallelJawGrasp]:
+                            max_attempts: int | None = None, open_width: float | None = None) -> list[ParallelJawGrasp]:
     """Up to `count` antipodal grasps on a mesh posed at X_WO (world frame).
 
     approach: preferred world approach direction (made orthogonal to each axis), None = random.
-    Width = contact distance + 2 jaw_margin (capped at max_width); contacts farther apart than
-    max_width - 2 jaw_margin are rejected."""
+    Width = contact distance + 2 jaw_margin (capped at max_width), or `open_width` when given
+    (a gripper that always opens fully); contacts farther apart than max_width - 2 jaw_margin
+    are rejected."""
     if count < 0 or not (max_width > 0) or not (friction > 0):
         raise GraspError(f"sample_antipodal_grasps needs count >= 0, max_width > 0, friction > 0 "
                          f"(got {count}, {max_width}, {friction})")
@@ -117,7 +118,7 @@ def sample_antipodal_grasps(mesh, X_WO, count: int, friction: float = 0.5, max_w
                 continue
             kept.append((center, axis))
             ap = _approach_for(axis, pref, rng)
-            g = ParallelJawGrasp(center, axis, ap, min(max_width, d + 2 * jaw_margin))
+            g = ParallelJawGrasp(center, axis, ap, open_width or min(max_width, d + 2 * jaw_margin))
             out.append(g.transformed(X))
     return out
 

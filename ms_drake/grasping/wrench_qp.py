@@ -17,12 +17,18 @@ Two solvers answer the same question:
   is available and slightly faster but only accurate to its eps tolerances). The residual y
   enters as 6 extra variables with the equality y - G x = t, so the Hessian is the 6x6
   identity and the solve scales with the number of constraint rows, not n^2.
-- `solve_nnls`: for problems whose variables are all >= 0 (the vertex (V-) representation the
-  point, soft point, elliptical and REACH models use: convex combinations of generator
-  wrenches), the same feasibility question is a non-negative least-squares problem: rows
-  become equalities with one slack per inequality, weighted by `ROW_WEIGHT` relative to the
-  wrench rows. Residual zero in one <=> residual zero in the other; tests/test_grasp_qp.py
-  checks that the two decisions agree.
+- Vertex-form problems (point, soft point, elliptical, REACH: each contact's wrench set is a
+  Minkowski sum of convex hulls of generator wrenches, conv(V) or conv({0} u V)) have two exact
+  fast paths answering the same QP -- the optimal residual is the distance from -t to the grasp
+  wrench space GWS = sum_b conv(V_b):
+  * `solve_support` ("auto" beyond 64 generators, i.e. REACH): fully corrective Frank-Wolfe on that distance using
+    the GWS support function h(d) = sum_b max_{v in V_b} v . d (one matrix-vector product per
+    iteration); the small subproblem over the active support points is a scipy NNLS. It stops as
+    soon as the residual is below the tolerance (resisted) or the Frank-Wolfe lower bound
+    (s + t) . y/|y| exceeds it (slips), otherwise at convergence (finite for polytopes).
+  * `solve_nnls` ("auto" up to 64 generators: point, soft point, elliptical): the whole problem as one scipy NNLS (rows become equalities with one slack per
+    inequality, weighted by `ROW_WEIGHT`); residual zero in one <=> zero in the other.
+  tests/test_grasp_qp.py checks both against the MathematicalProgram decisions and residuals.
 """
 
 from __future__ import annotations
@@ -33,7 +39,7 @@ import numpy as np
 
 RESIST_TOLERANCE = 1e-3  # residual, as a fraction of the weight, below which gravity is resisted
 ROW_WEIGHT = 10.0
-SOLVERS = ("auto", "nnls", "clarabel", "osqp")
+SOLVERS = ("auto", "support", "nnls", "clarabel", "osqp")
 
 
 @dataclass
@@ -47,6 +53,8 @@ class WrenchProblem:
     hi: np.ndarray  # (m,)
     lb: np.ndarray  # (n,)
     ub: np.ndarray  # (n,)
+    # vertex form: (first column, end column, includes the origin) per convex-hull block
+    blocks: list | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -55,6 +63,10 @@ class WrenchProblem:
     def is_vertex_form(self) -> bool:
         """All variables >= 0 and unbounded above (so NNLS applies)."""
         return bool(np.all(self.lb == 0) and np.all(np.isinf(self.ub)))
+
+    def is_hull_sum(self) -> bool:
+        """A Minkowski sum of convex hulls of generator columns (so solve_support applies)."""
+        return self.blocks is not None and sum(e - b for b, e, _ in self.blocks) == self.G.shape[1]
 
     def residual(self, x: np.ndarray) -> float:
         return float(np.linalg.norm(self.G @ x + self.t))
@@ -93,7 +105,14 @@ def stack(blocks: list[WrenchProblem], t: np.ndarray) -> WrenchProblem:
         r += b.A.shape[0]
         c += b.A.shape[1]
     cat = lambda name: np.concatenate([getattr(b, name) for b in blocks])  # noqa: E731
-    return WrenchProblem(G, np.asarray(t, float), A, cat("lo"), cat("hi"), cat("lb"), cat("ub"))
+    hull_blocks, c = [], 0
+    for b in blocks:
+        if b.blocks is None:
+            hull_blocks = None
+            break
+        hull_blocks.extend((c + s, c + e, o) for s, e, o in b.blocks)
+        c += b.G.shape[1]
+    return WrenchProblem(G, np.asarray(t, float), A, cat("lo"), cat("hi"), cat("lb"), cat("ub"), hull_blocks)
 
 
 class WrenchQP:
@@ -209,10 +228,80 @@ def solve_nnls(p: WrenchProblem) -> QPResult:
     return QPResult(True, p.residual(x), p.violation(x), x, "nnls")
 
 
+def _min_norm_in_hull(S: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """lambda in the simplex minimizing ||S lambda + t|| (S: (6, m) with small m)."""
+    from scipy.optimize import nnls
+
+    m = S.shape[1]
+    if m == 1:
+        return np.ones(1)
+    rho = 1e3 * max(1.0, float(np.abs(S).max()), float(np.abs(t).max()))
+    M = np.vstack([S, np.full((1, m), rho)])
+    lam, _ = nnls(M, np.concatenate([-t, [rho]]), maxiter=50 * m)
+    total = lam.sum()
+    return lam / total if total > 0 else np.full(m, 1.0 / m)
+
+
+def solve_support(p: WrenchProblem, tol: float = RESIST_TOLERANCE, max_iter: int = 200,
+                  early_exit: bool = True) -> QPResult:
+    """Distance from -t to the Minkowski sum of hulls by fully corrective Frank-Wolfe. With
+    early_exit the iteration stops once the resist decision is certain (residual <= tol, or the
+    lower bound > tol); without it, at convergence (the exact QP optimum)."""
+    if not p.is_hull_sum():
+        raise ValueError("solve_support needs a Minkowski sum of convex hulls (WrenchProblem.blocks)")
+    G, t = p.G, p.t
+    B = len(p.blocks)
+    kmax = max(e - s for s, e, _ in p.blocks) + 1
+    idx = np.full((B, kmax), -1, dtype=np.int64)  # column indices, -1 = padding, last slot = origin
+    with_origin = np.zeros(B, bool)
+    for i, (s0, e0, o) in enumerate(p.blocks):
+        idx[i, : e0 - s0] = np.arange(s0, e0)
+        with_origin[i] = o
+    valid = idx >= 0
+    origin_slot = np.zeros((B, kmax), bool)
+    origin_slot[with_origin, -1] = True
+    safe = np.where(valid, idx, 0)
+
+    def support(d):
+        vals = G.T @ d
+        v = np.where(valid, vals[safe], -np.inf)
+        v = np.where(origin_slot, 0.0, v)
+        pick = np.argmax(v, axis=1)
+        cols = idx[np.arange(B), pick]  # -1 where the origin wins
+        chosen = cols[cols >= 0]
+        return G[:, chosen].sum(axis=1), chosen
+
+    s, cols = support(-t)
+    S, C = [s], [cols]
+    r, lam = np.inf, np.ones(1)
+    for _ in range(max_iter):
+        Sm = np.column_stack(S)
+        lam = _min_norm_in_hull(Sm, t)
+        y = Sm @ lam + t
+        r = float(np.linalg.norm(y))
+        if r <= (tol if early_exit else 1e-12):
+            break
+        s, cols = support(-y)
+        lower = float((s + t) @ y) / r
+        if (early_exit and lower > tol) or r - lower <= 1e-10 * max(1.0, r):
+            break
+        keep = lam > 1e-12
+        S = [S[i] for i in np.nonzero(keep)[0]] + [s]
+        C = [C[i] for i in np.nonzero(keep)[0]] + [cols]
+    x = np.zeros(G.shape[1])
+    for w, cols in zip(lam, C[: len(lam)]):
+        x[cols] += w
+    return QPResult(True, r, p.violation(x), x, "support")
+
+
 def solve(p: WrenchProblem, solver: str = "auto") -> QPResult:
-    """Solve eq. 3.3.3. "auto": NNLS for vertex-form problems, Clarabel otherwise."""
-    if solver == "auto":
-        solver = "nnls" if p.is_vertex_form() else "clarabel"
+    """Solve eq. 3.3.3. "auto": for Minkowski sums of hulls (point, soft point, elliptical,
+    REACH) one NNLS when there are <= 64 generators, the support-function path beyond; Clarabel
+    on the MathematicalProgram otherwise (MFE, 6DFC)."""
+    if solver == "auto":  # one NNLS is fastest for small hull sums, Frank-Wolfe for large ones
+        solver = ("nnls" if p.G.shape[1] <= 64 else "support") if p.is_hull_sum() else "clarabel"
+    if solver == "support":
+        return solve_support(p)
     if solver == "nnls":
         return solve_nnls(p)
     if solver == "naive":

@@ -68,7 +68,7 @@ def hull(generators: np.ndarray, include_origin: bool) -> WrenchProblem:
     return WrenchProblem(
         G=generators, t=np.zeros(6), A=np.ones((1, k)),
         lo=np.array([-np.inf if include_origin else 1.0]), hi=np.ones(1),
-        lb=np.zeros(k), ub=np.full(k, np.inf))
+        lb=np.zeros(k), ub=np.full(k, np.inf), blocks=[(0, k, include_origin)])
 
 
 def halfspaces(G: np.ndarray, A: np.ndarray, hi: np.ndarray, lb: np.ndarray, ub: np.ndarray) -> WrenchProblem:

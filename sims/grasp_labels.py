@@ -1,0 +1,53 @@
+"""Physics labels and the AP / AR table of the grasp contact models (issue 4, Table 2.1).
+
+  python sims/grasp_labels.py labels   [--objects 24] [--grasps 45] [--trials 2]
+  python sims/grasp_labels.py predict  [--param-sets 8] [--robust 10]
+  python sims/grasp_labels.py table
+
+Each stage appends to its file and resumes where it stopped (one process; run in the
+background with nohup). Files: docs/data/grasp_labels.jsonl, /tmp or --predictions path.
+"""
+
+import argparse
+import json
+from pathlib import Path
+
+from ms_drake.grasping import labels as L
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("stage", choices=["labels", "predict", "table", "all"])
+    ap.add_argument("--labels", type=Path, default=ROOT / "docs/data/grasp_labels.jsonl")
+    ap.add_argument("--predictions", type=Path, default=ROOT / "docs/data/grasp_predictions.jsonl")
+    ap.add_argument("--objects", type=int, default=24)
+    ap.add_argument("--object-names", nargs="*", default=None)
+    ap.add_argument("--grasps", type=int, default=45)
+    ap.add_argument("--trials", type=int, default=2)
+    ap.add_argument("--closing-force", type=float, default=10.0)
+    ap.add_argument("--param-sets", type=int, default=8)
+    ap.add_argument("--robust", type=int, default=10)
+    ap.add_argument("--models", nargs="*", default=list(L.MODELS))
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    if args.stage in ("labels", "all"):
+        names = args.object_names or L.default_label_objects(args.objects)
+        print("objects:", " ".join(names), flush=True)
+        L.generate_labels(names, args.labels, args.grasps, args.trials, args.seed, args.closing_force,
+                          log=lambda s: print(s, flush=True))
+    if args.stage in ("predict", "all"):
+        L.predict(args.labels, args.predictions, args.models, args.param_sets, args.robust, args.closing_force,
+                  args.seed, log=lambda s: print(s, flush=True))
+    if args.stage in ("table", "all"):
+        rows = L._read_jsonl(args.labels)
+        table = L.loo_table(args.labels, args.predictions)
+        print(L.format_table(table, len(rows), len({r["object"] for r in rows})))
+        pos = sum(r["label"] >= 0.5 for r in rows)
+        print(f"positives {pos} / {len(rows)}")
+        print(json.dumps(table, indent=1))
+
+
+if __name__ == "__main__":
+    main()
