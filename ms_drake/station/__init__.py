@@ -1,0 +1,12 @@
+"""Stations: MakeStation(scenario) for simulation and hardware, environments, model loading."""
+
+from ms_drake.station.station import (  # noqa: F401
+    MakeStation,
+    StationObject,
+    add_environment,
+    add_objects,
+    get_plant,
+    get_scene_graph,
+    resolve_object_names,
+    station_objects,
+)

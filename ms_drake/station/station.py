@@ -1,0 +1,189 @@
+"""MakeStation(scenario): the simulated (or hardware) station as one Drake Diagram.
+
+Build order follows Drake's hardware_sim example: plant + scene graph from the scenario's
+configs, environment, objects, robot and grippers, Finalize, cameras, visualization.
+
+Exported ports (names identical in sim and hardware, DESIGN.md):
+- ``<cam>.rgb_image``, ``<cam>.depth_image`` (32F metres), ``<cam>.label_image`` for each camera;
+- sim-only: ``body_poses``, ``query_object``, ``contact_results``, ``state`` (plant state).
+Robot ports (``<arm>.position`` ...) are added by the robot drivers.
+
+Objects are model instances named ``obj<k>__<set>__<name>`` (see `station_objects`). Their
+default poses are a tidy grid above the environment; `ms_drake.scenes` sets heap poses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydrake.math import RigidTransform, RollPitchYaw
+from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlant
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.sensors import ApplyCameraConfig
+
+from ms_drake.errors import ObjectSetError, ScenarioError
+from ms_drake.objects import get_object, get_object_set
+from ms_drake.paths import make_parser
+from ms_drake.scenario import Scenario
+from ms_drake.station.environments import environment_sdf
+
+OBJECT_PREFIX = "obj"
+
+
+@dataclass(frozen=True)
+class StationObject:
+    """One object model instance of a station."""
+
+    index: int
+    model_instance: object  # ModelInstanceIndex
+    model_name: str
+    full_name: str  # registry name '<set>/<name>'
+    body_index: object  # BodyIndex of its (single) body
+
+
+def object_model_name(k: int, full_name: str) -> str:
+    set_name, name = full_name.split("/", 1)
+    return f"{OBJECT_PREFIX}{k:02d}__{set_name}__{name}"
+
+
+def resolve_object_names(scenario: Scenario) -> list[str]:
+    """Full object names of the scenario: explicit `objects.names`, or `objects.count`
+    sampled from the set with `objects.seed` (default: random_seed)."""
+    ob = scenario.objects
+    if ob.names:
+        return list(ob.names)
+    if ob.count == 0:
+        return []
+    seed = ob.seed if ob.seed is not None else scenario.random_seed
+    rng = np.random.default_rng([seed, 7919])
+    return [o.full_name for o in get_object_set(ob.set).sample(ob.count, rng, ob.split)]
+
+
+def station_objects(plant: MultibodyPlant) -> list[StationObject]:
+    """The objects of a station's plant, in order."""
+    out = []
+    for i in range(plant.num_model_instances()):
+        from pydrake.multibody.tree import ModelInstanceIndex
+
+        mi = ModelInstanceIndex(i)
+        name = plant.GetModelInstanceName(mi)
+        if not name.startswith(OBJECT_PREFIX) or "__" not in name:
+            continue
+        head, set_name, obj = name.split("__", 2)
+        bodies = plant.GetBodyIndices(mi)
+        out.append(StationObject(int(head[len(OBJECT_PREFIX):]), mi, name, f"{set_name}/{obj}", bodies[0]))
+    return sorted(out, key=lambda o: o.index)
+
+
+def default_object_poses(scenario: Scenario, n: int) -> list[RigidTransform]:
+    """A non-overlapping grid of poses above the environment (used before a heap is loaded)."""
+    lo = -0.5 * np.asarray(scenario.environment.resolved_size()[:2]) + 0.06
+    pos = np.asarray(scenario.environment.position, float)
+    cols = 4
+    out = []
+    for k in range(n):
+        r, c = divmod(k, cols)
+        layer, r = divmod(r, 3)
+        xy = lo + np.array([c * 0.12, r * 0.12])
+        out.append(RigidTransform(RollPitchYaw(0, 0, 0), pos + [xy[0], xy[1], 0.25 + 0.25 * layer]))
+    return out
+
+
+def add_environment(plant: MultibodyPlant, scenario: Scenario, parser=None):
+    env = scenario.environment
+    parser = parser or make_parser(plant)
+    sdf = environment_sdf(env.type, env.resolved_size(), env.wall_thickness, env.friction)
+    (mi,) = parser.AddModelsFromString(sdf, "sdf")
+    body = plant.GetBodyByName(env.type, mi)
+    plant.WeldFrames(plant.world_frame(), body.body_frame(), RigidTransform(list(env.position)))
+    return mi
+
+
+def add_objects(plant: MultibodyPlant, names: list[str], friction: float = 0.5, parser=None,
+                rgba_overrides: dict[int, tuple] | None = None, **contact) -> list:
+    """Add the objects `names` (full names) as free bodies; returns their model instances.
+    `contact`: object contact options (see ms_drake.objects.sdf.object_sdf)."""
+    parser = parser or make_parser(plant)
+    out = []
+    for k, full in enumerate(names):
+        spec = get_object(full)
+        rgba = (rgba_overrides or {}).get(k)
+        (mi,) = parser.AddModelsFromString(
+            spec.sdf(object_model_name(k, full), rgba=rgba, friction=friction, **contact), "sdf")
+        out.append(mi)
+    return out
+
+
+def _add_robot(builder, plant, scene_graph, scenario: Scenario, parser):
+    if not scenario.robot.name:
+        return None
+    try:
+        from ms_drake.station import robots
+    except ImportError:
+        raise ScenarioError(
+            f"robot.name: robot {scenario.robot.name!r} needs ms_drake.station.robots, which this build "
+            "does not have yet; use a scenario without a robot (e.g. BinHeap15)") from None
+    return robots.add_robot_from_scenario(builder, plant, scene_graph, scenario, parser)
+
+
+def MakeStation(scenario: Scenario, meshcat=None, hardware: bool = False, lcm=None,
+                target_index: int = -1, name: str = "station"):
+    """Build the station Diagram for `scenario`.
+
+    meshcat: a pydrake Meshcat to visualize into (None: no visualization).
+    hardware: True swaps the plant for LCM drivers with the same ports (robots issue).
+    target_index: index of the object drawn in the target colour (red), -1 for none.
+    """
+    if hardware:
+        from ms_drake.station import hardware as hw
+
+        return hw.MakeHardwareStation(scenario, meshcat=meshcat, lcm=lcm)
+    builder = DiagramBuilder()
+    plant, scene_graph = AddMultibodyPlant(scenario.plant_config, builder)
+    scene_graph.set_config(scenario.scene_graph_config)
+    parser = make_parser(plant)
+    add_environment(plant, scenario, parser)
+    names = resolve_object_names(scenario)
+    from ms_drake.objects import TARGET_RGBA
+
+    overrides = {target_index: TARGET_RGBA} if 0 <= target_index < len(names) else None
+    try:
+        instances = add_objects(plant, names, scenario.objects.friction, parser, overrides)
+    except ObjectSetError:
+        raise
+    _add_robot(builder, plant, scene_graph, scenario, parser)
+    plant.Finalize()
+    for mi, X in zip(instances, default_object_poses(scenario, len(instances))):
+        body = plant.GetBodyByName("body", mi)
+        plant.SetDefaultFloatingBaseBodyPose(body, X)
+
+    for cam_name, cam in scenario.cameras.items():
+        ApplyCameraConfig(config=cam, builder=builder, plant=plant, scene_graph=scene_graph)
+        sensor = builder.GetSubsystemByName(f"rgbd_sensor_{cam.name}")
+        if cam.rgb:
+            builder.ExportOutput(sensor.color_image_output_port(), f"{cam_name}.rgb_image")
+        if cam.depth:
+            builder.ExportOutput(sensor.depth_image_32F_output_port(), f"{cam_name}.depth_image")
+        if cam.label:
+            builder.ExportOutput(sensor.label_image_output_port(), f"{cam_name}.label_image")
+
+    builder.ExportOutput(plant.get_body_poses_output_port(), "body_poses")
+    builder.ExportOutput(scene_graph.get_query_output_port(), "query_object")
+    builder.ExportOutput(plant.get_contact_results_output_port(), "contact_results")
+    builder.ExportOutput(plant.get_state_output_port(), "state")
+    if meshcat is not None:
+        from pydrake.visualization import ApplyVisualizationConfig
+
+        ApplyVisualizationConfig(scenario.visualization, builder, meshcat=meshcat)
+    diagram = builder.Build()
+    diagram.set_name(name)
+    return diagram
+
+
+def get_plant(station) -> MultibodyPlant:
+    return station.GetSubsystemByName("plant")
+
+
+def get_scene_graph(station):
+    return station.GetSubsystemByName("scene_graph")
