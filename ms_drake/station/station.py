@@ -127,6 +127,14 @@ def _add_robot(builder, plant, scene_graph, scenario: Scenario, parser):
     return robots.add_robot_from_scenario(builder, plant, scene_graph, scenario, parser)
 
 
+def _apply_drivers(builder, plant, scene_graph, scenario: Scenario, robot_handle, lcm):
+    if robot_handle is None:
+        return
+    from ms_drake.station import robots
+
+    robots.apply_drivers(builder, plant, scene_graph, scenario, robot_handle, lcm=lcm)
+
+
 def MakeStation(scenario: Scenario, meshcat=None, hardware: bool = False, lcm=None,
                 target_index: int = -1, name: str = "station"):
     """Build the station Diagram for `scenario`.
@@ -152,8 +160,9 @@ def MakeStation(scenario: Scenario, meshcat=None, hardware: bool = False, lcm=No
         instances = add_objects(plant, names, scenario.objects.friction, parser, overrides)
     except ObjectSetError:
         raise
-    _add_robot(builder, plant, scene_graph, scenario, parser)
+    robot_handle = _add_robot(builder, plant, scene_graph, scenario, parser)
     plant.Finalize()
+    _apply_drivers(builder, plant, scene_graph, scenario, robot_handle, lcm)
     for mi, X in zip(instances, default_object_poses(scenario, len(instances))):
         body = plant.GetBodyByName("body", mi)
         plant.SetDefaultFloatingBaseBodyPose(body, X)

@@ -1,0 +1,196 @@
+"""The `ms-drake` command.
+
+    ms-drake demo     build a station, make a 15-object heap, write images + Meshcat recording
+    ms-drake scene    a scenario and seed -> images
+    ms-drake heaps    many heaps in parallel -> JSON lines (resumable)
+    ms-drake diagram  the station's Graphviz diagram (.dot, and .svg/.png when Graphviz is installed)
+
+User errors (bad scenario, unknown object set, impossible counts) print one clear line and
+exit with status 2; they never show a traceback.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from ms_drake.errors import MsDrakeError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                  help="Robot mechanical search in Drake.")
+
+ScenarioFile = typer.Option(None, "--scenario-file", help="Scenario YAML (default: diagrams/scenarios.yaml)")
+
+
+def _fail(msg: str, code: int = 2):
+    typer.echo(f"error: {msg}", err=True)
+    raise typer.Exit(code)
+
+
+def _scenario(file: Optional[Path], name: str):
+    from ms_drake.scenario import load_scenario
+
+    return load_scenario(file, name)
+
+
+@app.command()
+def demo(out: Path = typer.Option(Path("out/demo"), help="Output folder"),
+         seed: int = typer.Option(0, help="Heap seed"),
+         objects: int = typer.Option(15, min=1, max=60, help="Objects in the heap"),
+         scenario: str = typer.Option("BinHeap15", help="Scenario name"),
+         scenario_file: Optional[Path] = ScenarioFile,
+         meshcat: bool = typer.Option(True, help="Write a Meshcat HTML recording")):
+    """Build a bin station, drop a heap, and write RGB, depth, mask and target PNGs (+ Meshcat)."""
+    from ms_drake.scenes.render import make_scene, write_scene_images
+
+    s = _scenario(scenario_file, scenario)
+    t = time.perf_counter()
+    typer.echo(f"generating a {objects}-object heap (seed {seed}) in scenario {scenario} ...")
+    heap = make_scene(s, seed, objects)
+    typer.echo(f"  {len(heap.objects)} objects settled in {time.perf_counter() - t:.1f} s; "
+               f"target {heap.target or '(none)'}")
+    written = write_scene_images(s, heap, out, meshcat_html=meshcat)
+    for k, v in written.items():
+        typer.echo(f"  {k:18s} {v}")
+    typer.echo(f"wrote {len(written)} files to {out}")
+
+
+@app.command()
+def scene(scenario: str = typer.Argument(..., help="Scenario name, e.g. BinHeap15, PandaTable, FetchShelf"),
+          seed: int = typer.Option(0, help="Scene seed"),
+          objects: Optional[int] = typer.Option(None, min=0, max=60, help="Objects (default: scenario's count)"),
+          out: Path = typer.Option(Path("out/scene"), help="Output folder"),
+          scenario_file: Optional[Path] = ScenarioFile):
+    """Make the scene of a scenario and seed, and write its images."""
+    from ms_drake.scenes.render import make_scene, write_scene_images
+
+    s = _scenario(scenario_file, scenario)
+    heap = make_scene(s, seed, objects)
+    written = write_scene_images(s, heap, out)
+    for k, v in written.items():
+        typer.echo(f"  {k:18s} {v}")
+
+
+def _read_done(path: Path) -> set[int]:
+    """Seeds already in a JSON-lines file; a torn last line (killed mid-write) is dropped."""
+    done = set()
+    if not path.exists():
+        return done
+    good = []
+    for line in path.read_text().splitlines():
+        try:
+            rec = json.loads(line)
+            done.add(int(rec["seed"]))
+            good.append(line)
+        except (ValueError, KeyError, TypeError):
+            continue
+    path.write_text("".join(g + "\n" for g in good))
+    return done
+
+
+def heap_job(job: tuple) -> dict:
+    """One heap as a JSON-able record (module-level so workers can unpickle it)."""
+    scenario_file, scenario_name, n, seed, object_set = job
+    from ms_drake.scenario import load_scenario
+    from ms_drake.scenes.heaps import generate_heap, heap_to_dict
+
+    s = load_scenario(scenario_file, scenario_name)
+    t = time.perf_counter()
+    heap, diag = generate_heap(s, n, seed, object_set=object_set, return_diagnostics=True)
+    rec = heap_to_dict(heap)
+    rec.update(seconds=time.perf_counter() - t, attempts=diag.attempts, removed=diag.removed,
+               settle_time=diag.settle_time, rejected=diag.rejected_reasons, pid=os.getpid())
+    return rec
+
+
+@app.command()
+def heaps(objects: int = typer.Option(15, "--objects", min=1, max=60, help="Objects per heap (N)"),
+          count: int = typer.Option(10, "--count", min=1, help="Number of heaps (K)"),
+          seed_start: int = typer.Option(0, "--seed-start", min=0, help="First seed (S)"),
+          workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers (W)"),
+          out: Path = typer.Option(..., "--out", help="Output .jsonl (appended to; resumes)"),
+          object_set: Optional[str] = typer.Option(None, "--object-set", help="Object set (default: scenario's)"),
+          scenario: str = typer.Option("BinHeap15", help="Scenario name"),
+          scenario_file: Optional[Path] = ScenarioFile,
+          ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
+          ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address")):
+    """Generate heaps for seeds S..S+K-1 in parallel, one JSON line per heap (resumable)."""
+    from tqdm import tqdm
+
+    from ms_drake.objects import get_object_set
+    from ms_drake.parallel import run_jobs
+
+    s = _scenario(scenario_file, scenario)  # validate before starting workers
+    if object_set:
+        get_object_set(object_set)
+    if out.suffix != ".jsonl":
+        _fail(f"--out {out}: give a .jsonl file")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    done = _read_done(out)
+    seeds = [k for k in range(seed_start, seed_start + count) if k not in done]
+    if len(seeds) < count:
+        typer.echo(f"resuming: {count - len(seeds)} of {count} heaps already in {out}")
+    jobs = [(str(scenario_file) if scenario_file else None, scenario, objects, k, object_set) for k in seeds]
+    del s
+    failures = 0
+    t0 = time.perf_counter()
+    with open(out, "a") as f, tqdm(total=len(jobs), desc="heaps", unit="heap") as bar:
+        for r in run_jobs(heap_job, jobs, workers=workers, use_ray=ray, ray_address=ray_address):
+            if r.ok:
+                f.write(json.dumps(r.value) + "\n")
+                f.flush()
+                os.fsync(f.fileno())
+            else:
+                failures += 1
+                tqdm.write(f"seed {r.job[3]}: {r.error.splitlines()[0]}")
+            bar.update(1)
+    typer.echo(f"{len(jobs) - failures} heaps written to {out} in {time.perf_counter() - t0:.1f} s"
+               + (f"; {failures} failed (rerun to retry)" if failures else ""))
+    if failures:
+        raise typer.Exit(1)
+
+
+@app.command()
+def diagram(scenario: str = typer.Argument("BinHeap15", help="Scenario name"),
+            out: Path = typer.Option(Path("out/diagram.svg"), help="Output .svg, .png or .dot"),
+            depth: int = typer.Option(1, help="Graphviz max depth"),
+            scenario_file: Optional[Path] = ScenarioFile):
+    """Write the station's Graphviz diagram."""
+    from ms_drake.station import MakeStation
+
+    if out.suffix not in (".svg", ".png", ".dot"):
+        _fail(f"--out {out}: use a .svg, .png or .dot file")
+    station = MakeStation(_scenario(scenario_file, scenario))
+    dot = station.GetGraphvizString(max_depth=depth)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    dot_path = out.with_suffix(".dot")
+    dot_path.write_text(dot)
+    if out.suffix == ".dot":
+        typer.echo(f"wrote {dot_path}")
+        return
+    exe = shutil.which("dot")
+    if exe is None:
+        _fail(f"wrote {dot_path}, but Graphviz's `dot` is not installed for {out.suffix}; "
+              "install it (Debian: apt-get install graphviz) or use --out FILE.dot")
+    subprocess.run([exe, f"-T{out.suffix[1:]}", str(dot_path), "-o", str(out)], check=True)
+    typer.echo(f"wrote {out}")
+
+
+def main():
+    try:
+        app()
+    except MsDrakeError as e:
+        typer.echo(f"error: {e}", err=True)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,89 @@
+"""Run independent jobs in parallel: a local process pool by default, Ray on request.
+
+`run_jobs(fn, jobs, workers=..., ray_address=None, use_ray=False)` yields `JobResult`s in
+completion order. A job that raises, or whose worker process dies, yields a result with
+`error` set; the others go on (on a dead local worker the pool reports the jobs it
+lost; run again to redo them). `fn` must be a
+module-level function (it is pickled to the workers).
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import traceback
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+from typing import Any, Callable, Iterable, Iterator
+
+
+@dataclass
+class JobResult:
+    job: Any
+    value: Any = None
+    error: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return not self.error
+
+
+def _call(fn, job):
+    try:
+        return JobResult(job, fn(job))
+    except Exception as e:  # noqa: BLE001 - reported to the caller, the run goes on
+        return JobResult(job, None, f"{type(e).__name__}: {e}\n{traceback.format_exc(limit=3)}")
+
+
+def _run_local(fn, jobs: list, workers: int) -> Iterator[JobResult]:
+    if workers <= 1:
+        for job in jobs:
+            yield _call(fn, job)
+        return
+    ctx = multiprocessing.get_context("spawn")  # Drake and VTK are not fork-safe
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        futures = {pool.submit(_call, fn, job): job for job in jobs}
+        not_done = set(futures)
+        while not_done:
+            done, not_done = wait(not_done, return_when=FIRST_COMPLETED)
+            for f in done:
+                try:
+                    yield f.result()
+                except BrokenProcessPool:  # a worker died: this job (and others in flight) fail
+                    yield JobResult(futures[f], None, "worker process died (BrokenProcessPool)")
+
+
+def _run_ray(fn, jobs: list, workers: int, address: str | None) -> Iterator[JobResult]:
+    try:
+        import ray
+    except ImportError:
+        from ms_drake.errors import MsDrakeError
+
+        raise MsDrakeError("Ray is not installed; install the extra with `pip install -e '.[ray]'` "
+                           "or run without --ray") from None
+    if not ray.is_initialized():
+        if address:
+            ray.init(address=address, ignore_reinit_error=True, log_to_driver=False)
+        else:
+            ray.init(num_cpus=max(1, workers), ignore_reinit_error=True, log_to_driver=False,
+                     include_dashboard=False)
+    remote = ray.remote(num_cpus=1, max_retries=0)(_call)
+    refs = {remote.remote(fn, job): job for job in jobs}
+    not_done = list(refs)
+    while not_done:
+        done, not_done = ray.wait(not_done, num_returns=1)
+        for r in done:
+            try:
+                yield ray.get(r)
+            except Exception as e:  # noqa: BLE001 - a dead worker or actor
+                yield JobResult(refs[r], None, f"ray worker failed: {type(e).__name__}: {e}")
+
+
+def run_jobs(fn: Callable, jobs: Iterable, workers: int = 1, use_ray: bool = False,
+             ray_address: str | None = None) -> Iterator[JobResult]:
+    """Run `fn(job)` for every job; yields JobResults as they complete."""
+    jobs = list(jobs)
+    if use_ray or ray_address:
+        yield from _run_ray(fn, jobs, workers, ray_address)
+    else:
+        yield from _run_local(fn, jobs, workers)

@@ -1,0 +1,1 @@
+"""Perception: masks, point clouds, (later) segmentation, target detection, occupancy."""
