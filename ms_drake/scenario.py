@@ -74,13 +74,50 @@ class ObjectsConfig:
 
 
 @dataclass
+class ArmDriver:
+    """Joint-stiffness position control of one arm (ms_drake.station.drivers). kp: one stiffness
+    per joint [N m/rad or N/m], [] for the robot's default; damping from `damping_ratio` and the
+    joint-space inertia; `status_timeout` [s] applies to hardware."""
+
+    kp: list[float] = field(default_factory=list)
+    damping_ratio: float = 1.0
+    gravity_compensation: bool = True
+    status_timeout: float = 0.1
+
+
+@dataclass
+class JawDriver:
+    """Parallel jaw: Drake's WSG position controller with a force limit [N]."""
+
+    default_force_limit: float = 40.0
+    kp: float = 2000.0
+    kd: float = 5.0
+    status_timeout: float = 0.25
+
+
+@dataclass
+class SuctionDriver:
+    """Vacuum cup (and the bluction blade's stiffness): max pulling force [N], seal gap [m]."""
+
+    max_force: float = 40.0
+    max_gap: float = 0.008
+    seal_tolerance: float = 0.004
+    max_tilt_deg: float = 30.0
+    blade_kp: float = 20.0
+    status_timeout: float = 0.25
+
+
+@dataclass
 class RobotConfig:
-    """The robot and its grippers (filled in by the robots issue). name '' means no robot."""
+    """The robot and its grippers (filled in by the robots issue). name '' means no robot.
+    grippers: one per arm in arm order ([] for the defaults). drivers: keyed by port prefix
+    (arm or gripper name, e.g. yumi_right, yumi_right_jaw); missing entries use the defaults."""
 
     name: str = ""
     grippers: list[str] = field(default_factory=list)
     base_position: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     base_yaw: float = 0.0
+    drivers: typing.Mapping[str, typing.Union[ArmDriver, JawDriver, SuctionDriver]] = field(default_factory=dict)
 
 
 @dataclass

@@ -119,13 +119,22 @@ class ActionOutcome:
 
 @dataclass(frozen=True)
 class ObjectPose:
-    """One object of a scene: registry name (set/object) and 4x4 world pose."""
+    """One object of a scene: registry name (set/object) and its free-body state
+    q = (qw, qx, qy, qz, x, y, z), exactly as the plant stores it (so a scene reloads bit for bit)."""
 
     name: str
-    X_WO: tuple[tuple[float, ...], ...]
+    q: tuple[float, float, float, float, float, float, float]
 
     def matrix(self) -> np.ndarray:
-        return np.asarray(self.X_WO, dtype=float)
+        """4x4 world pose."""
+        w, x, y, z = np.asarray(self.q[:4]) / np.linalg.norm(self.q[:4])  # the plant's may drift from 1
+        R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                      [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = self.q[4:]
+        return T
 
 
 @dataclass(frozen=True)

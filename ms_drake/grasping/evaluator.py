@@ -204,44 +204,41 @@ class GraspEvaluator:
         t = np.concatenate([g_dir, np.zeros(3)])  # gravity wrench about the COM / (m g)
         blocks: list[WrenchProblem] = []
         if self.model in ("point", "soft_point"):
-            from ms_drake.grasping.point_models import point_contact, ray_contacts, soft_point_contact
+            from ms_drake.grasping.point_models import contacts_problem, ray_contacts
 
             contacts, reason = ray_contacts(data, g.center, g.axis, g.width)
             if contacts is None:
                 return None, reason
-            for p, n in zip(*contacts):
-                if self.model == "point":
-                    blocks.append(point_contact(p, n, com, mu, self.closing_force, self.cone_edges))
+            torsion = self.torsional_friction if self.model == "soft_point" else 0.0
+            p = contacts_problem(contacts[0], contacts[1], com, mu, self.closing_force, W, torsion,
+                                 self.cone_edges, self.ellipsoid_samples)
+            p.t = t
+            return p, ""
+        try:
+            patches, reason = jaw_patches(data, g.center, g.axis, g.approach, g.width, self.pad.polygon,
+                                          self.deformation)
+        except ValueError:  # manifold3d refused the mesh as a solid
+            return None, "non_watertight_mesh"
+        if patches is None:
+            return None, reason
+        try:
+            for patch in patches:
+                if self.model == "elliptical":
+                    from ms_drake.grasping.point_models import elliptical_contact
+
+                    blocks.extend(elliptical_contact(patch, com, mu, self.closing_force, self.ellipsoid_samples))
+                elif self.model == "reach":
+                    from ms_drake.grasping.reach import reach_contact
+
+                    blocks.extend(reach_contact(patch, com, mu, self.closing_force, self.max_triangles,
+                                                self.ellipsoid_samples))
                 else:
-                    blocks.append(soft_point_contact(p, n, com, mu, self.closing_force, self.torsional_friction,
-                                                     self.ellipsoid_samples))
-        else:
-            try:
-                patches, reason = jaw_patches(data, g.center, g.axis, g.approach, g.width, self.pad.polygon,
-                                              self.deformation)
-            except ValueError:  # manifold3d refused the mesh as a solid
-                return None, "non_watertight_mesh"
-            if patches is None:
-                return None, reason
-            try:
-                for patch in patches:
-                    if self.model == "elliptical":
-                        from ms_drake.grasping.point_models import elliptical_contact
+                    from ms_drake.grasping.friction_cone import cone_contact
 
-                        blocks.extend(elliptical_contact(patch, com, mu, self.closing_force, self.ellipsoid_samples))
-                    elif self.model == "reach":
-                        from ms_drake.grasping.reach import reach_contact
-
-                        blocks.extend(reach_contact(patch, com, mu, self.closing_force, self.max_triangles,
-                                                    self.ellipsoid_samples))
-                    else:
-                        from ms_drake.grasping.friction_cone import cone_contact
-
-                        blocks.append(cone_contact(patch, com, mu, self.closing_force, W, rng, self.k1, self.k2,
-                                                   self.cone_planes, cone=self.model == "6dfc"))
-                        continue
-            except (ValueError, ZeroDivisionError, np.linalg.LinAlgError):
-                return None, "degenerate_fit"
+                    blocks.append(cone_contact(patch, com, mu, self.closing_force, W, rng, self.k1, self.k2,
+                                               self.cone_planes, cone=self.model == "6dfc"))
+        except (ValueError, ZeroDivisionError, np.linalg.LinAlgError):
+            return None, "degenerate_fit"
         if self.model not in ("mfe", "6dfc"):
             for b in blocks:  # vertex form: generators in physical units -> normalized
                 b.G = W[:, None] * b.G

@@ -23,7 +23,7 @@ from scipy.special import ellipe
 
 from ms_drake.grasping.geometry import MeshData, Patch, cross
 from ms_drake.grasping.wrench_qp import WrenchProblem
-from ms_drake.grasping.wrench_sets import ellipsoid_generators, hull, sphere_samples, tangent_basis, wrench
+from ms_drake.grasping.wrench_sets import ellipsoid_generators, hull, sphere_samples, wrench
 
 
 def ray_contacts(data: MeshData, center, axis, width):
@@ -34,10 +34,9 @@ def ray_contacts(data: MeshData, center, axis, width):
     a jaw with no entry within the opening misses."""
     origins = np.stack([center - 0.5 * width * axis, center + 0.5 * width * axis])
     dirs = np.stack([axis, -axis])
-    t, face = data.raycast(origins, dirs, np.inf)
-    if np.any(face < 0):
+    t, n_out = data.raycast(origins, dirs, np.inf)
+    if not np.all(np.isfinite(t)):
         return None, "miss"
-    n_out = data.normals[face]
     if np.any(np.sum(n_out * dirs, axis=1) >= 0):
         return None, "jaw_collision"
     if np.any(t > width):
@@ -45,18 +44,35 @@ def ray_contacts(data: MeshData, center, axis, width):
     return (origins + t[:, None] * dirs, -n_out), ""
 
 
-def point_contact(point, n_in, com, mu, closing_force, edges: int = 8) -> WrenchProblem:
-    t1, t2 = tangent_basis(n_in)
-    th = 2 * np.pi * np.arange(edges) / edges
-    forces = closing_force * (n_in + mu * (np.cos(th)[:, None] * t1 + np.sin(th)[:, None] * t2))
-    return hull(wrench(np.broadcast_to(point, forces.shape), forces, com), include_origin=True)
+def _tangents(n: np.ndarray):
+    """(K, 3) unit normals -> two (K, 3) orthonormal tangent fields."""
+    helper = np.where(np.abs(n[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
+    t1 = cross(n, helper)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    return t1, cross(n, t1)
 
 
-def soft_point_contact(point, n_in, com, mu, closing_force, gamma, samples: int = 18) -> WrenchProblem:
-    u = sphere_samples(samples)
-    normal = wrench(point[None], (closing_force * n_in)[None], com)
-    fric = ellipsoid_generators(point, n_in, com, mu * closing_force, gamma * closing_force, u)
-    return hull(normal + fric, include_origin=True)
+def contacts_problem(points, normals_in, com, mu, closing_force, W, torsion: float = 0.0, edges: int = 8,
+                     samples: int = 18) -> WrenchProblem:
+    """All point (torsion = 0: `edges`-edge linearized Coulomb cone) or soft point (torsion =
+    gamma: 18-sample elliptical limit-surface cone) contacts as one normalized hull-sum problem:
+    per contact conv({0} u {f_C (n + mu (u_x t1 + u_y t2)), with torsion gamma u_z f_C about n})."""
+    K = len(points)
+    t1, t2 = _tangents(normals_in)
+    if torsion > 0:
+        u = sphere_samples(samples)
+    else:
+        th = 2 * np.pi * np.arange(edges) / edges
+        u = np.column_stack([np.cos(th), np.sin(th), np.zeros(edges)])
+    J = len(u)
+    f = closing_force * (normals_in[:, None, :] + mu * (u[None, :, 0:1] * t1[:, None, :] + u[None, :, 1:2] * t2[:, None, :]))
+    tau = cross((points - com)[:, None, :], f) + (closing_force * torsion) * u[None, :, 2:3] * normals_in[:, None, :]
+    G = (np.concatenate([f, tau], axis=2).reshape(K * J, 6) * W).T
+    A = np.zeros((K, K * J))
+    for k in range(K):
+        A[k, k * J:(k + 1) * J] = 1.0
+    return WrenchProblem(G=G, t=np.zeros(6), A=A, lo=np.full(K, -np.inf), hi=np.ones(K), lb=np.zeros(K * J),
+                         ub=np.full(K * J, np.inf), blocks=[(k * J, (k + 1) * J, True) for k in range(K)])
 
 
 def fit_ellipse(patch: Patch):

@@ -97,14 +97,14 @@ def sample_antipodal_grasps(mesh, X_WO, count: int, friction: float = 0.5, max_w
     while len(out) < count and done < attempts:
         pts, nrm = sample_surface(data, batch, rng)
         dirs = np.array([_random_in_cone(-n, half, rng) for n in nrm])
-        dist, face = data.raycast(pts + 1e-7 * dirs, dirs, np.inf)
+        dist, n_hit = data.raycast(pts + 1e-7 * dirs, dirs, np.inf)
         for i in range(batch):
             done += 1
             if len(out) >= count or done > attempts:
                 break
-            if face[i] < 0:
+            if not np.isfinite(dist[i]):
                 continue
-            n2 = data.normals[face[i]]
+            n2 = n_hit[i]
             if np.dot(n2, dirs[i]) <= np.cos(half):  # exit normal must be in the cone about the axis
                 continue
             d = dist[i]

@@ -103,16 +103,16 @@ class SuctionEvaluator:
     def seal(self, data: MeshData, point, approach):
         """(contact point, lip points) when the cup seals, else (None, reason)."""
         back = 0.05
-        t, face = data.raycast((point - back * approach)[None], approach[None], np.inf)
-        if face[0] < 0 or abs(t[0] - back) > 0.01:
+        t, _ = data.raycast((point - back * approach)[None], approach[None], np.inf)
+        if not np.isfinite(t[0]) or abs(t[0] - back) > 0.01:
             return None, "miss"
         contact = point - back * approach + t[0] * approach
         t1, t2 = tangent_basis(approach)
         th = 2 * np.pi * np.arange(self.perimeter) / self.perimeter
         ring = contact + self.cup_radius * (np.cos(th)[:, None] * t1 + np.sin(th)[:, None] * t2)
-        tl, fl = data.raycast(ring - back * approach, np.broadcast_to(approach, ring.shape),
-                              back + 2 * self.max_deflection)
-        if np.any(fl < 0):
+        tl, _ = data.raycast(ring - back * approach, np.broadcast_to(approach, ring.shape),
+                             back + 2 * self.max_deflection)
+        if not np.all(np.isfinite(tl)):
             return None, "no_seal"
         heights = tl - back  # along the approach, relative to the contact
         if np.max(np.abs(heights)) > self.max_deflection:

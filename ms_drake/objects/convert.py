@@ -36,7 +36,7 @@ Per object (``convert_mesh``), choices where the reference is silent:
    false``. Mass is clamped to [0.02, 1.0] kg (like the procedural set); the inertia is scaled
    with it (``"mass_clamped": true``).
 4. Visual: quadric decimation (fast-simplification) to at most ``visual_faces`` (1,500) faces,
-   vertices split at creases sharper than 30 degrees, exported as .obj WITH vertex normals.
+   vertices split at creases sharper than 60 degrees, exported as .obj WITH vertex normals.
    ``extents`` in the index are the visual mesh's extents.
 5. Collision (rigid hydroelastic convex pieces, ``<drake:declare_convex/>``):
    - the convex hull when hull volume / mesh volume <= 1.3 (or the mesh is not watertight);
@@ -120,6 +120,11 @@ PROCEDURAL_NOTICE = (
 )
 
 
+class InvalidMeshError(ValueError):
+    """A source mesh that cannot be converted (e.g. random_urdfs/168 has only NaN vertices); the
+    object is skipped and listed under "skipped_invalid" in index.json."""
+
+
 @dataclass(frozen=True)
 class ConvertOptions:
     """Settings of one conversion (recorded in index.json under "options")."""
@@ -128,7 +133,7 @@ class ConvertOptions:
     mass_range: tuple[float, float] = (0.02, 1.0)  # kg
     size_range: tuple[float, float] | None = None  # clamp of the largest extent (m); None = keep
     visual_faces: int = 1500
-    crease_angle_deg: float = 30.0
+    crease_angle_deg: float = 60.0
     max_pieces: int = 8
     decompose_ratio: float = 1.3  # hull volume / mesh volume above which we decompose
     max_hull_vertices: int = 48
@@ -246,6 +251,12 @@ def clean_mesh(mesh):
     import trimesh
 
     mesh = mesh.copy()
+    finite = np.isfinite(mesh.vertices).all(axis=1)
+    if not finite.all():
+        mesh.update_faces(finite[mesh.faces].all(axis=1))
+        mesh.remove_unreferenced_vertices()
+    if len(mesh.faces) < 4 or not np.isfinite(mesh.vertices).all():
+        raise InvalidMeshError(f"no usable faces ({(~finite).sum()} of {len(finite)} vertices are not finite)")
     mesh.merge_vertices()
     mesh.update_faces(mesh.nondegenerate_faces())
     mesh.update_faces(mesh.unique_faces())
@@ -267,6 +278,26 @@ def clean_mesh(mesh):
     return mesh, keep
 
 
+def _fmt(a: np.ndarray, decimals: int) -> list[str]:
+    """Rows of `a` as compact text: fixed decimals, trailing zeros stripped ("-0.0452 0.1 0")."""
+    out = []
+    for row in np.round(a, decimals) + 0.0:  # + 0.0 turns -0.0 into 0.0
+        out.append(" ".join(f"{x:.{decimals}f}".rstrip("0").rstrip(".") or "0" for x in row))
+    return out
+
+
+def obj_text(mesh, normals: bool) -> str:
+    """Wavefront OBJ text of a triangle mesh (positions to 10 um; unit normals to 1e-4)."""
+    lines = [f"v {r}" for r in _fmt(mesh.vertices, 5)]
+    f = np.asarray(mesh.faces) + 1
+    if normals:
+        lines += [f"vn {r}" for r in _fmt(mesh.vertex_normals, 4)]
+        lines += [f"f {a}//{a} {b}//{b} {c}//{c}" for a, b, c in f]
+    else:
+        lines += [f"f {a} {b} {c}" for a, b, c in f]
+    return "\n".join(lines) + "\n"
+
+
 def split_of(name: str) -> str:
     """'test' for ~TEST_FRACTION of names, else 'train' (a hash of the name; stable across subsets)."""
     u = int.from_bytes(hashlib.sha256(name.encode()).digest()[:8], "big") / 2**64
@@ -280,7 +311,6 @@ def _num(x: float) -> float:
 def convert_mesh(mesh, name: str, out_dir: Path, opts: ConvertOptions, scale: float = 1.0) -> dict:
     """Convert one trimesh.Trimesh into `out_dir/name/` and return its index entry (no split)."""
     import trimesh
-    from trimesh.exchange.obj import export_obj
 
     body, parts = clean_mesh(mesh)
     largest = float(body.extents.max()) * scale
@@ -322,13 +352,11 @@ def convert_mesh(mesh, name: str, out_dir: Path, opts: ConvertOptions, scale: fl
 
     folder = out_dir / name
     folder.mkdir(parents=True, exist_ok=True)
-    (folder / "visual.obj").write_text(export_obj(visual, include_normals=True, include_color=False,
-                                                  include_texture=False, digits=5, header=None))
+    (folder / "visual.obj").write_text(obj_text(visual, normals=True))
     collision = []
     for k, h in enumerate(hulls):
         rel = f"{name}/collision_{k:02d}.obj"
-        (out_dir / rel).write_text(export_obj(h, include_normals=False, include_color=False,
-                                              include_texture=False, digits=5, header=None))
+        (out_dir / rel).write_text(obj_text(h, normals=False))
         collision.append(rel)
     return {
         "name": name,
@@ -375,11 +403,16 @@ def convert_meshes(files, out_dir: Path, set_name: str, opts: ConvertOptions | N
     if tmp.exists():
         shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
-    objects, seconds = [], []
+    objects, seconds, invalid = [], [], []
     for s in tqdm(sources, desc=f"converting {set_name}", unit="obj", disable=not progress):
         t0 = time.perf_counter()
         mesh = trimesh.load(s.path, force="mesh", process=False)
-        entry = convert_mesh(mesh, s.name, tmp, opts, scale=s.scale)
+        try:
+            entry = convert_mesh(mesh, s.name, tmp, opts, scale=s.scale)
+        except InvalidMeshError as e:
+            warnings.warn(f"{s.path}: skipped, {e}", stacklevel=2)
+            invalid.append(s.name)
+            continue
         entry["split"] = split_of(s.name)
         entry["source_file"] = s.path.name
         entry.update(s.meta)
@@ -393,6 +426,7 @@ def convert_meshes(files, out_dir: Path, set_name: str, opts: ConvertOptions | N
         "density": opts.density,
         "options": {k: v for k, v in asdict(opts).items()},
         **(extra or {}),
+        "skipped_invalid": invalid,
         "objects": objects,
     }
     (tmp / "index.json").write_text(_index_json(index))
@@ -459,25 +493,31 @@ def ycb_sources(folder: Path | None = None) -> list[MeshSource]:
 
 
 def select(sources: list[MeshSource], limit: int | None, size_filter: tuple[float, float],
-           size_range: tuple[float, float] | None) -> tuple[list[MeshSource], list[str]]:
-    """Keep sources whose scaled largest extent lies in `size_filter` (m), then, with a `limit`,
-    `limit` of them evenly spaced in name order. Returns (kept, skipped names)."""
+           size_range: tuple[float, float] | None, min_thickness: float = 0.005,
+           ) -> tuple[list[MeshSource], list[str], list[str]]:
+    """Keep sources with finite vertices whose largest extent, after the source scale and the size
+    rule `size_range`, lies in `size_filter` (m) and whose smallest extent is >= `min_thickness`
+    (a few random_urdfs are 2 mm sheets, which tunnel and cannot be grasped); then, with a `limit`, `limit` of them evenly spaced
+    in name order. Returns (kept, names skipped by size, names of invalid meshes)."""
     import trimesh
 
-    kept, skipped = [], []
+    kept, skipped, invalid = [], [], []
     for s in sources:
-        if size_range is not None and size_filter[0] <= size_range[0] and size_range[1] <= size_filter[1]:
-            kept.append(s)  # the size rule already puts it inside the filter
+        mesh = trimesh.load(s.path, force="mesh", process=False)
+        if len(mesh.faces) < 4 or not np.isfinite(mesh.vertices).all():
+            invalid.append(s.name)
             continue
-        largest = float(trimesh.load(s.path, force="mesh").extents.max()) * s.scale
-        if size_filter[0] <= largest <= size_filter[1]:
+        largest = float(mesh.extents.max()) * s.scale
+        rule = float(np.clip(largest, *size_range)) / largest if size_range is not None else 1.0
+        thinnest = float(mesh.extents.min()) * s.scale * rule
+        if size_filter[0] <= largest * rule <= size_filter[1] and thinnest >= min_thickness:
             kept.append(s)
         else:
             skipped.append(s.name)
     if limit is not None and limit < len(kept):
         idx = np.unique(np.linspace(0, len(kept) - 1, limit).round().astype(int))
         kept = [kept[i] for i in idx]
-    return kept, skipped
+    return kept, skipped, invalid
 
 
 def write_notice(root: Path) -> Path:
@@ -510,17 +550,17 @@ def build_set(set_name: str, out_root: Path, limit: int | None = None, density: 
         raise SystemExit(f"unknown --set {set_name!r}; use ycb or random_urdfs")
     if not sources:
         raise SystemExit(f"no meshes found for {set_name} in {source_dir}")
-    kept, skipped = select(sources, limit, size_filter, size_range)
+    kept, skipped, invalid = select(sources, limit, size_filter, size_range)
     opts = ConvertOptions(density=density, size_range=size_range)
-    subset = (f"{len(kept)} of {len(sources)} objects: largest extent in "
-              f"[{size_filter[0] * 100:g}, {size_filter[1] * 100:g}] cm"
+    subset = (f"{len(kept)} of {len(sources)} objects: valid meshes with largest extent in "
+              f"[{size_filter[0] * 100:g}, {size_filter[1] * 100:g}] cm and smallest >= 0.5 cm"
               + (f", then {limit} evenly spaced in name order (--limit {limit})" if limit else ""))
     info = SET_INFO[set_name]
     index = convert_meshes(
         kept, Path(out_root) / (folder_name or set_name), folder_name or set_name, opts,
         source=f"{info['source']}; converted subset: {subset}", license=info["license"], progress=progress,
         extra={"command": "python -m ms_drake.objects.convert " + " ".join(sys.argv[1:]) if sys.argv[1:] else "",
-               "skipped_by_size": skipped},
+               "skipped_by_size": skipped, "invalid_sources": invalid},
     )
     write_notice(Path(out_root))
     return index

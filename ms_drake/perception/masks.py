@@ -68,9 +68,10 @@ def silhouette(camera: PinholeCamera, vertices_W: np.ndarray, faces: np.ndarray)
     mask = np.zeros((camera.height, camera.width), np.uint8)
     ok = np.all(z[faces] > 1e-3, axis=1)
     # fillPoly takes integer pixel coords; use 4 bits of sub-pixel precision (shift=4).
-    tris = np.round((uv[faces[ok]] - 0.5) * 16).astype(np.int32)
-    if len(tris):
-        cv2.fillPoly(mask, list(tris), 1, lineType=cv2.LINE_8, shift=4)
+    # (fillPoly would XOR overlapping triangles, so each is filled on its own.)
+    tris = np.round(uv[faces[ok]] * 16).astype(np.int32)  # pixel centres at integer coordinates
+    for tri in tris:
+        cv2.fillConvexPoly(mask, tri, 1, lineType=cv2.LINE_8, shift=4)
     return mask.astype(bool)
 
 

@@ -2,14 +2,16 @@
 
 `add_point_cloud(builder, station, camera_name, camera_config)` adds Drake's system fed by the
 station's ``<cam>.depth_image`` (and ``<cam>.rgb_image`` for colour), with the camera's pose
-as a fixed parameter so the cloud is in the world frame; returns the system, whose output
+as a constant input so the cloud is in the world frame; returns the system, whose output
 port ``point_cloud`` gives a pydrake PointCloud (invalid depths are NaN points).
 """
 
 from __future__ import annotations
 
 import numpy as np
+from pydrake.common.value import AbstractValue
 from pydrake.perception import BaseField, DepthImageToPointCloud
+from pydrake.systems.primitives import ConstantValueSource
 
 from ms_drake.perception.masks import PinholeCamera
 
@@ -23,12 +25,10 @@ def add_point_cloud(builder, station, camera_name: str, camera_config, color: bo
     builder.Connect(station.GetOutputPort(f"{camera_name}.depth_image"), system.depth_image_input_port())
     if color and camera_config.rgb:
         builder.Connect(station.GetOutputPort(f"{camera_name}.rgb_image"), system.color_image_input_port())
-    return system, X_WC
-
-
-def fix_camera_pose(system, context, X_WC) -> None:
-    """Set the camera_pose input of the point-cloud system (in its own context)."""
-    system.GetInputPort("camera_pose").FixValue(system.GetMyContextFromRoot(context), X_WC)
+    pose = builder.AddSystem(ConstantValueSource(AbstractValue.Make(X_WC)))
+    pose.set_name(f"{camera_name}.X_WC")
+    builder.Connect(pose.get_output_port(), system.camera_pose_input_port())
+    return system
 
 
 def finite_points(cloud) -> np.ndarray:

@@ -160,6 +160,11 @@ class _DropWorld:
             self.plant.SetFreeBodyPose(self.plant_context, b, X)
             self.plant.SetFreeBodySpatialVelocity(self.plant_context, b, _zero_velocity())
 
+    def free_body_q(self, i: int) -> tuple:
+        """(qw, qx, qy, qz, x, y, z) of object i, as stored in the plant."""
+        q = self.plant.GetPositions(self.plant_context, self.objects[i].model_instance)
+        return tuple(float(v) for v in q)
+
     def poses(self) -> list[RigidTransform]:
         return [self.plant.GetFreeBodyPose(self.plant_context, b) for b in self.bodies]
 
@@ -314,10 +319,9 @@ def generate_heap(scenario: Scenario, num_objects: int, seed: int, object_set: s
         target_k = -1
         if world.sensor is not None:
             modal, amodal = visible_ratios(world, names, present, world.camera)
-            ratios = np.where(amodal > 0, modal / np.maximum(amodal, 1), 1.0)
+            ratios = np.where(amodal > 0, np.minimum(modal / np.maximum(amodal, 1), 1.0), 1.0)
             target_k = int(np.argmin(ratios))
-        objects = tuple(ObjectPose(names[i], tuple(tuple(float(v) for v in row) for row in poses[i].GetAsMatrix4()))
-                        for i in present)
+        objects = tuple(ObjectPose(names[i], world.free_body_q(i)) for i in present)
         heap = Heap(seed=seed, environment="bin", objects=objects,
                     target=objects[target_k].name if target_k >= 0 else "", target_index=target_k,
                     visible_ratios=tuple(float(r) for r in ratios), seconds=time.perf_counter() - t0)
@@ -333,12 +337,12 @@ def generate_heap(scenario: Scenario, num_objects: int, seed: int, object_set: s
 
 def heap_to_dict(heap: Heap) -> dict:
     d = dataclasses.asdict(heap)
-    d["objects"] = [{"name": o.name, "X_WO": [list(r) for r in o.X_WO]} for o in heap.objects]
+    d["objects"] = [{"name": o.name, "q": list(o.q)} for o in heap.objects]
     return d
 
 
 def heap_from_dict(d: dict) -> Heap:
-    objs = tuple(ObjectPose(o["name"], tuple(tuple(float(v) for v in r) for r in o["X_WO"])) for o in d["objects"])
+    objs = tuple(ObjectPose(o["name"], tuple(float(v) for v in o["q"])) for o in d["objects"])
     return Heap(seed=int(d["seed"]), environment=d.get("environment", "bin"), objects=objs,
                 target=d.get("target", ""), target_index=int(d.get("target_index", -1)),
                 visible_ratios=tuple(d.get("visible_ratios", ())), seconds=float(d.get("seconds", 0.0)))
@@ -373,6 +377,5 @@ def set_heap_poses(station, context, heap: Heap) -> None:
     if [o.full_name for o in objs] != heap.object_names():
         raise HeapError("the station's objects differ from the heap's; build it from scenario_with_heap(scenario, heap)")
     for o, op in zip(objs, heap.objects):
-        body = plant.get_body(o.body_index)
-        plant.SetFreeBodyPose(pc, body, RigidTransform(op.matrix()))
-        plant.SetFreeBodySpatialVelocity(pc, body, _zero_velocity())
+        plant.SetPositions(pc, o.model_instance, np.asarray(op.q))
+        plant.SetVelocities(pc, o.model_instance, np.zeros(6))

@@ -58,7 +58,8 @@ def place_objects(scenario: Scenario, names: list[str], seed: int, clearance: fl
             X_W = RigidTransform(X.rotation(), origin + [shift[0] + X.translation()[0],
                                                          shift[1] + X.translation()[1],
                                                          X.translation()[2] - pts[:, 2].min() + 1e-4])
-            objects.append(ObjectPose(name, tuple(tuple(float(a) for a in r) for r in X_W.GetAsMatrix4())))
+            quat = X_W.rotation().ToQuaternion()
+            objects.append(ObjectPose(name, (quat.w(), quat.x(), quat.y(), quat.z(), *map(float, X_W.translation()))))
             break
         else:
             raise HeapError(f"cannot place {name} without collision on the {env.type} after {max_tries} tries; "

@@ -1,0 +1,26 @@
+"""Shared fixtures: scenarios from diagrams/scenarios.yaml, small heaps."""
+
+import copy
+
+import pytest
+
+from ms_drake.scenario import load_scenario
+
+
+@pytest.fixture(scope="session")
+def bin_scenario():
+    return load_scenario(None, "BinHeap15")
+
+
+def no_robot(scenario):
+    s = copy.deepcopy(scenario)
+    s.robot.name = ""
+    s.robot.grippers = []
+    return s
+
+
+@pytest.fixture(scope="session")
+def small_heap(bin_scenario):
+    from ms_drake.scenes.heaps import generate_heap
+
+    return generate_heap(bin_scenario, 4, seed=3)
