@@ -1,0 +1,47 @@
+"""ms_drake.parallel: local pool and Ray give every result; failures are reported, not fatal."""
+
+import os
+
+import pytest
+
+from ms_drake.parallel import run_jobs
+
+
+def square(x):
+    if x == 3:
+        raise ValueError("three is not allowed")
+    return x * x, os.getpid()
+
+
+def test_serial_and_local_pool_give_every_result():
+    for workers in (1, 2):
+        results = list(run_jobs(square, range(6), workers=workers))
+        assert sorted(r.job for r in results) == list(range(6))
+        ok = {r.job: r.value[0] for r in results if r.ok}
+        assert ok == {0: 0, 1: 1, 2: 4, 4: 16, 5: 25}
+        (bad,) = [r for r in results if not r.ok]
+        assert bad.job == 3 and "three is not allowed" in bad.error
+        if workers == 2:
+            assert all(r.value[1] != os.getpid() for r in results if r.ok)
+
+
+def die(x):
+    if x == 1:
+        os._exit(3)
+    return x
+
+
+def test_a_dying_worker_is_reported():
+    results = list(run_jobs(die, [0, 1, 2], workers=2))
+    assert len(results) == 3
+    assert any("died" in r.error for r in results if not r.ok)
+
+
+def test_ray_local_cluster():
+    ray = pytest.importorskip("ray", reason="the optional ray extra is not installed")
+    try:
+        results = list(run_jobs(square, range(5), workers=2, use_ray=True))
+    finally:
+        ray.shutdown()
+    assert sorted(r.job for r in results) == list(range(5))
+    assert {r.job: r.value[0] for r in results if r.ok} == {0: 0, 1: 1, 2: 4, 4: 16}

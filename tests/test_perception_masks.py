@@ -1,0 +1,100 @@
+"""Perception basics: LabelImageToMasks, AmodalMasks, point clouds — alone and wired."""
+
+import copy
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.sensors import ImageLabel16I
+
+from ms_drake.perception.masks import (AmodalMasks, LabelImageToMasks, PinholeCamera, make_amodal_masks,
+                                       object_labels, silhouette)
+from ms_drake.perception.point_cloud import add_point_cloud, finite_points
+from ms_drake.station import MakeStation, get_plant, station_objects
+from ms_drake.types import InstanceMasks
+
+
+def _label_image(arr):
+    img = ImageLabel16I(arr.shape[1], arr.shape[0])
+    np.array(img.mutable_data, copy=False)[:, :, 0] = arr
+    return img
+
+
+def test_label_masks_alone():
+    arr = np.zeros((40, 50), np.int16)
+    arr[5:15, 5:20] = 7
+    arr[20:30, 30:45] = 9
+    arr[0, 0] = 11  # one pixel: below min_pixels
+    system = LabelImageToMasks({7: "a", 9: "b", 11: "c"}, min_pixels=5)
+    ctx = system.CreateDefaultContext()
+    system.get_input_port(0).FixValue(ctx, _label_image(arr))
+    masks = system.get_output_port(0).Eval(ctx)
+    assert isinstance(masks, InstanceMasks)
+    assert masks.ids == ("a", "b")
+    assert list(masks.areas()) == [150, 150]
+    assert masks.masks[0, 10, 10] and not masks.masks[0, 25, 35]
+
+
+def test_amodal_masks_alone_match_a_box_projection():
+    import trimesh
+
+    cam = PinholeCamera(100, 80, 100.0, 100.0, 49.5, 39.5, RigidTransform([0, 0, -1.0]))  # looks along +z
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    system = AmodalMasks(cam, [("box", 0, box)])
+    ctx = system.CreateDefaultContext()
+    system.get_input_port(0).FixValue(ctx, AbstractValue.Make([RigidTransform()]))
+    m = system.get_output_port(0).Eval(ctx).masks[0]
+    # The front face at 0.9 m spans 0.2/0.9*100 = 22.2 px: ~22 x 22 pixels around the centre.
+    assert 20 * 20 <= m.sum() <= 25 * 25
+    assert m[40, 50] and not m[5, 5]
+
+
+def test_masks_wired_in_a_station(bin_scenario):
+    s = copy.deepcopy(bin_scenario)
+    s.objects.count = 3
+    builder = DiagramBuilder()
+    station = builder.AddSystem(MakeStation(s))
+    plant = get_plant(station)
+    labels = builder.AddSystem(LabelImageToMasks(object_labels(plant)))
+    builder.Connect(station.GetOutputPort("overhead.label_image"), labels.get_input_port(0))
+    cam = PinholeCamera.from_config(s.cameras["overhead"])
+    amodal = builder.AddSystem(make_amodal_masks(plant, cam))
+    builder.Connect(station.GetOutputPort("body_poses"), amodal.get_input_port(0))
+    cloud = add_point_cloud(builder, station, "overhead", s.cameras["overhead"])
+    diagram = builder.Build()
+    ctx = diagram.CreateDefaultContext()
+    modal = labels.get_output_port(0).Eval(labels.GetMyContextFromRoot(ctx))
+    full = amodal.get_output_port(0).Eval(amodal.GetMyContextFromRoot(ctx))
+    assert len(modal) == 3 and len(full) == 3
+    for i, name in enumerate(full.ids):
+        j = modal.ids.index(name)
+        inter = (modal.masks[j] & full.masks[i]).sum()
+        assert inter >= 0.97 * modal.masks[j].sum()  # visible part lies inside the silhouette
+    pts = finite_points(cloud.get_output_port().Eval(cloud.GetMyContextFromRoot(ctx)))
+    assert len(pts) > 100000
+    # World-frame cloud: the bin floor (z = 0) and objects above it, nothing far below.
+    assert np.percentile(pts[:, 2], 5) > -0.1 and np.percentile(pts[:, 2], 50) < 0.3
+
+
+def test_silhouette_equals_rendering_the_object_alone(bin_scenario):
+    for name in ["procedural/box_000", "procedural/cylinder_001", "procedural/packaged_002"]:
+        s = copy.deepcopy(bin_scenario)
+        s.objects.count = 0
+        s.objects.names = [name]
+        station = MakeStation(s)
+        ctx = station.CreateDefaultContext()
+        plant = get_plant(station)
+        (o,) = station_objects(plant)
+        labels = np.array(station.GetOutputPort("overhead.label_image").Eval(ctx).data)[:, :, 0]
+        rendered = labels == int(o.body_index)
+        m = make_amodal_masks(plant, PinholeCamera.from_config(s.cameras["overhead"]))
+        proj = m.masks_for(station.GetOutputPort("body_poses").Eval(ctx)).masks[0]
+        iou = (rendered & proj).sum() / (rendered | proj).sum()
+        assert iou > 0.95, (name, iou)
+
+
+def test_silhouette_ignores_geometry_behind_the_camera():
+    cam = PinholeCamera(50, 50, 50.0, 50.0, 24.5, 24.5, RigidTransform())
+    v = np.array([[0, 0, -1.0], [0.1, 0, -1.0], [0, 0.1, -1.0]])
+    assert not silhouette(cam, v, np.array([[0, 1, 2]])).any()
