@@ -171,8 +171,7 @@ class GraspEvaluator:
             grasp_O = grasp.transformed(X_OW)
             n = int(robust_samples)
             if n == 0:
-                ok, reason, res = self._trial(data, grasp_O, com_O, g_O, self.friction, mass,
-                                              np.random.default_rng(seed))
+                ok, reason, res = self._trial(data, grasp_O, com_O, g_O, self.friction, mass, int(seed))
                 return GraspQuality(1.0 if ok else 0.0, reason, res, 1, {reason: 1})
             outcomes = []
             for i in range(n):
@@ -199,7 +198,8 @@ class GraspEvaluator:
         return ParallelJawGrasp(g.center + dt, R @ g.axis, R @ g.approach, g.width), mu, m
 
     def contact_problem(self, data: MeshData, g: ParallelJawGrasp, com, g_dir, mu, mass, rng):
-        """The normalized WrenchProblem of one trial, or (None, reason)."""
+        """The normalized WrenchProblem of one trial, or (None, reason). rng: seed or Generator
+        (used by MFE / 6DFC wrench sampling)."""
         W = normalizer(mass, GRAVITY, data.length_scale)
         t = np.concatenate([g_dir, np.zeros(3)])  # gravity wrench about the COM / (m g)
         blocks: list[WrenchProblem] = []
@@ -235,6 +235,7 @@ class GraspEvaluator:
                 else:
                     from ms_drake.grasping.friction_cone import cone_contact
 
+                    rng = np.random.default_rng(rng)  # a seed or a Generator; created only here
                     blocks.append(cone_contact(patch, com, mu, self.closing_force, W, rng, self.k1, self.k2,
                                                self.cone_planes, cone=self.model == "6dfc"))
         except (ValueError, ZeroDivisionError, np.linalg.LinAlgError):

@@ -143,18 +143,25 @@ class MeshData:
             t_out[hit], n_out[hit] = t[hit], self.normals[face[hit]]
             return t_out, n_out
         cx, cy, cz = self.bbox_center
-        for r, (o, d) in enumerate(zip(origins.tolist(), directions.tolist())):
+        step = self.bbox_diagonal / 8.0  # manifold3d tests the triangles in a segment's bounding
+        for r, (o, d) in enumerate(zip(origins.tolist(), directions.tolist())):  # box: keep it small
             L = float(maxd[r])
             if L == np.inf:
                 L = math.sqrt((o[0] - cx) ** 2 + (o[1] - cy) ** 2 + (o[2] - cz) ** 2) + self.bbox_diagonal
-            if L <= 0:
-                continue
-            for h in m.ray_cast(o, (o[0] + L * d[0], o[1] + L * d[1], o[2] + L * d[2])):
-                dist = h.distance * L
-                if dist > 1e-9:
-                    t_out[r] = dist
-                    n_out[r] = h.normal
+            a = 0.0
+            while a < L:
+                b = min(L, a + step)
+                hit = None
+                for h in m.ray_cast((o[0] + a * d[0], o[1] + a * d[1], o[2] + a * d[2]),
+                                    (o[0] + b * d[0], o[1] + b * d[1], o[2] + b * d[2])):
+                    dist = a + h.distance * (b - a)
+                    if dist > 1e-9:
+                        hit = (dist, h.normal)
+                        break
+                if hit is not None:
+                    t_out[r], n_out[r] = hit
                     break
+                a = b
         return t_out, n_out
 
     def raycast_triangles(self, origins: np.ndarray, directions: np.ndarray, max_distance):
