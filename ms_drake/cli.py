@@ -184,6 +184,10 @@ def diagram(scenario: str = typer.Argument("BinHeap15", help="Scenario name"),
     typer.echo(f"wrote {out}")
 
 
+from ms_drake.grasping.cli import grasp_command  # noqa: E402
+app.command("grasp")(grasp_command)
+
+
 def main():
     try:
         app()
