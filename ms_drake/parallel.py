@@ -10,6 +10,7 @@ module-level function (it is pickled to the workers).
 from __future__ import annotations
 
 import multiprocessing
+import os
 import traceback
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -26,6 +27,16 @@ class JobResult:
     @property
     def ok(self) -> bool:
         return not self.error
+
+
+def probe(x):
+    """A tiny job for checking a pool or cluster: (x squared, worker pid, host); raises on
+    negative x so error reporting can be checked too."""
+    import socket
+
+    if x < 0:
+        raise ValueError(f"probe({x}): negative input")
+    return x * x, os.getpid(), socket.gethostname()
 
 
 def _call(fn, job):

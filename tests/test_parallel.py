@@ -39,9 +39,14 @@ def test_a_dying_worker_is_reported():
 
 def test_ray_local_cluster():
     ray = pytest.importorskip("ray", reason="the optional ray extra is not installed")
+    from ms_drake.parallel import probe
+
     try:
-        results = list(run_jobs(square, range(5), workers=2, use_ray=True))
+        results = list(run_jobs(probe, [0, 1, 2, -1, 4], workers=2, use_ray=True))
     finally:
         ray.shutdown()
-    assert sorted(r.job for r in results) == list(range(5))
+    assert sorted(r.job for r in results) == [-1, 0, 1, 2, 4]
     assert {r.job: r.value[0] for r in results if r.ok} == {0: 0, 1: 1, 2: 4, 4: 16}
+    (bad,) = [r for r in results if not r.ok]
+    assert bad.job == -1 and "negative input" in bad.error
+    assert all(r.value[1] != os.getpid() for r in results if r.ok)
