@@ -38,12 +38,14 @@ def bench_objects():
     try:  # mesh sets, when converted: objects with 500-2000 triangles
         from ms_drake.objects import available_sets, get_object_set
 
+        from ms_drake.grasping.meshes import object_mesh
+
         for s in available_sets():
             if s == "procedural":
                 continue
             n = 0
             for o in get_object_set(s).objects:
-                m = o.trimesh()
+                m = object_mesh(o.full_name)
                 if 500 <= len(m.faces) <= 2000 and m.is_watertight and min(o.extents) < 0.08 and n < 2:
                     objs[f"{o.full_name} ({len(m.faces)} tri)"] = m
                     n += 1

@@ -74,3 +74,13 @@ def test_grasp_cli_writes_png_and_prints_table(tmp_path, capsys):
         grasp_command(object="no_such_thing", out=tmp_path)
     with pytest.raises(GraspError, match="unknown grasp model"):
         grasp_command(object="procedural/box_000", model="hertz", out=tmp_path)
+
+
+def test_object_mesh_is_watertight_for_every_set():
+    from ms_drake.grasping.meshes import object_mesh
+    from ms_drake.objects import available_sets, get_object_set
+
+    for s in available_sets():
+        for spec in get_object_set(s).objects[:3]:
+            m = object_mesh(spec.full_name)
+            assert m.is_watertight and m.volume > 0, spec.full_name

@@ -92,8 +92,10 @@ def grasp_command(
     if samples < 1:
         raise GraspError(f"--samples must be >= 1, got {samples}")
     spec = resolve_object(object)
+    from ms_drake.grasping.meshes import object_mesh
+
     ev = GraspEvaluator(model, friction=friction, closing_force=closing_force)
-    mesh = spec.trimesh()
+    mesh = object_mesh(spec.full_name)
     X = np.eye(4)
     grasps = sample_antipodal_grasps(mesh, X, samples, friction=friction, max_width=0.1, seed=seed,
                                      center_noise=0.005)

@@ -79,11 +79,10 @@ def default_label_objects(count: int = 24, max_min_extent: float = 0.075) -> lis
 
 
 def _object(full_name: str):
+    from ms_drake.grasping.meshes import object_mesh
     from ms_drake.objects import get_object
 
-    spec = get_object(full_name)
-    mesh = spec.trimesh()
-    return spec, mesh
+    return get_object(full_name), object_mesh(full_name)
 
 
 def label_pose(mesh) -> np.ndarray:
