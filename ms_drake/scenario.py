@@ -87,11 +87,11 @@ class ArmDriver:
 
 @dataclass
 class JawDriver:
-    """Parallel jaw: Drake's WSG position controller with a force limit [N]."""
+    """Parallel jaw: Drake's WSG position controller (its command gains) with a force limit [N]."""
 
     default_force_limit: float = 40.0
-    kp: float = 2000.0
-    kd: float = 5.0
+    kp_command: float = 200.0
+    kd_command: float = 5.0
     status_timeout: float = 0.25
 
 

@@ -42,6 +42,7 @@ class ArmSpec:
     velocity_limits: tuple[float, ...]
     acceleration_limits: tuple[float, ...]
     jerk_limits: tuple[float, ...]
+    home: tuple[float, ...] = ()  # default joint positions in a station (() -> zeros within limits)
 
     def X_FG(self):
         from pydrake.math import RigidTransform, RollPitchYaw
@@ -59,7 +60,7 @@ class RobotSpec:
     other_joints: tuple[str, ...] = ()  # e.g. the Fetch base and head
 
 
-def _yumi_arm(side: str, gripper: str) -> ArmSpec:
+def _yumi_arm(side: str, gripper: str, home: tuple) -> ArmSpec:
     joints = tuple(f"yumi_joint_{n}_{side}" for n in (1, 2, 7, 3, 4, 5, 6))
     return ArmSpec(
         joints=joints, flange=f"yumi_link_7_{side}", X_FG_rpy_xyz=((0, 0, np.pi), (0, 0, 0.007)),
@@ -68,6 +69,7 @@ def _yumi_arm(side: str, gripper: str) -> ArmSpec:
         # Not published by ABB; conservative values chosen for smooth motion (about 1/2 s to full speed).
         acceleration_limits=(6.0, 6.0, 6.0, 6.0, 12.0, 12.0, 12.0),
         jerk_limits=(60.0, 60.0, 60.0, 60.0, 120.0, 120.0, 120.0),
+        home=home,
     )
 
 
@@ -82,11 +84,14 @@ ROBOTS: dict[str, RobotSpec] = {
             X_FG_rpy_xyz=((0, 0, np.pi / 4), (0, 0, 0)), default_gripper="parallel_jaw",
             velocity_limits=(2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61),
             acceleration_limits=(15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0),
-            jerk_limits=(750.0, 375.0, 500.0, 625.0, 750.0, 1000.0, 1000.0))},
+            jerk_limits=(750.0, 375.0, 500.0, 625.0, 750.0, 1000.0, 1000.0),
+            home=(0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785))},  # Franka's "ready" pose
     ),
     "yumi": RobotSpec(
         "yumi", "robots/yumi/yumi.sdf", "yumi_body",
-        arms={"yumi_right": _yumi_arm("r", "parallel_jaw"), "yumi_left": _yumi_arm("l", "suction_cup")},
+        # Homes: tools pointing down 30 cm above the near half of a bin 0.55 m in front (by IK).
+        arms={"yumi_right": _yumi_arm("r", "parallel_jaw", (-1.109, -0.708, 0.322, 1.067, 0.532, 0.116, 0.851)),
+              "yumi_left": _yumi_arm("l", "suction_cup", (0.558, -0.759, -0.017, 1.074, 0.99, 0.378, 0.816))},
     ),
     "fetch": RobotSpec(
         "fetch", "robots/fetch/fetch.sdf", "base_origin",
@@ -98,7 +103,10 @@ ROBOTS: dict[str, RobotSpec] = {
             # fetch_description gives no acceleration limits; conservative choices (MoveIt config
             # of the Fetch uses 1.5 rad/s^2 for the arm).
             acceleration_limits=(0.5, 1.5, 1.5, 1.5, 1.5, 1.5, 2.5, 2.5),
-            jerk_limits=(5.0, 15.0, 15.0, 15.0, 15.0, 15.0, 25.0, 25.0))},
+            jerk_limits=(5.0, 15.0, 15.0, 15.0, 15.0, 15.0, 25.0, 25.0),
+            # Home: torso down, tool level and pointing forward, blade down, tip 0.9 m ahead of
+            # the base and 1.04 m above its floor (at the front of the FetchShelf shelf, by IK).
+            home=(0.039, 0.498, -0.06, 0.607, -2.227, -0.468, 1.938, 0.707))},
         other_joints=("base_x", "base_y", "base_yaw", "head_pan_joint", "head_tilt_joint"),
     ),
 }
@@ -219,3 +227,138 @@ def floating_gripper_positions(X_WG) -> np.ndarray:
     R = X_WG.rotation().matrix()
     rpy = Rotation.from_matrix(R).as_euler("XYZ")
     return np.concatenate([X_WG.translation(), rpy])
+
+
+# ----------------------------------------------------------------------------- stations
+# The floating gripper as a one-arm "robot" for stations: arm `floating` = the 6 base joints.
+# Its limits for trajectory timing are choices (a fast but not violent gripper).
+FLOATING_ARM = ArmSpec(
+    joints=FLOATING_JOINTS, flange="floating_yaw_link", X_FG_rpy_xyz=((0, 0, 0), (0, 0, 0)),
+    default_gripper="parallel_jaw",
+    velocity_limits=(1.0, 1.0, 1.0, 3.0, 3.0, 3.0), acceleration_limits=(3.0, 3.0, 3.0, 8.0, 8.0, 8.0),
+    jerk_limits=(30.0, 30.0, 30.0, 80.0, 80.0, 80.0),
+    home=(0.0, 0.0, 0.45, np.pi, 0.0, 0.0))  # 0.45 m above the base origin, pointing down
+FLOATING = RobotSpec("floating", "grippers/floating_base.sdf", "floating_origin_link", arms={"floating": FLOATING_ARM})
+STATION_ROBOTS = ("fetch", "floating", "panda", "yumi")
+
+
+def station_robot_spec(name: str) -> RobotSpec:
+    """robot_spec for stations, including the `floating` gripper."""
+    if name == "floating":
+        return FLOATING
+    if name not in ROBOTS:
+        raise ScenarioError(f"robot.name: unknown robot {name!r}; valid robots: {', '.join(STATION_ROBOTS)}")
+    return ROBOTS[name]
+
+
+def resolve_robot_config(robot_config):
+    """Check a scenario's RobotConfig; returns [(arm, gripper name, gripper port)] and the
+    driver of every port prefix ({prefix: driver dataclass}, defaults filled in).
+
+    Errors (ScenarioError) name the key, the bad value and the valid names."""
+    from ms_drake.scenario import ArmDriver, JawDriver, SuctionDriver
+    from ms_drake.station.drivers import gripper_port_name
+    from ms_drake.station.grippers import GRIPPERS
+
+    spec = station_robot_spec(robot_config.name)
+    arms = list(spec.arms)
+    names = list(robot_config.grippers)
+    if len(names) > len(arms):
+        raise ScenarioError(f"robot.grippers: {names} lists {len(names)} grippers but {robot_config.name!r} has "
+                            f"{len(arms)} arm(s) ({', '.join(arms)}); give one gripper per arm, in that order")
+    chosen = []
+    for i, arm in enumerate(arms):
+        g = names[i] if i < len(names) else spec.arms[arm].default_gripper
+        if g not in GRIPPERS:
+            raise ScenarioError(f"robot.grippers[{i}]: unknown gripper {g!r}; valid grippers: "
+                                f"{', '.join(sorted(GRIPPERS))}")
+        chosen.append((arm, g, gripper_port_name(arm, GRIPPERS[g].kind)))
+    wanted = {arm: ArmDriver for arm in arms}
+    wanted.update({port: JawDriver if GRIPPERS[g].kind == "parallel_jaw" else SuctionDriver
+                   for _, g, port in chosen})
+    drivers = {}
+    for key, d in robot_config.drivers.items():
+        if key not in wanted:
+            raise ScenarioError(f"robot.drivers: no arm or gripper named {key!r} on {robot_config.name!r}; "
+                                f"valid driver names: {', '.join(wanted)}")
+        if not isinstance(d, wanted[key]):
+            raise ScenarioError(f"robot.drivers.{key}: a {type(d).__name__} cannot drive {key!r}; "
+                                f"use !{wanted[key].__name__}")
+        drivers[key] = d
+    for key, cls in wanted.items():
+        drivers.setdefault(key, cls())
+    for arm in arms:
+        kp = drivers[arm].kp
+        n = len(spec.arms[arm].joints)
+        if kp and (len(kp) != n or min(kp) <= 0):
+            raise ScenarioError(f"robot.drivers.{arm}.kp: give {n} positive stiffnesses (one per joint of "
+                                f"{', '.join(spec.arms[arm].joints)}) or [] for the defaults; got {list(kp)}")
+        if drivers[arm].damping_ratio < 0:
+            raise ScenarioError(f"robot.drivers.{arm}.damping_ratio: must be >= 0, got {drivers[arm].damping_ratio}")
+    return chosen, drivers
+
+
+def base_transform(robot_config):
+    """X_WR of the robot's root from base_position and base_yaw [deg]."""
+    from pydrake.math import RigidTransform, RollPitchYaw
+
+    if len(robot_config.base_position) != 3:
+        raise ScenarioError(f"robot.base_position: give [x, y, z] in metres, got {list(robot_config.base_position)}")
+    return RigidTransform(RollPitchYaw(0, 0, np.deg2rad(robot_config.base_yaw)), list(robot_config.base_position))
+
+
+def add_robot_from_scenario(builder, plant, scene_graph, scenario, parser):
+    """Add the scenario's robot and grippers to `plant` (before Finalize) at their home
+    configuration; returns the RobotHandle that apply_drivers completes after Finalize.
+
+    Model instance names: the robot keeps its file's model name (panda, yumi, fetch); grippers
+    are named by their port prefix (e.g. yumi_right_jaw); the floating gripper's base is
+    `<port>_base` (e.g. floating_jaw_base)."""
+    from ms_drake.station.drivers import ArmHandle, GripperHandle, RobotHandle
+    from ms_drake.station.grippers import GRIPPERS
+
+    rc = scenario.robot
+    chosen, drivers = resolve_robot_config(rc)
+    spec = station_robot_spec(rc.name)
+    X_WR = base_transform(rc)
+    if rc.name == "floating":
+        (arm, g, port), = chosen
+        instance, grip = add_floating_gripper(plant, parser, g, X_WR, model_name=port)
+        grippers = [GripperHandle(port, g, GRIPPERS[g].kind, grip, arm, drivers[port])]
+    else:
+        instance = add_robot(plant, parser, rc.name, X_WR)
+        grippers = [GripperHandle(port, g, GRIPPERS[g].kind,
+                                  add_arm_gripper(plant, parser, instance, rc.name, arm, g, model_name=port),
+                                  arm, drivers[port]) for arm, g, port in chosen]
+    arms = [ArmHandle(a, instance, spec.arms[a].joints, drivers[a]) for a in spec.arms]
+    set_home(plant, instance, spec)
+    arm_joints = {n for a in arms for n in a.joints}
+    hold = tuple(plant.get_joint(j).name() for j in plant.GetJointIndices(instance)
+                 if plant.get_joint(j).num_velocities() == 1 and plant.get_joint(j).name() not in arm_joints)
+    return RobotHandle(rc.name, instance, X_WR, arms, grippers, hold)
+
+
+def set_home(plant, instance, spec: RobotSpec):
+    """Default positions of every arm: ArmSpec.home, or zeros clipped into the joint limits."""
+    for arm in spec.arms.values():
+        for k, n in enumerate(arm.joints):
+            joint = plant.GetJointByName(n, instance)
+            q = arm.home[k] if arm.home else 0.0
+            lo, hi = joint.position_lower_limits()[0], joint.position_upper_limits()[0]
+            joint.set_default_positions([float(np.clip(q, lo, hi))])
+
+
+def apply_drivers(builder, plant, scene_graph, scenario, handle, lcm=None):
+    """Wire the drivers of `handle` (after Finalize) and export the robot's ports.
+
+    The simulated station talks to nothing over LCM (`lcm` is accepted for MakeStation's
+    signature and ignored); hardware.MakeEmulatedRobot puts a simulated station on a bus."""
+    from ms_drake.station import drivers
+
+    if plant.time_step() <= 0:
+        raise ScenarioError("plant_config.time_step: the robot drivers use the plant's PD controllers, which "
+                            "need a discrete plant; set time_step > 0 (e.g. 0.002)")
+    if plant.get_discrete_contact_approximation().name == "kTamsi":
+        raise ScenarioError("plant_config.discrete_contact_approximation: the robot drivers need sap, similar or "
+                            "lagged (PD-controlled actuators); tamsi does not support them")
+    drivers.apply_drivers(builder, plant, scene_graph, handle)
