@@ -156,9 +156,9 @@ def _quadrature(tri_xy, fn, n=300):
     i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
     up = i + j <= n - 1
     down = i + j <= n - 2
-    l = np.concatenate([np.column_stack([i[up] + 1 / 3, j[up] + 1 / 3]),
-                        np.column_stack([i[down] + 2 / 3, j[down] + 2 / 3])]) / n
-    pts = tri_xy[0] * l[:, :1] + tri_xy[1] * l[:, 1:] + tri_xy[2] * (1 - l.sum(1, keepdims=True))
+    lam = np.concatenate([np.column_stack([i[up] + 1 / 3, j[up] + 1 / 3]),
+                          np.column_stack([i[down] + 2 / 3, j[down] + 2 / 3])]) / n
+    pts = tri_xy[0] * lam[:, :1] + tri_xy[1] * lam[:, 1:] + tri_xy[2] * (1 - lam.sum(1, keepdims=True))
     (ax, ay), (bx, by) = tri_xy[1] - tri_xy[0], tri_xy[2] - tri_xy[0]
     area = 0.5 * abs(ax * by - ay * bx)
     return fn(pts[:, 0], pts[:, 1]).sum() * area / n ** 2

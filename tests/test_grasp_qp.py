@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from ms_drake.grasping import GraspEvaluator, ParallelJawGrasp
+from ms_drake.grasping import GraspEvaluator
 from ms_drake.grasping import wrench_qp
 from ms_drake.grasping.geometry import MeshData
 from ms_drake.grasping.wrench_qp import RESIST_TOLERANCE, WrenchProblem, WrenchQP, solve

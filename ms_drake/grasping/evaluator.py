@@ -150,6 +150,9 @@ class GraspEvaluator:
 
     def evaluate(self, mesh, X_WO, grasp: ParallelJawGrasp, mass: float, robust_samples: int = 0,
                  seed: int = 0, com=None) -> GraspQuality:
+        """Quality with its reason. mesh: trimesh.Trimesh in the object frame; X_WO: 4x4 object
+        pose; grasp: world frame (ParallelJawGrasp or types.Grasp); mass (kg); com: object-frame
+        centre of mass (default: the mesh's volume centroid)."""
         try:
             X = np.asarray(X_WO, dtype=float)
             if X.shape != (4, 4) or not np.all(np.isfinite(X)):

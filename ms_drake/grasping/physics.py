@@ -139,7 +139,8 @@ def simulate_grasp(mesh, X_WO, grasp: ParallelJawGrasp, mass: float, *, pad: Pad
     if not isinstance(grasp, ParallelJawGrasp):
         grasp = ParallelJawGrasp.from_grasp(grasp)
     if not (mass > 0 and closing_force > 0 and mu > 0):
-        raise GraspError(f"simulate_grasp needs mass, closing_force and friction > 0 (got {mass}, {closing_force}, {mu})")
+        raise GraspError(f"simulate_grasp needs mass, closing_force and friction > 0 "
+                         f"(got {mass}, {closing_force}, {mu})")
     if not mesh.is_watertight:
         raise GraspError("simulate_grasp needs a watertight object mesh (for its volume and inertia)")
     if seed is not None:
@@ -155,9 +156,9 @@ def simulate_grasp(mesh, X_WO, grasp: ParallelJawGrasp, mass: float, *, pad: Pad
     X = np.asarray(X_WO, float)
     obj = plant.AddModelInstance("object")
     com_O = np.asarray(mesh.center_mass if com is None else com, float)
-    I = np.asarray(mesh.moment_inertia, float) * (mass / mesh.volume)  # about the mesh's own COM
+    Ic = np.asarray(mesh.moment_inertia, float) * (mass / mesh.volume)  # about the mesh's own COM
     body = plant.AddRigidBody("object", obj, SpatialInertia.MakeFromCentralInertia(
-        mass, com_O, RotationalInertia(I[0, 0], I[1, 1], I[2, 2], I[0, 1], I[0, 2], I[1, 2])))
+        mass, com_O, RotationalInertia(Ic[0, 0], Ic[1, 1], Ic[2, 2], Ic[0, 1], Ic[0, 2], Ic[1, 2])))
     mem = InMemoryMesh()
     mem.mesh_file = MemoryFile(_obj_text(np.asarray(mesh.vertices), np.asarray(mesh.faces)), ".obj", "object.obj")
     props = ProximityProperties()

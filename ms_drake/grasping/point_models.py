@@ -65,7 +65,8 @@ def contacts_problem(points, normals_in, com, mu, closing_force, W, torsion: flo
         th = 2 * np.pi * np.arange(edges) / edges
         u = np.column_stack([np.cos(th), np.sin(th), np.zeros(edges)])
     J = len(u)
-    f = closing_force * (normals_in[:, None, :] + mu * (u[None, :, 0:1] * t1[:, None, :] + u[None, :, 1:2] * t2[:, None, :]))
+    tangential = u[None, :, 0:1] * t1[:, None, :] + u[None, :, 1:2] * t2[:, None, :]
+    f = closing_force * (normals_in[:, None, :] + mu * tangential)
     tau = cross((points - com)[:, None, :], f) + (closing_force * torsion) * u[None, :, 2:3] * normals_in[:, None, :]
     G = (np.concatenate([f, tau], axis=2).reshape(K * J, 6) * W).T
     A = np.zeros((K, K * J))

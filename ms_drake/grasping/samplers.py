@@ -86,7 +86,7 @@ def sample_antipodal_grasps(mesh, X_WO, count: int, friction: float = 0.5, max_w
     data = MeshData.of(mesh)
     rng = np.random.default_rng(seed)
     X = np.asarray(X_WO, float)
-    R, t = X[:3, :3], X[:3, 3]
+    R = X[:3, :3]
     pref = None if approach is None else R.T @ np.asarray(approach, float)
     half = np.arctan(friction)
     kept: list[tuple[np.ndarray, np.ndarray]] = []
@@ -186,7 +186,8 @@ def sample_antipodal_grasps_point_cloud(points: np.ndarray, normals: np.ndarray,
         if _is_duplicate(center, axis, kept, dedupe_distance, dedupe_angle):
             continue
         kept.append((center, axis))
-        out.append(ParallelJawGrasp(center, axis, _approach_for(axis, approach, rng), min(max_width, w + 2 * jaw_margin)))
+        out.append(ParallelJawGrasp(center, axis, _approach_for(axis, approach, rng),
+                                    min(max_width, w + 2 * jaw_margin)))
     return out
 
 

@@ -140,11 +140,12 @@ class SuctionEvaluator:
         # variables x: contact-frame wrench (fx, fy, fz, tx, ty, tz) in physical units, scaled
         rows, hi = [], []
         for sgn in (1.0, -1.0):
-            rows.append([s3 * sgn, 0, -mu, 0, 0, 0]); hi.append(mu * V)  # sqrt3 |fx| <= mu (V + fz)
-            rows.append([0, s3 * sgn, -mu, 0, 0, 0]); hi.append(mu * V)
-            rows.append([0, 0, -r * mu, 0, 0, s3 * sgn]); hi.append(r * mu * V)
-            rows.append([0, 0, 0, s2 * sgn, 0, 0]); hi.append(np.pi * r * self.stiffness)
-            rows.append([0, 0, 0, 0, s2 * sgn, 0]); hi.append(np.pi * r * self.stiffness)
+            rows += [[s3 * sgn, 0, -mu, 0, 0, 0],  # sqrt3 |fx| <= mu (V + fz)
+                     [0, s3 * sgn, -mu, 0, 0, 0],  # sqrt3 |fy| <= mu (V + fz)
+                     [0, 0, -r * mu, 0, 0, s3 * sgn],  # sqrt3 |tz| <= r mu (V + fz)
+                     [0, 0, 0, s2 * sgn, 0, 0],  # sqrt2 |tx| <= pi r kappa
+                     [0, 0, 0, 0, s2 * sgn, 0]]  # sqrt2 |ty| <= pi r kappa
+            hi += [mu * V, mu * V, r * mu * V, np.pi * r * self.stiffness, np.pi * r * self.stiffness]
         A = np.asarray(rows, float)
         hi = np.asarray(hi, float)
         t1, t2 = tangent_basis(approach)

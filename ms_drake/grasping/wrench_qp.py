@@ -26,7 +26,8 @@ Two solvers answer the same question:
     iteration); the small subproblem over the active support points is a scipy NNLS. It stops as
     soon as the residual is below the tolerance (resisted) or the Frank-Wolfe lower bound
     (s + t) . y/|y| exceeds it (slips), otherwise at convergence (finite for polytopes).
-  * `solve_nnls` ("auto" up to 64 generators: point, soft point, elliptical): the whole problem as one scipy NNLS (rows become equalities with one slack per
+  * `solve_nnls` ("auto" up to 64 generators: point, soft point, elliptical): the whole
+    problem as one scipy NNLS (rows become equalities with one slack per
     inequality, weighted by `ROW_WEIGHT`); residual zero in one <=> zero in the other.
   tests/test_grasp_qp.py checks both against the MathematicalProgram decisions and residuals.
 """
@@ -205,13 +206,12 @@ def solve_nnls(p: WrenchProblem) -> QPResult:
     n, m = p.shape
     rows, rhs, slack_sign = [], [], []
     for i in range(m):
-        if p.lo[i] == p.hi[i]:
-            rows.append(p.A[i]); rhs.append(p.hi[i]); slack_sign.append(0.0)
-            continue
-        if np.isfinite(p.hi[i]):
-            rows.append(p.A[i]); rhs.append(p.hi[i]); slack_sign.append(1.0)
-        if np.isfinite(p.lo[i]):
-            rows.append(p.A[i]); rhs.append(p.lo[i]); slack_sign.append(-1.0)
+        sides = [(p.hi[i], 0.0)] if p.lo[i] == p.hi[i] else (
+            ([(p.hi[i], 1.0)] if np.isfinite(p.hi[i]) else []) + ([(p.lo[i], -1.0)] if np.isfinite(p.lo[i]) else []))
+        for value, sign in sides:
+            rows.append(p.A[i])
+            rhs.append(value)
+            slack_sign.append(sign)
     slack_cols = [k for k, s in enumerate(slack_sign) if s != 0.0]
     M = np.zeros((6 + len(rows), n + len(slack_cols)))
     M[:6, :n] = p.G
