@@ -248,38 +248,29 @@ def clip_below(tri: np.ndarray, dist: np.ndarray):
     if len(n_in) == 0 or n_in.min() == 3:
         return tri, dist, np.arange(len(tri))
     full = np.nonzero(n_in == 3)[0]
-    out_t, out_d, out_p = [tri[full]], [dist[full]], [full]
-    for count in (1, 2):
-        idx = np.nonzero(n_in == count)[0]
-        if len(idx) == 0:
-            continue
-        t, d, ins = tri[idx], dist[idx], inside[idx]
-        # roll each triangle so that the odd vertex (the lone inside one for count 1, the lone
-        # outside one for count 2) comes first; rolling keeps the winding.
-        odd = np.argmax(ins if count == 1 else ~ins, axis=1)
-        order = (odd[:, None] + np.arange(3)[None]) % 3
-        rows = np.arange(len(idx))[:, None]
-        t = t[rows, order]
-        d = d[rows, order]
-        a, b, c = t[:, 0], t[:, 1], t[:, 2]
-        da, db, dc = d[:, 0:1], d[:, 1:2], d[:, 2:3]
-        den_b, den_c = da - db, da - dc
-        sab = np.divide(da, den_b, out=np.zeros_like(da), where=den_b != 0)
-        sac = np.divide(da, den_c, out=np.zeros_like(da), where=den_c != 0)
-        pab = a + sab * (b - a)
-        pac = a + sac * (c - a)
-        z = np.zeros(len(idx))
-        if count == 1:  # keep the corner at a
-            out_t.append(np.stack([a, pab, pac], axis=1))
-            out_d.append(np.stack([da[:, 0], z, z], axis=1))
-            out_p.append(idx)
-        else:  # a is outside: keep the quad pab, b, c, pac
-            out_t.append(np.stack([pab, b, c], axis=1))
-            out_d.append(np.stack([z, db[:, 0], dc[:, 0]], axis=1))
-            out_t.append(np.stack([pab, c, pac], axis=1))
-            out_d.append(np.stack([z, dc[:, 0], z], axis=1))
-            out_p.extend([idx, idx])
-    return np.concatenate(out_t), np.concatenate(out_d), np.concatenate(out_p)
+    idx = np.nonzero((n_in == 1) | (n_in == 2))[0]
+    if len(idx) == 0:
+        return tri[full], dist[full], full
+    t, d, ins = tri[idx], dist[idx], inside[idx]
+    one = n_in[idx] == 1
+    # roll each triangle so that its odd vertex (the lone inside one when one vertex is in, the
+    # lone outside one when two are) comes first; rolling keeps the winding.
+    odd = np.argmax(np.where(one[:, None], ins, ~ins), axis=1)
+    order = (odd[:, None] + np.arange(3)[None]) % 3
+    rows = np.arange(len(idx))[:, None]
+    t, d = t[rows, order], d[rows, order]
+    a, b, c = t[:, 0], t[:, 1], t[:, 2]
+    da, db, dc = d[:, 0:1], d[:, 1:2], d[:, 2:3]
+    pab = a + np.divide(da, da - db, out=np.zeros_like(da), where=da != db) * (b - a)
+    pac = a + np.divide(da, da - dc, out=np.zeros_like(da), where=da != dc) * (c - a)
+    z = np.zeros(len(idx))
+    two = ~one
+    # one vertex in: keep the corner (a, pab, pac); two in: the quad (pab, b, c, pac) as 2 triangles
+    out_t = [tri[full], np.stack([a, pab, pac], axis=1)[one],
+             np.stack([pab, b, c], axis=1)[two], np.stack([pab, c, pac], axis=1)[two]]
+    out_d = [dist[full], np.column_stack([da[:, 0], z, z])[one],
+             np.column_stack([z, db[:, 0], dc[:, 0]])[two], np.column_stack([z, dc[:, 0], z])[two]]
+    return np.concatenate(out_t), np.concatenate(out_d), np.concatenate([full, idx[one], idx[two], idx[two]])
 
 
 def triangle_areas(tri: np.ndarray) -> np.ndarray:
