@@ -96,6 +96,12 @@ def _read_done(path: Path) -> set[int]:
     return done
 
 
+def _peak_rss_mb() -> float:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 def heap_job(job: tuple) -> dict:
     """One heap as a JSON-able record (module-level so workers can unpickle it)."""
     scenario_file, scenario_name, n, seed, object_set = job
@@ -103,11 +109,12 @@ def heap_job(job: tuple) -> dict:
     from ms_drake.scenes.heaps import generate_heap, heap_to_dict
 
     s = load_scenario(scenario_file, scenario_name)
-    t = time.perf_counter()
+    t, cpu0 = time.perf_counter(), time.process_time()
     heap, diag = generate_heap(s, n, seed, object_set=object_set, return_diagnostics=True)
     rec = heap_to_dict(heap)
     rec.update(seconds=time.perf_counter() - t, attempts=diag.attempts, removed=diag.removed,
-               settle_time=diag.settle_time, rejected=diag.rejected_reasons, pid=os.getpid())
+               settle_time=diag.settle_time, rejected=diag.rejected_reasons, pid=os.getpid(),
+               cpu_seconds=time.process_time() - cpu0, peak_rss_mb=_peak_rss_mb())
     return rec
 
 

@@ -36,8 +36,13 @@ DEFAULT_SIZES = {"bin": [0.50, 0.40, 0.12], "shelf": [0.60, 0.60, 0.60], "table"
 
 def default_scenarios_file() -> Path:
     """diagrams/scenarios.yaml of the checkout (or the installed copy)."""
-    here = Path(__file__).resolve().parent
-    for candidate in (here.parent / "diagrams" / "scenarios.yaml", here / "diagrams" / "scenarios.yaml"):
+    import importlib.util
+
+    candidates = [Path(__file__).resolve().parent.parent / "diagrams" / "scenarios.yaml"]
+    spec = importlib.util.find_spec("ms_drake_diagrams")  # installed from a wheel
+    if spec is not None and spec.submodule_search_locations:
+        candidates += [Path(p) / "scenarios.yaml" for p in spec.submodule_search_locations]
+    for candidate in candidates:
         if candidate.is_file():
             return candidate
     raise ScenarioError("cannot find diagrams/scenarios.yaml; pass the scenario file explicitly")

@@ -1,0 +1,95 @@
+"""Benchmarks of the foundation (issue 2): heap generation, rendering, parallel scaling.
+
+    .venv/bin/python sims/bench_heaps.py render              # depth + label images/s at 640x480
+    .venv/bin/python sims/bench_heaps.py scaling --heaps 8   # 1 vs 2 workers on the same seeds
+    .venv/bin/python sims/bench_heaps.py summary FILE.jsonl  # validity and time of an `ms-drake heaps` run
+
+Prints a table; the figures go to docs/BENCHMARKS.md by hand with the command.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def bench_render(n: int = 200) -> None:
+    from ms_drake.scenario import load_scenario
+    from ms_drake.scenes.heaps import generate_heap, scenario_with_heap, set_heap_poses
+    from ms_drake.station import MakeStation
+
+    s = load_scenario(None, "BinHeap15")
+    heap = generate_heap(s, 15, seed=0)
+    station = MakeStation(scenario_with_heap(s, heap))
+    ctx = station.CreateDefaultContext()
+    set_heap_poses(station, ctx, heap)
+    sensor = station.GetSubsystemByName("rgbd_sensor_overhead")
+    plant = station.GetSubsystemByName("plant")
+    sc = sensor.GetMyContextFromRoot(ctx)
+    sensor.depth_image_32F_output_port().Eval(sc)  # warm-up (VTK start)
+    q0 = plant.GetPositions(plant.GetMyContextFromRoot(ctx)).copy()
+    t = time.perf_counter()
+    for k in range(n):
+        q = q0.copy()
+        q[4::7] += 1e-4 * (k % 7)  # move the objects so every frame is really rendered
+        plant.SetPositions(plant.GetMyMutableContextFromRoot(ctx), q)
+        sensor.depth_image_32F_output_port().Eval(sc)
+        sensor.label_image_output_port().Eval(sc)
+    dt = time.perf_counter() - t
+    print(f"| depth + label render, 640x480, 15-object heap | {n / dt:.0f} image pairs/s "
+          f"({1e3 * dt / n:.1f} ms per pair) |")
+
+
+def bench_scaling(heaps: int = 8, objects: int = 15, seed_start: int = 1000) -> None:
+    import tempfile
+
+    from ms_drake.cli import heap_job
+    from ms_drake.parallel import run_jobs
+
+    jobs = [(None, "BinHeap15", objects, k, None) for k in range(seed_start, seed_start + heaps)]
+    res = {}
+    for workers in (1, 2):
+        t = time.perf_counter()
+        out = list(run_jobs(heap_job, jobs, workers=workers))
+        res[workers] = time.perf_counter() - t
+        rss = max(r.value["peak_rss_mb"] for r in out if r.ok)
+        print(f"| {heaps} heaps of {objects}, {workers} worker(s) | {res[workers]:.1f} s wall | "
+              f"peak RSS per worker {rss:.0f} MB |")
+    print(f"| speed-up 2 workers vs 1 | {res[1] / res[2]:.2f}x |")
+    del tempfile
+
+
+def summary(path: str) -> None:
+    recs = [json.loads(x) for x in Path(path).read_text().splitlines() if x.strip()]
+    n = len(recs)
+    first = sum(1 for r in recs if r.get("attempts", 1) == 1)
+    secs = [r["seconds"] for r in recs]
+    cpu = [r.get("cpu_seconds", float("nan")) for r in recs]
+    objs = [len(r["objects"]) for r in recs]
+    removed = sum(len(r.get("removed", [])) for r in recs)
+    rss = max(r.get("peak_rss_mb", 0) for r in recs)
+    print(f"| heaps | {n} |")
+    print(f"| valid at the first attempt | {first}/{n} = {100 * first / max(n, 1):.1f} % |")
+    print(f"| wall s per heap (median, p90) | {statistics.median(secs):.2f}, {np.percentile(secs, 90):.2f} |")
+    print(f"| CPU s per heap (median) | {statistics.median(cpu):.2f} |")
+    print(f"| objects per heap (mean; removed for leaving the bin) | {np.mean(objs):.2f}; {removed} |")
+    print(f"| simulated settle time s (median) | {statistics.median(r['settle_time'] for r in recs):.2f} |")
+    print(f"| peak RSS of the worker | {rss:.0f} MB |")
+
+
+if __name__ == "__main__":
+    cmd = sys.argv[1] if len(sys.argv) > 1 else "render"
+    if cmd == "render":
+        bench_render()
+    elif cmd == "scaling":
+        k = int(sys.argv[sys.argv.index("--heaps") + 1]) if "--heaps" in sys.argv else 8
+        bench_scaling(k)
+    elif cmd == "summary":
+        summary(sys.argv[2])
+    else:
+        raise SystemExit(__doc__)
