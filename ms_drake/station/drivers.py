@@ -95,7 +95,7 @@ class CommandGuard(LeafSystem):
     Output ports:
       f.name            (n_f) the guarded command (zero-order hold at `period`)
       f.name_velocity   (n_f) its finite difference (the desired velocity)
-      enabled           (1) 1 once a status has arrived (commands may be sent)
+      enabled           (1) 1 once a status has arrived and the guard has latched it (commands may be sent)
       fault             (1) 1 while status is older than `status_timeout` (commands held)
       clipped           (1) 1 if the last update clipped a command (position or rate limit)
 
@@ -133,7 +133,7 @@ class CommandGuard(LeafSystem):
                                          prerequisites_of_calc={self.discrete_state_ticket(self._state)})
             self.DeclareVectorOutputPort(f"{f.name}_velocity", f.size, lambda c, out, k=k: self._out_velocity(c, out, k),
                                          prerequisites_of_calc={self.discrete_state_ticket(self._state)})
-        for i, name in ((0, "enabled"), (4, "fault"), (5, "clipped")):
+        for i, name in ((1, "enabled"), (4, "fault"), (5, "clipped")):
             self.DeclareVectorOutputPort(name, 1, lambda c, out, i=i: out.SetAtIndex(
                 0, c.get_discrete_state(self._state).GetAtIndex(self._meta + i)),
                 prerequisites_of_calc={self.discrete_state_ticket(self._state)})
@@ -181,7 +181,12 @@ class CommandGuard(LeafSystem):
         if self._status is None:
             have, arrival = 1.0, t
         elif self._messages != seen:
+            first = not have
             seen, arrival, have = float(self._messages), t, 1.0
+            if first:  # receivers latch the first status at this same tick: initialize at the next
+                x[m:m + 4] = (have, 0.0, seen, arrival)
+                discrete_state.set_value(self._state, x)
+                return
         if not have:
             discrete_state.set_value(self._state, x)
             return

@@ -146,7 +146,38 @@ def add_robot(plant, parser, robot_name: str, X_WR=None, model_name: str | None 
         plant.RenameModelInstance(instance, model_name)
     plant.WeldFrames(plant.world_frame(), plant.GetFrameByName(spec.root, instance),
                      X_WR if X_WR is not None else RigidTransform())
+    exclude_close_link_collisions(plant, parser, instance)
     return instance
+
+
+def exclude_close_link_collisions(plant, parser, instance, levels: int = 3):
+    """Filter collisions between each link of `instance` and its `levels` nearest ancestors.
+
+    The links' collision geometry are convex hulls, which overlap near joints (e.g. YuMi link 2
+    and link 4 at 5 mm in ordinary poses) where the real links cannot touch; without the filter
+    the simulated arm would fight phantom self-contacts. Links further apart along the chain
+    (the two YuMi arms, the Fetch arm and its base) still collide."""
+    sg = parser.scene_graph()
+    if sg is None or not plant.geometry_source_is_registered():
+        return
+    from pydrake.geometry import CollisionFilterDeclaration
+
+    parent = {}
+    for j in plant.GetJointIndices(instance):
+        joint = plant.get_joint(j)
+        parent[int(joint.child_body().index())] = joint.parent_body()
+    world = int(plant.world_body().index())
+    manager = sg.collision_filter_manager()
+    for b in plant.GetBodyIndices(instance):
+        chain, body = [plant.get_body(b)], plant.get_body(b)
+        for _ in range(levels):
+            up = parent.get(int(body.index()))
+            if up is None or int(up.index()) == world:
+                break
+            chain.append(up)
+            body = up
+        if len(chain) > 1:
+            manager.Apply(CollisionFilterDeclaration().ExcludeWithin(plant.CollectRegisteredGeometries(chain)))
 
 
 def add_gripper(plant, parser, gripper_name: str, weld_to_frame, X_FG=None, model_name: str | None = None):
