@@ -95,19 +95,24 @@ def hydroelastic_xml(shape: Shape, compliance: str, modulus: float) -> str:
     raise ValueError(f"compliance {compliance!r}: use rigid or compliant")
 
 
-def contact_points(shape: Shape) -> list[tuple[float, float, float]]:
-    """Points (shape frame) on the corners/rims of a primitive where small spheres are put.
+def contact_points(shape: Shape, max_radius: float = 0.005) -> list[tuple[tuple[float, float, float], float]]:
+    """(centre, radius) of small spheres (shape frame) tucked into the corners / rims of a
+    primitive, flush with its faces.
 
     Two rigid geometries in point contact touch at one point, so a box resting on a face
-    rocks forever; spheres at the corners give it a stable multi-point support (the classic
-    remedy). Cylinders get 8 points on each rim.
+    rocks forever; spheres in the corners give it a stable multi-point support (the classic
+    remedy). Cylinders get 8 spheres on each rim. Radii are at most `max_radius` and 45 % of
+    the thinnest half-size, so a sphere never pokes out of the shape.
     """
     if shape.kind == "box":
-        x, y, z = (v / 2 for v in shape.size)
-        return [(sx * x, sy * y, sz * z) for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]
+        h = np.asarray(shape.size, float) / 2
+        r = min(max_radius, 0.45 * h.min())
+        c = h - r
+        return [((sx * c[0], sy * c[1], sz * c[2]), r) for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]
     if shape.kind == "cylinder":
-        r, h = shape.size
-        return [(r * math.cos(a), r * math.sin(a), sz * h / 2)
+        rad, height = shape.size
+        r = min(max_radius, 0.45 * min(rad, height / 2))
+        return [(((rad - r) * math.cos(a), (rad - r) * math.sin(a), sz * (height / 2 - r)), r)
                 for a in np.linspace(0, 2 * math.pi, 8, endpoint=False) for sz in (-1, 1)]
     return []
 
@@ -152,11 +157,12 @@ def object_sdf(
         f"</drake:proximity_properties></collision>"
         for k, s in enumerate(collisions)
     )
-    # Contact spheres centred on the corners (they stand out by `point_radius`, 1 mm).
-    points = [_compose(s.pose, p) for s in collisions for p in contact_points(s)] + list(extra_points or [])
+    # Contact spheres tucked into corners and rims (flush with the faces).
+    points = [(_compose(s.pose, p), r) for s in collisions for p, r in contact_points(s)]
+    points += [(p, point_radius) for p in (extra_points or [])]
     points = points if contact_spheres else []
-    sph = Shape("sphere", (point_radius,))
-    for k, p in enumerate(points):
+    for k, (p, r) in enumerate(points):
+        sph = Shape("sphere", (r,))
         pose = (*p, 0, 0, 0)
         col += (f'<collision name="point_{k}">{_pose_xml(pose)}<geometry>{_geometry_xml(sph)}</geometry>'
                 f"<drake:proximity_properties><drake:mu_dynamic>{friction:.4g}</drake:mu_dynamic>"

@@ -211,6 +211,15 @@ def visible_ratios(world: _DropWorld, names: list[str], present: list[int], came
     return np.array(modal, float), np.array(amodal, float)
 
 
+def _advance(sim, t: float, plant, plant_context) -> bool:
+    """Advance; False when the state became non-finite or the solver gave up."""
+    try:
+        sim.AdvanceTo(t)
+    except RuntimeError:  # SceneGraph rejects NaN poses; the contact solver may fail to converge
+        return False
+    return bool(np.all(np.isfinite(plant.GetPositions(plant_context))))
+
+
 def _footprints_overlap(a: DropItem, b: DropItem) -> bool:
     return bool(np.all(a.xy + a.lo[:2] < b.xy + b.hi[:2]) and np.all(a.xy + a.hi[:2] > b.xy + b.lo[:2]))
 
@@ -255,9 +264,8 @@ def _drop_in_waves(world: _DropWorld, names: list[str], plan: list[DropItem], or
         t_wave = t
         while t - t_wave < params.wave_time:
             t += params.check_every
-            sim.AdvanceTo(t)
-            if not np.all(np.isfinite(plant.GetPositions(pc))):
-                return False, t, "non-finite state"
+            if not _advance(sim, t, plant, pc):
+                return False, t, "the simulation blew up (non-finite state)"
             lin, ang = world.max_speeds(placed)
             if t - t_wave >= params.min_wave_time and lin < params.settle_linear and ang < params.settle_angular:
                 break
@@ -265,9 +273,8 @@ def _drop_in_waves(world: _DropWorld, names: list[str], plan: list[DropItem], or
     t_min = t + params.min_final_time
     while t < t_end:
         t += params.check_every
-        sim.AdvanceTo(t)
-        if not np.all(np.isfinite(plant.GetPositions(pc))):
-            return False, t, "non-finite state"
+        if not _advance(sim, t, plant, pc):
+            return False, t, "the simulation blew up (non-finite state)"
         lin, ang = world.max_speeds()
         if t >= t_min and lin < params.settle_linear and ang < params.settle_angular:
             return True, t, ""
