@@ -45,7 +45,8 @@ Per object (``convert_mesh``), choices where the reference is silent:
    - otherwise a coacd decomposition capped at ``max_pieces`` pieces (threshold 0.08 and reduced
      search settings: ~5-70 s per object instead of minutes). If coacd is not importable we warn
      and fall back to the convex hull (``"collision_method": "hull (coacd not installed)"``).
-   Every piece is re-hulled and reduced to at most ``max_hull_vertices`` (48) vertices.
+   Every piece is re-hulled and reduced to at most ``max_hull_vertices`` (64) vertices (greedy:
+   extreme points first, then always the point farthest outside the current hull).
 6. ``"contact_points"``: 16 collision-piece vertices (farthest-point sampled) where small point-
    contact spheres can be put so a resting rigid object is supported at several points.
 7. Split train/test by object, ~80/20, from a hash of the object's name (stable across subsets).
@@ -136,7 +137,7 @@ class ConvertOptions:
     crease_angle_deg: float = 60.0
     max_pieces: int = 8
     decompose_ratio: float = 1.3  # hull volume / mesh volume above which we decompose
-    max_hull_vertices: int = 48
+    max_hull_vertices: int = 64
     coacd_threshold: float = 0.08
     coacd_faces: int = 1000  # coacd input is decimated to this many faces first
     contact_points: int = 16  # collision-piece vertices listed as "contact_points" (see below)
@@ -183,20 +184,30 @@ def _fps(points: np.ndarray, k: int) -> np.ndarray:
 
 
 def _limited_hull(points: np.ndarray, max_vertices: int):
-    """Convex hull of `points` with at most `max_vertices` vertices."""
+    """Convex hull of at most `max_vertices` of `points`, chosen greedily: start from the extreme
+    points along x, y, z, then repeatedly add the point farthest outside the current hull (an
+    inner approximation whose error shrinks with every vertex; exact when the hull is small)."""
     import trimesh
+    from scipy.spatial import ConvexHull, QhullError
 
-    hull = trimesh.Trimesh(vertices=points, faces=np.zeros((0, 3), int)).convex_hull
-    for _ in range(3):
-        if len(hull.vertices) <= max_vertices:
-            return hull
-        smaller = _decimate(hull, 2 * max_vertices - 4)
-        if smaller is hull:
-            break
-        hull = smaller.convex_hull
-    if len(hull.vertices) > max_vertices:
-        hull = trimesh.Trimesh(vertices=_fps(hull.vertices, max_vertices), faces=np.zeros((0, 3), int)).convex_hull
-    return hull
+    full = ConvexHull(np.asarray(points, float))
+    pts = full.points[full.vertices]
+    if len(pts) > max_vertices:
+        chosen = list(dict.fromkeys(int(i) for a in range(3) for i in (pts[:, a].argmin(), pts[:, a].argmax())))
+        while len(chosen) < max_vertices:
+            try:
+                eq = ConvexHull(pts[chosen]).equations  # outward normals n, offsets d: n.p + d <= 0 inside
+            except QhullError:  # the seeds are coplanar: add the farthest point from their mean
+                d = np.linalg.norm(pts - pts[chosen].mean(axis=0), axis=1)
+                chosen.append(int(d.argmax()))
+                continue
+            outside = (pts @ eq[:, :3].T + eq[:, 3]).max(axis=1)
+            i = int(outside.argmax())
+            if outside[i] <= 1e-7:
+                break
+            chosen.append(i)
+        pts = pts[chosen]
+    return trimesh.Trimesh(vertices=pts, faces=np.zeros((0, 3), int)).convex_hull
 
 
 def _hull_volume(points: np.ndarray) -> float:
