@@ -54,7 +54,7 @@ def test_nnls_agrees_with_mathematical_program(model):
     agree = total = border = 0
     decisions = set()
     for k, d in enumerate(data):
-        for g in _grasps(d.mesh, 14, seed=k):
+        for g in _grasps(d.mesh, 6 if model == "reach" else 10, seed=k):
             # a COM on the grasp axis lets point contacts hold too (no torque about the axis)
             for mass, com in ((0.2, d.centroid), (0.9, d.centroid), (0.4, g.center), (1.5, g.center)):
                 p, reason = ev.contact_problem(d, g, com, np.array([0, 0, -1.0]), 0.5, mass,
@@ -80,7 +80,7 @@ def test_nnls_agrees_with_mathematical_program(model):
                 if c.success:  # OSQP (first order) may stop at its iteration limit
                     assert c.resisted == b.resisted, (g, mass, c.residual, b.residual)
                     agree += 1
-    assert total >= 30 and decisions == {True, False}
+    assert total >= (15 if model == "reach" else 25) and decisions == {True, False}
     assert border <= 0.1 * total
     assert agree >= 0.8 * (total - border)
 
