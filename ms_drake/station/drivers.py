@@ -51,6 +51,7 @@ import numpy as np
 from pydrake.systems.framework import BasicVector, LeafSystem
 
 CONTROL_PERIOD = 0.005  # [s] command rate of every guard (200 Hz)
+STIFFNESS_ANGLE = 0.05  # [rad] error at which the default stiffness reaches the effort limit
 GRIPPER_SHORT_NAMES = {"parallel_jaw": "jaw", "suction": "suction", "bluction": "bluction"}
 
 
@@ -302,7 +303,7 @@ def default_stiffness(joint, actuator) -> float:
     if not np.isfinite(effort):
         effort = 100.0
     prismatic = joint.type_name() == "prismatic"
-    return effort / (0.01 if prismatic else 0.1)
+    return effort / (0.01 if prismatic else STIFFNESS_ANGLE)
 
 
 def make_control_plant(plant, handle: RobotHandle):
@@ -564,3 +565,25 @@ def _connect_spatial_forces(builder, plant, cups):
     for i, cup in enumerate(cups):
         builder.Connect(cup.GetOutputPort("spatial_forces"), mux.get_input_port(i))
     builder.Connect(mux.get_output_port(), plant.get_applied_spatial_force_input_port())
+
+
+# --------------------------------------------------------------------------------- discovery
+def station_arms(station) -> list[str]:
+    """Arm names of a station (sim or hardware), from its ports: every `<p>.position` input
+    with a `<p>.position_measured` output."""
+    names = [station.get_input_port(i).get_name() for i in range(station.num_input_ports())]
+    return [n[:-len(".position")] for n in names
+            if n.endswith(".position") and station.HasOutputPort(n[:-len(".position")] + ".position_measured")]
+
+
+def station_grippers(station) -> dict[str, str]:
+    """{gripper port prefix: kind} of a station, kind parallel_jaw | suction | bluction."""
+    out = {}
+    for i in range(station.num_input_ports()):
+        name = station.get_input_port(i).get_name()
+        prefix = name.rsplit(".", 1)[0]
+        if name.endswith(".force_limit"):
+            out[prefix] = "parallel_jaw"
+        elif name.endswith(".suction"):
+            out[prefix] = "bluction" if station.HasInputPort(prefix + ".position") else "suction"
+    return out

@@ -418,15 +418,6 @@ def _hardware_suction(builder, lcm, plant, g):
 
 
 # --------------------------------------------------------------------------------- robot side
-class _Until(LeafSystem):
-    """Output port: value (1) = 1 while time < t_end, else 0."""
-
-    def __init__(self, t_end: float):
-        super().__init__()
-        self._t = t_end
-        self.DeclareVectorOutputPort("value", 1, lambda c, o: o.SetAtIndex(0, 1.0 if c.get_time() < self._t else 0.0))
-
-
 def MakeEmulatedRobot(scenario, lcm=None, meshcat=None, status_period: float = CONTROL_PERIOD,
                       status_until: float = math.inf, name: str = "emulated_robot"):
     """The far side of the hardware twin: the simulated station of `scenario` that takes its
@@ -447,8 +438,15 @@ def MakeEmulatedRobot(scenario, lcm=None, meshcat=None, status_period: float = C
     station = builder.AddSystem(MakeStation(sim_scenario, meshcat=meshcat, name="simulated_station"))
     builder.AddSystem(LcmInterfaceSystem(lcm)).set_name("lcm")
     enabled = None
-    if math.isfinite(status_until):
-        enabled = builder.AddSystem(_Until(status_until)).get_output_port()
+    if math.isfinite(status_until):  # 1 until status_until, then 0
+        from pydrake.systems.primitives import TrajectorySource
+        from pydrake.trajectories import PiecewisePolynomial
+
+        t_end = max(status_until, 1e-9)
+        until = builder.AddSystem(TrajectorySource(PiecewisePolynomial.ZeroOrderHold(
+            [0.0, t_end, t_end + 1e6], np.array([[1.0, 0.0, 0.0]]))))
+        until.set_name("status_until")
+        enabled = until.get_output_port()
     for arm in handle.arms:
         _emulated_arm(builder, lcm, station, handle.robot, arm, status_period, enabled)
     for g in handle.grippers:

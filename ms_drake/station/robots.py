@@ -282,6 +282,26 @@ def station_robot_spec(name: str) -> RobotSpec:
     return ROBOTS[name]
 
 
+def station_arm_spec(arm: str) -> ArmSpec:
+    """The ArmSpec of a station arm by its port name (panda, yumi_right, yumi_left, fetch, floating)."""
+    for name in STATION_ROBOTS:
+        spec = station_robot_spec(name)
+        if arm in spec.arms:
+            return spec.arms[arm]
+    raise ScenarioError(f"unknown arm {arm!r}; arms: "
+                        f"{', '.join(a for n in STATION_ROBOTS for a in station_robot_spec(n).arms)}")
+
+
+def arm_joint_limits(arm: str, scale: float = 1.0):
+    """planning.JointLimits (velocity, acceleration, jerk) of a station arm, velocity and
+    acceleration scaled by `scale`."""
+    from ms_drake.planning import JointLimits
+
+    a = station_arm_spec(arm)
+    return JointLimits(np.array(a.velocity_limits) * scale, np.array(a.acceleration_limits) * scale,
+                       np.array(a.jerk_limits) * scale)
+
+
 def resolve_robot_config(robot_config):
     """Check a scenario's RobotConfig; returns [(arm, gripper name, gripper port)] and the
     driver of every port prefix ({prefix: driver dataclass}, defaults filled in).
