@@ -19,8 +19,9 @@ normalized. Choices where the text is silent (recorded here):
     must lie inside the bin's inner box shrunk by half the box's short side -- the target is in
     the bin, and the bin walls would otherwise look like hiding places;
   * as in the reference, a placement is "shifted and rotated" in the image: the silhouette is
-    computed once per rotation (ms_drake.perception.masks.silhouette of the box mesh placed
-    under the principal point) and translated; the visible surface of the box is its top face;
+    computed once per rotation (the box placed under the principal point, projected with the
+    camera; pixels whose centre falls inside, as a renderer samples them) and translated; the
+    visible surface of the box is its top face;
   * a placement may overlap objects (the test is the image, not physics), as in the reference;
   * when the target is visible but no placement matches (e.g. it rests tilted on another
     object), the distribution collapses to the observed modal mask ("when the object is fully
@@ -47,7 +48,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 from pydrake.systems.sensors import ImageDepth32F
 
-from ms_drake.perception.masks import PinholeCamera, silhouette
+from ms_drake.perception.masks import PinholeCamera
 from ms_drake.perception.segmentation import PerceptionError, Workspace, depth_array, world_points
 from ms_drake.types import OccupancyMap, TargetEstimate
 
@@ -108,6 +109,32 @@ def floor_points(camera: PinholeCamera, u: np.ndarray, v: np.ndarray, z: float) 
     return o + t[:, None] * d_W
 
 
+def convex_silhouette(camera: PinholeCamera, vertices_W: np.ndarray) -> np.ndarray:
+    """(H, W) bool silhouette of a convex body (all vertices in front of the camera): the pixels
+    whose centre lies inside the convex hull of the projected vertices -- the pixel-centre rule
+    of a renderer, so a small target's mask is not grown by the rasterizer's edge pixels."""
+    import cv2
+
+    uv, z = camera.project(vertices_W)
+    if np.any(z <= 1e-3):
+        raise PerceptionError("the target box must lie in front of the camera")
+    hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2).astype(float)  # counter-clockwise in image
+    lo = np.maximum(np.floor(hull.min(axis=0)).astype(int), 0)
+    hi = np.minimum(np.ceil(hull.max(axis=0)).astype(int) + 1, [camera.width, camera.height])
+    mask = np.zeros((camera.height, camera.width), bool)
+    if np.any(hi <= lo):
+        return mask
+    v, u = np.mgrid[lo[1]:hi[1], lo[0]:hi[0]]
+    inside = np.ones(u.shape, bool)
+    a, b = hull, np.roll(hull, -1, axis=0)
+    area = np.sum(a[:, 0] * b[:, 1] - b[:, 0] * a[:, 1])
+    sign = 1.0 if area > 0 else -1.0
+    for (x0, y0), (x1, y1) in zip(a, b):
+        inside &= sign * ((x1 - x0) * (v - y0) - (y1 - y0) * (u - x0)) >= 0
+    mask[lo[1]:hi[1], lo[0]:hi[0]] = inside
+    return mask
+
+
 def _runs(mask: np.ndarray, anchor: tuple[int, int]) -> np.ndarray:
     """Row runs (dy, dx0, dx1) (inclusive ends) of a bool mask relative to pixel `anchor` = (u, v)."""
     d = np.diff(np.pad(mask.astype(np.int8), ((0, 0), (1, 1))), axis=1)
@@ -165,10 +192,10 @@ class AnalyticOccupancy:
         anchor = (int(round(camera.cx)), int(round(camera.cy)))
         c = floor_points(camera, np.array([float(anchor[0])]), np.array([float(anchor[1])]),
                          workspace.floor_z + 0.5 * self.box.thickness)[0]
-        verts, faces = self.box.mesh_vertices_faces()
+        verts, _ = self.box.mesh_vertices_faces()
         runs, rot = [], []
         for r, theta in enumerate(grid.angles()):
-            sil = silhouette(camera, verts @ _yaw(theta).T + c, faces)
+            sil = convex_silhouette(camera, verts @ _yaw(theta).T + c)
             rr = _runs(sil, anchor)
             runs.append(rr)
             rot.append(np.full(len(rr), r))

@@ -1,0 +1,173 @@
+"""OccupancyEstimator: the analytic ground truth of Ch. 8.3.1 on synthetic scenes, against the
+render-per-placement implementation on a real heap image, alone and wired to a station."""
+
+import copy
+
+import numpy as np
+import pytest
+from pydrake.math import RigidTransform, RollPitchYaw
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.sensors import ImageDepth32F
+
+from ms_drake.perception.masks import PinholeCamera, object_labels
+from ms_drake.perception.occupancy import (AnalyticOccupancy, OccupancyEstimator, OccupancyGrid, RenderedOccupancy,
+                                           TargetBox, floor_points)
+from ms_drake.perception.segmentation import PerceptionError, Segmenter, Workspace
+from ms_drake.perception.target import TargetDetector
+from ms_drake.scenes.heaps import scenario_with_heap, set_heap_poses
+from ms_drake.station import MakeStation, get_plant
+from ms_drake.types import OccupancyMap, TargetEstimate
+
+CAM = PinholeCamera(640, 480, 685.0, 685.0, 319.5, 239.5, RigidTransform(RollPitchYaw(np.pi, 0, 0), [0, 0, 0.8]))
+BIN = Workspace((0.0, 0.0), (0.5, 0.4), 0.0, 0.12)
+BOX = TargetBox(0.06, 0.03, 0.01)
+
+
+def heightfield_depth(height) -> np.ndarray:
+    """Depth image of z = height(x, y) seen by the straight-down camera CAM (0.8 m up)."""
+    v, u = np.mgrid[0:CAM.height, 0:CAM.width]
+    d = np.full(u.shape, 0.8)
+    for _ in range(12):
+        d = 0.8 - height((u - CAM.cx) / CAM.fx * d, -(v - CAM.cy) / CAM.fy * d)
+    return d
+
+
+def surface_xy(d: np.ndarray):
+    v, u = np.mgrid[0:CAM.height, 0:CAM.width]
+    return (u - CAM.cx) / CAM.fx * d, -(v - CAM.cy) / CAM.fy * d
+
+
+def target_on_grid(j=30, i=24, r=2, grid=OccupancyGrid()):
+    """A target lying exactly at grid placement (column j, row i, rotation r): its height function."""
+    us, vs = grid.pixels(640, 480)
+    c = floor_points(CAM, np.array([float(us[j])]), np.array([float(vs[i])]), 0.5 * BOX.thickness)[0]
+    th = grid.angles()[r]
+
+    def h(x, y):
+        xl = np.cos(th) * (x - c[0]) + np.sin(th) * (y - c[1])
+        yl = -np.sin(th) * (x - c[0]) + np.cos(th) * (y - c[1])
+        return np.where((np.abs(xl) <= BOX.length / 2) & (np.abs(yl) <= BOX.width / 2), BOX.thickness, 0.0)
+    return h, c
+
+
+def slab(x0, x1, y0, y1, z=0.04):
+    return lambda x, y: np.where((x >= x0) & (x <= x1) & (y >= y0) & (y <= y1), z, 0.0)
+
+
+@pytest.fixture(scope="module")
+def analytic():
+    return AnalyticOccupancy(CAM, BIN, BOX)
+
+
+def iou(a, b):
+    return (a & b).sum() / max((a | b).sum(), 1)
+
+
+def test_visible_target_collapses_to_its_mask(analytic):
+    h, _ = target_on_grid()
+    d = heightfield_depth(h)
+    seen = h(*surface_xy(d)) > 0
+    rho = analytic.estimate(d, seen)
+    assert rho.sum() == pytest.approx(1.0)
+    assert analytic.last_matches == 1  # only the true placement yields the same image
+    assert iou(rho > 0, seen) > 0.95
+
+
+def test_partly_hidden_target_keeps_the_placements_that_look_the_same(analytic):
+    h, c = target_on_grid()
+    cover = slab(c[0], c[0] + 0.1, c[1] - 0.1, c[1] + 0.1)  # hides the target's +x half
+    d = heightfield_depth(lambda x, y: np.maximum(h(x, y), cover(x, y)))
+    xy = surface_xy(d)
+    seen = (h(*xy) > 0) & (cover(*xy) == 0)
+    amodal = h(*surface_xy(heightfield_depth(h))) > 0
+    assert 0.2 < seen.sum() / amodal.sum() < 0.8
+    rho = analytic.estimate(d, seen)
+    assert rho.sum() == pytest.approx(1.0) and analytic.last_matches >= 1
+    assert (rho[amodal] > 0).mean() > 0.97  # the truth is among the matches
+    assert ((rho > 0) & ~amodal).sum() < 0.5 * amodal.sum()  # and the support stays near it
+
+
+def test_hidden_target_spreads_under_the_occluders_only(analytic):
+    h, c = target_on_grid()
+    cover = slab(c[0] - 0.06, c[0] + 0.06, c[1] - 0.05, c[1] + 0.05)
+    d = heightfield_depth(lambda x, y: np.maximum(h(x, y), cover(x, y)))
+    rho = analytic.estimate(d, np.zeros((480, 640), bool))
+    under = cover(*surface_xy(d)) > 0
+    amodal = h(*surface_xy(heightfield_depth(h))) > 0
+    assert rho.sum() == pytest.approx(1.0)
+    assert (rho[amodal] > 0).all()  # the true pose is one of the hiding places
+    assert rho[~under].sum() < 1e-9  # and nothing is outside the slab (the target is fully hidden)
+    assert (rho > 0).sum() > 2 * amodal.sum()  # many placements fit under a 12 x 10 cm slab
+
+    # An empty bin has no hiding place: the distribution is all zero.
+    rho = analytic.estimate(np.full((480, 640), 0.8), np.zeros((480, 640), bool))
+    assert not rho.any()
+
+
+def test_analytic_equals_render_per_placement_on_a_heap(bin_scenario, small_heap):
+    s = scenario_with_heap(copy.deepcopy(bin_scenario), small_heap)
+    station = MakeStation(s)
+    ctx = station.CreateDefaultContext()
+    set_heap_poses(station, ctx, small_heap)
+    depth = np.array(station.GetOutputPort("overhead.depth_image").Eval(ctx).data)[:, :, 0]
+    cam = PinholeCamera.from_config(s.cameras["overhead"])
+    grid = OccupancyGrid((12, 9), 4)
+    box = TargetBox(0.05, 0.02, 0.005)
+    fast = AnalyticOccupancy(cam, Workspace.from_scenario(s), box, grid)
+    slow = RenderedOccupancy(s, box, grid=grid)
+    empty = np.zeros(depth.shape, bool)
+    a, b = fast.estimate(depth, empty), slow.estimate(depth, empty)
+    assert slow.renders == 4 * len(fast.gu) and fast.last_matches > 0
+    # The analytic generator shifts one silhouette per rotation (as the reference shifts one render);
+    # the renders place the box exactly, so a 2-px sliver of its side shows near the bin's edges.
+    assert iou(a > 0, b > 0) > 0.85 and np.abs(a - b).sum() < 0.3
+
+
+def test_estimator_alone_and_bad_input(analytic):
+    h, c = target_on_grid()
+    cover = slab(c[0] - 0.06, c[0] + 0.06, c[1] - 0.05, c[1] + 0.05)
+    d = heightfield_depth(lambda x, y: np.maximum(h(x, y), cover(x, y)))
+    est = OccupancyEstimator(analytic)
+    ctx = est.CreateDefaultContext()
+    img = ImageDepth32F(640, 480)
+    np.array(img.mutable_data, copy=False)[:, :, 0] = d
+    est.GetInputPort("depth_image").FixValue(ctx, img)
+    est.GetInputPort("target").FixValue(ctx, TargetEstimate(False, np.zeros((480, 640), bool)))
+    out = est.GetOutputPort("occupancy").Eval(ctx)
+    assert isinstance(out, OccupancyMap) and out.distribution.sum() == pytest.approx(1.0)
+    by_name = OccupancyEstimator("analytic", camera=CAM, workspace=BIN, target_size=(0.03, 0.06, 0.01))
+    assert by_name.backend.box == BOX  # length and width are sorted
+    with pytest.raises(PerceptionError, match="unknown"):
+        OccupancyEstimator("network")
+    with pytest.raises(PerceptionError, match="target_size"):
+        OccupancyEstimator("analytic", camera=CAM, workspace=BIN)
+    with pytest.raises(PerceptionError, match="positive"):
+        TargetBox(0.05, 0.02, -0.01)
+    with pytest.raises(PerceptionError, match="camera"):
+        analytic.match(np.ones((10, 10)), np.zeros((10, 10), bool))
+
+
+def test_estimator_wired_to_a_station(bin_scenario, small_heap):
+    k = small_heap.target_index
+    s = scenario_with_heap(copy.deepcopy(bin_scenario), small_heap)
+    builder = DiagramBuilder()
+    station = builder.AddSystem(MakeStation(s, target_index=k))
+    seg = builder.AddSystem(Segmenter("ground_truth", label_to_id=object_labels(get_plant(station))))
+    det = builder.AddSystem(TargetDetector("color"))
+    cam = PinholeCamera.from_config(s.cameras["overhead"])
+    occ = builder.AddSystem(OccupancyEstimator("analytic", camera=cam, workspace=Workspace.from_scenario(s),
+                                               target_size=TargetBox.from_object(small_heap.target)))
+    builder.Connect(station.GetOutputPort("overhead.label_image"), seg.GetInputPort("label_image"))
+    builder.Connect(station.GetOutputPort("overhead.rgb_image"), det.GetInputPort("rgb_image"))
+    builder.Connect(seg.GetOutputPort("masks"), det.GetInputPort("masks"))
+    builder.Connect(station.GetOutputPort("overhead.depth_image"), occ.GetInputPort("depth_image"))
+    builder.Connect(det.GetOutputPort("target"), occ.GetInputPort("target"))
+    diagram = builder.Build()
+    ctx = diagram.CreateDefaultContext()
+    set_heap_poses(station, ctx, small_heap)
+    target = det.GetOutputPort("target").Eval(det.GetMyContextFromRoot(ctx))
+    rho = occ.GetOutputPort("occupancy").Eval(occ.GetMyContextFromRoot(ctx)).distribution
+    assert rho.shape == (480, 640) and rho.min() >= 0
+    assert rho.sum() == pytest.approx(1.0) or not rho.any()
+    if target.visible:  # the support holds the visible target
+        assert (rho[target.mask] > 0).mean() > 0.9
