@@ -1,0 +1,72 @@
+"""Full-fidelity picks through the station's driver ports: the YuMi lifts a box from the bin with
+the compliant jaw and a flat-topped box with suction, the Panda lifts a box from the table, the
+Fetch pushes a box 10 cm along the shelf with the blade and picks one with suction.
+
+The default suite starts each pick at its pre-grasp configuration at 0.3 m/s with short pauses;
+the `slow` variants run the whole motion from the home pose as the sims/pick_*.py scripts do."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from ms_drake.station.picks import TASKS, Schedule, Timeline, plan_task, run_task
+from ms_drake.planning import JointLimits, plan_joint_motion
+
+
+def _check(out, task):
+    assert out.success, out
+    if task.mode == "push":
+        assert out.moved == pytest.approx(task.push_distance, abs=0.01) and out.sideways < 0.01
+    else:
+        assert out.lifted == pytest.approx(task.lift, abs=0.02)  # the box rose with the tool ...
+        assert out.slip < 0.005  # ... and did not move in the hand while lifted and held
+
+
+@pytest.mark.parametrize("name", list(TASKS))
+def test_pick_from_pregrasp(name):
+    task = TASKS[name]
+    _check(run_task(task, from_home=False, speed=0.3, quick=True), task)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(TASKS))
+def test_pick_from_home(name):
+    task = TASKS[name]
+    _check(run_task(task, from_home=True), task)
+
+
+def test_an_unreachable_pick_is_a_result_not_an_exception():
+    task = dataclasses.replace(TASKS["yumi_jaw"], xy=(0.2, -0.15))  # the far end of the bin, out of the YuMi's reach
+    scenario, plan, _ = plan_task(task, from_home=False)
+    assert not plan.success and plan.status in ("unreachable", "collision") and plan.timeline is None
+    out = run_task(task, from_home=False)
+    assert not out.success and out.status == plan.status and out.sim_seconds == 0
+
+
+def test_timeline_plays_trajectories_and_holds():
+    limits = JointLimits.uniform(2, 1.0, 4.0, 40.0)
+    a = plan_joint_motion([[0.0, 0.0], [0.5, -0.5]], limits)
+    tl = Timeline([0.0, 0.0])
+    tl.hold(0.2)
+    tl.play(a)
+    tl.mark("there")
+    tl.hold(0.3)
+    assert tl.duration == pytest.approx(0.5 + a.duration) and tl.marks["there"] == pytest.approx(0.2 + a.duration)
+    np.testing.assert_allclose(tl.value(0.1), [0, 0])
+    np.testing.assert_allclose(tl.value(0.2 + a.duration / 2), a.value(a.duration / 2))
+    assert np.linalg.norm(tl.velocity(0.2 + a.duration / 2)) > 0.1
+    np.testing.assert_allclose(tl.value(10.0), [0.5, -0.5]) and np.testing.assert_allclose(tl.velocity(10.0), 0)
+
+
+def test_schedule_is_a_zero_order_hold():
+    from pydrake.systems.framework import Context  # noqa: F401
+
+    s = Schedule()
+    s.set(0.0, 0.1)
+    s.set(1.5, 0.0)
+    src = s.source()
+    ctx = src.CreateDefaultContext()
+    for t, v in ((0.0, 0.1), (1.49, 0.1), (1.5, 0.0), (100.0, 0.0)):
+        ctx.SetTime(t)
+        assert src.get_output_port().Eval(ctx)[0] == pytest.approx(v)
