@@ -36,7 +36,8 @@ def test_leave_one_object_out_picks_the_parameters_that_generalize(tmp_path):
     good = np.where(y, 0.8, 0.2) + rng.normal(scale=0.05, size=len(y))  # informative
     noise = rng.random(len(y))  # uninformative
     preds = [{"model": "point", "param_index": k, "params": {"friction": f}, "robust": 0, "ms_per_grasp": 1.0,
-              "quality": list(map(float, q)), "keys": keys} for k, (f, q) in enumerate([(0.3, noise), (0.9, good)])]
+              "quality": list(map(float, q)), "keys_sha1": L._keys_hash(rows)}
+             for k, (f, q) in enumerate([(0.3, noise), (0.9, good)])]
     _write(tmp_path / "labels.jsonl", rows)
     _write(tmp_path / "pred.jsonl", preds)
     (row,) = L.loo_table(tmp_path / "labels.jsonl", tmp_path / "pred.jsonl")

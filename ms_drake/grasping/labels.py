@@ -56,6 +56,13 @@ def _append(path: Path, row: dict):
         f.flush()
 
 
+def _keys_hash(rows) -> str:
+    """Identifies the label set (and its order) a prediction row was computed on."""
+    import hashlib
+
+    return hashlib.sha1(json.dumps([[r["object"], r["index"]] for r in rows]).encode()).hexdigest()
+
+
 def default_label_objects(count: int = 24, max_min_extent: float = 0.075) -> list[str]:
     """`count` graspable objects (smallest extent <= max_min_extent), alternating over the
     available sets and, in the procedural set, over boxes, cylinders and packaged objects."""
@@ -141,7 +148,8 @@ def parameter_sets(model: str, count: int, seed: int = 0) -> list[dict]:
 def predict(labels: Path, out: Path, models=MODELS, param_sets: int = 8, robust_samples: int = 10,
             closing_force: float = 10.0, seed: int = 0, log=print) -> Path:
     rows = _read_jsonl(labels)
-    done = {(r["model"], r["param_index"], r["robust"]) for r in _read_jsonl(out)}
+    h = _keys_hash(rows)
+    done = {(r["model"], r["param_index"], r["robust"]) for r in _read_jsonl(out) if r.get("keys_sha1") == h}
     meshes = {}
     for r in rows:
         if r["object"] not in meshes:
@@ -162,8 +170,7 @@ def predict(labels: Path, out: Path, models=MODELS, param_sets: int = 8, robust_
                     reasons[res.reason] = reasons.get(res.reason, 0) + 1
                 ms = 1e3 * (time.perf_counter() - t0) / max(len(rows), 1)
                 _append(out, {"model": model, "param_index": pi, "params": params, "robust": robust,
-                              "ms_per_grasp": ms, "quality": q, "reasons": reasons,
-                              "keys": [[r["object"], r["index"]] for r in rows]})
+                              "ms_per_grasp": ms, "quality": q, "reasons": reasons, "keys_sha1": _keys_hash(rows)})
                 log(f"[predict] {model} set {pi} robust={robust}: {ms:.1f} ms/grasp, reasons {reasons}")
     return Path(out)
 
@@ -181,18 +188,14 @@ def loo_table(labels: Path, predictions: Path) -> list[dict]:
     from sklearn.metrics import average_precision_score
 
     rows = _read_jsonl(labels)
-    key_to_row = {(r["object"], r["index"]): r for r in rows}
-    preds = _read_jsonl(predictions)
+    preds = [p for p in _read_jsonl(predictions) if p.get("keys_sha1") == _keys_hash(rows)]
     table = []
     groups: dict = {}
     for p in preds:
         groups.setdefault((p["model"], p["robust"]), []).append(p)
     for (model, robust), plist in sorted(groups.items(), key=lambda kv: (MODELS.index(kv[0][0]), kv[0][1])):
-        keys = [tuple(k) for k in plist[0]["keys"]]
-        if any([tuple(k) for k in p["keys"]] != keys for p in plist) or any(k not in key_to_row for k in keys):
-            continue  # predictions made on a different label set
-        y = np.array([key_to_row[k]["label"] >= 0.5 for k in keys])
-        obj = np.array([k[0] for k in keys])
+        y = np.array([r["label"] >= 0.5 for r in rows])
+        obj = np.array([r["object"] for r in rows])
         Q = np.array([p["quality"] for p in plist])  # (P, G)
         names = sorted(set(obj))
         ap = np.full((len(plist), len(names)), np.nan)
