@@ -1,0 +1,237 @@
+"""Bin selectors (Ch. 7.4), X-Ray (Ch. 8.4), the oracle and the PolicySelector system."""
+
+import copy
+
+import numpy as np
+import pytest
+from pydrake.systems.framework import DiagramBuilder
+
+from ms_drake.objects import get_object
+from ms_drake.perception.masks import PinholeCamera, object_labels
+from ms_drake.perception.occupancy import OccupancyEstimator, TargetBox
+from ms_drake.perception.segmentation import Segmenter, Workspace
+from ms_drake.perception.target import TargetDetector
+from ms_drake.policies import (POLICIES, PolicyError, PolicySelector, SelectorParams, priority_largest,
+                               priority_xray, select_action, termination, xray_scores)
+from ms_drake.pushing import PushPlanner
+from ms_drake.scenes.heaps import scenario_with_heap, set_heap_poses
+from ms_drake.station import MakeStation, get_plant, station_objects
+from ms_drake.types import Action, ActionOutcome, Grasp, InstanceMasks, OccupancyMap, Push, TargetEstimate
+
+H, W = 60, 80
+
+
+def masks():
+    """Four objects: the target t (small), big, mid, small."""
+    m = np.zeros((4, H, W), bool)
+    m[0, 5:10, 5:10] = True  # t: 25 px
+    m[1, 20:50, 0:40] = True  # big: 1200 px
+    m[2, 0:20, 50:80] = True  # mid: 600 px
+    m[3, 40:55, 60:75] = True  # small: 225 px
+    return InstanceMasks(m, ("t", "big", "mid", "small"), np.ones(4))
+
+
+M = masks()
+TARGET = TargetEstimate(True, M.masks[0], 0.95, 0)
+HIDDEN = TargetEstimate(False, np.zeros((H, W), bool))
+
+
+def grasps(**q):
+    return tuple(Grasp("suction", (0.0, 0.0, 0.0), (0.0, 0.0, -1.0), quality=v, object_id=k) for k, v in q.items())
+
+
+PUSHES = tuple(Push((0.0, 0.0, 0.01), (0.1, 0.0, 0.01), k) for k in ("t", "big", "mid", "small"))
+
+
+def outcome(kind, removed="", success=True, oid="big", message=""):
+    a = Action(kind, grasp=grasps(**{oid: 0.5})[0] if kind == "grasp" else None,
+               push=PUSHES[1] if kind == "push" else None)
+    return ActionOutcome(a, success, removed, message)
+
+
+def chosen(action):
+    return (action.grasp or action.push).object_id if action.kind in ("grasp", "push") else action.reason
+
+
+def test_largest_first_with_and_without_pushing():
+    # The target is grasped first when its grasp exceeds t_thresh.
+    assert chosen(select_action("largest", M, TARGET, grasps(t=0.2, big=0.9))) == "t"
+    # Otherwise the others by visible area.
+    assert chosen(select_action("largest", M, TARGET, grasps(t=0.1, big=0.5, mid=0.9))) == "big"
+    assert chosen(select_action("largest", M, TARGET, grasps(t=0.1, big=0.1, mid=0.2))) == "mid"
+    # With pushing, non-targets need t_high = 0.3: big (0.25) is skipped for mid (0.35).
+    assert chosen(select_action("largest_push", M, TARGET, grasps(t=0.1, big=0.25, mid=0.35))) == "mid"
+    # No grasp qualifies: push the first object of the priority list (the target) ...
+    a = select_action("largest_push", M, TARGET, grasps(t=0.1, big=0.25), PUSHES)
+    assert a.kind == "push" and chosen(a) == "t"
+    # ... or, without a valid push on it, the next one; without pushing the search ends.
+    assert chosen(select_action("largest_push", M, TARGET, grasps(t=0.1), PUSHES[2:])) == "mid"
+    assert select_action("largest", M, TARGET, grasps(t=0.1, big=0.1), PUSHES).reason == "no_action"
+    assert priority_largest(M, HIDDEN) == [1, 2, 3, 0]
+
+
+def test_random_selectors_are_seeded_and_preempted_prefers_the_target():
+    g = grasps(t=0.5, big=0.5, mid=0.5, small=0.5)
+    picks = {chosen(select_action("random", M, TARGET, g, params=SelectorParams(seed=s))) for s in range(30)}
+    assert len(picks) >= 3  # no preference: random picks vary, the target among them or not
+    assert all(chosen(select_action("preempted_random", M, TARGET, g, params=SelectorParams(seed=s))) == "t"
+               for s in range(10))
+    g = grasps(t=0.1, big=0.5, mid=0.5, small=0.5)
+    picks = [chosen(select_action("preempted_random", M, TARGET, g, params=SelectorParams(seed=s)))
+             for s in range(30)]
+    assert set(picks) == {"big", "mid", "small"}
+    again = [chosen(select_action("preempted_random", M, TARGET, g, params=SelectorParams(seed=s)))
+             for s in range(30)]
+    assert picks == again  # reproducible from the seed (and the step number)
+    hist = (outcome("grasp", "x"),)
+    later = [chosen(select_action("preempted_random", M, TARGET, g, history=hist, params=SelectorParams(seed=s)))
+             for s in range(30)]
+    assert later != picks  # a new step draws a new order
+    a = select_action("preempted_random_push", M, TARGET, grasps(t=0.1, big=0.2), PUSHES)
+    assert a.kind == "push" and chosen(a) == "t"
+
+
+def test_xray_grasps_the_mask_covering_the_occupancy():
+    rho = np.zeros((H, W))
+    rho[0:20, 45:80] = 1.0  # mostly under "mid" (and a strip of floor)
+    occ = OccupancyMap(rho / rho.sum())
+    s = xray_scores(M, occ)
+    assert s.argmax() == 2 and s[1] == 0
+    g = grasps(t=0.0, big=0.9, mid=0.5, small=0.9)
+    assert chosen(select_action("xray", M, HIDDEN, g, occupancy=occ)) == "mid"
+    # Its grasp below threshold: the next best score, then by area when scores tie (zero).
+    assert chosen(select_action("xray", M, HIDDEN, grasps(big=0.9, mid=0.1, small=0.9), occupancy=occ)) == "big"
+    assert priority_xray(M, OccupancyMap(np.zeros((H, W)))) == [1, 2, 3, 0]
+    with pytest.raises(PolicyError, match="occupancy"):
+        select_action("xray", M, HIDDEN, g)
+
+
+def test_oracle_uses_the_true_target():
+    amodal = np.zeros((H, W), bool)
+    amodal[42:52, 62:70] = True  # the target hides under "small"
+    hidden = InstanceMasks(M.masks[1:], M.ids[1:], np.ones(3))
+    g = grasps(big=0.9, mid=0.9, small=0.5)
+    assert chosen(select_action("oracle", hidden, HIDDEN, g, target_id="t", target_amodal=amodal)) == "small"
+    assert chosen(select_action("largest", hidden, HIDDEN, g)) == "big"
+    # Visible and graspable: the true target first, whatever the detector says.
+    assert chosen(select_action("oracle", M, HIDDEN, grasps(t=0.2, small=0.9), target_id="t",
+                                target_amodal=amodal)) == "t"
+
+
+def test_best_grasp_per_object_and_termination_rules():
+    jaw = Grasp("parallel_jaw", (0.0, 0.0, 0.0), (0.0, 0.0, -1.0), (1.0, 0.0, 0.0), 0.05, 0.2, "soft_point", "big")
+    suction = Grasp("suction", (0.0, 0.0, 0.0), (0.0, 0.0, -1.0), quality=0.4, object_id="big")
+    a = select_action("largest", M, HIDDEN, (jaw, suction))
+    assert a.kind == "grasp" and a.grasp.kind == "suction"
+
+    g = grasps(big=0.9)
+    p = SelectorParams(horizon=3)
+    assert select_action("largest", M, HIDDEN, g, history=(outcome("grasp"),) * 3, params=p).reason == "horizon"
+    assert select_action("largest", M, HIDDEN, g, history=(outcome("grasp"),) * 2, params=p).kind == "grasp"
+    # More than three consecutive pushes end the search; a grasp in between resets the count.
+    three = (outcome("push"),) * 3
+    assert select_action("largest_push", M, HIDDEN, (), PUSHES, history=three).reason == "too_many_pushes"
+    two = (outcome("push"),) * 2
+    assert select_action("largest_push", M, HIDDEN, (), PUSHES, history=two).kind == "push"
+    mixed = three + (outcome("grasp"),) + two
+    assert select_action("largest_push", M, HIDDEN, (), PUSHES, history=mixed).kind == "push"
+    # The target extracted by a grasp: success; removed by a push or another grasp: failure.
+    assert termination((outcome("grasp", removed="t", oid="t"),), "t") == "success"
+    assert termination((outcome("push", removed="t"),), "t") == "target_removed"
+    assert termination((outcome("grasp", removed="big"), outcome("grasp", message="target_removed")), "t") \
+        == "target_removed"
+    assert select_action("largest", M, TARGET, g, history=(outcome("grasp", removed="t", oid="t"),),
+                         target_id="t").reason == "success"
+    assert select_action("largest", InstanceMasks.empty(H, W), HIDDEN).reason == "no_action"
+
+
+def test_bad_selector_configuration():
+    with pytest.raises(PolicyError, match="unknown policy"):
+        PolicySelector("greedy")
+    with pytest.raises(PolicyError, match="thresholds"):
+        SelectorParams(t_thresh=1.5)
+    with pytest.raises(PolicyError, match="horizon"):
+        SelectorParams(horizon=0)
+
+
+def test_policy_selector_alone():
+    for policy in POLICIES:
+        sel = PolicySelector(policy, SelectorParams(seed=3), target_id="t", width=W, height=H)
+        ctx = sel.CreateDefaultContext()
+        sel.GetInputPort("masks").FixValue(ctx, M)
+        sel.GetInputPort("target").FixValue(ctx, TARGET)
+        sel.GetInputPort("grasps").FixValue(ctx, grasps(t=0.1, big=0.2, mid=0.2, small=0.2))
+        sel.GetInputPort("pushes").FixValue(ctx, PUSHES)
+        if policy == "xray":
+            with pytest.raises(PolicyError, match="occupancy"):
+                sel.GetOutputPort("action").Eval(ctx)
+            sel.GetInputPort("occupancy").FixValue(ctx, OccupancyMap(M.masks[3] / M.masks[3].sum()))
+        a = sel.GetOutputPort("action").Eval(ctx)
+        assert isinstance(a, Action)
+        if policy.endswith("_push"):
+            assert a.kind == "push" and chosen(a) == "t"
+        elif policy == "xray":
+            assert a.kind == "grasp" and chosen(a) == "small"
+        else:
+            assert a.kind == "grasp" and chosen(a) in ("big", "mid", "small")
+        sel.GetInputPort("history").FixValue(ctx, (outcome("grasp", removed="t", oid="t"),))
+        assert sel.GetOutputPort("action").Eval(ctx).reason == "success"
+
+
+def test_selectors_wired_with_perception_and_planners(bin_scenario, small_heap):
+    from ms_drake.grasping.planner import GraspPlanner, ObjectGeometrySource
+
+    k = small_heap.target_index
+    s = scenario_with_heap(copy.deepcopy(bin_scenario), small_heap)
+    builder = DiagramBuilder()
+    station = builder.AddSystem(MakeStation(s, target_index=k))
+    plant = get_plant(station)
+    cfg = s.cameras["overhead"]
+    cam = PinholeCamera.from_config(cfg)
+    ws = Workspace.from_scenario(s)
+    seg = builder.AddSystem(Segmenter("ground_truth", label_to_id=object_labels(plant)))
+    det = builder.AddSystem(TargetDetector("color"))
+    occ = builder.AddSystem(OccupancyEstimator("analytic", camera=cam, workspace=ws,
+                                               target_size=TargetBox.from_object(small_heap.target)))
+    pushes = builder.AddSystem(PushPlanner(cam, ws))
+    color_cam, _ = cfg.MakeCameras()
+    grasp = builder.AddSystem(GraspPlanner(color_cam.core().intrinsics(), cam.X_WC, model="soft_point", num_samples=4))
+    geo = builder.AddSystem(ObjectGeometrySource({
+        o.model_name: (plant.get_body(o.body_index), get_object(o.full_name).trimesh(), get_object(o.full_name).mass,
+                       None) for o in station_objects(plant)}))
+    target_id = station_objects(plant)[k].model_name
+    selectors = {p: builder.AddSystem(PolicySelector(p, SelectorParams(seed=0, horizon=8), target_id=target_id))
+                 for p in ("largest_push", "xray")}
+    depth, rgb, label = (station.GetOutputPort(f"overhead.{n}") for n in ("depth_image", "rgb_image", "label_image"))
+    builder.Connect(label, seg.GetInputPort("label_image"))
+    builder.Connect(rgb, det.GetInputPort("rgb_image"))
+    builder.Connect(seg.GetOutputPort("masks"), det.GetInputPort("masks"))
+    builder.Connect(depth, occ.GetInputPort("depth_image"))
+    builder.Connect(det.GetOutputPort("target"), occ.GetInputPort("target"))
+    builder.Connect(depth, pushes.GetInputPort("depth_image"))
+    builder.Connect(seg.GetOutputPort("masks"), pushes.GetInputPort("masks"))
+    builder.Connect(depth, grasp.GetInputPort("depth_image"))
+    builder.Connect(seg.GetOutputPort("masks"), grasp.GetInputPort("masks"))
+    builder.Connect(station.GetOutputPort("body_poses"), geo.GetInputPort("body_poses"))
+    builder.Connect(geo.GetOutputPort("objects"), grasp.GetInputPort("objects"))
+    for sel in selectors.values():
+        builder.Connect(seg.GetOutputPort("masks"), sel.GetInputPort("masks"))
+        builder.Connect(det.GetOutputPort("target"), sel.GetInputPort("target"))
+        builder.Connect(occ.GetOutputPort("occupancy"), sel.GetInputPort("occupancy"))
+        builder.Connect(grasp.GetOutputPort("grasps"), sel.GetInputPort("grasps"))
+        builder.Connect(pushes.GetOutputPort("pushes"), sel.GetInputPort("pushes"))
+    diagram = builder.Build()
+    ctx = diagram.CreateDefaultContext()
+    set_heap_poses(station, ctx, small_heap)
+    masks = seg.GetOutputPort("masks").Eval(seg.GetMyContextFromRoot(ctx))
+    candidates = grasp.GetOutputPort("grasps").Eval(grasp.GetMyContextFromRoot(ctx))
+    assert len(candidates) >= 1 and all(g.object_id in masks.ids for g in candidates)
+    for name, sel in selectors.items():
+        a = sel.GetOutputPort("action").Eval(sel.GetMyContextFromRoot(ctx))
+        assert a.kind in ("grasp", "push", "stop"), name
+        if a.kind == "grasp":
+            assert a.grasp.object_id in masks.ids and a.grasp.quality > 0.15
+        elif a.kind == "push":
+            assert name == "largest_push" and a.push.object_id in masks.ids
+        else:
+            assert a.reason == "no_action" and max((g.quality for g in candidates), default=0) <= 0.3
