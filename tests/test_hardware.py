@@ -257,31 +257,33 @@ def test_commands_beyond_limits_are_clipped_before_they_are_sent():
 
 
 def test_camera_images_arrive_through_lcmt_image_array():
-    from drake import lcmt_image_array  # noqa: F401
     from pydrake.systems.lcm import LcmInterfaceSystem
     from pydrake.systems.primitives import ConstantValueSource
-    from pydrake.systems.sensors import ImageRgba8U, ImageToLcmImageArrayT, PixelType
+    from pydrake.systems.sensors import ImageDepth32F, ImageRgba8U
 
     from ms_drake.scenario import load_scenario
-    from ms_drake.station.hardware import _cpp_serializer
+    from ms_drake.station.hardware import add_image_publisher
 
     scenario = load_scenario(None, "YuMiBin")
     cam = scenario.cameras["overhead"]
     lcm = DrakeLcm("memq://test_camera")
     builder = DiagramBuilder()
     hw = builder.AddSystem(MakeHardwareStation(scenario, lcm=lcm))
-    image = ImageRgba8U(cam.width, cam.height)
-    image.mutable_data[:, :, 0] = np.arange(cam.width, dtype=np.uint8)[None, :]  # a horizontal ramp
-    image.mutable_data[:, :, 3] = 255
-    src = builder.AddSystem(ConstantValueSource(AbstractValue.Make(image)))
-    to_lcm = builder.AddSystem(ImageToLcmImageArrayT())
-    port = to_lcm.DeclareImageInputPort[PixelType.kRgba8U]("color")
-    builder.Connect(src.get_output_port(), port)
-    pub = builder.AddSystem(GatedLcmPublisher(camera_channel(cam.name), _cpp_serializer(lcmt_image_array), lcm, 0.1))
-    builder.Connect(to_lcm.image_array_t_msg_output_port(), pub.GetInputPort("message"))
+    rgb = ImageRgba8U(cam.width, cam.height)
+    rgb.mutable_data[:, :, 0] = np.arange(cam.width, dtype=np.uint8)[None, :]  # a horizontal ramp
+    rgb.mutable_data[:, :, 3] = 255
+    depth = ImageDepth32F(cam.width, cam.height)
+    depth.mutable_data[:, :, 0] = np.linspace(0.5, 1.5, cam.height, dtype=np.float32)[:, None]
+    rgb_src = builder.AddSystem(ConstantValueSource(AbstractValue.Make(rgb)))
+    depth_src = builder.AddSystem(ConstantValueSource(AbstractValue.Make(depth)))
+    # the emulated robot's camera path, fed by fixed images instead of a renderer
+    add_image_publisher(builder, lcm, cam, rgb_src.get_output_port(), depth_src.get_output_port())
     builder.AddSystem(LcmInterfaceSystem(lcm))
     sim = Simulator(builder.Build())
-    sim.AdvanceTo(0.25)
-    got = hw.GetOutputPort("overhead.rgb_image").Eval(hw.GetMyContextFromRoot(sim.get_context()))
+    sim.AdvanceTo(0.15)
+    hc = hw.GetMyContextFromRoot(sim.get_context())
+    got = hw.GetOutputPort("overhead.rgb_image").Eval(hc)
     assert (got.width(), got.height()) == (cam.width, cam.height)
     np.testing.assert_array_equal(got.data[5, :, 0], np.arange(cam.width, dtype=np.uint8))
+    got_depth = hw.GetOutputPort("overhead.depth_image").Eval(hc)
+    np.testing.assert_allclose(got_depth.data[:, 7, 0], depth.data[:, 7, 0])

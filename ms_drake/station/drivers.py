@@ -2,7 +2,7 @@
 
 Drake's `model_drivers` pattern: each scenario entry `robot.drivers[<prefix>]` is a dataclass
 (ms_drake.scenario.ArmDriver, JawDriver, SuctionDriver) and one apply function per kind wires it
-(`apply_arm_driver`, `apply_jaw_driver`, `apply_suction_driver`). Missing entries use the
+(`apply_arm_drivers`, `apply_jaw_driver`, `apply_suction_driver`). Missing entries use the
 dataclass defaults. The port names are the same in simulation and on hardware (hardware.py):
 
   arm (e.g. `panda`, `yumi_right`, `yumi_left`, `fetch`, `floating`):
@@ -27,14 +27,18 @@ Choices (the reference is silent):
     gains, solved inside the discrete SAP/lagged contact solver, stable at any gain) plus a
     gravity-compensation feed-forward from InverseDynamics on a control plant (the robot with
     each gripper lumped into one rigid body at its flange). Default stiffness: the joint's effort
-    limit reached at 0.1 rad (0.01 m for prismatic joints); damping 2 * ratio * sqrt(kp * M_ii)
+    limit reached at STIFFNESS_ANGLE = 0.05 rad (0.01 m for prismatic joints; softer arms lagged a
+    blade push by a centimetre); damping 2 * ratio * sqrt(kp * M_ii)
     with M the joint-space inertia at the home configuration. Needs a discrete plant whose
     contact approximation is sap / lagged / similar (not tamsi).
   * Joints of the robot outside every arm (Fetch base x/y/yaw, head pan/tilt) hold their
     default positions with the same PD.
-  * Every command passes a CommandGuard at CONTROL_PERIOD (200 Hz, a usual arm-interface rate):
-    clipped to position limits and to velocity limits (a rate limit on successive commands);
-    its finite difference is the desired velocity of the PD.
+  * Every command passes a CommandGuard at CONTROL_PERIOD (200 Hz, a usual arm-interface rate;
+    in simulation rounded to a multiple of the plant step, 250 Hz at 2 ms): clipped to position
+    limits and to velocity limits (a rate limit on successive commands); its finite difference
+    is the desired velocity of the PD. The same guard watches the status on hardware.
+  * The floating gripper keeps the PD gains of its model (drake:controller_gains) unless the
+    scenario gives `kp`.
   * Jaw: Drake's SchunkWsgPositionController (the SchunkWsgDriver pattern) on the two finger
     joints, which follow the WSG layout (see grippers.py); the force limit is clipped to the
     finger actuator's effort limit.

@@ -19,7 +19,10 @@ Channels and messages (documented here; <P> is the port prefix in upper case):
                 for the bluction, the blade angle [rad]); status coords ["holding", "body_index",
                 "gap"] (+ "blade", "blade_rate"). body_index is -1 on a real robot.
   cameras       DRAKE_RGBD_CAMERA_IMAGES_<camera name> lcmt_image_array (Drake's
-                LcmImageArrayToImages; far side ImageToLcmImageArrayT), as Drake's ApplyCameraConfig.
+                LcmImageArrayToImages; far side ImageToLcmImageArrayT), as Drake's ApplyCameraConfig;
+                colour RGBA 8 bit, depth float32 metres, zlib-compressed: Drake 1.51's
+                LcmImageArrayToImages copies an uncompressed depth image short (a byte per pixel),
+                so a camera driver on this bus must compress its depth images.
 
 Safety (CommandGuard in drivers.py, one per arm and gripper): commands are clipped to the joint
 position and velocity limits (`<P>.command_clipped` reports it); nothing is published on a
@@ -572,16 +575,23 @@ def _emulated_suction(builder, lcm, station, plant, g, period, enabled):
 
 
 def _emulated_camera(builder, lcm, station, cam_name, cam):
+    add_image_publisher(builder, lcm, cam,
+                        station.GetOutputPort(f"{cam_name}.rgb_image") if cam.rgb else None,
+                        station.GetOutputPort(f"{cam_name}.depth_image") if cam.depth else None)
+
+
+def add_image_publisher(builder, lcm, cam, rgb_port=None, depth_port=None, enabled=None):
+    """Publish the images on `rgb_port` (ImageRgba8U) / `depth_port` (ImageDepth32F) as one
+    lcmt_image_array on DRAKE_RGBD_CAMERA_IMAGES_<cam.name> at cam.fps (the far side of the
+    hardware station's cameras). Returns the publisher."""
     from drake import lcmt_image_array
     from pydrake.systems.sensors import ImageToLcmImageArrayT, PixelType
 
-    to_lcm = builder.AddSystem(ImageToLcmImageArrayT())
-    to_lcm.set_name(f"{cam_name}_to_lcm")
-    if cam.rgb:
-        port = to_lcm.DeclareImageInputPort[PixelType.kRgba8U]("color")
-        builder.Connect(station.GetOutputPort(f"{cam_name}.rgb_image"), port)
-    if cam.depth:
-        port = to_lcm.DeclareImageInputPort[PixelType.kDepth32F]("depth")
-        builder.Connect(station.GetOutputPort(f"{cam_name}.depth_image"), port)
-    _publisher(builder, camera_channel(cam.name), _cpp_serializer(lcmt_image_array), lcm, 1.0 / cam.fps, None,
-               to_lcm.image_array_t_msg_output_port(), f"{cam_name}_image_publisher")
+    to_lcm = builder.AddSystem(ImageToLcmImageArrayT(do_compress=True))  # zlib: see the module docstring
+    to_lcm.set_name(f"{cam.name}_to_lcm")
+    if rgb_port is not None:
+        builder.Connect(rgb_port, to_lcm.DeclareImageInputPort[PixelType.kRgba8U]("color"))
+    if depth_port is not None:
+        builder.Connect(depth_port, to_lcm.DeclareImageInputPort[PixelType.kDepth32F]("depth"))
+    return _publisher(builder, camera_channel(cam.name), _cpp_serializer(lcmt_image_array), lcm, 1.0 / cam.fps,
+                      enabled, to_lcm.image_array_t_msg_output_port(), f"{cam.name}_image_publisher")

@@ -4,6 +4,13 @@
     add_gripper(plant, parser, "parallel_jaw", frame)       -> ModelInstanceIndex (welded to frame)
     add_floating_gripper(plant, parser, "suction_cup")      -> (base instance, gripper instance)
     robot_spec("yumi").arms["yumi_right"].joints            -> joint names in command order
+Stations (MakeStation calls these):
+    add_robot_from_scenario(builder, plant, scene_graph, scenario, parser) -> RobotHandle (before Finalize)
+    apply_drivers(builder, plant, scene_graph, scenario, handle)            (after Finalize; drivers.py)
+    resolve_robot_config(scenario.robot) -> [(arm, gripper, port)], {port prefix: driver}
+    station_robot_spec("floating"), station_arm_spec("yumi_left"), arm_joint_limits("fetch")
+Every arm starts at ArmSpec.home (set_home); the floating gripper 0.45 m above its base origin,
+pointing down.
 
 Weld conventions (the flange frame of each arm and the transform X_FG from the flange frame F to
 the gripper's `body` frame G, whose +z is the approach direction, see grippers.py):
