@@ -52,10 +52,10 @@ def test_heap_reloads_exactly_and_stays_put(bin_scenario, small_heap, tmp_path):
         np.testing.assert_array_equal(plant.GetPositions(pc, o.model_instance), np.asarray(op.q))
         np.testing.assert_allclose(plant.EvalBodyPoseInWorld(pc, plant.get_body(o.body_index)).GetAsMatrix4(),
                                    op.matrix(), atol=1e-12)
-    sim.AdvanceTo(0.3)  # a settled heap barely moves in the station's own physics
-    for o, op in zip(station_objects(plant), heap.objects):
-        p = plant.EvalBodyPoseInWorld(pc, plant.get_body(o.body_index)).translation()
-        assert np.linalg.norm(p - op.matrix()[:3, 3]) < 0.02, o.full_name
+    sim.AdvanceTo(0.3)  # a settled heap barely moves in the station's own (rigid, point) physics
+    moved = [np.linalg.norm(plant.EvalBodyPoseInWorld(pc, plant.get_body(o.body_index)).translation()
+                            - op.matrix()[:3, 3]) for o, op in zip(station_objects(plant), heap.objects)]
+    assert np.median(moved) < 0.005 and max(moved) < 0.05, moved
 
 
 def test_heap_json_round_trip_is_exact(small_heap):
