@@ -249,7 +249,10 @@ def _lcm_for(scenario, lcm):
 
 # --------------------------------------------------------------------------------- station side
 def MakeHardwareStation(scenario, meshcat=None, lcm=None, name: str = "hardware_station"):
-    """The station of `scenario` talking LCM (see the module docstring for channels/safety)."""
+    """The station of `scenario` talking LCM (see the module docstring for channels/safety).
+
+    meshcat is accepted for MakeStation's signature and not drawn into (no plant state here).
+    One Simulator per hardware station: the status watchdogs count messages per system."""
     from pydrake.systems.lcm import LcmInterfaceSystem, LcmSubscriberSystem
 
     lcm = _lcm_for(scenario, lcm)
