@@ -1,0 +1,18 @@
+"""Action execution: the ActionExecutor system and its two fidelities (primitive, full)."""
+
+from ms_drake.execution.backends import (  # noqa: F401
+    FIDELITIES,
+    FullBackend,
+    PrimitiveBackend,
+    grasp_tool_pose,
+    tcp_offset_of,
+)
+from ms_drake.execution.executor import (  # noqa: F401
+    NO_OUTCOME,
+    ActionExecutor,
+    ExecutionError,
+    ExecutorStatus,
+    Motion,
+    connect_executor,
+    remove_objects,
+)

@@ -1,0 +1,261 @@
+"""The two execution fidelities of DESIGN.md behind one ActionExecutor.
+
+PrimitiveBackend (floating gripper, large benchmarks):
+  grasp  success with probability = the grasp's robust contact-model quality (Grasp.quality from
+         the GraspPlanner), drawn from (seed, step); a successful grasp lifts the object out of
+         the scene (the executor announces it on `removed`, the rollout driver moves it away) and
+         the rest settle by simulation for `settle` s. The gripper does not enter the heap (the
+         reference's simulation experiments do the same: a grasp is an evaluated primitive).
+  push   the closed jaw moves along the push segment in simulation: park -> above the start
+         (travel height above the walls) -> down to the start -> along the segment -> up -> park,
+         each leg a smooth (cosine) profile at `travel_speed` / `push_speed`; then `settle` s.
+FullBackend (YuMi): IK + ruckig through ms_drake.station.picks (plan_pick / plan_push) from the
+  arm's current configuration; parallel-jaw grasps on `yumi_right` (compliant pads), suction grasps
+  on `yumi_left`; a grasp succeeds when the object rose by more than half the lift; then the
+  object leaves the scene, the gripper releases and the arm returns home (out of the camera view).
+Both: after an action, every object (other than the grasped one) that left the bin (fell over a
+wall, or below the floor) is reported; the target among them sets message "target_removed".
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydrake.math import RigidTransform, RotationMatrix
+
+from ms_drake.execution.executor import ExecutionError, Motion
+from ms_drake.types import Action, ActionOutcome
+
+FIDELITIES = ("primitive", "full")
+
+
+def _smooth(a: np.ndarray, b: np.ndarray, s: float) -> np.ndarray:
+    return a + (b - a) * (0.5 - 0.5 * np.cos(np.pi * min(max(s, 0.0), 1.0)))
+
+
+class _Path:
+    """Piecewise smooth interpolation through waypoints with given leg durations (immutable)."""
+
+    def __init__(self, points, durations):
+        self.points = [np.asarray(p, float) for p in points]
+        self.t = np.concatenate([[0.0], np.cumsum(durations)])
+
+    @property
+    def duration(self) -> float:
+        return float(self.t[-1])
+
+    def __call__(self, t):
+        k = int(np.searchsorted(self.t, t, side="right") - 1)
+        if k >= len(self.points) - 1:
+            return self.points[-1]
+        dt = self.t[k + 1] - self.t[k]
+        return _smooth(self.points[k], self.points[k + 1], (t - self.t[k]) / dt if dt > 0 else 1.0)
+
+
+class _Steps:
+    """Zero-order hold over (time, value) steps (immutable)."""
+
+    def __init__(self, steps):
+        self.steps = sorted((float(t), np.atleast_1d(np.asarray(v, float))) for t, v in steps)
+
+    def __call__(self, t):
+        v = self.steps[0][1]
+        for ts, vs in self.steps:
+            if ts <= t + 1e-12:
+                v = vs
+        return v
+
+
+class _Base:
+    """objects: {id: body index}; workspace: the bin (perception.segmentation.Workspace)."""
+
+    def __init__(self, objects: dict, workspace, target_id: str = "", seed: int = 0, settle: float = 0.5):
+        self.objects = dict(objects)
+        self.workspace = workspace
+        self.target_id = target_id
+        self.seed = int(seed)
+        self.settle = float(settle)
+
+    def left_bin(self, poses, removed=(), exclude=()) -> list[str]:
+        """Ids of objects (not yet removed) outside the bin: beyond a wall or below the floor."""
+        if poses is None:
+            return []
+        ws = self.workspace
+        out = []
+        for oid, b in self.objects.items():
+            if oid in removed or oid in exclude:
+                continue
+            p = poses[b].translation()
+            if p[2] < ws.floor_z - 0.03 or not ws.inside_xy(p, margin=-0.02):
+                out.append(oid)
+        return out
+
+    def _finish(self, action: Action, success: bool, grasped: str, poses, removed, message: str = ""):
+        others = self.left_bin(poses, removed, exclude=(grasped,))
+        removed_object = grasped if success else ""
+        if self.target_id and self.target_id in others:
+            message, removed_object = "target_removed", removed_object or self.target_id
+        elif not removed_object and others:
+            removed_object = others[0]
+        return ActionOutcome(action, bool(success), removed_object, message), tuple(others)
+
+
+class PrimitiveBackend(_Base):
+    """The floating gripper (FloatingGripperBin). tcp_offset: the tcp's z in the gripper body frame
+    (`tcp_offset_of(plant)`); the body points down (roll = pi)."""
+
+    def __init__(self, objects: dict, workspace, tcp_offset: float, target_id: str = "", seed: int = 0,
+                 settle: float = 0.5, travel_speed: float = 0.5, push_speed: float = 0.15,
+                 travel_height: float = 0.10, push_force: float = 40.0):
+        super().__init__(objects, workspace, target_id, seed, settle)
+        self.tcp_offset = float(tcp_offset)
+        self.travel_speed, self.push_speed = float(travel_speed), float(push_speed)
+        self.travel_z = workspace.floor_z + workspace.wall_height + float(travel_height)
+        cx, cy = workspace.center_xy
+        # Parked beside the bin, out of the overhead camera's view (our choice).
+        self.park = np.array([cx + 0.5 * workspace.size_xy[0] + 0.35, cy, self.travel_z + self.tcp_offset,
+                              np.pi, 0.0, 0.0])
+        self.push_force = float(push_force)
+
+    def initial_commands(self) -> dict:
+        return {"floating.position": self.park, "floating_jaw.position": [0.0],
+                "floating_jaw.force_limit": [self.push_force]}
+
+    def _q(self, tcp, yaw):
+        return np.array([tcp[0], tcp[1], tcp[2] + self.tcp_offset, np.pi, 0.0, yaw])
+
+    def plan(self, action: Action, hold: dict, step: int, poses=None):
+        if action.kind == "grasp":
+            if action.grasp is None:
+                raise ExecutionError("a grasp Action without its Grasp")
+            return Motion({}, check_time=0.0, duration=self.settle, info={"step": step})
+        if action.kind == "push":
+            if action.push is None:
+                raise ExecutionError("a push Action without its Push")
+            a, b = np.asarray(action.push.start, float), np.asarray(action.push.end, float)
+            d = b - a
+            yaw = float(np.arctan2(d[1], d[0])) + np.pi / 2  # the closed jaws' broad side leads
+            park = np.asarray(hold["floating.position"], float)
+            wp = [park, self._q([a[0], a[1], self.travel_z], yaw), self._q(a, yaw), self._q(b, yaw),
+                  self._q([b[0], b[1], self.travel_z], yaw), self.park]
+            speeds = [self.travel_speed, self.travel_speed, self.push_speed, self.travel_speed, self.travel_speed]
+            dur = [max(np.linalg.norm(wp[i + 1][:3] - wp[i][:3]) / v, 0.15) for i, v in enumerate(speeds)]
+            path = _Path(wp, dur)
+            return Motion({"floating.position": path}, check_time=path.duration + self.settle,
+                          duration=path.duration + self.settle, info={"step": step})
+        raise ExecutionError(f"the primitive executor cannot execute an Action of kind {action.kind!r}")
+
+    def outcome(self, action: Action, motion: Motion, poses, step: int, removed):
+        if action.kind == "grasp":
+            rng = np.random.default_rng([self.seed, step, 4242])
+            ok = bool(rng.random() < float(action.grasp.quality))
+            return self._finish(action, ok, action.grasp.object_id, poses, removed,
+                                "" if ok else "grasp_failed")
+        return self._finish(action, True, "", poses, removed)
+
+
+def tcp_offset_of(plant, gripper_model: str = "floating_jaw") -> float:
+    """z of the tcp frame in its gripper body frame (the floating gripper's tool length)."""
+    inst = plant.GetModelInstanceByName(gripper_model)
+    f = plant.GetFrameByName("tcp", inst)
+    return float(f.GetFixedPoseInBodyFrame().translation()[2])
+
+
+def grasp_tool_pose(grasp) -> RigidTransform:
+    """The tool pose of a Grasp: tcp at the centre, z along the approach, x along the jaw axis
+    (suction: x = the world x made perpendicular to the approach)."""
+    z = np.asarray(grasp.approach, float)
+    z /= np.linalg.norm(z)
+    x = np.asarray(grasp.axis, float)
+    if grasp.kind != "parallel_jaw" or np.linalg.norm(x) < 1e-9:
+        x = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = x - z * np.dot(x, z)
+    x /= np.linalg.norm(x)
+    R = np.column_stack([x, np.cross(z, x), z])
+    return RigidTransform(RotationMatrix(R), np.asarray(grasp.center, float))
+
+
+class FullBackend(_Base):
+    """The YuMi (YuMiBin): jaw grasps and pushes on the right arm, suction grasps on the left.
+    scenario: the station's scenario (its robot, grippers and environment; objects are ignored)."""
+
+    JAW_ARM, SUCTION_ARM = "yumi_right", "yumi_left"
+
+    def __init__(self, scenario, objects: dict, workspace, target_id: str = "", seed: int = 0, settle: float = 0.5,
+                 lift: float = 0.15, speed: float = 0.25, close_time: float = 0.5, hold_time: float = 0.3):
+        super().__init__(objects, workspace, target_id, seed, settle)
+        from ms_drake.station.picks import arm_ik
+
+        if scenario.robot.name != "yumi":
+            raise ExecutionError(f"full fidelity runs on the YuMi (scenario YuMiBin), not robot {scenario.robot.name!r}")
+        self.lift, self.speed, self.close_time, self.hold_time = lift, speed, close_time, hold_time
+        self.ik, self._keep = {}, []
+        for arm in (self.JAW_ARM, self.SUCTION_ARM):
+            ik, limits, q_home, keep = arm_ik(scenario, arm, seed=seed)
+            self.ik[arm] = (ik, limits, q_home)
+            self._keep.append(keep)
+
+    def initial_commands(self) -> dict:
+        return {f"{self.JAW_ARM}.position": self.ik[self.JAW_ARM][2],
+                f"{self.SUCTION_ARM}.position": self.ik[self.SUCTION_ARM][2],
+                f"{self.JAW_ARM}_jaw.position": [0.1], f"{self.JAW_ARM}_jaw.force_limit": [30.0],
+                f"{self.SUCTION_ARM}_suction.suction": [0.0]}
+
+    def _finish_motion(self, plan, arm, release: dict, info: dict):
+        from ms_drake.planning import plan_joint_motion
+
+        ik, limits, q_home = self.ik[arm]
+        tl = plan.timeline
+        check = tl.duration
+        tl.play(plan_joint_motion([tl.final(), q_home], limits))  # back home, out of the camera's view
+        commands = {f"{arm}.position": tl.value}
+        for port, schedule in plan.commands.items():
+            steps = list(schedule.steps) + [(check + 0.05, v) for p, v in release.items() if p == port]
+            commands[port] = _Steps(steps)
+        return Motion(commands, check_time=check, duration=tl.duration + self.settle, info=info)
+
+    def plan(self, action: Action, hold: dict, step: int, poses=None):
+        from ms_drake.station.picks import plan_pick, plan_push
+
+        if action.kind == "grasp":
+            g = action.grasp
+            arm = self.JAW_ARM if g.kind == "parallel_jaw" else self.SUCTION_ARM
+            port = f"{arm}_jaw" if g.kind == "parallel_jaw" else f"{arm}_suction"
+            ik, limits, _ = self.ik[arm]
+            q_now = np.asarray(hold[f"{arm}.position"], float)
+            plan = plan_pick(ik, limits, q_now, grasp_tool_pose(g), arm, port, g.kind, lift=self.lift,
+                             speed=self.speed, close_time=self.close_time, hold_time=self.hold_time)
+            if not plan.success:
+                return plan.status
+            z0 = poses[self.objects[g.object_id]].translation()[2] if poses is not None and g.object_id in self.objects \
+                else None
+            release = {f"{port}.position": [0.1]} if g.kind == "parallel_jaw" else {f"{port}.suction": [0.0]}
+            return self._finish_motion(plan, arm, release, {"z0": z0, "step": step})
+        if action.kind == "push":
+            p = action.push
+            a, b = np.asarray(p.start, float), np.asarray(p.end, float)
+            d = b - a
+            yaw = float(np.arctan2(d[1], d[0])) + np.pi / 2
+            R = RotationMatrix.MakeZRotation(yaw) @ RotationMatrix.MakeXRotation(np.pi)
+            ik, limits, _ = self.ik[self.JAW_ARM]
+            q_now = np.asarray(hold[f"{self.JAW_ARM}.position"], float)
+            plan = plan_push(ik, limits, q_now, RigidTransform(R, a), d, float(np.linalg.norm(d)), self.JAW_ARM,
+                             speed=min(self.speed, 0.1))
+            if not plan.success:
+                return plan.status
+            jaw = f"{self.JAW_ARM}_jaw"
+            from ms_drake.station.picks import Schedule
+
+            close = Schedule()
+            close.set(0.0, 0.0)
+            plan.commands[f"{jaw}.position"] = close
+            return self._finish_motion(plan, self.JAW_ARM, {f"{jaw}.position": [0.1]}, {"step": step})
+        raise ExecutionError(f"the full executor cannot execute an Action of kind {action.kind!r}")
+
+    def outcome(self, action: Action, motion: Motion, poses, step: int, removed):
+        if action.kind == "grasp":
+            oid = action.grasp.object_id
+            z0 = motion.info.get("z0")
+            ok = (poses is not None and z0 is not None and oid in self.objects
+                  and poses[self.objects[oid]].translation()[2] - z0 > 0.5 * self.lift)
+            return self._finish(action, ok, oid, poses, removed, "" if ok else "not_lifted")
+        return self._finish(action, True, "", poses, removed)

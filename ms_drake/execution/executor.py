@@ -1,0 +1,212 @@
+"""ActionExecutor: executes the PolicySelector's Actions on a station, one at a time.
+
+Ports (declared first in __init__):
+  inputs
+    action         Action (PolicySelector). Read only when the executor is idle.
+    body_poses     the station's body_poses (list of RigidTransform): outcome checks (lifted?
+                   left the bin?). Optional: unconnected = outcomes from the backend alone.
+  outputs
+    <command port> one vector output per station command input the backend drives (e.g.
+                   `floating.position` (6), `floating_jaw.position` (1), `floating_jaw.force_limit`
+                   (1); YuMi: both arms, the right jaw and the left suction cup). Connect each to
+                   the station input of the same name (`connect_executor`).
+    history        tuple[ActionOutcome], every finished action in order (feed PolicySelector.history).
+    outcome        ActionOutcome of the last finished action (kind "stop" with message "none" before).
+    removed        tuple[str]: ids of objects that left the scene (lifted out). The rollout driver
+                   moves them out of the plant (`remove_objects`): a scene edit, as the reference's
+                   simulations do, not something a LeafSystem may do to another system's state.
+    status         ExecutorStatus (busy, done, steps, stop reason).
+
+The executor latches a new Action only when idle, from a periodic unrestricted update (as Drake's
+clutter-clearing planner does), so perception and planning run once per action, on demand. One
+action: `backend.plan(action, hold, step)` returns a Motion (command values over time, a check
+time, a duration); at the check time `backend.outcome(...)` decides what happened (an ActionOutcome and every object that left the bin); at the end of
+the motion the executor is idle again and holds the motion's last commands. An Action of kind
+"stop" ends the search (status.done). A plan that fails (unreachable grasp) is an unsuccessful
+outcome with the planner's status as message; the selector's horizon bounds such repetitions.
+Randomness: the backends draw from (seed, step), so a rollout is reproducible from its seed.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+from ms_drake.errors import MsDrakeError
+from ms_drake.types import Action, ActionOutcome
+
+
+class ExecutionError(MsDrakeError, ValueError):
+    """An executor was configured with an unknown fidelity, or wired without an input it needs."""
+
+
+@dataclass(frozen=True)
+class ExecutorStatus:
+    busy: bool = False
+    done: bool = False
+    steps: int = 0
+    stop_reason: str = ""
+
+
+@dataclass
+class Motion:
+    """Command values over time for one action. commands: {port: callable(t) -> array}; ports not
+    named hold their values. check_time: when the outcome is decided; duration: when it ends."""
+
+    commands: dict
+    check_time: float
+    duration: float
+    info: dict = field(default_factory=dict)
+
+    def __deepcopy__(self, memo):  # immutable once planned; Drake copies abstract state values
+        return self
+
+    def values(self, t: float, hold: dict) -> dict:
+        out = dict(hold)
+        for k, f in self.commands.items():
+            out[k] = np.atleast_1d(np.asarray(f(min(max(t, 0.0), self.duration)), float))
+        return out
+
+
+@dataclass
+class _State:
+    phase: str = "idle"  # idle | executing | done
+    action: Action | None = None
+    motion: Motion | None = None
+    t0: float = 0.0
+    checked: bool = False
+    hold: dict = field(default_factory=dict)
+    history: tuple = ()
+    removed: tuple = ()
+    stop_reason: str = ""
+
+
+NO_OUTCOME = ActionOutcome(Action("stop", reason="none"), False, message="none")
+
+
+class ActionExecutor(LeafSystem):
+    """backend: PrimitiveBackend (floating gripper) or FullBackend (YuMi), see ms_drake.execution.
+    period: the idle-check / outcome-check rate [s]."""
+
+    def __init__(self, backend, period: float = 0.05):
+        super().__init__()
+        self.backend = backend
+        self.period = float(period)
+        # Ports first.
+        self.action_port = self.DeclareAbstractInputPort("action", AbstractValue.Make(Action("stop")))
+        self.poses_port = self.DeclareAbstractInputPort("body_poses", AbstractValue.Make([RigidTransform()]))
+        init = _State(hold={k: np.atleast_1d(np.asarray(v, float)) for k, v in backend.initial_commands().items()})
+        self._state_index = self.DeclareAbstractState(AbstractValue.Make(init))
+        state_ticket = {self.abstract_state_ticket(self._state_index), self.time_ticket()}
+        self.command_ports = {}
+        for name, value in init.hold.items():
+            self.command_ports[name] = self.DeclareVectorOutputPort(
+                name, BasicVector(len(value)), lambda c, o, n=name: self._calc_command(c, o, n),
+                prerequisites_of_calc=state_ticket)
+        state_only = {self.abstract_state_ticket(self._state_index)}
+        self.history_port = self.DeclareAbstractOutputPort(
+            "history", lambda: AbstractValue.Make(()), lambda c, o: o.set_value(self._state(c).history),
+            prerequisites_of_calc=state_only)
+        self.outcome_port = self.DeclareAbstractOutputPort(
+            "outcome", lambda: AbstractValue.Make(NO_OUTCOME), self._calc_outcome, prerequisites_of_calc=state_only)
+        self.removed_port = self.DeclareAbstractOutputPort(
+            "removed", lambda: AbstractValue.Make(()), lambda c, o: o.set_value(self._state(c).removed),
+            prerequisites_of_calc=state_only)
+        self.status_port = self.DeclareAbstractOutputPort(
+            "status", lambda: AbstractValue.Make(ExecutorStatus()), self._calc_status, prerequisites_of_calc=state_only)
+        self.DeclarePeriodicUnrestrictedUpdateEvent(self.period, 0.0, self._update)
+
+    # ------------------------------------------------------------------ outputs
+    def _state(self, context) -> _State:
+        return context.get_abstract_state(self._state_index).get_value()
+
+    def _calc_command(self, context, output, name):
+        s = self._state(context)
+        if s.phase == "executing":
+            v = s.motion.values(context.get_time() - s.t0, s.hold)[name]
+        else:
+            v = s.hold[name]
+        output.SetFromVector(v)
+
+    def _calc_outcome(self, context, output):
+        h = self._state(context).history
+        output.set_value(h[-1] if h else NO_OUTCOME)
+
+    def _calc_status(self, context, output):
+        s = self._state(context)
+        output.set_value(ExecutorStatus(s.phase == "executing", s.phase == "done", len(s.history), s.stop_reason))
+
+    # ------------------------------------------------------------------ update
+    def _update(self, context, state):
+        s = copy.copy(self._state(context))
+        t = context.get_time()
+        if s.phase == "done":
+            return
+        poses = self.poses_port.Eval(context) if self.poses_port.HasValue(context) else None
+        if s.phase == "executing":
+            dt = t - s.t0
+            if not s.checked and dt >= s.motion.check_time - 1e-9:
+                out, gone = self.backend.outcome(s.action, s.motion, poses, len(s.history), s.removed)
+                s.history = s.history + (out,)
+                new = [r for r in dict.fromkeys([out.removed_object, *gone]) if r and r not in s.removed]
+                s.removed = s.removed + tuple(new)
+                s.checked = True
+            if s.checked and dt >= s.motion.duration - 1e-9:
+                s.hold = s.motion.values(s.motion.duration, s.hold)
+                s.phase, s.motion, s.action = "idle", None, None
+                # Idle for one period before the next action: observers (the rollout driver, the
+                # demo) see the settled scene the next action is chosen from.
+                state.get_mutable_abstract_state(self._state_index).set_value(s)
+                return
+        if s.phase == "idle":
+            if not self.action_port.HasValue(context):
+                raise ExecutionError("ActionExecutor: connect the action input (PolicySelector.action)")
+            action = self.action_port.Eval(context)
+            if action.kind == "stop":
+                s.phase, s.stop_reason = "done", action.reason or "stop"
+            else:
+                motion = self.backend.plan(action, s.hold, len(s.history), poses)
+                if isinstance(motion, str):  # planning failed: an unsuccessful outcome, still idle
+                    s.history = s.history + (ActionOutcome(action, False, message=f"plan_failed:{motion}"),)
+                else:
+                    s.phase, s.action, s.motion, s.t0, s.checked = "executing", action, motion, t, False
+        state.get_mutable_abstract_state(self._state_index).set_value(s)
+
+
+def connect_executor(builder, executor: ActionExecutor, station, selector=None):
+    """Wire the executor's command outputs to the station inputs of the same names, body_poses
+    to the executor, and (optionally) the selector's action / the executor's history."""
+    for name, port in executor.command_ports.items():
+        builder.Connect(port, station.GetInputPort(name))
+    builder.Connect(station.GetOutputPort("body_poses"), executor.poses_port)
+    if selector is not None:
+        builder.Connect(selector.GetOutputPort("action"), executor.action_port)
+        builder.Connect(executor.history_port, selector.GetInputPort("history"))
+
+
+def remove_objects(plant, plant_context, body_indices) -> None:
+    """Move bodies far out of the scene (1 m apart, 5 m below the floor), at rest and locked, so
+    they neither fall forever nor touch anything: the scene edit of a lifted object."""
+    for j, b in enumerate(body_indices):
+        from pydrake.multibody.tree import BodyIndex
+
+        body = plant.get_body(BodyIndex(int(b)))
+        X = RigidTransform([20.0 + 1.0 * int(b), 0.0, -5.0])
+        plant.SetFreeBodyPose(plant_context, body, X)
+        plant.SetFreeBodySpatialVelocity(plant_context, body, _zero_velocity())
+        body.Lock(plant_context)
+
+
+def _zero_velocity():
+    from pydrake.multibody.math import SpatialVelocity
+
+    return SpatialVelocity(np.zeros(3), np.zeros(3))
+
+
+__all__ = ["ActionExecutor", "ExecutorStatus", "Motion", "ExecutionError", "connect_executor", "remove_objects",
+           "NO_OUTCOME"]

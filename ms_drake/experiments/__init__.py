@@ -1,0 +1,1 @@
+"""Experiments: bin-search rollouts, the benchmark harness, result files, statistics and plots."""

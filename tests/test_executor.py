@@ -1,0 +1,156 @@
+"""ActionExecutor: alone (FixValue action, Eval outputs after unrestricted updates) and wired in the
+controller diagram for one search step in each fidelity (primitive: floating gripper; full: YuMi)."""
+
+import numpy as np
+import pytest
+from pydrake.math import RigidTransform
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+
+from ms_drake.execution import (ActionExecutor, ExecutionError, PrimitiveBackend, connect_executor,
+                                grasp_tool_pose)
+from ms_drake.perception.segmentation import Workspace
+from ms_drake.types import Action, Grasp, Push
+
+WS = Workspace((0.0, 0.0), (0.5, 0.4), 0.0, 0.12)
+
+
+def backend(seed=0):
+    return PrimitiveBackend({"a": 1, "b": 2}, WS, tcp_offset=0.1, target_id="b", seed=seed)
+
+
+def poses(a=(0.0, 0.0, 0.02), b=(0.05, 0.0, 0.02)):
+    return [RigidTransform(), RigidTransform(list(a)), RigidTransform(list(b))]
+
+
+def step(system, context, t):
+    sim = Simulator(system, context)
+    sim.AdvanceTo(t)
+    return context
+
+
+def test_executor_alone_latches_only_when_idle_and_records_outcomes():
+    ex = ActionExecutor(backend(seed=3), period=0.05)
+    ctx = ex.CreateDefaultContext()
+    park = ex.GetOutputPort("floating.position").Eval(ctx)
+    assert park[0] > 0.25 and abs(park[3] - np.pi) < 1e-9  # beside the bin, pointing down
+    ex.poses_port.FixValue(ctx, poses())
+    push = Action("push", push=Push((0.0, 0.0, 0.02), (0.1, 0.0, 0.02), "a"))
+    fixed = ex.action_port.FixValue(ctx, push)
+    step(ex, ctx, 0.3)
+    st = ex.GetOutputPort("status").Eval(ctx)
+    assert st.busy and st.steps == 0
+    # A new action while busy is ignored: the push goes on.
+    fixed.GetMutableData().set_value(Action("grasp", grasp=Grasp("parallel_jaw", (0, 0, 0.02), (0, 0, -1),
+                                                                   quality=1.0, object_id="a")))
+    q_mid = ex.GetOutputPort("floating.position").Eval(ctx).copy()
+    assert np.linalg.norm(q_mid[:3] - park[:3]) > 0.05  # on its way to the push
+    step(ex, ctx, 8.0)
+    hist = ex.GetOutputPort("history").Eval(ctx)
+    assert [o.action.kind for o in hist[:2]] == ["push", "grasp"]
+    assert hist[0].success and hist[0].removed_object == ""
+    assert hist[1].success and hist[1].removed_object == "a"  # quality 1: always lifted
+    assert "a" in ex.GetOutputPort("removed").Eval(ctx)
+    assert ex.GetOutputPort("outcome").Eval(ctx) is not None
+    np.testing.assert_allclose(ex.GetOutputPort("floating.position").Eval(ctx), park)  # parked again
+
+
+def test_grasp_success_follows_quality_and_seed():
+    def run(q, seed):
+        b = backend(seed)
+        a = Action("grasp", grasp=Grasp("suction", (0, 0, 0.02), (0, 0, -1), quality=q, object_id="a"))
+        return [b.outcome(a, None, poses(), k, ())[0].success for k in range(200)]
+
+    assert not any(run(0.0, 1)) and all(run(1.0, 1))
+    half = run(0.5, 1)
+    assert 70 < sum(half) < 130 and half == run(0.5, 1) and half != run(0.5, 2)
+
+
+def test_stop_ends_and_accidental_target_removal_is_named():
+    ex = ActionExecutor(backend(), period=0.05)
+    ctx = ex.CreateDefaultContext()
+    ex.poses_port.FixValue(ctx, poses())
+    ex.action_port.FixValue(ctx, Action("stop", reason="horizon"))
+    step(ex, ctx, 0.2)
+    st = ex.GetOutputPort("status").Eval(ctx)
+    assert st.done and st.stop_reason == "horizon" and st.steps == 0
+    b = backend()
+    out, gone = b.outcome(Action("push", push=Push((0, 0, 0), (0.1, 0, 0), "a")), None,
+                          poses(b=(0.5, 0.0, -0.2)), 0, ())
+    assert out.message == "target_removed" and out.removed_object == "b" and gone == ("b",)
+
+
+def test_bad_actions_and_unconnected_input():
+    ex = ActionExecutor(backend())
+    ctx = ex.CreateDefaultContext()
+    with pytest.raises(ExecutionError, match="connect the action input"):
+        step(ex, ctx, 0.1)
+    with pytest.raises(ExecutionError, match="kind 'shelf'"):
+        backend().plan(Action("shelf"), backend().initial_commands(), 0)
+
+
+def test_grasp_tool_pose_axes():
+    X = grasp_tool_pose(Grasp("parallel_jaw", (0.1, 0.0, 0.05), (0, 0, -1), axis=(0, 1, 0)))
+    R = X.rotation().matrix()
+    np.testing.assert_allclose(R[:, 2], [0, 0, -1])
+    np.testing.assert_allclose(R[:, 0], [0, 1, 0])
+    assert np.isclose(np.linalg.det(R), 1.0)
+
+
+@pytest.fixture(scope="module")
+def heap5():
+    from ms_drake.scenario import load_scenario
+    from ms_drake.scenes.heaps import generate_heap
+
+    return generate_heap(load_scenario(None, "BinHeap15"), 4, seed=3)
+
+
+def test_one_search_step_primitive(heap5):
+    from ms_drake.experiments.rollout import SearchParams, build_search, run_search
+    from ms_drake.scenario import load_scenario
+
+    params = SearchParams(policy="largest", fidelity="primitive", horizon=1, seed=0)
+    system = build_search(load_scenario(None, "FloatingGripperBin"), heap5, params)
+    res = run_search(system, heap5, params)
+    assert res.actions == 1 and res.action_kinds[0] == "grasp"
+    assert res.stop_reason in ("success", "horizon")
+    assert res.success == (res.stop_reason == "success")
+
+
+def test_executor_wired_in_diagram_with_fixed_action():
+    """Wired to a station: a push moves the floating gripper through the bin and back."""
+    from ms_drake.scenario import load_scenario
+    from ms_drake.station import MakeStation, get_plant
+
+    s = load_scenario(None, "FloatingGripperBin")
+    s.objects.count = 0
+    builder = DiagramBuilder()
+    station = builder.AddSystem(MakeStation(s))
+    from ms_drake.execution import tcp_offset_of
+
+    ex = builder.AddSystem(ActionExecutor(PrimitiveBackend({}, Workspace.from_scenario(s),
+                                                           tcp_offset_of(get_plant(station)))))
+    connect_executor(builder, ex, station)
+    diagram = builder.Build()
+    ctx = diagram.CreateDefaultContext()
+    ex.action_port.FixValue(ex.GetMyContextFromRoot(ctx),
+                            Action("push", push=Push((-0.1, 0.0, 0.02), (0.05, 0.0, 0.02), "x")))
+    sim = Simulator(diagram, ctx)
+    lowest = np.inf
+    for t in np.arange(0.25, 6.0, 0.25):
+        sim.AdvanceTo(t)
+        q = station.GetOutputPort("floating.position_measured").Eval(station.GetMyContextFromRoot(ctx))
+        lowest = min(lowest, q[2])
+    assert lowest < 0.02 + tcp_offset_of(get_plant(station)) + 0.02  # the tcp came down to the push height
+    assert ex.GetOutputPort("history").Eval(ex.GetMyContextFromRoot(ctx))[0].action.kind == "push"
+
+
+def test_one_search_step_full_yumi(heap5):
+    from ms_drake.experiments.rollout import SearchParams, build_search, run_search
+    from ms_drake.scenario import load_scenario
+
+    params = SearchParams(policy="largest", fidelity="full", horizon=1, seed=0)
+    system = build_search(load_scenario(None, "YuMiBin"), heap5, params)
+    res = run_search(system, heap5, params)
+    assert res.actions == 1 and res.action_kinds[0] == "grasp"
+    assert res.stop_reason in ("success", "horizon") and res.failure in ("", "horizon")
