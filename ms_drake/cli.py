@@ -4,6 +4,7 @@
     ms-drake scene    a scenario and seed -> images
     ms-drake heaps    many heaps in parallel -> JSON lines (resumable)
     ms-drake diagram  the station's Graphviz diagram (.dot, and .svg/.png when Graphviz is installed)
+    ms-drake bench    search / plot: the bin mechanical-search benchmark (resumable JSON lines)
 
 User errors (bad scenario, unknown object set, impossible counts) print one clear line and
 exit with status 2; they never show a traceback.
@@ -189,6 +190,58 @@ def diagram(scenario: str = typer.Argument("BinHeap15", help="Scenario name"),
               "install it (Debian: apt-get install graphviz) or use --out FILE.dot")
     subprocess.run([exe, f"-T{out.suffix[1:]}", str(dot_path), "-o", str(out)], check=True)
     typer.echo(f"wrote {out}")
+
+
+bench_app = typer.Typer(add_completion=False, no_args_is_help=True, help="Mechanical-search benchmarks.")
+app.add_typer(bench_app, name="bench")
+
+
+@bench_app.command("search")
+def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: random, preempted_random, "
+                                            "preempted_random_push, largest, largest_push, xray, oracle"),
+                 objects: int = typer.Option(15, "--objects", min=1, max=60, help="Objects per heap (N)"),
+                 heaps_: int = typer.Option(10, "--heaps", min=1, help="Number of heaps (K)"),
+                 seed_start: int = typer.Option(0, "--seed-start", min=0, help="First heap seed (S)"),
+                 workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers (W)"),
+                 out: Path = typer.Option(..., "--out", help="Output .jsonl (appended to; resumes)"),
+                 fidelity: str = typer.Option("primitive", "--fidelity", help="primitive | full"),
+                 horizon: Optional[int] = typer.Option(None, "--horizon", min=1, help="Action budget (default 2N)"),
+                 ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
+                 ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address")):
+    """Search heaps S..S+K-1 with a policy; one JSON line per rollout (resumable), then a summary."""
+    from ms_drake.execution import FIDELITIES
+    from ms_drake.experiments.harness import format_summary, run_bench
+    from ms_drake.policies.bin_selectors import check_policy
+
+    check_policy(policy)
+    if fidelity not in FIDELITIES:
+        _fail(f"--fidelity {fidelity!r}: choose one of {', '.join(FIDELITIES)}")
+    if out.suffix != ".jsonl":
+        _fail(f"--out {out}: give a .jsonl file")
+
+    def progress(rec):
+        typer.echo(f"seed {rec['seed']}: {'success' if rec['success'] else rec['failure']} after "
+                   f"{rec['actions']} actions ({rec.get('seconds', 0.0):.1f} s)")
+
+    s = run_bench(policy, objects, heaps_, seed_start, out, workers=workers, fidelity=fidelity, horizon=horizon,
+                  use_ray=ray or ray_address is not None, ray_address=ray_address, progress=progress)
+    if s["resumed"]:
+        typer.echo(f"resuming: {s['resumed']} of {heaps_} rollouts already in {out}")
+    typer.echo(format_summary(policy, s))
+    typer.echo(f"results in {out}")
+
+
+@bench_app.command("plot")
+def bench_plot(files: list[Path] = typer.Argument(..., help="Result .jsonl files (ms-drake bench search)"),
+               out: Path = typer.Option(Path("out/bench"), "--out", help="Output folder for the PNGs")):
+    """Cumulative successes vs actions (Fig. 7.4 B) and the actions histogram (Fig. 8.6) as PNG."""
+    from ms_drake.experiments.harness import plot
+
+    missing = [str(f) for f in files if not f.exists()]
+    if missing:
+        _fail(f"no such result file: {', '.join(missing)}; run `ms-drake bench search ... --out FILE.jsonl` first")
+    for p in plot(files, out):
+        typer.echo(f"wrote {p}")
 
 
 from ms_drake.grasping.cli import grasp_command  # noqa: E402

@@ -55,6 +55,9 @@ class SearchParams:
     grasp_samples: int = 8
     robust_samples: int = 4
     period: float = 0.05
+    # Plant step [s]; None keeps the scenario's (2 ms). The primitive mode only needs the heap to
+    # settle and the closed jaw to push, so it runs at 10 ms like the heap generator (our choice).
+    time_step: float | None = None
 
     def __post_init__(self):
         from ms_drake.policies.bin_selectors import check_policy
@@ -127,6 +130,8 @@ def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSy
 
     n = len(heap.objects)
     s = scenario_with_heap(copy.deepcopy(scenario), heap)
+    if params.time_step is not None:
+        s.plant_config.time_step = float(params.time_step)
     builder = DiagramBuilder()
     station = builder.AddSystem(MakeStation(s, meshcat=meshcat, target_index=heap.target_index))
     plant = get_plant(station)
@@ -145,7 +150,7 @@ def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSy
     geo = builder.AddSystem(ObjectGeometrySource({
         o.model_name: (plant.get_body(o.body_index), get_object(o.full_name).trimesh(), get_object(o.full_name).mass,
                        None) for o in objs}))
-    horizon = params.horizon or 2 * n
+    horizon = params.horizon if params.horizon is not None else 2 * n
     selector = builder.AddSystem(PolicySelector(params.policy, SelectorParams(horizon=horizon, seed=params.seed),
                                                 target_id=target_id, width=cam.width, height=cam.height))
     depth, rgb, label = (station.GetOutputPort(f"overhead.{p}") for p in ("depth_image", "rgb_image", "label_image"))
@@ -224,7 +229,7 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
                keep_frames: bool = False, meshcat=None) -> RolloutResult:
     """Simulate until the executor is done; returns the rollout's result (with frames if asked)."""
     n = len(heap.objects)
-    horizon = params.horizon or 2 * n
+    horizon = params.horizon if params.horizon is not None else 2 * n
     max_sim_time = max_sim_time or 30.0 + 12.0 * horizon
     t_wall = time.perf_counter()
     simulator = Simulator(system.diagram)
@@ -300,6 +305,7 @@ def rollout(policy: str, objects: int, seed: int, fidelity: str = "primitive", h
     from ms_drake.scenario import load_scenario
     from ms_drake.scenes.heaps import generate_heap
 
+    kw.setdefault("time_step", 0.01 if fidelity == "primitive" else None)
     params = SearchParams(policy=policy, fidelity=fidelity, horizon=horizon, seed=seed, **kw)
     if heap is None:
         heap = generate_heap(load_scenario(None, "BinHeap15"), objects, seed)
