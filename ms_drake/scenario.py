@@ -262,6 +262,13 @@ def _check_values(s: Scenario, ck: _Checker):
             ck.fail(f"objects.names[{i}]", str(e))
     if s.robot.name not in ROBOTS:
         ck.fail("robot.name", f"unknown robot {s.robot.name!r}; allowed: {', '.join(repr(r) for r in ROBOTS)}")
+    if s.robot.name:
+        from ms_drake.station.robots import resolve_robot_config  # grippers and drivers, at load time
+
+        try:
+            resolve_robot_config(s.robot)
+        except ScenarioError as e:
+            ck.fail("robot", str(e))
     for name, cam in s.cameras.items():
         if cam.width <= 0 or cam.height <= 0:
             ck.fail(f"cameras.{name}", f"image size {cam.width}x{cam.height} must be positive")

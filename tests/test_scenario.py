@@ -120,3 +120,8 @@ def test_wrong_types_for_numbers_are_errors(tmp_path, value):
     with pytest.raises(ScenarioError) as e:
         load_scenario(_write(tmp_path, body), "S")
     assert "environment.wall_thickness" in str(e.value) or "not valid YAML" in str(e.value)
+
+
+def test_bad_gripper_is_caught_at_load_time(tmp_path):
+    msg = _error(tmp_path, "S:\n  robot: { name: panda, grippers: [tentacle] }\n")
+    assert "'S'" in msg and "robot" in msg and "tentacle" in msg and "parallel_jaw" in msg

@@ -44,14 +44,13 @@ from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlantConfig
 from pydrake.multibody.tree import QuaternionFloatingJoint
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
-from pydrake.systems.sensors import ApplyCameraConfig
 from scipy.spatial.transform import Rotation
 
 from ms_drake.errors import HeapError, ScenarioError
 from ms_drake.objects import get_object, get_object_set
 from ms_drake.paths import make_parser
 from ms_drake.scenario import Scenario
-from ms_drake.station.station import add_environment, add_objects, station_objects
+from ms_drake.station.station import add_cameras, add_environment, add_objects, station_objects
 from ms_drake.types import Heap, ObjectPose
 
 FAR_AWAY = np.array([0.0, 0.0, -50.0])  # where objects go to be out of view
@@ -152,7 +151,7 @@ class _DropWorld:
             cam = next(iter(scenario.cameras.values()))
             cam = copy.copy(cam)
             cam.rgb = False
-            ApplyCameraConfig(config=cam, builder=builder, plant=plant, scene_graph=sg)
+            add_cameras(builder, [cam], plant, sg)
             self.sensor = builder.GetSubsystemByName(f"rgbd_sensor_{cam.name}")
             from ms_drake.perception.masks import PinholeCamera
 

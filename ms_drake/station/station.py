@@ -135,6 +135,17 @@ def _apply_drivers(builder, plant, scene_graph, scenario: Scenario, robot_handle
     robots.apply_drivers(builder, plant, scene_graph, scenario, robot_handle, lcm=lcm)
 
 
+def add_cameras(builder, cameras: list, plant, scene_graph) -> None:
+    """ApplyCameraConfig for each camera config, without LCM: with no bus Drake would create
+    a default (UDP multicast) LCM and publish, i.e. render, every camera at `fps` during every
+    simulation. Images are read from the sensors' output ports instead."""
+    from pydrake.systems.lcm import ApplyLcmBusConfig
+
+    buses = ApplyLcmBusConfig({cam.lcm_bus: None for cam in cameras}, builder)
+    for cam in cameras:
+        ApplyCameraConfig(config=cam, builder=builder, lcm_buses=buses, plant=plant, scene_graph=scene_graph)
+
+
 def MakeStation(scenario: Scenario, meshcat=None, hardware: bool = False, lcm=None,
                 target_index: int = -1, name: str = "station"):
     """Build the station Diagram for `scenario`.
@@ -167,8 +178,8 @@ def MakeStation(scenario: Scenario, meshcat=None, hardware: bool = False, lcm=No
         body = plant.GetBodyByName("body", mi)
         plant.SetDefaultFloatingBaseBodyPose(body, X)
 
+    add_cameras(builder, list(scenario.cameras.values()), plant, scene_graph)
     for cam_name, cam in scenario.cameras.items():
-        ApplyCameraConfig(config=cam, builder=builder, plant=plant, scene_graph=scene_graph)
         sensor = builder.GetSubsystemByName(f"rgbd_sensor_{cam.name}")
         if cam.rgb:
             builder.ExportOutput(sensor.color_image_output_port(), f"{cam_name}.rgb_image")
