@@ -11,7 +11,7 @@ from pydrake.systems.sensors import ImageDepth32F
 
 from ms_drake.perception.masks import PinholeCamera, object_labels
 from ms_drake.perception.occupancy import (AnalyticOccupancy, OccupancyEstimator, OccupancyGrid, RenderedOccupancy,
-                                           TargetBox, floor_points)
+                                           TargetBox, _yaw, convex_silhouette, floor_points)
 from ms_drake.perception.segmentation import PerceptionError, Segmenter, Workspace
 from ms_drake.perception.target import TargetDetector
 from ms_drake.scenes.heaps import scenario_with_heap, set_heap_poses
@@ -37,16 +37,16 @@ def surface_xy(d: np.ndarray):
     return (u - CAM.cx) / CAM.fx * d, -(v - CAM.cy) / CAM.fy * d
 
 
-def target_on_grid(j=30, i=24, r=2, grid=OccupancyGrid()):
+def target_on_grid(j=30, i=24, r=2, grid=OccupancyGrid(), box=BOX):
     """A target lying exactly at grid placement (column j, row i, rotation r): its height function."""
     us, vs = grid.pixels(640, 480)
-    c = floor_points(CAM, np.array([float(us[j])]), np.array([float(vs[i])]), 0.5 * BOX.thickness)[0]
+    c = floor_points(CAM, np.array([float(us[j])]), np.array([float(vs[i])]), 0.5 * box.thickness)[0]
     th = grid.angles()[r]
 
     def h(x, y):
         xl = np.cos(th) * (x - c[0]) + np.sin(th) * (y - c[1])
         yl = -np.sin(th) * (x - c[0]) + np.cos(th) * (y - c[1])
-        return np.where((np.abs(xl) <= BOX.length / 2) & (np.abs(yl) <= BOX.width / 2), BOX.thickness, 0.0)
+        return np.where((np.abs(xl) <= box.length / 2) & (np.abs(yl) <= box.width / 2), box.thickness, 0.0)
     return h, c
 
 
@@ -102,6 +102,36 @@ def test_hidden_target_spreads_under_the_occluders_only(analytic):
     # An empty bin has no hiding place: the distribution is all zero.
     rho = analytic.estimate(np.full((480, 640), 0.8), np.zeros((480, 640), bool))
     assert not rho.any()
+
+
+def test_fast_path_equals_shifting_every_silhouette():
+    """The run-length prefix sums and difference images give exactly the counts of shifting each
+    rotation's silhouette to every placement and comparing pixel by pixel (an elongated target, so
+    that row and column runs are both used)."""
+    box = TargetBox(0.095, 0.0095, 0.005)
+    grid = OccupancyGrid((6, 4), 8)
+    fast = AnalyticOccupancy(CAM, BIN, box, grid)
+    assert fast.transposed.any() and not fast.transposed.all()
+    c = floor_points(CAM, np.array([320.0]), np.array([240.0]), 0.5 * box.thickness)[0]
+    v, _ = box.mesh_vertices_faces()
+    sils = [convex_silhouette(CAM, v @ _yaw(t).T + c) for t in grid.angles()]
+    h, cen = target_on_grid(j=3, i=2, r=3, grid=grid, box=box)
+    for y0 in (0.0, -0.2):  # half hidden, then hidden under a wide slab
+        cover = slab(cen[0] - 0.1, cen[0] + 0.1, cen[1] + y0, cen[1] + 0.1, 0.02)
+        d = heightfield_depth(lambda x, y: np.maximum(h(x, y), cover(x, y)))
+        V = fast.height_map(d) <= box.thickness + fast.height_tolerance
+        M = V & (h(*surface_xy(d)) > 0)
+        assert M.any() == (y0 > -0.1)
+        want, acc = np.zeros((len(fast.gu), grid.rotations), bool), np.zeros((480, 640))
+        for p, (u, vv) in enumerate(zip(fast.gu, fast.gv)):
+            for r, sil in enumerate(sils):
+                sh = np.roll(sil, (vv - 240, u - 320), axis=(0, 1))  # the silhouettes stay inside the image
+                n, i = (sh & V).sum(), (sh & V & M).sum()
+                want[p, r] = n == 0 if not M.any() else i / (n + M.sum() - i) > 0.9
+                acc += sh * want[p, r]
+        got = fast.match(d, M)
+        assert np.array_equal(got, want) and got.any()
+        assert np.array_equal(fast.accumulate(got), acc)
 
 
 def test_analytic_equals_render_per_placement_on_a_heap(bin_scenario, small_heap):

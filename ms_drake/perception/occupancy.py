@@ -188,19 +188,22 @@ class AnalyticOccupancy:
         if len(self.gu) == 0:
             raise PerceptionError("AnalyticOccupancy: no placement of the target lies inside the bin in this camera's "
                                   "view; check the camera pose and the workspace")
-        # Silhouette of the box under the principal point, per rotation, as row runs.
+        # Silhouette of the box under the principal point, per rotation, as runs: row runs, or
+        # column runs when a silhouette has fewer columns than rows (an elongated target turned
+        # near 90 degrees); a column run is stored as a row run of the transposed image.
         anchor = (int(round(camera.cx)), int(round(camera.cy)))
         c = floor_points(camera, np.array([float(anchor[0])]), np.array([float(anchor[1])]),
                          workspace.floor_z + 0.5 * self.box.thickness)[0]
         verts, _ = self.box.mesh_vertices_faces()
-        runs, rot = [], []
+        runs, self.transposed = [], np.zeros(grid.rotations, bool)
         for r, theta in enumerate(grid.angles()):
             sil = convex_silhouette(camera, verts @ _yaw(theta).T + c)
-            rr = _runs(sil, anchor)
-            runs.append(rr)
-            rot.append(np.full(len(rr), r))
+            rows, cols = _runs(sil, anchor), _runs(sil.T, anchor[::-1])
+            self.transposed[r] = len(cols) < len(rows)
+            runs.append(cols if self.transposed[r] else rows)
+        self.runs_by_rotation = runs
         self.runs = np.concatenate(runs)
-        self.run_rotation = np.concatenate(rot)
+        self.run_transposed = np.concatenate([np.full(len(rr), self.transposed[r]) for r, rr in enumerate(runs)])
         self.run_starts = np.r_[0, np.cumsum([len(r) for r in runs])[:-1]]
         self.idx0, self.idx1 = self._spans(self.gu, self.gv)
         # World z of a pixel's point = depth * ray_z + camera z (the ray's z per unit depth).
@@ -213,14 +216,20 @@ class AnalyticOccupancy:
 
     def _spans(self, gu: np.ndarray, gv: np.ndarray):
         """Flat prefix-sum indices of the run ends of every (placement, run): (n_placements, n_runs)
-        arrays idx0, idx1 into the (H, W + 1) prefix sums (both 0 where the run leaves the image)."""
+        arrays idx0, idx1 into [row prefix sums (H, W + 1), column prefix sums (W, H + 1)] (both 0
+        where the run leaves the image)."""
         H, W = self.camera.height, self.camera.width
-        y = gv[:, None] + self.runs[None, :, 0]
-        x0 = np.clip(gu[:, None] + self.runs[None, :, 1], 0, W)
-        x1 = np.clip(gu[:, None] + self.runs[None, :, 2] + 1, 0, W)
-        inside = (y >= 0) & (y < H) & (x1 > x0)
-        idx0 = np.where(inside, y * (W + 1) + x0, 0).astype(np.int32)
-        idx1 = np.where(inside, y * (W + 1) + x1, 0).astype(np.int32)
+        t = self.run_transposed[None, :]
+        # In the run's own frame (transposed for column runs): line, start, end.
+        line = np.where(t, gu[:, None], gv[:, None]) + self.runs[None, :, 0]
+        base = np.where(t, gv[:, None], gu[:, None])
+        n_lines, n_cols = np.where(t, W, H), np.where(t, H, W)
+        a = np.clip(base + self.runs[None, :, 1], 0, n_cols)
+        b = np.clip(base + self.runs[None, :, 2] + 1, 0, n_cols)
+        inside = (line >= 0) & (line < n_lines) & (b > a)
+        offset = np.where(t, H * (W + 1), 0)
+        idx0 = np.where(inside, offset + line * (n_cols + 1) + a, 0).astype(np.int32)
+        idx1 = np.where(inside, offset + line * (n_cols + 1) + b, 0).astype(np.int32)
         return idx0, idx1
 
     def height_map(self, depth) -> np.ndarray:
@@ -242,9 +251,10 @@ class AnalyticOccupancy:
         V = self.height_map(depth) <= self.box.thickness + self.height_tolerance
         # int32 is exact: a row's prefix sum is < 2^10 + 2^26, a placement's sum < 2^13 + 2^29.
         packed = V.astype(np.int32) + ((V & M).astype(np.int32) << 16)
-        S = np.zeros((H, W + 1), np.int32)
-        np.cumsum(packed, axis=1, out=S[:, 1:])
-        Sf = S.ravel()
+        Sf = np.zeros(H * (W + 1) + W * (H + 1), np.int32)
+        np.cumsum(packed, axis=1, out=Sf[:H * (W + 1)].reshape(H, W + 1)[:, 1:])
+        if self.transposed.any():
+            Sf[H * (W + 1):].reshape(W, H + 1)[:, 1:] = np.cumsum(packed, axis=0).T
         sums = np.take(Sf, self.idx1) - np.take(Sf, self.idx0)
         per_rot = np.add.reduceat(sums, self.run_starts, axis=1)
         modal, inter = per_rot & 0xFFFF, per_rot >> 16
@@ -254,45 +264,53 @@ class AnalyticOccupancy:
         iou = inter / np.maximum(modal + m - inter, 1)
         return iou > self.iou_threshold
 
-    def _phase_layout(self):
-        """Strides, origin and padding of the phase-major layout used by `accumulate`."""
+    def accumulate(self, matches: np.ndarray) -> np.ndarray:
+        """Sum of the amodal masks of the matched placements, (H, W) counts (row runs and column
+        runs each into their own difference image, see `_accumulate_runs`)."""
         H, W = self.camera.height, self.camera.width
         gw, gh = self.grid.grid
         us, vs = self.grid.pixels(W, H)
-        sx, sy = (int(us[1] - us[0]) if gw > 1 else 1), (int(vs[1] - vs[0]) if gh > 1 else 1)
-        pad = int(np.abs(self.runs).max()) + 2
-        Hb, Wb = -(-(H + 2 * pad) // sy) + 1, -(-(W + 1 + 2 * pad) // sx) + 1
-        return sx, sy, int(us[0]) + pad, int(vs[0]) + pad, pad, Hb, Wb
-
-    def accumulate(self, matches: np.ndarray) -> np.ndarray:
-        """Sum of the amodal masks of the matched placements, (H, W) counts: every run adds +k at
-        its start and -k after its end in a difference image (k = the matches of its rotation on
-        the whole grid, added at once), integrated along the rows. The difference image is kept
-        phase-major, Dp[a, b, I, J] = D[sy I + a, sx J + b], so each addition is contiguous."""
-        H, W = self.camera.height, self.camera.width
-        gw, gh = self.grid.grid
-        sx, sy, ox, oy, pad, Hb, Wb = self._phase_layout()
         counts = np.zeros((self.grid.rotations, gh * gw), np.int32)
         counts[:, self.grid_index] = matches.T
         counts = counts.reshape(-1, gh, gw)
-        Dp = np.zeros((sy, sx, Hb, Wb), np.int32)
-        ends = np.r_[self.run_starts, len(self.runs)]
-        for r in np.flatnonzero(counts.reshape(len(counts), -1).any(axis=1)):
-            k = counts[r]
-            runs = self.runs[ends[r]:ends[r + 1]]
-            ya, Ia = np.divmod(oy + runs[:, 0], sy)[::-1]
-            xa, Ja = np.divmod(ox + runs[:, 1], sx)[::-1]
-            xb, Jb = np.divmod(ox + runs[:, 2] + 1, sx)[::-1]
-            for a, i0, b0, j0, b1, j1 in zip(ya, Ia, xa, Ja, xb, Jb):
-                Dp[a, b0, i0:i0 + gh, j0:j0 + gw] += k
-                Dp[a, b1, i0:i0 + gh, j1:j1 + gw] -= k
-        D = Dp.transpose(2, 0, 3, 1).reshape(Hb * sy, Wb * sx)
-        return np.cumsum(D, axis=1)[pad:pad + H, pad:pad + W].astype(float)
+        active = counts.reshape(len(counts), -1).any(axis=1)
+        out = np.zeros((H, W))
+        rows = [r for r in range(len(counts)) if active[r] and not self.transposed[r]]
+        cols = [r for r in range(len(counts)) if active[r] and self.transposed[r]]
+        if rows:
+            out += _accumulate_runs([self.runs_by_rotation[r] for r in rows], counts[rows], us, vs, H, W)
+        if cols:
+            out += _accumulate_runs([self.runs_by_rotation[r] for r in cols],
+                                    np.ascontiguousarray(counts[cols].transpose(0, 2, 1)), vs, us, W, H).T
+        return out
 
     def estimate(self, depth, target_mask: np.ndarray) -> np.ndarray:
         matches = self.match(depth, target_mask)
         self.last_matches = int(matches.sum())
         return normalize_occupancy(self.accumulate(matches), target_mask)
+
+
+def _accumulate_runs(runs_list, counts, us, vs, height: int, width: int) -> np.ndarray:
+    """Sum over rotations of (counts[r] placed on the grid (us, vs)) convolved with the row runs
+    runs_list[r]: every run adds +k at its start and -k after its end in a difference image, k =
+    the matches of its rotation on the whole grid, added at once; then integrated along the rows.
+    The difference image is kept phase-major, Dp[a, b, I, J] = D[sy I + a, sx J + b], so each
+    addition is one contiguous (rows x cols) block."""
+    gh, gw = counts.shape[1:]
+    sx, sy = (int(us[1] - us[0]) if gw > 1 else 1), (int(vs[1] - vs[0]) if gh > 1 else 1)
+    pad = max(int(np.abs(r).max()) for r in runs_list) + 2
+    ox, oy = int(us[0]) + pad, int(vs[0]) + pad
+    Hb, Wb = -(-(height + 2 * pad) // sy) + 1, -(-(width + 1 + 2 * pad) // sx) + 1
+    Dp = np.zeros((sy, sx, Hb, Wb), np.int32)
+    for k, runs in zip(counts, runs_list):
+        ya, Ia = np.divmod(oy + runs[:, 0], sy)[::-1]
+        xa, Ja = np.divmod(ox + runs[:, 1], sx)[::-1]
+        xb, Jb = np.divmod(ox + runs[:, 2] + 1, sx)[::-1]
+        for a, i0, b0, j0, b1, j1 in zip(ya, Ia, xa, Ja, xb, Jb):
+            Dp[a, b0, i0:i0 + gh, j0:j0 + gw] += k
+            Dp[a, b1, i0:i0 + gh, j1:j1 + gw] -= k
+    D = Dp.transpose(2, 0, 3, 1).reshape(Hb * sy, Wb * sx)
+    return np.cumsum(D, axis=1)[pad:pad + height, pad:pad + width].astype(float)
 
 
 def normalize_occupancy(counts: np.ndarray, target_mask: np.ndarray | None = None) -> np.ndarray:
