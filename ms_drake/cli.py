@@ -1,6 +1,6 @@
 """The `ms-drake` command.
 
-    ms-drake demo     build a station, make a 15-object heap, write images + Meshcat recording
+    ms-drake demo     a full X-Ray search of a 15-object heap: step PNGs, GIF, Meshcat recording
     ms-drake scene    a scenario and seed -> images
     ms-drake heaps    many heaps in parallel -> JSON lines (resumable)
     ms-drake diagram  the station's Graphviz diagram (.dot, and .svg/.png when Graphviz is installed)
@@ -46,22 +46,22 @@ def _scenario(file: Optional[Path], name: str):
 def demo(out: Path = typer.Option(Path("out/demo"), help="Output folder"),
          seed: int = typer.Option(0, help="Heap seed"),
          objects: int = typer.Option(15, min=1, max=60, help="Objects in the heap"),
-         scenario: str = typer.Option("BinHeap15", help="Scenario name"),
-         scenario_file: Optional[Path] = ScenarioFile,
+         policy: str = typer.Option("xray", help="Selector (default: X-Ray)"),
+         horizon: int = typer.Option(10, min=1, help="Action budget H"),
          meshcat: bool = typer.Option(True, help="Write a Meshcat HTML recording")):
-    """Build a bin station, drop a heap, and write RGB, depth, mask and target PNGs (+ Meshcat)."""
-    from ms_drake.scenes.render import make_scene, write_scene_images
+    """A full search: heap, X-Ray on the floating gripper; per-step PNGs (masks, occupancy, action),
+    a GIF and a Meshcat recording."""
+    from ms_drake.experiments.demo import run_demo
+    from ms_drake.policies.bin_selectors import check_policy
 
-    s = _scenario(scenario_file, scenario)
+    check_policy(policy)
     t = time.perf_counter()
-    typer.echo(f"generating a {objects}-object heap (seed {seed}) in scenario {scenario} ...")
-    heap = make_scene(s, seed, objects)
-    typer.echo(f"  {len(heap.objects)} objects settled in {time.perf_counter() - t:.1f} s; "
-               f"target {heap.target or '(none)'}")
-    written = write_scene_images(s, heap, out, meshcat_html=meshcat)
+    typer.echo(f"generating a {objects}-object heap (seed {seed}) and searching it with {policy} ...")
+    written = run_demo(out, seed=seed, objects=objects, policy=policy, horizon=horizon, meshcat_html=meshcat,
+                       log=typer.echo)
     for k, v in written.items():
         typer.echo(f"  {k:18s} {v}")
-    typer.echo(f"wrote {len(written)} files to {out}")
+    typer.echo(f"wrote {len(written)} files to {out} in {time.perf_counter() - t:.1f} s")
 
 
 @app.command()

@@ -18,13 +18,21 @@ def run(*args, check=True):
 
 
 def test_demo_writes_images_and_recording(tmp_path):
-    p = run("demo", "--out", tmp_path, "--objects", 4, "--seed", 2)
+    p = run("demo", "--out", tmp_path, "--objects", 4, "--seed", 2, "--horizon", 3)
     for f in ("overhead_rgb.png", "overhead_depth.png", "overhead_masks.png", "overhead_target.png",
-              "heap.json", "meshcat_recording.html"):
+              "heap.json", "meshcat_recording.html", "step_00.png", "search.gif"):
         assert (tmp_path / f).stat().st_size > 1000, f
     assert str(tmp_path) in p.stdout
     heap = json.loads((tmp_path / "heap.json").read_text())
     assert 1 <= len(heap["objects"]) <= 4 and heap["target"]
+    res = json.loads((tmp_path / "search.json").read_text())
+    assert res["policy"] == "xray" and 1 <= res["actions"] <= 3 and res["success"] == (res["failure"] == "")
+    steps = sorted(tmp_path.glob("step_*.png"))
+    assert len(steps) in (res["actions"], res["actions"] + 1)  # one per chosen action (+ the final stop)
+    import cv2
+
+    img = cv2.imread(str(steps[0]))
+    assert img.shape == (480, 3 * 640, 3) and img.std() > 5  # masks | occupancy | action panels
 
 
 def test_scene_on_table_and_shelf(tmp_path):

@@ -1,0 +1,115 @@
+"""`ms-drake demo`: one full X-Ray search on the floating gripper (primitive fidelity), written out.
+
+Outputs in the folder: the initial scene (overhead_{rgb,depth,masks,target}.png, heap.json, as
+`ms-drake scene`), then per step k: step_kk.png (three panels: RGB with the instance masks and
+the target outlined | the target occupancy distribution over the RGB | the chosen action drawn
+on the RGB), search.gif (the steps in order), search.json (the rollout record) and
+meshcat_recording.html (the whole search, a Meshcat StaticHtml recording).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+
+def _overlay_occupancy(rgb: np.ndarray, occ) -> np.ndarray:
+    if occ is None or not np.any(occ.distribution > 0):
+        return (0.5 * rgb).astype(np.uint8)
+    d = occ.distribution / occ.distribution.max()
+    heat = cv2.applyColorMap((255 * d).astype(np.uint8), cv2.COLORMAP_JET)[:, :, ::-1].astype(float)
+    a = (0.75 * np.sqrt(d))[..., None]
+    return ((1 - a) * rgb + a * heat).clip(0, 255).astype(np.uint8)
+
+
+def _draw_action(rgb: np.ndarray, action, camera) -> np.ndarray:
+    pic = rgb.copy()
+    if action.kind == "grasp" and action.grasp is not None:
+        g = action.grasp
+        c = np.asarray(g.center, float)
+        ax = np.asarray(g.axis, float) * max(g.width, 0.03) / 2 if np.linalg.norm(g.axis) > 0 else np.zeros(3)
+        uv, _ = camera.project(np.stack([c, c - ax, c + ax]))
+        uv = uv.astype(int)
+        cv2.line(pic, tuple(uv[1]), tuple(uv[2]), (0, 255, 0), 3)
+        cv2.circle(pic, tuple(uv[0]), 6, (0, 255, 0), 2)
+        text = f"grasp {g.object_id} q={g.quality:.2f}"
+    elif action.kind == "push" and action.push is not None:
+        uv, _ = camera.project(np.stack([np.asarray(action.push.start, float), np.asarray(action.push.end, float)]))
+        uv = uv.astype(int)
+        cv2.arrowedLine(pic, tuple(uv[0]), tuple(uv[1]), (0, 200, 255), 3, tipLength=0.25)
+        text = f"push {action.push.object_id}"
+    else:
+        text = f"stop: {action.reason}"
+    cv2.putText(pic, text, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 2)
+    return pic
+
+
+def frame_image(frame, camera) -> np.ndarray:
+    """The three panels of one step side by side (RGB, uint8)."""
+    from ms_drake.scenes.render import colorize_masks
+
+    rgb = frame.rgb
+    masks = colorize_masks(frame.masks, rgb, alpha=0.45)
+    if frame.target.visible:
+        cnts, _ = cv2.findContours(frame.target.mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        cv2.drawContours(masks, cnts, -1, (255, 0, 0), 3)
+    cv2.putText(masks, f"step {frame.step}: {len(frame.masks)} masks, target "
+                f"{'visible' if frame.target.visible else 'hidden'}", (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.6,
+                (255, 255, 255), 2)
+    occ = _overlay_occupancy(rgb, frame.occupancy)
+    cv2.putText(occ, "target occupancy (X-Ray)", (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 2)
+    return np.concatenate([masks, occ, _draw_action(rgb, frame.action, camera)], axis=1)
+
+
+def run_demo(out: Path, seed: int = 0, objects: int = 15, policy: str = "xray", horizon: int = 10,
+             meshcat_html: bool = True, log=print) -> dict:
+    """Generate the heap, write the initial scene, run the search and write its pictures."""
+    import time
+
+    import imageio.v2 as imageio
+
+    from ms_drake.experiments.rollout import SCENARIOS, SearchParams, build_search, run_search
+    from ms_drake.perception.masks import PinholeCamera
+    from ms_drake.scenario import load_scenario
+    from ms_drake.scenes.render import make_scene, write_scene_images
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    t = time.perf_counter()
+    base = load_scenario(None, "BinHeap15")
+    heap = make_scene(base, seed, objects)
+    log(f"  {len(heap.objects)} objects settled in {time.perf_counter() - t:.1f} s; target {heap.target}")
+    written = write_scene_images(base, heap, out, meshcat_html=False)
+    meshcat = None
+    if meshcat_html:
+        from pydrake.geometry import Meshcat
+
+        meshcat = Meshcat()
+    params = SearchParams(policy=policy, fidelity="primitive", horizon=horizon, seed=seed, time_step=0.01)
+    scenario = load_scenario(None, SCENARIOS["primitive"])
+    system = build_search(scenario, heap, params, meshcat=meshcat)
+    res = run_search(system, heap, params, keep_frames=True, meshcat=meshcat)
+    camera = PinholeCamera.from_config(system.scenario.cameras["overhead"])
+    images = []
+    for fr in res.frames:
+        img = frame_image(fr, camera)
+        p = out / f"step_{fr.step:02d}.png"
+        cv2.imwrite(str(p), img[:, :, ::-1])
+        written[f"step_{fr.step:02d}"] = str(p)
+        images.append(cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA))
+    if images:
+        gif = out / "search.gif"
+        imageio.mimsave(gif, images, duration=1.0, loop=0)
+        written["gif"] = str(gif)
+    (out / "search.json").write_text(json.dumps(res.record(), indent=1))
+    written["search"] = str(out / "search.json")
+    if meshcat is not None:
+        html = out / "meshcat_recording.html"
+        html.write_text(meshcat.StaticHtml())
+        written["meshcat"] = str(html)
+    log(f"  {policy}: {'success' if res.success else res.failure} after {res.actions} actions "
+        f"({', '.join(res.action_kinds) or 'none'}) in {res.seconds:.1f} s")
+    return written
