@@ -174,6 +174,14 @@ def test_policy_selector_alone():
             assert a.kind == "grasp" and chosen(a) == "small"
         else:
             assert a.kind == "grasp" and chosen(a) in ("big", "mid", "small")
+        if policy == "oracle":  # the true amodal masks (AmodalMasks' output): the target hides under "small"
+            amodal = M.masks.copy()
+            amodal[0] = False
+            amodal[0, 42:52, 62:70] = True
+            sel.GetInputPort("target_amodal").FixValue(ctx, InstanceMasks(amodal, M.ids, np.ones(4)))
+            sel.GetInputPort("target").FixValue(ctx, HIDDEN)
+            sel.GetInputPort("grasps").FixValue(ctx, grasps(big=0.9, mid=0.9, small=0.5))
+            assert chosen(sel.GetOutputPort("action").Eval(ctx)) == "small"
         sel.GetInputPort("history").FixValue(ctx, (outcome("grasp", removed="t", oid="t"),))
         assert sel.GetOutputPort("action").Eval(ctx).reason == "success"
 

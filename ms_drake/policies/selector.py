@@ -9,7 +9,9 @@ Ports (declared first in __init__):
                    merged into one tuple upstream; the selector takes the best per mask.
     pushes         tuple[Push] (PushPlanner; optional)
     history        tuple[ActionOutcome] (the executor's record; optional: unconnected = first step)
-    target_amodal  (H, W) bool numpy array, the target's true amodal mask (oracle only; optional)
+    target_amodal  the target's true amodal mask (oracle only; optional): an (H, W) bool array, or
+                   InstanceMasks such as ms_drake.perception.masks.AmodalMasks' output, of which
+                   the mask with id `target_id` is used
   output
     action         Action (kind grasp | push | stop)
 """
@@ -67,4 +69,12 @@ class PolicySelector(LeafSystem):
             history=tuple(self._opt(self.history_port, context, ())),
             occupancy=self._opt(self.occupancy_port, context, None),
             params=self.params, target_id=self.target_id,
-            target_amodal=self._opt(self.amodal_port, context, None)))
+            target_amodal=self._amodal(context)))
+
+    def _amodal(self, context):
+        value = self._opt(self.amodal_port, context, None)
+        if isinstance(value, InstanceMasks):
+            if self.target_id not in value.ids:
+                return None
+            return value.masks[value.ids.index(self.target_id)]
+        return value
