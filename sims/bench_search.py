@@ -19,7 +19,7 @@ POLICIES = ("random", "preempted_random", "preempted_random_push", "largest", "l
 
 
 def table(rows) -> str:
-    lines = ["| policy | heaps | success % [95 % CI] | actions mean +/- SEM [95 % CI] | quartiles | median s/rollout | failures |",
+    lines = ["| policy | heaps | success % [95 % CI] | actions mean +/- SEM [95 % CI] | quartiles | median wall s / CPU s per rollout | failures |",
              "|---|---|---|---|---|---|---|"]
     for policy, s in rows:
         q = s["quartiles"]
@@ -27,7 +27,7 @@ def table(rows) -> str:
         lines.append(f"| {policy} | {s['rollouts']} | {100 * s['success_rate']:.0f} [{100 * s['success_ci'][0]:.0f}, "
                      f"{100 * s['success_ci'][1]:.0f}] | {s['mean_actions']:.2f} +/- {s['sem_actions']:.2f} "
                      f"[{s['actions_ci'][0]:.2f}, {s['actions_ci'][1]:.2f}] | {q[0]:g} / {q[1]:g} / {q[2]:g} | "
-                     f"{s['median_seconds']:.1f} | {fails} |")
+                     f"{s['median_seconds']:.1f} / {s['median_cpu_seconds']:.1f} | {fails} |")
     return "\n".join(lines)
 
 
@@ -40,6 +40,7 @@ def main(argv=None):
     ap.add_argument("--horizon", type=int, default=None)
     ap.add_argument("--out", type=Path, default=Path("sims/out/search"))
     ap.add_argument("--scaling", action="store_true", help="time 1 vs 2 workers (largest) instead")
+    ap.add_argument("--report", action="store_true", help="only summarize the result files already written")
     args = ap.parse_args(argv)
     if args.scaling:
         walls = {}
@@ -55,8 +56,17 @@ def main(argv=None):
         return
     rows = []
     for p in args.policies:
-        s = run_bench(p, args.objects, args.heaps, args.seed_start, args.out / f"{p}_N{args.objects}.jsonl",
-                      horizon=args.horizon)
+        f = args.out / f"{p}_N{args.objects}.jsonl"
+        if args.report:
+            from ms_drake.experiments.harness import final_records, read_records, summarize
+
+            recs = final_records(read_records(f))
+            if not recs:
+                continue
+            s = summarize(recs)
+        else:
+            s = run_bench(p, args.objects, args.heaps, args.seed_start, f, horizon=args.horizon,
+                          heap_dir=str(args.out / "heaps"))
         print(format_summary(p, s), flush=True)
         rows.append((p, s))
     print(table(rows))

@@ -24,12 +24,32 @@ import numpy as np
 BOOTSTRAP = 2000
 
 
+def cached_heap(objects: int, seed: int, heap_dir: str | None):
+    """Heap `seed` of N objects (BinHeap15's bin), read from / saved to `heap_dir` when given, so
+    several policies search the very same heaps without regenerating them (a heap is a pure
+    function of (N, seed); the file is written atomically)."""
+    from ms_drake.scenario import load_scenario
+    from ms_drake.scenes.heaps import generate_heap, load_heap, save_heap
+
+    path = Path(heap_dir) / f"heap_N{objects}_s{seed}.json" if heap_dir else None
+    if path is not None and path.exists():
+        return load_heap(path)
+    heap = generate_heap(load_scenario(None, "BinHeap15"), objects, seed)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        save_heap(heap, tmp)
+        os.replace(tmp, path)
+    return heap
+
+
 def rollout_job(job: tuple) -> dict:
-    """(policy, objects, seed, fidelity, horizon) -> record; module-level for worker pickling."""
-    policy, objects, seed, fidelity, horizon = job
+    """(policy, objects, seed, fidelity, horizon[, heap_dir]) -> record; module-level for pickling."""
+    policy, objects, seed, fidelity, horizon, *rest = job
     from ms_drake.experiments.rollout import rollout
 
-    rec = rollout(policy, objects, seed, fidelity, horizon).record()
+    heap = cached_heap(objects, seed, rest[0] if rest else None)
+    rec = rollout(policy, objects, seed, fidelity, horizon, heap=heap).record()
     rec["pid"] = os.getpid()
     return rec
 
@@ -62,7 +82,7 @@ def final_records(recs: list[dict]) -> list[dict]:
 
 def run_bench(policy: str, objects: int, heaps: int, seed_start: int, out: Path, workers: int = 1,
               fidelity: str = "primitive", horizon: int | None = None, use_ray: bool = False,
-              ray_address: str | None = None, progress=None) -> dict:
+              ray_address: str | None = None, progress=None, heap_dir: str | None = None) -> dict:
     """Run the missing rollouts of seeds S..S+K-1, append them to `out`; returns the summary."""
     from ms_drake.parallel import run_jobs
 
@@ -72,7 +92,7 @@ def run_bench(policy: str, objects: int, heaps: int, seed_start: int, out: Path,
             if r.get("policy") == policy and r.get("objects") == objects and r.get("fidelity", "primitive") == fidelity
             and r.get("failure") != "worker_died"}
     seeds = [k for k in range(seed_start, seed_start + heaps) if k not in done]
-    jobs = [(policy, objects, k, fidelity, horizon) for k in seeds]
+    jobs = [(policy, objects, k, fidelity, horizon, heap_dir) for k in seeds]
     t0 = time.perf_counter()
     with open(out, "a") as f:
         for r in run_jobs(rollout_job, jobs, workers=workers, use_ray=use_ray, ray_address=ray_address):
@@ -115,6 +135,7 @@ def summarize(recs: list[dict], seed: int = 0) -> dict:
         if not r["success"]:
             failures[r.get("failure") or "unknown"] = failures.get(r.get("failure") or "unknown", 0) + 1
     secs = np.array([float(r.get("seconds", 0.0)) for r in recs if r.get("failure") != "worker_died"])
+    cpu = np.array([float(r["cpu_seconds"]) for r in recs if "cpu_seconds" in r])
     return dict(
         rollouts=n,
         success_rate=float(succ.mean()) if n else float("nan"),
@@ -124,6 +145,7 @@ def summarize(recs: list[dict], seed: int = 0) -> dict:
         actions_ci=_boot(acts, np.mean, rng),
         quartiles=tuple(float(q) for q in np.percentile(acts, [25, 50, 75])) if n else (float("nan"),) * 3,
         median_seconds=float(np.median(secs)) if len(secs) else float("nan"),
+        median_cpu_seconds=float(np.median(cpu)) if len(cpu) else float("nan"),
         failures=failures)
 
 
@@ -134,7 +156,7 @@ def format_summary(policy: str, s: dict) -> str:
             f"[{100 * s['success_ci'][0]:.1f}, {100 * s['success_ci'][1]:.1f}], "
             f"actions {s['mean_actions']:.2f} +/- {s['sem_actions']:.2f} (SEM) "
             f"[{s['actions_ci'][0]:.2f}, {s['actions_ci'][1]:.2f}], quartiles {q[0]:g}/{q[1]:g}/{q[2]:g}, "
-            f"median {s['median_seconds']:.1f} s/rollout; failures: {fails}")
+            f"median {s['median_seconds']:.1f} s wall / {s['median_cpu_seconds']:.1f} s CPU per rollout; failures: {fails}")
 
 
 def plot(files: list[Path], out_dir: Path) -> list[Path]:
