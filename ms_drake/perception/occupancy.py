@@ -49,7 +49,7 @@ from pydrake.systems.framework import LeafSystem
 from pydrake.systems.sensors import ImageDepth32F
 
 from ms_drake.perception.masks import PinholeCamera
-from ms_drake.perception.segmentation import PerceptionError, Workspace, depth_array, world_points
+from ms_drake.perception.segmentation import PerceptionError, Workspace, depth_array
 from ms_drake.types import OccupancyMap, TargetEstimate
 
 

@@ -16,3 +16,20 @@ from ms_drake.policies.bin_selectors import (  # noqa: F401
     xray_scores,
 )
 from ms_drake.policies.selector import PolicySelector  # noqa: F401
+
+__all__ = [
+    "POLICIES",
+    "PolicyError",
+    "SelectorParams",
+    "best_grasps",
+    "consecutive_pushes",
+    "priority_largest",
+    "priority_oracle",
+    "priority_preempted_random",
+    "priority_random",
+    "priority_xray",
+    "select_action",
+    "termination",
+    "xray_scores",
+    "PolicySelector",
+]

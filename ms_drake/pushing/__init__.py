@@ -9,3 +9,13 @@ from ms_drake.pushing.free_space import (  # noqa: F401
     plan_pushes,
 )
 from ms_drake.pushing.planner import PushPlanner  # noqa: F401
+
+__all__ = [
+    "ObstacleMap",
+    "PushError",
+    "PushParams",
+    "obstacle_map",
+    "plan_push",
+    "plan_pushes",
+    "PushPlanner",
+]
