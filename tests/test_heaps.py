@@ -1,6 +1,5 @@
 """Heaps: seeded, settled, inside the bin, target = least visible object, reloadable exactly."""
 
-import copy
 import json
 
 import numpy as np
@@ -94,8 +93,6 @@ def test_table_scene_is_collision_free_and_resting():
     ctx = sim.get_context()
     query = station.GetOutputPort("query_object").Eval(ctx)
     pairs = [p for p in query.ComputePointPairPenetration()]
-    inst = {plant.GetBodyFromFrameId(query.inspector().GetFrameId(p.id_A)).model_instance() for p in pairs} | \
-           {plant.GetBodyFromFrameId(query.inspector().GetFrameId(p.id_B)).model_instance() for p in pairs}
     objs = {o.model_instance for o in station_objects(plant)}
     # Only object-table touching (depth < 2 mm), never object-object.
     for p in pairs:
@@ -103,7 +100,6 @@ def test_table_scene_is_collision_free_and_resting():
         b = plant.GetBodyFromFrameId(query.inspector().GetFrameId(p.id_B)).model_instance()
         assert not (a in objs and b in objs)
         assert p.depth < 0.002
-    del inst
     sim.AdvanceTo(0.3)
     for o, op in zip(station_objects(plant), scene.objects):
         p = plant.EvalBodyPoseInWorld(plant.GetMyContextFromRoot(ctx), plant.get_body(o.body_index)).translation()
