@@ -104,3 +104,13 @@ def test_table_scene_is_collision_free_and_resting():
     for o, op in zip(station_objects(plant), scene.objects):
         p = plant.EvalBodyPoseInWorld(plant.GetMyContextFromRoot(ctx), plant.get_body(o.body_index)).translation()
         assert np.linalg.norm(p - op.matrix()[:3, 3]) < 0.01
+
+
+def test_heaps_of_mesh_objects(bin_scenario):
+    from ms_drake.objects import available_sets
+
+    for set_name in ("ycb", "random_urdfs"):
+        assert set_name in available_sets()
+        heap = generate_heap(bin_scenario, 3, seed=1, object_set=set_name)
+        assert all(o.name.startswith(set_name + "/") for o in heap.objects)
+        assert heap.target in heap.object_names()
