@@ -51,9 +51,13 @@ class SearchParams:
     fidelity: str = "primitive"
     horizon: int | None = None  # None: 2N
     seed: int = 0
-    grasp_model: str = "soft_point"
+    # Grasp planners whose candidates are merged (the selector takes the best per mask): the
+    # parallel jaw and suction, as in Ch. 7 (primitive: success = quality for either; full: jaw on
+    # the right arm, suction on the left).
+    grasp_models: tuple = ("soft_point", "suction")
     grasp_samples: int = 8
     robust_samples: int = 4
+    grasp_params: dict | None = None  # GraspEvaluator keywords, e.g. {"closing_force": 40.0}
     period: float = 0.05
     # Plant step [s]; None keeps the scenario's (2 ms). The primitive mode only needs the heap to
     # settle and the closed jaw to push, so it runs at 10 ms like the heap generator (our choice).
@@ -95,6 +99,7 @@ class RolloutResult:
     sim_seconds: float
     target: str = ""
     grasp_successes: int = 0
+    error: str = ""
     frames: list = field(default_factory=list, repr=False)
 
     def record(self) -> dict:
@@ -145,9 +150,14 @@ def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSy
     seg = builder.AddSystem(Segmenter("ground_truth", label_to_id=object_labels(plant)))
     det = builder.AddSystem(TargetDetector("color", width=cam.width, height=cam.height))
     color_cam, _ = cfg.MakeCameras()
-    grasp = builder.AddSystem(GraspPlanner(color_cam.core().intrinsics(), cam.X_WC, model=params.grasp_model,
-                                           num_samples=params.grasp_samples, robust_samples=params.robust_samples,
-                                           seed=params.seed))
+    from ms_drake.experiments.adapters import MergeGrasps
+
+    planners = [builder.AddSystem(GraspPlanner(color_cam.core().intrinsics(), cam.X_WC, model=m,
+                                               num_samples=params.grasp_samples, robust_samples=params.robust_samples,
+                                               seed=params.seed,
+                                               evaluator_params=params.grasp_params if m != "suction" else None))
+                for m in params.grasp_models]
+    grasp = builder.AddSystem(MergeGrasps(len(planners)))
     geo = builder.AddSystem(ObjectGeometrySource({
         o.model_name: (plant.get_body(o.body_index), get_object(o.full_name).trimesh(), get_object(o.full_name).mass,
                        None) for o in objs}))
@@ -158,10 +168,12 @@ def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSy
     builder.Connect(label, seg.GetInputPort("label_image"))
     builder.Connect(rgb, det.GetInputPort("rgb_image"))
     builder.Connect(seg.GetOutputPort("masks"), det.GetInputPort("masks"))
-    builder.Connect(depth, grasp.GetInputPort("depth_image"))
-    builder.Connect(seg.GetOutputPort("masks"), grasp.GetInputPort("masks"))
     builder.Connect(station.GetOutputPort("body_poses"), geo.GetInputPort("body_poses"))
-    builder.Connect(geo.GetOutputPort("objects"), grasp.GetInputPort("objects"))
+    for k, planner in enumerate(planners):
+        builder.Connect(depth, planner.GetInputPort("depth_image"))
+        builder.Connect(seg.GetOutputPort("masks"), planner.GetInputPort("masks"))
+        builder.Connect(geo.GetOutputPort("objects"), planner.GetInputPort("objects"))
+        builder.Connect(planner.GetOutputPort("grasps"), grasp.GetInputPort(f"grasps_{k}"))
     builder.Connect(seg.GetOutputPort("masks"), selector.GetInputPort("masks"))
     builder.Connect(det.GetOutputPort("target"), selector.GetInputPort("target"))
     builder.Connect(grasp.GetOutputPort("grasps"), selector.GetInputPort("grasps"))
@@ -181,7 +193,7 @@ def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSy
             builder.Connect(occ.GetOutputPort("occupancy"), selector.GetInputPort("occupancy"))
         perception["occupancy"] = occ
     if params.policy == "oracle":
-        from ms_drake.experiments.oracle import TargetAmodalMask
+        from ms_drake.experiments.adapters import TargetAmodalMask
         from ms_drake.perception.masks import make_amodal_masks
 
         amodal = builder.AddSystem(make_amodal_masks(plant, cam))
@@ -292,12 +304,12 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
             failure = reason or "unknown"
     kinds = [o.action.kind for o in history]
     res = RolloutResult(seed=heap.seed, policy=params.policy, fidelity=params.fidelity, objects=n, success=success,
-                        actions=len(history), action_kinds=kinds, failure=failure, stop_reason=reason or msg,
+                        actions=len(history), action_kinds=kinds, failure=failure, stop_reason=reason,
                         seconds=time.perf_counter() - t_wall, cpu_seconds=time.process_time() - t_cpu,
                         sim_seconds=float(context.get_time()),
                         target=heap.target,
                         grasp_successes=sum(1 for o in history if o.action.kind == "grasp" and o.success),
-                        frames=frames)
+                        error=msg, frames=frames)
     return res
 
 
