@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 
-def bench_render(n: int = 200) -> None:
+def bench_render(n: int = 100) -> None:
     from ms_drake.scenario import load_scenario
     from ms_drake.scenes.heaps import generate_heap, scenario_with_heap, set_heap_poses
     from ms_drake.station import MakeStation
