@@ -31,8 +31,11 @@ Speed (the reference: 1.5 s per image): every silhouette is stored as row runs [
 S the row-wise prefix sums of the "would be visible" image V (packed with V & M in one int64,
 V + 2^16 (V & M)), the modal area and the intersection with the observed mask M of a
 placement are sums of S[y, x1 + 1] - S[y, x0] over its runs: exact, and one vectorized gather
-for all placements. The sum of the matched amodal masks is a difference image of the runs'
-endpoints (np.bincount) integrated along rows. sims/bench_occupancy.py measures it against
+for all placements (placements that cannot match are skipped: a hidden target's centre pixel must
+not see the floor; a seen target's silhouette must reach the observed mask). Silhouettes with
+fewer columns than rows are stored as column runs (prefix sums of the transposed image). The sum
+of the matched amodal masks is a difference image of the runs' endpoints integrated along rows.
+tests/test_occupancy.py checks that all of this equals shifting every silhouette pixel by pixel. sims/bench_occupancy.py measures it against
 `RenderedOccupancy`, the straightforward implementation that renders a target-only depth image
 (Drake's VTK RgbdSensor) for every placement.
 """
@@ -43,6 +46,7 @@ import copy
 import time
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
@@ -113,8 +117,6 @@ def convex_silhouette(camera: PinholeCamera, vertices_W: np.ndarray) -> np.ndarr
     """(H, W) bool silhouette of a convex body (all vertices in front of the camera): the pixels
     whose centre lies inside the convex hull of the projected vertices -- the pixel-centre rule
     of a renderer, so a small target's mask is not grown by the rasterizer's edge pixels."""
-    import cv2
-
     uv, z = camera.project(vertices_W)
     if np.any(z <= 1e-3):
         raise PerceptionError("the target box must lie in front of the camera")
@@ -206,6 +208,8 @@ class AnalyticOccupancy:
         self.run_transposed = np.concatenate([np.full(len(rr), self.transposed[r]) for r, rr in enumerate(runs)])
         self.run_starts = np.r_[0, np.cumsum([len(r) for r in runs])[:-1]]
         self.idx0, self.idx1 = self._spans(self.gu, self.gv)
+        # Farthest silhouette pixel from the anchor (pixels), for pruning placements in `match`.
+        self.reach = float(np.hypot(np.abs(self.runs[:, 0]).max(), np.abs(self.runs[:, 1:]).max()))
         # World z of a pixel's point = depth * ray_z + camera z (the ray's z per unit depth).
         v, u = np.mgrid[0:camera.height, 0:camera.width]
         R = camera.X_WC.rotation().matrix()
@@ -251,18 +255,31 @@ class AnalyticOccupancy:
         V = self.height_map(depth) <= self.box.thickness + self.height_tolerance
         # int32 is exact: a row's prefix sum is < 2^10 + 2^26, a placement's sum < 2^13 + 2^29.
         packed = V.astype(np.int32) + ((V & M).astype(np.int32) << 16)
+        m = int(M.sum())
+        # Placements that can match at all: a hidden target's silhouette must not see the floor at
+        # its own centre pixel (the centre lies in every rotation's silhouette); a seen target's
+        # must cover > 90 % of the observed mask, so its centre lies within reach of the mask.
+        if m == 0:
+            cand = np.flatnonzero(~V[self.gv, self.gu])
+        else:
+            ys, xs = np.nonzero(M)
+            reach = self.reach + 0.5 * np.hypot(np.ptp(xs), np.ptp(ys)) + 1.0
+            cand = np.flatnonzero(np.hypot(self.gu - xs.mean(), self.gv - ys.mean()) <= reach)
+        out = np.zeros((len(self.gu), self.grid.rotations), bool)
+        if len(cand) == 0:
+            return out
         Sf = np.zeros(H * (W + 1) + W * (H + 1), np.int32)
         np.cumsum(packed, axis=1, out=Sf[:H * (W + 1)].reshape(H, W + 1)[:, 1:])
         if self.transposed.any():
-            Sf[H * (W + 1):].reshape(W, H + 1)[:, 1:] = np.cumsum(packed, axis=0).T
-        sums = np.take(Sf, self.idx1) - np.take(Sf, self.idx0)
+            np.cumsum(cv2.transpose(packed), axis=1, out=Sf[H * (W + 1):].reshape(W, H + 1)[:, 1:])
+        sums = np.take(Sf, self.idx1[cand]) - np.take(Sf, self.idx0[cand])
         per_rot = np.add.reduceat(sums, self.run_starts, axis=1)
         modal, inter = per_rot & 0xFFFF, per_rot >> 16
-        m = int(M.sum())
         if m == 0:
-            return modal == 0
-        iou = inter / np.maximum(modal + m - inter, 1)
-        return iou > self.iou_threshold
+            out[cand] = modal == 0
+        else:
+            out[cand] = inter / np.maximum(modal + m - inter, 1) > self.iou_threshold
+        return out
 
     def accumulate(self, matches: np.ndarray) -> np.ndarray:
         """Sum of the amodal masks of the matched placements, (H, W) counts (row runs and column
