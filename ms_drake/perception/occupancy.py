@@ -28,16 +28,16 @@ normalized. Choices where the text is silent (recorded here):
     visible, the distribution's support collapses to ... the modal segmentation mask").
 
 Speed (the reference: 1.5 s per image): every silhouette is stored as row runs [x0, x1]. With
-S the row-wise prefix sums of the "would be visible" image V (packed with V & M in one int64,
+S the row-wise prefix sums of the "would be visible" image V (packed with V & M in one int32,
 V + 2^16 (V & M)), the modal area and the intersection with the observed mask M of a
 placement are sums of S[y, x1 + 1] - S[y, x0] over its runs: exact, and one vectorized gather
 for all placements (placements that cannot match are skipped: a hidden target's centre pixel must
 not see the floor; a seen target's silhouette must reach the observed mask). Silhouettes with
 fewer columns than rows are stored as column runs (prefix sums of the transposed image). The sum
 of the matched amodal masks is a difference image of the runs' endpoints integrated along rows.
-tests/test_occupancy.py checks that all of this equals shifting every silhouette pixel by pixel. sims/bench_occupancy.py measures it against
-`RenderedOccupancy`, the straightforward implementation that renders a target-only depth image
-(Drake's VTK RgbdSensor) for every placement.
+tests/test_occupancy.py checks that all of this equals shifting every silhouette pixel by
+pixel. sims/bench_occupancy.py measures it against `RenderedOccupancy`, the straightforward
+implementation that renders a target-only depth image (Drake's VTK RgbdSensor) per placement.
 """
 
 from __future__ import annotations
