@@ -27,7 +27,9 @@ object that has a valid push. Termination (an Action of kind "stop" with `reason
   too_many_pushes    the next action would be a push after `max_consecutive_pushes` pushes in a row;
   no_action          no grasp qualifies and no push is valid (or pushing is off).
 X-Ray and the oracle grasp only (Ch. 8.4 uses grasps), with t_thresh for every object (our
-choice: the text gives no X-Ray threshold).
+choice: the text gives no X-Ray threshold). Note for Table 8.2: Ch. 8's baselines "Random" and
+"Largest" both try the target first (line 1510), i.e. they are `preempted_random` and
+`largest` here; Ch. 7's `random` has no preference for the target.
 
 Contract with the executor: ActionOutcome.removed_object is the true id of the object that left
 the bin (in simulation the model-instance name, which is also the ground-truth mask id);
