@@ -64,15 +64,28 @@ def sample_friction_wrenches(bary, normals_out, fN, origin, mu, k1, k2, radius, 
     omega = _unit_rows(rng.normal(size=(k1, 3)))
     ball = _unit_rows(rng.normal(size=(k1, 3))) * (rng.random((k1, 1)) ** (1 / 3)) * radius
     centres = origin + ball
-    v_rot = cross(omega[:, None, :], bary[None, :, :] - centres[:, None, :])  # (k1, T, 3)
+    # object velocity at each barycentre: omega x (b - c) = omega x b - omega x c  (k1, T, 3)
+    v_rot = cross(omega[:, None, :], bary[None, :, :]) - cross(omega, centres)[:, None, :]
     v_trans = np.broadcast_to(_unit_rows(rng.normal(size=(k2, 3)))[:, None, :], (k2, len(bary), 3))
     v = np.concatenate([v_rot, v_trans], axis=0)
     n = normals_out[None]
-    v = _unit_rows(v - np.sum(v * n, axis=2, keepdims=True) * n)  # projected onto each triangle
-    f = -mu * fN[None, :, None] * v  # force on the object opposes its sliding velocity
-    tau = cross(bary[None] - origin, f)
-    w = np.concatenate([f.sum(axis=1), tau.sum(axis=1)], axis=1)
+    v = v - np.einsum("ktj,ktj->kt", v, n)[..., None] * n  # projected onto each triangle
+    norm = np.sqrt(np.einsum("ktj,ktj->kt", v, v))
+    w_t = np.where(norm > 1e-12, fN[None, :] / np.maximum(norm, 1e-300), 0.0)  # f_N,t / |v_t|
+    # force on the object opposes its sliding: f_t = -mu f_N,t v_t / |v_t|; sum over triangles
+    F = -mu * np.einsum("kt,ktj->kj", w_t, v)
+    skew = _skew(bary - origin)  # (T, 3, 3): r_t x
+    tau = -mu * np.einsum("kt,tij,ktj->ki", w_t, skew, v)
+    w = np.concatenate([F, tau], axis=1)
     return np.vstack([w, -w])
+
+
+def _skew(r: np.ndarray) -> np.ndarray:
+    S = np.zeros(r.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -r[..., 2], r[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = r[..., 2], -r[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -r[..., 1], r[..., 0]
+    return S
 
 
 @functools.cache
@@ -91,9 +104,10 @@ def fit_ellipsoid(samples: np.ndarray, rel_tol: float = 1e-2):
     Returns (V_d (6,d), A_d (d,d), V_rest (6,6-d), eps). Raises DegenerateFit."""
     if not np.all(np.isfinite(samples)):
         raise DegenerateFit("non-finite wrench samples")
-    _, s, Vt = np.linalg.svd(samples, full_matrices=False)
-    if Vt.shape[0] < 6:
+    if len(samples) < 6:
         raise DegenerateFit("fewer wrench samples than dimensions")
+    ev6, V6 = np.linalg.eigh(samples.T @ samples)  # PCA through the 6x6 scatter matrix
+    s, Vt = np.sqrt(np.maximum(ev6[::-1], 0.0)), V6[:, ::-1].T
     if s[0] <= 1e-15:
         raise DegenerateFit("all friction wrench samples are zero")
     d = int(np.sum(s > rel_tol * s[0]))
@@ -102,7 +116,10 @@ def fit_ellipsoid(samples: np.ndarray, rel_tol: float = 1e-2):
         Y = samples @ V_d
         iu = np.triu_indices(d)
         design = Y[:, iu[0]] * Y[:, iu[1]] * np.where(iu[0] == iu[1], 1.0, 2.0)
-        coef, *_ = np.linalg.lstsq(design, np.ones(len(Y)), rcond=None)
+        try:  # normal equations of the linear least squares (well conditioned after PCA)
+            coef = np.linalg.solve(design.T @ design, design.sum(axis=0))
+        except np.linalg.LinAlgError:
+            coef, *_ = np.linalg.lstsq(design, np.ones(len(Y)), rcond=None)
         A = np.zeros((d, d))
         A[iu] = coef
         A = A + A.T - np.diag(np.diag(A))
