@@ -58,7 +58,11 @@ def main(argv=None):
     for p in args.policies:
         f = args.out / f"{p}_N{args.objects}.jsonl"
         if args.report:
-            from ms_drake.experiments.harness import final_records, read_records, summarize
+            from ms_drake.experiments.harness import (
+                final_records,
+                read_records,
+                summarize,
+            )
 
             recs = final_records(read_records(f))
             if not recs:

@@ -7,8 +7,13 @@ from pydrake.math import RigidTransform
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 
-from ms_drake.execution import (ActionExecutor, ExecutionError, PrimitiveBackend, connect_executor,
-                                grasp_tool_pose)
+from ms_drake.execution import (
+    ActionExecutor,
+    ExecutionError,
+    PrimitiveBackend,
+    connect_executor,
+    grasp_tool_pose,
+)
 from ms_drake.perception.segmentation import Workspace
 from ms_drake.types import Action, Grasp, Push
 

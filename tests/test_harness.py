@@ -5,13 +5,18 @@ import sys
 
 import numpy as np
 
-from ms_drake.experiments.harness import final_records, read_records, run_bench, summarize
+from ms_drake.experiments.harness import (
+    final_records,
+    read_records,
+    run_bench,
+    summarize,
+)
 
 CLI = [sys.executable, "-m", "ms_drake.cli"]
 
 
 def run(*args, check=True):
-    p = subprocess.run([*CLI, *map(str, args)], capture_output=True, text=True, timeout=600)
+    p = subprocess.run([*CLI, *map(str, args)], capture_output=True, text=True, timeout=600, check=False)
     if check and p.returncode != 0:
         raise AssertionError(f"exit {p.returncode}\n{p.stdout}\n{p.stderr}")
     return p
@@ -19,7 +24,7 @@ def run(*args, check=True):
 
 def test_bench_search_writes_resumes_and_summarizes(tmp_path):
     out = tmp_path / "r.jsonl"
-    p = run("bench", "search", "--policy", "largest", "--objects", 3, "--heaps", 1, "--seed-start", 5,
+    p = run("bench", "search", "--policy", "largest", "--objects", 2, "--heaps", 1, "--seed-start", 5,
             "--horizon", 3, "--out", out)
     recs = read_records(out)
     assert [r["seed"] for r in recs] == [5]
@@ -30,7 +35,7 @@ def test_bench_search_writes_resumes_and_summarizes(tmp_path):
     assert "success" in p.stdout and "SEM" in p.stdout and "quartiles" in p.stdout
     # Interrupted run: a torn last line; the rerun keeps seed 5, drops the torn line, runs seed 6 only.
     out.write_text(out.read_text() + '{"seed": 6, "pol')
-    p = run("bench", "search", "--policy", "largest", "--objects", 3, "--heaps", 2, "--seed-start", 5,
+    p = run("bench", "search", "--policy", "largest", "--objects", 2, "--heaps", 2, "--seed-start", 5,
             "--horizon", 3, "--out", out)
     assert "resuming: 1 of 2" in p.stdout
     recs = read_records(out)

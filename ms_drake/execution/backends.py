@@ -203,7 +203,7 @@ class FullBackend(_Base):
     def _finish_motion(self, plan, arm, release: dict, info: dict):
         from ms_drake.planning import plan_joint_motion
 
-        ik, limits, q_home = self.ik[arm]
+        _, limits, q_home = self.ik[arm]
         tl = plan.timeline
         check = tl.duration
         tl.play(plan_joint_motion([tl.final(), q_home], limits))  # back home, out of the camera's view

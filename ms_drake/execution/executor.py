@@ -208,5 +208,12 @@ def _zero_velocity():
     return SpatialVelocity(np.zeros(3), np.zeros(3))
 
 
-__all__ = ["ActionExecutor", "ExecutorStatus", "Motion", "ExecutionError", "connect_executor", "remove_objects",
-           "NO_OUTCOME"]
+__all__ = [
+    "NO_OUTCOME",
+    "ActionExecutor",
+    "ExecutionError",
+    "ExecutorStatus",
+    "Motion",
+    "connect_executor",
+    "remove_objects",
+]

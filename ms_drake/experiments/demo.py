@@ -71,7 +71,12 @@ def run_demo(out: Path, seed: int = 0, objects: int = 15, policy: str = "xray", 
 
     import imageio.v2 as imageio
 
-    from ms_drake.experiments.rollout import SCENARIOS, SearchParams, build_search, run_search
+    from ms_drake.experiments.rollout import (
+        SCENARIOS,
+        SearchParams,
+        build_search,
+        run_search,
+    )
     from ms_drake.perception.masks import PinholeCamera
     from ms_drake.scenario import load_scenario
     from ms_drake.scenes.render import make_scene, write_scene_images

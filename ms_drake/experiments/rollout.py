@@ -28,8 +28,16 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 
 from ms_drake.errors import MsDrakeError
-from ms_drake.execution import (FIDELITIES, ActionExecutor, ExecutionError, FullBackend, PrimitiveBackend,
-                                connect_executor, remove_objects, tcp_offset_of)
+from ms_drake.execution import (
+    FIDELITIES,
+    ActionExecutor,
+    ExecutionError,
+    FullBackend,
+    PrimitiveBackend,
+    connect_executor,
+    remove_objects,
+    tcp_offset_of,
+)
 
 FAILURE_MODES = {
     "target_never_visible": "the target was not seen in any step",
