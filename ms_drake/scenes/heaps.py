@@ -71,7 +71,7 @@ class HeapParams:
     wave_time: float = 0.12  # at most this long between two waves of drops
     min_wave_time: float = 0.06
     min_final_time: float = 0.1
-    max_final_time: float = 3.0
+    max_final_time: float = 5.0
     center_sigma: float = 0.03
     center_max: float = 0.06
     offset_sigma: float = 0.08
@@ -320,12 +320,16 @@ def generate_heap(scenario: Scenario, num_objects: int, seed: int, object_set: s
         ok, settle_t, reason = _drop_in_waves(world, names, plan, origin, params)
         poses = world.poses()
         rel = np.array([X.translation() - origin for X in poses])
-        if ok and np.any(rel[:, 2] < -0.02):
-            ok, reason = False, "an object tunnelled through the bin floor"
+        over_bin = np.all(np.abs(rel[:, :2]) <= 0.5 * size[:2] + 1e-3, axis=1)
+        # Tunnelled: below the bin floor inside its footprint, or below the support table (whose
+        # top is a wall thickness under the bin floor; objects that fell out of the bin rest there).
+        support_top = -scenario.environment.wall_thickness
+        if ok and np.any((over_bin & (rel[:, 2] < -0.02)) | (rel[:, 2] < support_top - 0.06)):
+            ok, reason = False, "an object tunnelled through the bin floor or the support"
         if not ok:
             reasons.append(f"attempt {attempt}: {reason}")
             continue
-        inside = np.all(np.abs(rel[:, :2]) <= 0.5 * size[:2] + 1e-3, axis=1) & (rel[:, 2] < size[2] + 0.5)
+        inside = over_bin & (rel[:, 2] < size[2] + 0.5)
         present = [i for i in range(len(names)) if inside[i]]
         removed = [names[i] for i in range(len(names)) if not inside[i]]
         if not present:
