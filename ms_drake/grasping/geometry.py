@@ -320,14 +320,19 @@ def jaw_patches_clip(data: MeshData, center, axis, approach, width, pad_polygon,
     of the boolean intersection. d_con is the smallest depth of that surface; a jaw collides when
     the surface crosses its open pad or its pad lies wholly inside the object."""
     R, origin = jaw_frame(center, axis, approach, width)
-    V = (data.vertices - origin) @ R  # jaw frame: x approach, y lateral, z depth from jaw 1
-    tri = V[data.faces]
     poly = np.asarray(pad_polygon, float)
     lo, hi = poly.min(axis=0), poly.max(axis=0)
+    # cull with the triangles' bounding spheres against the prism's box (jaw frame: x approach,
+    # y lateral, z depth from jaw 1), then with the candidates' exact bounds
+    c = (data.tri_center - origin) @ R
+    r = data.tri_radius
+    box_lo, box_hi = np.array([lo[0], lo[1], 0.0]), np.array([hi[0], hi[1], width])
+    near = np.nonzero(np.all((c + r[:, None] >= box_lo) & (c - r[:, None] <= box_hi), axis=1))[0]
+    tri = (data.v0[near][:, None, :] + np.stack([np.zeros((len(near), 3)), data.e1[near], data.e2[near]], axis=1)
+           - origin) @ R
     tmin, tmax = tri.min(axis=1), tri.max(axis=1)
-    cand = np.nonzero((tmax[:, 0] >= lo[0]) & (tmin[:, 0] <= hi[0]) & (tmax[:, 1] >= lo[1]) & (tmin[:, 1] <= hi[1])
-                      & (tmax[:, 2] >= 0) & (tmin[:, 2] <= width))[0]
-    t, parent = tri[cand], cand
+    inb = np.all((tmax >= box_lo) & (tmin <= box_hi), axis=1)
+    t, parent = tri[inb], near[inb]
     # signed distances to the footprint's edge planes (<= 0 inside), all at once: triangles
     # inside every plane are kept as they are, triangles outside one plane are dropped, only
     # the straddling rest is clipped edge by edge
