@@ -131,7 +131,7 @@ def table(res: dict, cmd: str) -> str:
                      f"({1e3 * h['wall_max']:.0f} ms) | {1e3 * o['wall']:.0f} ms / {1e3 * o['cpu']:.0f} ms | "
                      f"{h['matches']:.0f} | {t['init']:.2f} s |")
     lines += ["",
-              "Target: <= 0.1 s per image (the reference: 1.5 s per image on a 12-core i7). \"target seen\" uses the "
+              "Target: <= 0.1 s per image (the reference: 1.5 s per image on a 12-core i7); the CPU time is what one free core takes, the wall time what the shared machine gave. \"target seen\" uses the "
               "heap target's observed mask; those targets are not boxes of these sizes, so no placement matches and "
               "the distribution collapses to the mask (the cheaper case: nothing to sum).", "",
               "Against the straightforward implementation (RenderedOccupancy: one VTK target-only depth render per "
