@@ -101,3 +101,22 @@ def test_shelf_is_open_at_the_front():
     # The centre pixel sees the back wall: 0.95 m to the shelf centre + 0.3 m depth.
     d = depth[240, 320]
     assert 1.1 < d < 1.35
+
+
+def test_mesh_objects_rest_on_the_bin_floor(bin_scenario):
+    """Rigid mesh objects get support spheres from the converter, so point contact holds them."""
+    from ms_drake.objects import get_object, get_object_set
+
+    for set_name in ("ycb", "random_urdfs"):
+        s = copy.deepcopy(bin_scenario)
+        s.objects.count = 0
+        s.objects.names = [o.full_name for o in get_object_set(set_name).objects[:6]]
+        station = MakeStation(s)
+        sim = Simulator(station)
+        sim.AdvanceTo(1.0)
+        plant = get_plant(station)
+        pc = plant.GetMyContextFromRoot(sim.get_context())
+        for o in station_objects(plant):
+            X = plant.EvalBodyPoseInWorld(pc, plant.get_body(o.body_index))
+            v = np.asarray(get_object(o.full_name).trimesh().vertices) @ X.rotation().matrix().T + X.translation()
+            assert v[:, 2].min() > -0.004, (o.full_name, v[:, 2].min())

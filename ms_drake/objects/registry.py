@@ -71,7 +71,10 @@ class ObjectSpec:
 
     def sdf(self, model_name: str, rgba=None, friction: float = 0.5, **contact) -> str:
         """SDF text; `contact` goes to ms_drake.objects.sdf.object_sdf (compliance, modulus,
-        contact_spheres)."""
+        contact_spheres, extra_points). Mesh objects carry their own support points (the
+        converter's `contact_points`, on the hull), used as contact spheres unless given."""
+        if "contact_points" in self.meta and "extra_points" not in contact:
+            contact["extra_points"] = [tuple(p) for p in self.meta["contact_points"]]
         colors = [tuple(rgba) if rgba is not None else self.rgba] * len(self.visuals)
         if rgba is None and "backing_rgba" in self.meta:
             colors[0] = self.meta["backing_rgba"]
