@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from ms_drake.experiments.docs import write_benchmark_section
 
 ROOT = Path(__file__).resolve().parent.parent
 SECTION = "## Segmentation baselines"
@@ -116,15 +117,7 @@ def table(res: dict, cmd: str) -> str:
 
 
 def write_docs(text: str) -> None:
-    p = ROOT / "docs" / "BENCHMARKS.md"
-    doc = p.read_text() if p.exists() else "# Benchmarks\n\nEvery measured figure, with the command that made it.\n"
-    if SECTION in doc:
-        start = doc.index(SECTION)
-        nxt = doc.find("\n## ", start + len(SECTION))
-        doc = doc[:start] + text + (doc[nxt + 1:] if nxt >= 0 else "")
-    else:
-        doc = doc.rstrip("\n") + "\n\n" + text
-    p.write_text(doc)
+    write_benchmark_section(ROOT / "docs" / "BENCHMARKS.md", SECTION, text)
 
 
 def main():
