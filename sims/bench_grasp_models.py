@@ -116,7 +116,8 @@ def write_docs(text: str, path):
 
 
 def machine_speed() -> float:
-    """CPU ms of a fixed pure-Python loop (sum(range(10**6)): ~12-15 ms on an idle 3 GHz core)."""
+    """CPU ms of a fixed pure-Python loop, sum(range(10**6)): ~30 ms on this 2-core machine even
+    when it is idle (load average < 0.7), so a figure well above 30 ms means the run shared the CPU."""
     c0 = time.process_time()
     for _ in range(3):
         sum(range(10 ** 6))
@@ -137,8 +138,8 @@ def main():
     text += (f"\n\n{len(cases)} grasps on {len(objs)} objects ({', '.join(objs)}); median per grasp; "
              "2 cores, no GPU, one thread (OMP_NUM_THREADS=1); CPU = time.process_time of the process. "
              f"Machine load during the run: the calibration loop sum(range(10**6)) took {speed0:.0f} / "
-             f"{speed1:.0f} ms CPU before / after (about 12-15 ms on an idle 3 GHz core), so the shared "
-             "cores ran this benchmark that many times slower than an idle one.")
+             f"{speed1:.0f} ms CPU before / after (about 30 ms on this machine when it is idle; a "
+             "larger figure means the run shared the CPU with other jobs and ran that much slower).")
     print(text)
     if args.write_docs:
         from pathlib import Path
