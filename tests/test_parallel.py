@@ -50,3 +50,16 @@ def test_ray_local_cluster():
     (bad,) = [r for r in results if not r.ok]
     assert bad.job == -1 and "negative input" in bad.error
     assert all(r.value[1] != os.getpid() for r in results if r.ok)
+
+
+def worker_env(name):
+    return os.environ.get(name)
+
+
+def test_pool_workers_use_one_render_thread_each(monkeypatch):
+    """Each pool worker renders with one llvmpipe thread (else 2 workers fight over 2 cores),
+    unless the user exported a value."""
+    monkeypatch.delenv("LP_NUM_THREADS", raising=False)
+    assert {r.value for r in run_jobs(worker_env, ["LP_NUM_THREADS"] * 2, workers=2)} == {"1"}
+    monkeypatch.setenv("LP_NUM_THREADS", "3")
+    assert {r.value for r in run_jobs(worker_env, ["LP_NUM_THREADS"] * 2, workers=2)} == {"3"}
