@@ -127,7 +127,7 @@ class PrimitiveBackend(_Base):
         if action.kind == "grasp":
             if action.grasp is None:
                 raise ExecutionError("a grasp Action without its Grasp")
-            return Motion({}, check_time=0.0, duration=self.settle, info={"step": step})
+            return Motion({}, check_time=0.0, duration=self.settle, info={"step": step}, settle_from=0.0)
         if action.kind == "push":
             if action.push is None:
                 raise ExecutionError("a push Action without its Push")
@@ -141,7 +141,7 @@ class PrimitiveBackend(_Base):
             dur = [max(np.linalg.norm(wp[i + 1][:3] - wp[i][:3]) / v, 0.15) for i, v in enumerate(speeds)]
             path = _Path(wp, dur)
             return Motion({"floating.position": path}, check_time=path.duration + self.settle,
-                          duration=path.duration + self.settle, info={"step": step})
+                          duration=path.duration + self.settle, info={"step": step}, settle_from=path.duration)
         raise ExecutionError(f"the primitive executor cannot execute an Action of kind {action.kind!r}")
 
     def outcome(self, action: Action, motion: Motion, poses, step: int, removed):
@@ -211,7 +211,8 @@ class FullBackend(_Base):
         for port, schedule in plan.commands.items():
             steps = list(schedule.steps) + [(check + 0.05, v) for p, v in release.items() if p == port]
             commands[port] = _Steps(steps)
-        return Motion(commands, check_time=check, duration=tl.duration + self.settle, info=info)
+        return Motion(commands, check_time=check, duration=tl.duration + self.settle, info=info,
+                      settle_from=tl.duration)
 
     def plan(self, action: Action, hold: dict, step: int, poses=None):
         from ms_drake.station.picks import plan_pick, plan_push

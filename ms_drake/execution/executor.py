@@ -62,6 +62,9 @@ class Motion:
     check_time: float
     duration: float
     info: dict = field(default_factory=dict)
+    # From this time on the motion may end early, as soon as the scene is at rest (see
+    # ActionExecutor); None: it runs its full duration.
+    settle_from: float | None = None
 
     def __deepcopy__(self, memo):  # immutable once planned; Drake copies abstract state values
         return self
@@ -84,6 +87,8 @@ class _State:
     history: tuple = ()
     removed: tuple = ()
     stop_reason: str = ""
+    last_poses: np.ndarray | None = None  # body poses (N, 12) at the previous update
+    still_since: float | None = None  # time from which every body has been at rest
 
 
 NO_OUTCOME = ActionOutcome(Action("stop", reason="none"), False, message="none")
@@ -91,12 +96,23 @@ NO_OUTCOME = ActionOutcome(Action("stop", reason="none"), False, message="none")
 
 class ActionExecutor(LeafSystem):
     """backend: PrimitiveBackend (floating gripper) or FullBackend (YuMi), see ms_drake.execution.
-    period: the idle-check / outcome-check rate [s]."""
+    period: the idle-check / outcome-check rate [s].
 
-    def __init__(self, backend, period: float = 0.05):
+    Settle detection (our choice; the reference lets its simulator settle a fixed time): after
+    `Motion.settle_from` the action ends (its outcome checked, if not yet) at the first update at
+    which every body has moved by less than `still_distance` [m] and `still_angle` [rad] between
+    consecutive updates for `still_time` s; otherwise at its full duration (the backend's
+    `settle` bound). Needs the body_poses input; without it motions run their full duration.
+    The defaults (2 mm and 3 degrees per 50 ms) call "at rest" a heap whose rigid objects chatter
+    in place on their point contacts (up to ~1 rad/s of angular jitter at 10 ms steps), which a
+    tighter bound would never see end."""
+
+    def __init__(self, backend, period: float = 0.05, still_distance: float = 2e-3,
+                 still_angle: float = np.radians(3.0), still_time: float = 0.1):
         super().__init__()
         self.backend = backend
         self.period = float(period)
+        self.still_distance, self.still_angle, self.still_time = float(still_distance), float(still_angle), float(still_time)
         # Ports first.
         self.action_port = self.DeclareAbstractInputPort("action", AbstractValue.Make(Action("stop")))
         self.poses_port = self.DeclareAbstractInputPort("body_poses", AbstractValue.Make([RigidTransform()]))
@@ -142,6 +158,25 @@ class ActionExecutor(LeafSystem):
         output.set_value(ExecutorStatus(s.phase == "executing", s.phase == "done", len(s.history), s.stop_reason))
 
     # ------------------------------------------------------------------ update
+    def _settled(self, s: _State, poses, t: float) -> bool:
+        """Track rest (updates s.last_poses / s.still_since); True when the motion may end now."""
+        if poses is None or s.motion is None or s.motion.settle_from is None:
+            return False
+        P = np.array([np.concatenate([X.translation(), X.rotation().matrix().ravel()]) for X in poses])
+        prev, s.last_poses = s.last_poses, P
+        if t - s.t0 < s.motion.settle_from - 1e-9 or prev is None or prev.shape != P.shape:
+            s.still_since = None
+            return False
+        # Rotation change bound: |R_a - R_b|_F = 2 sqrt(2) sin(theta / 2) ~ sqrt(2) theta.
+        moved = np.linalg.norm(P[:, :3] - prev[:, :3], axis=1).max() > self.still_distance or \
+            np.linalg.norm(P[:, 3:] - prev[:, 3:], axis=1).max() > np.sqrt(2.0) * self.still_angle
+        if moved:
+            s.still_since = None
+            return False
+        if s.still_since is None:
+            s.still_since = t - self.period  # at rest since the previous update
+        return t - s.still_since >= self.still_time - 1e-9
+
     def _update(self, context, state):
         s = copy.copy(self._state(context))
         t = context.get_time()
@@ -150,15 +185,17 @@ class ActionExecutor(LeafSystem):
         poses = self.poses_port.Eval(context) if self.poses_port.HasValue(context) else None
         if s.phase == "executing":
             dt = t - s.t0
-            if not s.checked and dt >= s.motion.check_time - 1e-9:
+            settled = self._settled(s, poses, t)
+            if not s.checked and (dt >= s.motion.check_time - 1e-9 or settled):
                 out, gone = self.backend.outcome(s.action, s.motion, poses, len(s.history), s.removed)
                 s.history = s.history + (out,)
                 new = [r for r in dict.fromkeys([out.removed_object, *gone]) if r and r not in s.removed]
                 s.removed = s.removed + tuple(new)
                 s.checked = True
-            if s.checked and dt >= s.motion.duration - 1e-9:
+            if s.checked and (dt >= s.motion.duration - 1e-9 or settled):
                 s.hold = s.motion.values(s.motion.duration, s.hold)
                 s.phase, s.motion, s.action = "idle", None, None
+                s.last_poses, s.still_since = None, None
                 # Idle for one period before the next action: observers (the rollout driver, the
                 # demo) see the settled scene the next action is chosen from.
                 state.get_mutable_abstract_state(self._state_index).set_value(s)

@@ -2,7 +2,9 @@
 
 Every selector is a pure function of small inputs: the visible masks, the target estimate, the
 occupancy distribution (X-Ray), the grasp candidates with their qualities (Grasp.object_id =
-the mask id; several per mask allowed, e.g. one parallel-jaw and one suction: the best counts),
+the mask id; several per mask allowed, e.g. one parallel-jaw and one suction: the best counts;
+or a Mapping object id -> best Grasp, e.g. experiments.adapters.LazyGrasps, which plans an
+object only when the selector looks it up -- the walk below stops at the first qualifying grasp),
 the push candidates (Push.object_id = the mask id; present = quality 1), and the history of
 ActionOutcome. Randomness comes from `SelectorParams.seed` and the step number, so a step is
 reproducible from its inputs alone.
@@ -38,6 +40,7 @@ the bin (in simulation the model-instance name, which is also the ground-truth m
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -162,7 +165,7 @@ def consecutive_pushes(history) -> int:
 
 
 def select_action(policy: str, masks: InstanceMasks, target: TargetEstimate | None = None,
-                  grasps: tuple[Grasp, ...] = (), pushes: tuple[Push, ...] = (),
+                  grasps: tuple[Grasp, ...] | Mapping = (), pushes: tuple[Push, ...] = (),
                   history: tuple[ActionOutcome, ...] = (), occupancy: OccupancyMap | None = None,
                   params: SelectorParams = SelectorParams(), target_id: str = "",
                   target_amodal: np.ndarray | None = None) -> Action:
@@ -186,7 +189,7 @@ def select_action(policy: str, masks: InstanceMasks, target: TargetEstimate | No
         order = priority_oracle(masks, target_id, target_amodal)
     t_idx = masks.ids.index(target_id) if policy == "oracle" and target_id in masks.ids else target_index(masks, target)
     pushing = policy in PUSHING
-    best = best_grasps(grasps)
+    best = grasps if isinstance(grasps, Mapping) else best_grasps(grasps)
     for i in order:
         g = best.get(masks.ids[i])
         if g is None:

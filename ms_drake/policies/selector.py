@@ -6,7 +6,9 @@ Ports (declared first in __init__):
     target         TargetEstimate (TargetDetector; optional: unconnected = target not visible)
     occupancy      OccupancyMap (OccupancyEstimator; required by xray)
     grasps         tuple[Grasp] (GraspPlanner(s); optional). Several planners (jaw, suction) can be
-                   merged into one tuple upstream; the selector takes the best per mask.
+                   merged into one tuple upstream; the selector takes the best per mask. Or a
+                   Mapping object id -> best Grasp (experiments.adapters.LazyGraspPlanner's
+                   LazyGrasps), looked up only for the masks the selector reaches.
     pushes         tuple[Push] (PushPlanner; optional)
     history        tuple[ActionOutcome] (the executor's record; optional: unconnected = first step)
     target_amodal  the target's true amodal mask (oracle only; optional): an (H, W) bool array, or
@@ -17,6 +19,8 @@ Ports (declared first in __init__):
 """
 
 from __future__ import annotations
+
+from collections.abc import Mapping
 
 import numpy as np
 from pydrake.common.value import AbstractValue
@@ -64,12 +68,16 @@ class PolicySelector(LeafSystem):
         output.set_value(select_action(
             self.policy, self.masks_port.Eval(context),
             target=self._opt(self.target_port, context, None),
-            grasps=tuple(self._opt(self.grasps_port, context, ())),
+            grasps=self._grasps(context),
             pushes=tuple(self._opt(self.pushes_port, context, ())),
             history=tuple(self._opt(self.history_port, context, ())),
             occupancy=self._opt(self.occupancy_port, context, None),
             params=self.params, target_id=self.target_id,
             target_amodal=self._amodal(context)))
+
+    def _grasps(self, context):
+        g = self._opt(self.grasps_port, context, ())
+        return g if isinstance(g, Mapping) else tuple(g)
 
     def _amodal(self, context):
         value = self._opt(self.amodal_port, context, None)
