@@ -4,7 +4,8 @@ The controller diagram is the same in both fidelities (DESIGN.md "Data flow"):
   overhead.label_image -> Segmenter(ground_truth) -> masks
   overhead.rgb_image + masks -> TargetDetector(color) -> target
   overhead.depth_image + target -> OccupancyEstimator(analytic)      (xray only)
-  depth + masks (+ simulation meshes) -> GraspPlanner (robust contact-model quality)
+  depth + masks (+ simulation meshes) -> LazyGraspPlanner (jaw + suction GraspPlanners, robust
+                                         contact-model quality, planned per object on demand)
   depth + masks -> PushPlanner                                       (pushing selectors only)
   -> PolicySelector(policy) -> action -> ActionExecutor(backend) -> station command inputs
   ActionExecutor.history -> PolicySelector.history
@@ -67,9 +68,6 @@ class SearchParams:
     robust_samples: int = 4
     grasp_params: dict | None = None  # GraspEvaluator keywords, e.g. {"closing_force": 40.0}
     period: float = 0.05
-    # Grasps are planned on demand per object (LazyGraspPlanner); grasp_cache keeps an object's
-    # grasps across steps while its pose (1 mm / 1 deg) and visible mask are unchanged.
-    grasp_cache: bool = True
     # Plant step [s]; None keeps the scenario's (2 ms). The primitive mode only needs the heap to
     # settle and the closed jaw to push, so it runs at 10 ms like the heap generator (our choice).
     time_step: float | None = None
@@ -116,6 +114,7 @@ class RolloutResult:
     sim_seconds: float
     target: str = ""
     grasp_successes: int = 0
+    grasp_plans: int = 0  # object grasp plans (LazyGraspPlanner: only the masks the selector reached)
     error: str = ""
     frames: list = field(default_factory=list, repr=False)
 
@@ -176,8 +175,7 @@ def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSy
                              robust_samples=params.robust_samples, seed=params.seed,
                              evaluator_params=params.grasp_params if m != "suction" else None)
                 for m in params.grasp_models]
-    grasp = builder.AddSystem(LazyGraspPlanner(planners, cam.width, cam.height, seed=params.seed,
-                                               cache=params.grasp_cache))
+    grasp = builder.AddSystem(LazyGraspPlanner(planners, cam.width, cam.height, seed=params.seed))
     geo = builder.AddSystem(ObjectGeometrySource({
         o.model_name: (plant.get_body(o.body_index), get_object(o.full_name).trimesh(), get_object(o.full_name).mass,
                        None) for o in objs}))
@@ -332,6 +330,7 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
                         sim_seconds=float(context.get_time()),
                         target=heap.target,
                         grasp_successes=sum(1 for o in history if o.action.kind == "grasp" and o.success),
+                        grasp_plans=system.perception["grasps"].planned,
                         error=msg, frames=frames)
     return res
 

@@ -1,0 +1,134 @@
+"""Bin-search rollouts: on-demand, per-object, cropped grasp planning (LazyGraspPlanner) gives the
+planners' own answers; a rollout is reproducible from its seed."""
+
+import numpy as np
+import pytest
+
+from ms_drake.experiments.adapters import LazyGraspPlanner, LazyGrasps, object_seed
+from ms_drake.policies import select_action
+from ms_drake.types import InstanceMasks
+
+
+@pytest.fixture(scope="module")
+def heap4():
+    from ms_drake.scenario import load_scenario
+    from ms_drake.scenes.heaps import generate_heap
+
+    return generate_heap(load_scenario(None, "BinHeap15"), 4, seed=3)
+
+
+@pytest.fixture(scope="module")
+def scene(heap4):
+    """A search system on heap4 and its first observation: depth, masks, object geometry."""
+    from pydrake.systems.analysis import Simulator
+
+    from ms_drake.experiments.rollout import SearchParams, _set_initial, build_search
+    from ms_drake.scenario import load_scenario
+
+    params = SearchParams(policy="largest", seed=5, time_step=0.01)
+    system = build_search(load_scenario(None, "FloatingGripperBin"), heap4, params)
+    sim = Simulator(system.diagram)
+    ctx = sim.get_mutable_context()
+    _set_initial(system, ctx, heap4)
+    gp = system.perception["grasps"]
+    gctx = gp.GetMyContextFromRoot(ctx)
+    depth = np.asarray(gp.depth_port.Eval(gctx).data, float)[..., 0]
+    masks = gp.masks_port.Eval(gctx)
+    geoms = {o.id: o for o in gp.objects_port.Eval(gctx)}
+    return system, ctx, depth, masks, geoms
+
+
+def test_cropped_per_object_plan_equals_the_whole_image(scene):
+    system, _, depth, masks, geoms = scene
+    gp = system.perception["grasps"]
+    fresh = LazyGraspPlanner(gp.planners, depth.shape[1], depth.shape[0], seed=5)
+    assert len(masks) >= 2
+    models = set()
+    for k, oid in enumerate(masks.ids):
+        cropped = fresh.plan_object(depth, masks, geoms, oid)
+        whole = []
+        for p in gp.planners:  # the wrapped planner itself, on the whole image, the same seed
+            p.seed = object_seed(5, oid)
+            whole.extend(p.plan(depth, InstanceMasks(masks.masks[k:k + 1], (oid,), np.ones(1)), (geoms[oid],)))
+        assert cropped == tuple(whole)
+        models |= {g.model for g in whole}
+    assert models == {"soft_point", "suction"}
+
+
+def test_lazy_grasps_plan_only_what_the_selector_reaches(scene):
+    system, _, depth, masks, geoms = scene
+    gp = system.perception["grasps"]
+    lazy_planner = LazyGraspPlanner(gp.planners, depth.shape[1], depth.shape[0], seed=5)
+    lazy = LazyGrasps(lambda oid: lazy_planner.plan_object(depth, masks, geoms, oid), masks.ids)
+    eager = tuple(g for oid in masks.ids for g in lazy_planner.plan_object(depth, masks, geoms, oid))
+    for policy in ("largest", "random", "preempted_random"):
+        lazy = LazyGrasps(lambda oid: lazy_planner.plan_object(depth, masks, geoms, oid), masks.ids)
+        a = select_action(policy, masks, grasps=lazy)
+        b = select_action(policy, masks, grasps=eager)
+        assert a == b
+        if a.kind == "grasp":  # it stopped at the chosen object: nothing after it was planned
+            assert lazy.planned[-1] == a.grasp.object_id
+    # Iterating plans everything and yields the best grasp per object.
+    full = dict(lazy)
+    for oid, g in full.items():
+        assert g.quality == max(x.quality for x in eager if x.object_id == oid)
+
+
+def test_a_lookup_plans_an_object_once_per_step(scene):
+    system, _, depth, masks, geoms = scene
+    gp = system.perception["grasps"]
+    planner = LazyGraspPlanner(gp.planners, depth.shape[1], depth.shape[0], seed=5)
+    lazy = LazyGrasps(lambda oid: planner.plan_object(depth, masks, geoms, oid), masks.ids)
+    oid = masks.ids[0]
+    first = lazy.get(oid)
+    assert lazy.get(oid) is first and planner.planned == 1
+    assert lazy.get("no such id") is None and planner.planned == 1
+    # A fresh step (a new LazyGrasps) plans again, and gets the same answer for the same input.
+    again = LazyGrasps(lambda o: planner.plan_object(depth, masks, geoms, o), masks.ids).get(oid)
+    assert again == first and planner.planned == 2
+
+
+def test_lazy_grasp_planner_alone(scene):
+    system, _, depth, masks, geoms = scene
+    from pydrake.systems.sensors import ImageDepth32F
+
+    gp = system.perception["grasps"]
+    alone = LazyGraspPlanner(gp.planners, depth.shape[1], depth.shape[0], seed=5)
+    ctx = alone.CreateDefaultContext()
+    img = ImageDepth32F(depth.shape[1], depth.shape[0])
+    img.mutable_data[:, :, 0] = depth
+    alone.GetInputPort("depth_image").FixValue(ctx, img)
+    alone.GetInputPort("masks").FixValue(ctx, masks)
+    alone.GetInputPort("objects").FixValue(ctx, tuple(geoms.values()))
+    out = alone.GetOutputPort("grasps").Eval(ctx)
+    assert out.planned == ()  # nothing is planned before a lookup
+    oid = masks.ids[0]
+    g = out.get(oid)
+    assert out.planned == (oid,) and (g is None or g.object_id == oid)
+    # Without geometry the object is planned on the whole image from its depth points only.
+    alone.GetInputPort("objects").FixValue(ctx, ())
+    out = alone.GetOutputPort("grasps").Eval(ctx)
+    assert all(x.object_id in masks.ids for x in dict(out).values())
+    with pytest.raises(TypeError):
+        LazyGraspPlanner([object()], 64, 48)
+
+
+def test_rollout_is_reproducible_from_its_seed(heap4):
+    from ms_drake.experiments.rollout import rollout
+
+    timing = ("seconds", "cpu_seconds")
+    a, b = ({k: v for k, v in rollout("largest", 4, 3, heap=heap4).record().items() if k not in timing}
+            for _ in range(2))
+    assert a == b and a["actions"] >= 1 and a["grasp_plans"] >= a["actions"]
+
+
+def test_lazy_planner_wired_in_the_search_diagram(scene):
+    system, ctx, _, masks, _ = scene
+    sel = system.selector
+    action = sel.GetOutputPort("action").Eval(sel.GetMyContextFromRoot(ctx))
+    grasps = system.perception["grasps"].GetOutputPort("grasps").Eval(
+        system.perception["grasps"].GetMyContextFromRoot(ctx))
+    assert isinstance(grasps, LazyGrasps)
+    assert action.kind in ("grasp", "stop")
+    if action.kind == "grasp":
+        assert action.grasp.object_id in masks.ids and grasps.planned[-1] == action.grasp.object_id
