@@ -12,7 +12,15 @@ Ports (declared first in __init__):
 
 Per mask: sample `num_samples` candidates from the depth image restricted to the mask
 (top-down antipodal pairs for the jaw models, surface points for "suction"), score each with
-the chosen model and keep the best. When `objects` holds geometry with the mask's id the exact
+the chosen model and keep the best. Jaw models (our choice of search order; the reference
+scores a fixed sample): up to `candidate_pool` x num_samples top-down antipodal pairs whose
+fingers clear the neighbours in the depth image are drawn and taken nearest-first to the mask's
+footprint centroid (a grasp far from the centre of mass rarely holds); each is checked with the
+nominal (non-robust) model, which costs a fraction of a robust evaluation; the num_samples with
+the smallest nominal wrench residual (those that resist first, nearest-first among them) get the
+robust evaluation, stopping at the first robust quality of 1.0. Candidates whose jaws find no
+contact pair (miss, jaw collision) are never chosen; an object without any other gets its first
+candidate with quality 0.0. When `objects` holds geometry with the mask's id the exact
 mesh, pose and mass are used (simulation); otherwise (hardware) the object is approximated by
 the convex hull of its visible points extruded down to the lowest point seen in the image (the
 bin floor), with `default_mass` -- a choice of ours; the reference plans on known meshes in
@@ -54,7 +62,8 @@ class GraspPlanner(LeafSystem):
 
     def __init__(self, camera_info: CameraInfo, X_WC=None, model: str = "soft_point", num_samples: int = 30,
                  robust_samples: int = 0, seed: int = 0, evaluator_params: dict | None = None,
-                 max_width: float = 0.1, default_mass: float = 0.2):
+                 max_width: float = 0.1, default_mass: float = 0.2, candidate_pool: int = 3,
+                 jaw_margin: float = 0.01):
         super().__init__()
         if model not in MODELS and model != "suction":
             raise GraspError(f"GraspPlanner model {model!r} unknown; choose one of {', '.join(MODELS)}, suction")
@@ -74,6 +83,12 @@ class GraspPlanner(LeafSystem):
         self.X_WC = np.eye(4) if X_WC is None else _as_matrix(X_WC)
         self.num_samples, self.robust_samples, self.seed = int(num_samples), int(robust_samples), int(seed)
         self.max_width, self.default_mass = float(max_width), float(default_mass)
+        if int(candidate_pool) < 1:
+            raise GraspError(f"GraspPlanner candidate_pool must be >= 1, got {candidate_pool!r}")
+        self.candidate_pool = int(candidate_pool)
+        if not (0 <= jaw_margin < 0.5 * max_width):
+            raise GraspError(f"GraspPlanner jaw_margin must be in [0, max_width / 2), got {jaw_margin!r}")
+        self.jaw_margin = float(jaw_margin)
         self.friction = params.get("friction", 0.5)
         self._mesh_cache: dict = {}
 
@@ -103,6 +118,13 @@ class GraspPlanner(LeafSystem):
         except Exception:  # noqa: BLE001 -- qhull refuses degenerate (flat) point sets
             return None
 
+    def jaw_candidates(self, depth: np.ndarray, mask: np.ndarray, X_WC, seed: int):
+        """The jaw candidates scored for one mask (see the module docstring)."""
+        return sample_antipodal_grasps_depth(depth, self.K, _as_matrix(X_WC), mask,
+                                             self.num_samples * self.candidate_pool, friction=self.friction,
+                                             max_width=self.max_width, seed=seed, prefer_center=True,
+                                             jaw_margin=self.jaw_margin)
+
     def plan(self, depth: np.ndarray, masks: InstanceMasks, objects=(), X_WC=None) -> tuple[Grasp, ...]:
         """The computation behind the output port, callable without a Diagram."""
         X_WC = self.X_WC if X_WC is None else _as_matrix(X_WC)
@@ -117,8 +139,7 @@ class GraspPlanner(LeafSystem):
             if self.model == "suction":
                 cands = sample_suction_grasps_depth(depth, self.K, X_WC, mask, self.num_samples, seed=seed)
             else:
-                cands = sample_antipodal_grasps_depth(depth, self.K, X_WC, mask, self.num_samples,
-                                                      friction=self.friction, max_width=self.max_width, seed=seed)
+                cands = self.jaw_candidates(depth, mask, X_WC, seed)
             if not cands:
                 continue
             geom = geoms.get(oid)
@@ -134,13 +155,36 @@ class GraspPlanner(LeafSystem):
                 X_WO, mass, com = np.eye(4), self.default_mass, None
                 if mesh is None:
                     continue
-            best, best_q = None, -1.0
-            for g in cands:
-                q = self.evaluator.quality(mesh, X_WO, g, mass, self.robust_samples, seed, com)
-                if q > best_q:
-                    best, best_q = g, q
+            best, best_q = self._best(cands, mesh, X_WO, mass, seed, com)
             out.append(best.to_grasp(best_q, self.model, oid))
         return tuple(out)
+
+    def _best(self, cands, mesh, X_WO, mass, seed, com):
+        """(grasp, quality) of the best candidate (search order in the module docstring)."""
+        ev, n = self.evaluator, self.robust_samples
+        if self.model == "suction":
+            best, best_q = None, -1.0
+            for g in cands:
+                q = ev.quality(mesh, X_WO, g, mass, n, seed, com)
+                if q > best_q:
+                    best, best_q = g, q
+            return best, best_q
+        # nominal check of every candidate; robust evaluation of the most promising ones
+        nominal = []
+        for k, g in enumerate(cands):
+            r = ev.evaluate(mesh, X_WO, g, mass, 0, seed, com)
+            if r.reason in ("resisted", "slips"):  # contacts found (the others: no contact pair)
+                nominal.append((0.0 if r.quality > 0 else r.residual, k))
+        if not nominal:
+            return cands[0], 0.0
+        best, best_q = None, -1.0
+        for res, k in sorted(nominal)[: self.num_samples]:
+            q = ev.quality(mesh, X_WO, cands[k], mass, n, seed, com) if n > 0 else (1.0 if res == 0.0 else 0.0)
+            if q > best_q:
+                best, best_q = cands[k], q
+            if best_q >= 1.0:
+                break
+        return best, best_q
 
     def _calc_grasps(self, context, output):
         depth = self.depth_port.Eval(context)

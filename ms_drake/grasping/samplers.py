@@ -8,11 +8,12 @@ inward normal, take the exit point as the second contact, keep the pair when it 
 the centre if asked ("grasps within the gripper pad width ... by adding uniform noise");
 discard grasps within a distance threshold of one already kept.
 
-Depth sampler (Dex-Net 2.0 style, top-down): contacts are pairs of mask-boundary pixels whose
-2D outward normals are antipodal within the friction cone; the grasp centre is the midpoint
-deprojected at the shallowest depth along the segment plus `grasp_depth`; the approach is the
-camera's optical axis. Point-cloud sampler: the same antipodal test in 3D on points with
-normals (KD-tree neighbours within the maximal width).
+Depth sampler (Dex-Net 2.0 style, top-down): the masked points binned into a world height map;
+contacts are pairs of footprint-boundary cells whose 2D outward normals are antipodal within the
+friction cone; the grasp centre goes half-way down the object's visible side, above whatever the
+fingers land on (see `sample_antipodal_grasps_depth`); the approach is world -z. Point-cloud
+sampler: the same antipodal test in 3D on points with normals (KD-tree neighbours within the
+maximal width).
 
 Every sampler takes a seed; outputs are world-frame `ParallelJawGrasp` / `SuctionGrasp`.
 """
@@ -229,59 +230,167 @@ def _mask_boundary_normals(mask: np.ndarray):
     return rows[ok], cols[ok], n[ok] / norm[ok, None]
 
 
+def height_map(points_W: np.ndarray, lo: np.ndarray, shape: tuple[int, int], cell: float) -> np.ndarray:
+    """(rows, cols) grid of the highest world z of `points_W` (N, 3) per cell; row = y, col = x,
+    cell (r, c) covers x in lo[0] + [c, c + 1) cell, y in lo[1] + [r, r + 1) cell; -inf = empty."""
+    H = np.full(shape, -np.inf)
+    c = np.floor((points_W[:, 0] - lo[0]) / cell).astype(int)
+    r = np.floor((points_W[:, 1] - lo[1]) / cell).astype(int)
+    ok = (r >= 0) & (r < shape[0]) & (c >= 0) & (c < shape[1])
+    np.maximum.at(H, (r[ok], c[ok]), points_W[ok, 2])
+    return H
+
+
+def _rect_top(H: np.ndarray, rc: np.ndarray, u: np.ndarray, along: tuple[float, float], half_across: float) -> float:
+    """The highest surface (world z) of height map H in the rectangle from `along[0]` to
+    `along[1]` cells along unit grid direction `u` from cell `rc` (col, row), +-half_across cells
+    across; -inf when it holds no measured surface."""
+    a = np.arange(along[0], along[1] + 0.5)
+    b = np.arange(-np.floor(half_across), np.floor(half_across) + 0.5)
+    perp = np.array([-u[1], u[0]])
+    pts = rc[None, None, :] + a[:, None, None] * u + b[None, :, None] * perp
+    c = np.round(pts[..., 0]).astype(int).ravel()
+    r = np.round(pts[..., 1]).astype(int).ravel()
+    ok = (c >= 0) & (c < H.shape[1]) & (r >= 0) & (r < H.shape[0])
+    return float(H[r[ok], c[ok]].max()) if np.any(ok) else -np.inf
+
+
 def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.ndarray, mask: np.ndarray,
                                   count: int, friction: float = 0.5, max_width: float = 0.1, seed: int = 0,
-                                  grasp_depth: float = 0.01, jaw_margin: float = 0.01,
-                                  dedupe_distance: float = 0.004, dedupe_angle: float = 0.2) -> list[ParallelJawGrasp]:
-    """Top-down antipodal grasps on the object under `mask` (H, W bool) of a depth image.
+                                  grasp_depth: float = 0.015, jaw_margin: float = 0.01,
+                                  dedupe_distance: float = 0.004, dedupe_angle: float = 0.2,
+                                  min_grasp_depth: float = 0.005, max_grasp_depth: float = 0.03,
+                                  pad_below: float = 0.015, finger_thickness: float = 0.018,
+                                  finger_width: float = 0.02, palm_above: float = 0.045,
+                                  palm_size: tuple[float, float] = (0.13, 0.05), cell: float = 0.002,
+                                  prefer_center: bool = False) -> list[ParallelJawGrasp]:
+    """Top-down (approach = world -z) antipodal grasps on the object under `mask` (H, W bool) of a
+    depth image. K: 3x3 intrinsics; X_WC: 4x4 camera pose (camera z = optical axis). World frame.
 
-    K: 3x3 intrinsics; X_WC: 4x4 camera pose (camera z = optical axis). World frame output."""
+    The visible points near the mask are binned into a world-frame height map (`cell` metres; the
+    highest point per cell), so the geometry is metric and orthographic whatever the camera's
+    perspective: the object's footprint is the cells holding its mask's points, contacts are pairs
+    of footprint-boundary cells whose 2D outward normals are antipodal within the friction cone,
+    the grasp axis is horizontal. (The first version paired image-boundary pixels and deprojected
+    their midpoint: for a tall object off the optical axis the mask spans its top and its side, and
+    the midpoint landed up to 2 cm beside the object.)
+
+    How deep the jaws go (the reference is silent; our choice): z_top is the object's highest
+    point along the segment joining the contacts; z_free the highest surface where the fingers land
+    (jaw_margin + finger_thickness beyond each contact, finger_width across). The centre goes
+    half-way down the visible side, z_top - clip((z_top - z_free) / 2, min_grasp_depth,
+    max_grasp_depth) (`grasp_depth` when no surface is seen there), then is raised so that the
+    pads' lower edge (`pad_below` under the centre) stays above z_free and the palm (`palm_size`
+    along the axis x across, its lower face `palm_above` over the centre) above everything under
+    it; when that leaves less than min_grasp_depth under z_top the candidate is dropped (a
+    neighbour, or an occluder lying on the mask's edge, is in the way). The defaults are the
+    station's parallel jaw (ms_drake.station.grippers.ParallelJawConfig: fingers 12 mm + 6 mm
+    pad thick and 20 mm wide, pads 30 mm long centred on the tool point, palm 130 x 50 mm
+    45 mm above it). Half-way down is where a lying cylinder is widest and
+    where a tilted box's side faces are under both jaws; 1 cm under the highest point (the first
+    version) put one jaw above a tilted top face.
+
+    prefer_center: return the candidates sorted by the distance of their centre to the footprint's
+    centroid (a proxy for the centre of mass: gravity's torque about the grasp axis is what the
+    jaws' torsional friction must resist); otherwise in the order drawn."""
     if depth.shape != mask.shape:
         raise GraspError(f"depth image {depth.shape} and mask {mask.shape} must have the same shape")
+    if not (cell > 0 and max_width > 0 and friction > 0) or count < 0:
+        raise GraspError(f"sample_antipodal_grasps_depth needs count >= 0, cell > 0, max_width > 0, friction > 0 "
+                         f"(got {count}, {cell}, {max_width}, {friction})")
     rng = np.random.default_rng(seed)
-    valid = mask & np.isfinite(depth) & (depth > 0)
+    finite = np.isfinite(depth) & (depth > 0)
+    valid = mask & finite
     if valid.sum() < 4:
         return []
-    rows, cols, n2d = _mask_boundary_normals(valid)
-    if len(rows) < 2:
+    # a window of the image around the mask wide enough for the fingers beside it
+    reach = jaw_margin + finger_thickness
+    margin = max(reach, 0.5 * palm_size[0]) + 3 * cell
+    rows, cols = np.nonzero(valid)
+    pad_px = int(np.ceil(margin * max(K[0, 0], K[1, 1]) / float(depth[valid].min()))) + 1
+    r0, r1 = max(rows.min() - pad_px, 0), min(rows.max() + pad_px + 1, depth.shape[0])
+    c0, c1 = max(cols.min() - pad_px, 0), min(cols.max() + pad_px + 1, depth.shape[1])
+    sub = np.where(finite[r0:r1, c0:c1], depth[r0:r1, c0:c1], np.nan)
+    v, u = np.mgrid[r0:r1, c0:c1]
+    P_C = np.stack([(u - K[0, 2]) * sub / K[0, 0], (v - K[1, 2]) * sub / K[1, 1], sub], axis=-1)
+    P_W = P_C @ X_WC[:3, :3].T + X_WC[:3, 3]
+    ok = np.isfinite(sub)
+    obj = P_W[valid[r0:r1, c0:c1] & ok]
+    # the neighbours: points off the mask dilated by 2 px (a silhouette's edge pixels can carry
+    # the object's own depth without its label)
+    import cv2
+
+    near = cv2.dilate(valid[r0:r1, c0:c1].astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    others = P_W[ok & ~near]
+    lo = obj[:, :2].min(axis=0) - margin
+    shape = tuple(int(x) for x in np.ceil((obj[:, :2].max(axis=0) + margin - lo) / cell)[::-1])
+    H_obj = height_map(obj, lo, shape, cell)
+    H_others = height_map(others, lo, shape, cell)
+    H_all = np.maximum(H_obj, H_others)
+    foot = np.isfinite(H_obj)
+    foot = cv2.morphologyEx(foot.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)) > 0
+    H_top = np.where(foot, np.where(np.isfinite(H_obj), H_obj, _fill_max(H_obj)), -np.inf)
+    brow, bcol, n2d = _mask_boundary_normals(foot)
+    if len(brow) < 2:
         return []
     cos_h = np.cos(np.arctan(friction))
-    R, t = X_WC[:3, :3], X_WC[:3, 3]
-    out, kept = [], []
-    px = np.stack([cols, rows], axis=1).astype(float)
-    for i in rng.permutation(len(rows))[: 40 * max(count, 1)]:
-        if len(out) >= count:
+    rc = np.stack([bcol, brow], axis=1).astype(float)
+    centroid = np.array(np.nonzero(foot)[::-1], float).mean(axis=1)
+    reach_c, half_c, margin_c = reach / cell, 0.5 * finger_width / cell, max(1.0, jaw_margin / cell)
+    palm_a, palm_b = 0.5 * palm_size[0] / cell, 0.5 * palm_size[1] / cell
+    wanted = count
+    cands, kept = [], []
+    for i in rng.permutation(len(brow))[: 40 * max(wanted, 1)]:
+        if len(cands) >= wanted:
             break
-        v = px - px[i]
-        d = np.linalg.norm(v, axis=1)
-        ok = d > 1
-        vu = np.where(ok[:, None], v / np.maximum(d, 1e-9)[:, None], 0)
-        good = ok & (vu @ -n2d[i] >= cos_h) & (np.sum(vu * n2d, axis=1) >= cos_h)
+        vv = rc - rc[i]
+        d = np.linalg.norm(vv, axis=1)
+        good = d > 1
+        vu = np.where(good[:, None], vv / np.maximum(d, 1e-9)[:, None], 0)
+        good &= (vu @ -n2d[i] >= cos_h) & (np.sum(vu * n2d, axis=1) >= cos_h)
+        good &= (d + 1) * cell <= max_width - 2 * jaw_margin
         if not np.any(good):
             continue
         j = rng.choice(np.nonzero(good)[0])
-        # sample the segment between the two contacts for the shallowest visible surface
-        steps = int(d[j]) + 2
-        s = np.linspace(0, 1, steps)
-        seg = np.round(px[i] + s[:, None] * (px[j] - px[i])).astype(int)
-        zs = depth[seg[:, 1], seg[:, 0]]
-        zs = zs[valid[seg[:, 1], seg[:, 0]]]
+        width = (d[j] + 1) * cell  # boundary cells' centres are half a cell inside the edges
+        seg = np.round(rc[i] + np.linspace(0, 1, int(d[j]) + 2)[:, None] * (rc[j] - rc[i])).astype(int)
+        zs = H_top[seg[:, 1], seg[:, 0]]
+        zs = zs[np.isfinite(zs)]
         if len(zs) == 0:
             continue
-        z = float(np.min(zs)) + grasp_depth
-        mid = 0.5 * (px[i] + px[j])
-        pc = np.array([(mid[0] - K[0, 2]) * z / K[0, 0], (mid[1] - K[1, 2]) * z / K[1, 1], z])
-        a_c = np.array([(px[j, 0] - px[i, 0]) * z / K[0, 0], (px[j, 1] - px[i, 1]) * z / K[1, 1], 0.0])
-        width = float(np.linalg.norm(a_c))
-        if width < 1e-4 or width > max_width - 2 * jaw_margin:
+        z_top = float(zs.max())
+        u2 = vv[j] / d[j]
+        # neighbours anywhere between the contact and the finger's back; the object itself only
+        # where the finger is (an axis oblique to the edge passes over the object's own corner)
+        z_free = max(_rect_top(H_others, rc[i], -u2, (1, reach_c), half_c),
+                     _rect_top(H_others, rc[j], u2, (1, reach_c), half_c),
+                     _rect_top(H_obj, rc[i], -u2, (margin_c, reach_c), half_c),
+                     _rect_top(H_obj, rc[j], u2, (margin_c, reach_c), half_c))
+        below = grasp_depth if not np.isfinite(z_free) else float(
+            np.clip(0.5 * (z_top - z_free), min_grasp_depth, max_grasp_depth))
+        z_palm = _rect_top(H_all, 0.5 * (rc[i] + rc[j]), u2, (-palm_a, palm_a), palm_b)
+        z = max(z_top - below, z_free + pad_below, z_palm - palm_above)
+        if z_top - z < min_grasp_depth - 1e-9:
             continue
-        center = R @ pc + t
-        axis = R @ (a_c / width)
+        mid = 0.5 * (rc[i] + rc[j]) + 0.5
+        center = np.array([lo[0] + mid[0] * cell, lo[1] + mid[1] * cell, z])
+        axis = np.array([u2[0], u2[1], 0.0])
         if _is_duplicate(center, axis, kept, dedupe_distance, dedupe_angle):
             continue
         kept.append((center, axis))
-        out.append(ParallelJawGrasp(center, axis, R[:, 2], min(max_width, width + 2 * jaw_margin)))
-    return out
+        dist_c = float(np.linalg.norm(0.5 * (rc[i] + rc[j]) - centroid))
+        cands.append((dist_c, ParallelJawGrasp(center, axis, (0.0, 0.0, -1.0),
+                                               min(max_width, width + 2 * jaw_margin))))
+    if prefer_center:
+        cands.sort(key=lambda x: x[0])
+    return [g for _, g in cands[:count]]
+
+
+def _fill_max(H: np.ndarray) -> np.ndarray:
+    """Empty cells take the highest neighbour (3x3); the footprint's closing may add such cells."""
+    import cv2
+
+    return cv2.dilate(np.where(np.isfinite(H), H, -1e9).astype(np.float32), np.ones((3, 3), np.uint8))
 
 
 def sample_suction_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.ndarray, mask: np.ndarray,
