@@ -116,8 +116,8 @@ class LazyGraspPlanner(LeafSystem):
       * on demand: the selector walks its priority list and stops at the first grasp above its
         threshold, so only the masks it reaches are planned (every mask when nothing qualifies);
       * per object: each mask is planned alone on the crop of the depth image around it (the
-        bounding box grown by `crop_margin` metres at the mask's nearest depth + `margin` pixels,
-        intrinsics shifted accordingly) with the sampling seed `object_seed(seed, id)`; the
+        bounding box + `margin` pixels, for jaw models also + `crop_margin` metres at the mask's
+        nearest depth; intrinsics shifted accordingly) with the sampling seed `object_seed(seed, id)`; the
         samplers read the mask and its neighbourhood only (the jaw sampler looks up to ~7 cm
         around it for the fingers and the palm), so the crop gives the same candidates as the
         whole image (tests/test_rollout.py checks it) -- a GraspPlanner on the whole image
@@ -156,26 +156,26 @@ class LazyGraspPlanner(LeafSystem):
         k = masks.ids.index(oid)
         mask = masks.masks[k]
         geom = geoms.get(oid)
-        if geom is not None:
-            rows, cols = np.nonzero(mask)
-            if len(rows) == 0:
-                return ()
-            H, W = mask.shape
-            z = depth[rows, cols]
-            z = z[np.isfinite(z) & (z > 0)]
-            f = max(self._K[0][0, 0], self._K[0][1, 1])
-            pad = self.margin + (int(np.ceil(self.crop_margin * f / z.min())) if len(z) else max(H, W))
-            y0, y1 = max(rows.min() - pad, 0), min(rows.max() + pad + 1, H)
-            x0, x1 = max(cols.min() - pad, 0), min(cols.max() + pad + 1, W)
-            crop_mask = np.ascontiguousarray(mask[y0:y1, x0:x1])
-            crop_depth = np.ascontiguousarray(depth[y0:y1, x0:x1])
-            one = InstanceMasks(crop_mask[None], (oid,), np.ones(1))
-            shift = np.array([x0, y0], float)
-        else:
-            crop_depth, one, shift = depth, InstanceMasks(mask[None], (oid,), np.ones(1)), np.zeros(2)
+        rows, cols = np.nonzero(mask)
+        if len(rows) == 0:
+            return ()
+        H, W = mask.shape
         out = []
         seed = object_seed(self.seed, oid)
         for p, K in zip(self.planners, self._K):
+            if geom is not None:
+                pad = self.margin
+                if getattr(p, "model", "") != "suction":  # the jaw sampler looks around the mask
+                    z = depth[rows, cols]
+                    z = z[np.isfinite(z) & (z > 0)]
+                    pad += int(np.ceil(self.crop_margin * max(K[0, 0], K[1, 1]) / z.min())) if len(z) else max(H, W)
+                y0, y1 = max(rows.min() - pad, 0), min(rows.max() + pad + 1, H)
+                x0, x1 = max(cols.min() - pad, 0), min(cols.max() + pad + 1, W)
+                crop_depth = np.ascontiguousarray(depth[y0:y1, x0:x1])
+                one = InstanceMasks(np.ascontiguousarray(mask[y0:y1, x0:x1])[None], (oid,), np.ones(1))
+                shift = np.array([x0, y0], float)
+            else:
+                crop_depth, one, shift = depth, InstanceMasks(mask[None], (oid,), np.ones(1)), np.zeros(2)
             Kc = K.copy()
             Kc[:2, 2] -= shift
             p.K, p.seed = Kc, seed
