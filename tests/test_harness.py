@@ -74,3 +74,70 @@ def test_bad_bench_input(tmp_path):
     assert p.returncode == 2 and "primitive" in p.stderr
     p = run("bench", "plot", tmp_path / "missing.jsonl", check=False)
     assert p.returncode == 2 and "no such result file" in p.stderr
+
+
+def test_truncating_a_record_to_a_smaller_budget():
+    from ms_drake.experiments.harness import truncate_record
+
+    def rec(actions, success=False, failure="horizon"):
+        return dict(seed=1, policy="largest", objects=5, success=success, actions=actions,
+                    action_kinds=["grasp"] * actions, failure=failure, stop_reason=failure or "success")
+
+    assert truncate_record(rec(4, True, ""), 10) == rec(4, True, "")  # ended within the budget
+    assert truncate_record(rec(10, True, ""), 10) == rec(10, True, "")  # succeeded with the last action
+    assert truncate_record(rec(7, False, "too_many_pushes"), 10)["failure"] == "too_many_pushes"
+    cut = truncate_record(rec(14, True, ""), 10)  # succeeded later: a horizon failure at H
+    assert (cut["success"], cut["actions"], cut["failure"], len(cut["action_kinds"]), cut["truncated_from"]) == \
+        (False, 10, "horizon", 10, 14)
+    assert truncate_record(rec(10, False, "grasps_below_threshold"), 10)["failure"] == "horizon"
+    assert truncate_record(rec(10, False, "target_removed"), 10)["failure"] == "target_removed"
+
+
+def test_a_rollout_cut_at_a_smaller_budget_equals_a_run_with_that_budget():
+    from ms_drake.experiments.harness import truncate_record
+    from ms_drake.experiments.rollout import rollout
+    from ms_drake.scenario import load_scenario
+    from ms_drake.scenes.heaps import generate_heap
+
+    keys = ("success", "actions", "action_kinds", "failure")
+    for seed in (14, 16, 13):  # heaps whose random search took 4-6 actions when this was written
+        heap = generate_heap(load_scenario(None, "BinHeap15"), 5, seed=seed)
+        long = rollout("random", 5, seed, heap=heap, horizon=8).record()
+        if long["actions"] >= 3:
+            break
+    assert long["actions"] >= 3, "pick a heap whose search takes a few actions"
+    for h in (2, long["actions"] - 1):
+        short = rollout("random", 5, seed, heap=heap, horizon=h).record()
+        assert {k: short[k] for k in keys} == {k: truncate_record(long, h)[k] for k in keys}
+
+
+def test_a_killed_two_worker_run_resumes(tmp_path):
+    """sims/bench_search.py with a pool of 2: kill the whole run after its first result, rerun the
+    same command: every seed once, the first result kept; heaps made by the workers, each once."""
+    import json
+    import os
+    import signal
+    import time
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    cmd = [sys.executable, str(root / "sims" / "bench_search.py"), "--objects", "2", "--heaps", "3",
+           "--seed-start", "40", "--policies", "largest", "--horizon", "2", "--workers", "2", "--out", str(tmp_path)]
+    out = tmp_path / "largest_N2_H2.jsonl"
+    p = subprocess.Popen(cmd, cwd=root, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        t0 = time.time()
+        while not (out.exists() and out.read_text().strip()) and time.time() - t0 < 300 and p.poll() is None:
+            time.sleep(0.2)
+    finally:
+        os.killpg(p.pid, signal.SIGKILL)
+        p.wait()
+    first = [json.loads(x) for x in out.read_text().splitlines() if x.strip()]
+    assert 1 <= len(first) <= 3
+    r = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    recs = read_records(out)
+    assert sorted(x["seed"] for x in recs) == [40, 41, 42] and recs[0] == first[0]
+    assert len({x["pid"] for x in recs}) >= 1 and sorted(p.name for p in (tmp_path / "heaps").iterdir()) == \
+        [f"heap_N2_s{k}.json" for k in (40, 41, 42)]
+    assert "| largest | 2 | 2 |" in r.stdout

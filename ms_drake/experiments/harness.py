@@ -80,40 +80,105 @@ def final_records(recs: list[dict]) -> list[dict]:
     return list(out.values())
 
 
-def run_bench(policy: str, objects: int, heaps: int, seed_start: int, out: Path, workers: int = 1,
+def result_file(out_dir, policy: str, objects: int, horizon: int | None = None) -> Path:
+    """<out_dir>/<policy>_N<N>.jsonl (horizon 2N) or <policy>_N<N>_H<H>.jsonl."""
+    return Path(out_dir) / (f"{policy}_N{objects}.jsonl" if horizon is None else f"{policy}_N{objects}_H{horizon}.jsonl")
+
+
+def _matches(r: dict, policy: str, objects: int, fidelity: str) -> bool:
+    return r.get("policy") == policy and r.get("objects") == objects and r.get("fidelity", "primitive") == fidelity
+
+
+def _done_seeds(path: Path, policy: str, objects: int, fidelity: str) -> set[int]:
+    return {int(r["seed"]) for r in final_records(read_records(path))
+            if _matches(r, policy, objects, fidelity) and r.get("failure") != "worker_died"}
+
+
+def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, workers: int = 1,
               fidelity: str = "primitive", horizon: int | None = None, use_ray: bool = False,
               ray_address: str | None = None, progress=None, heap_dir: str | None = None) -> dict:
-    """Run the missing rollouts of seeds S..S+K-1, append them to `out`; returns the summary."""
+    """The missing rollouts of every run (policy, N, result file) on seeds S..S+K-1, all through
+    ONE pool of `workers` processes; each record is appended (flushed, fsync'ed) to its run's file
+    as it completes, so a killed run loses only the rollouts in flight and the same command
+    resumes it. Jobs are queued run by run (all seeds of the first run, then the next), so with a
+    shared `heap_dir` the first run's workers generate the heaps in parallel, each heap once, and
+    later runs load them. Returns {(policy, N): summary}."""
     from ms_drake.parallel import run_jobs
 
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    done = {int(r["seed"]) for r in final_records(read_records(out))
-            if r.get("policy") == policy and r.get("objects") == objects and r.get("fidelity", "primitive") == fidelity
-            and r.get("failure") != "worker_died"}
-    seeds = [k for k in range(seed_start, seed_start + heaps) if k not in done]
-    jobs = [(policy, objects, k, fidelity, horizon, heap_dir) for k in seeds]
+    jobs, done = [], {}
+    for policy, objects, out in runs:
+        out = Path(out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        done[(policy, objects)] = _done_seeds(out, policy, objects, fidelity)
+        jobs += [(policy, objects, k, fidelity, horizon, heap_dir) for k in range(seed_start, seed_start + heaps)
+                 if k not in done[(policy, objects)]]
+    files = {(policy, objects): Path(out) for policy, objects, out in runs}
     t0 = time.perf_counter()
-    with open(out, "a") as f:
+    handles = {}
+    try:
         for r in run_jobs(rollout_job, jobs, workers=workers, use_ray=use_ray, ray_address=ray_address):
+            policy, objects, seed = r.job[0], r.job[1], r.job[2]
             if r.ok:
                 rec = r.value
             else:
-                rec = dict(seed=r.job[2], policy=policy, fidelity=fidelity, objects=objects, success=False,
+                err = (r.error or "").strip().splitlines()
+                rec = dict(seed=seed, policy=policy, fidelity=fidelity, objects=objects, success=False,
                            actions=0, action_kinds=[], failure="worker_died", stop_reason="",
-                           error=(r.error or "").strip().splitlines()[-1:] or [""], seconds=0.0)
-                rec["error"] = rec["error"][0]
+                           error=err[-1] if err else "", seconds=0.0)
+            key = (policy, objects)
+            if key not in handles:
+                handles[key] = open(files[key], "a")
+            f = handles[key]
             f.write(json.dumps(rec) + "\n")
             f.flush()
             os.fsync(f.fileno())
             if progress is not None:
                 progress(rec)
-    recs = [r for r in final_records(read_records(out)) if r.get("policy") == policy and r.get("objects") == objects
-            and r.get("fidelity", "primitive") == fidelity and seed_start <= int(r["seed"]) < seed_start + heaps]
-    summ = summarize(recs)
-    summ.update(resumed=len(done & set(range(seed_start, seed_start + heaps))), ran=len(jobs),
-                wall_seconds=time.perf_counter() - t0)
-    return summ
+    finally:
+        for f in handles.values():
+            f.close()
+    wall = time.perf_counter() - t0
+    out = {}
+    for policy, objects, path in runs:
+        recs = [r for r in final_records(read_records(path)) if _matches(r, policy, objects, fidelity)
+                and seed_start <= int(r["seed"]) < seed_start + heaps]
+        summ = summarize(recs)
+        summ.update(resumed=len(done[(policy, objects)] & set(range(seed_start, seed_start + heaps))),
+                    ran=sum(1 for j in jobs if j[:2] == (policy, objects)), wall_seconds=wall)
+        out[(policy, objects)] = summ
+    return out
+
+
+def run_bench(policy: str, objects: int, heaps: int, seed_start: int, out: Path, workers: int = 1,
+              fidelity: str = "primitive", horizon: int | None = None, use_ray: bool = False,
+              ray_address: str | None = None, progress=None, heap_dir: str | None = None) -> dict:
+    """Run the missing rollouts of seeds S..S+K-1, append them to `out`; returns the summary."""
+    return run_suite([(policy, objects, Path(out))], heaps, seed_start, workers=workers, fidelity=fidelity,
+                     horizon=horizon, use_ray=use_ray, ray_address=ray_address, progress=progress,
+                     heap_dir=heap_dir)[(policy, objects)]
+
+
+def truncate_record(rec: dict, horizon: int) -> dict:
+    """The record a rollout would have had with the smaller action budget `horizon`. The first
+    `horizon` actions of a rollout do not depend on its budget (the selector's choices, the grasp
+    draws and the simulation are functions of the seed and the step; the budget is checked only
+    before choosing the next action), so: fewer than `horizon` actions -> unchanged; more -> it
+    stops after `horizon` actions with failure "horizon"; exactly `horizon` -> unchanged when it
+    ended by success, target_removed, sim_blew_up or timeout (the last two: only the failure's
+    name could differ, never success or the count), else "horizon" (the budget is checked before
+    a no_action / too_many_pushes choice). Lets Table 8.2's Random and Largest at H = 10 come from
+    the Ch. 7 runs at 2N (tests/test_harness.py checks it against a run at the smaller budget).
+    Timing fields stay those of the whole rollout; `truncated_from` keeps its action count."""
+    r = dict(rec)
+    n = int(r["actions"])
+    if r.get("failure") == "worker_died" or n < horizon or (
+            n == horizon and (r.get("success") or r.get("failure") in ("target_removed", "sim_blew_up", "timeout"))):
+        return r
+    r.update(actions=horizon, action_kinds=list(r.get("action_kinds", []))[:horizon], success=False,
+             failure="horizon", stop_reason="horizon", truncated_from=n)
+    r.pop("grasp_successes", None)
+    r.pop("grasp_plans", None)
+    return r
 
 
 def _boot(x: np.ndarray, stat, rng) -> tuple[float, float]:
