@@ -120,6 +120,7 @@ def test_rollout_is_reproducible_from_its_seed(heap4):
     a, b = ({k: v for k, v in rollout("largest", 4, 3, heap=heap4).record().items() if k not in timing}
             for _ in range(2))
     assert a == b and a["actions"] >= 1 and a["grasp_plans"] >= a["actions"]
+    assert a["objects"] == 4 and a["objects_present"] == len(heap4.objects)
 
 
 def test_lazy_planner_wired_in_the_search_diagram(scene):

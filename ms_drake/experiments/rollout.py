@@ -103,7 +103,7 @@ class RolloutResult:
     seed: int
     policy: str
     fidelity: str
-    objects: int
+    objects: int  # N requested (the heap generator drops objects that leave the bin)
     success: bool
     actions: int
     action_kinds: list
@@ -114,6 +114,7 @@ class RolloutResult:
     sim_seconds: float
     target: str = ""
     grasp_successes: int = 0
+    objects_present: int = 0  # objects in the heap searched (its budget 2N counts these)
     grasp_plans: int = 0  # object grasp plans (LazyGraspPlanner: only the masks the selector reached)
     error: str = ""
     frames: list = field(default_factory=list, repr=False)
@@ -324,7 +325,8 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
         else:
             failure = reason or "unknown"
     kinds = [o.action.kind for o in history]
-    res = RolloutResult(seed=heap.seed, policy=params.policy, fidelity=params.fidelity, objects=n, success=success,
+    res = RolloutResult(seed=heap.seed, policy=params.policy, fidelity=params.fidelity, objects=n, objects_present=n,
+                        success=success,
                         actions=len(history), action_kinds=kinds, failure=failure, stop_reason=reason,
                         seconds=time.perf_counter() - t_wall, cpu_seconds=time.process_time() - t_cpu,
                         sim_seconds=float(context.get_time()),
@@ -348,7 +350,9 @@ def rollout(policy: str, objects: int, seed: int, fidelity: str = "primitive", h
         heap = generate_heap(load_scenario(None, "BinHeap15"), objects, seed)
     scenario = load_scenario(None, SCENARIOS[fidelity])
     system = build_search(scenario, heap, params, meshcat=meshcat)
-    return run_search(system, heap, params, keep_frames=keep_frames, meshcat=meshcat)
+    res = run_search(system, heap, params, keep_frames=keep_frames, meshcat=meshcat)
+    res.objects = int(objects)  # the N asked for: what the benchmark's files are keyed by
+    return res
 
 
 class RolloutError(MsDrakeError, ValueError):
