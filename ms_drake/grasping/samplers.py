@@ -255,6 +255,19 @@ def _rect_top(H: np.ndarray, rc: np.ndarray, u: np.ndarray, along: tuple[float, 
     return float(H[r[ok], c[ok]].max()) if np.any(ok) else -np.inf
 
 
+def _edge_under_pad(foot: np.ndarray, rc: np.ndarray, inward: np.ndarray, half: float, depth: float) -> bool:
+    """True when the footprint holds the segment `half` cells to either side of contact `rc`
+    (perpendicular to the unit direction `inward`) pushed `depth` cells inwards: the contact is
+    on an edge the pad can press on, not a corner (whose smoothed normal points diagonally)."""
+    perp = np.array([-inward[1], inward[0]])
+    t = np.linspace(-half, half, 5)
+    pts = rc[None, :] + depth * inward[None, :] + t[:, None] * perp[None, :]
+    c = np.round(pts[:, 0]).astype(int)
+    r = np.round(pts[:, 1]).astype(int)
+    ok = (c >= 0) & (c < foot.shape[1]) & (r >= 0) & (r < foot.shape[0])
+    return bool(np.all(ok) and np.all(foot[r, c]))
+
+
 def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.ndarray, mask: np.ndarray,
                                   count: int, friction: float = 0.5, max_width: float = 0.1, seed: int = 0,
                                   grasp_depth: float = 0.015, jaw_margin: float = 0.01,
@@ -262,7 +275,8 @@ def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.nda
                                   min_grasp_depth: float = 0.005, max_grasp_depth: float = 0.03,
                                   pad_below: float = 0.015, finger_thickness: float = 0.018,
                                   finger_width: float = 0.02, palm_above: float = 0.045,
-                                  palm_size: tuple[float, float] = (0.13, 0.05), cell: float = 0.002,
+                                  palm_size: tuple[float, float] = (0.13, 0.05), clearance: float = 0.005,
+                                  cell: float = 0.002,
                                   prefer_center: bool = False) -> list[ParallelJawGrasp]:
     """Top-down (approach = world -z) antipodal grasps on the object under `mask` (H, W bool) of a
     depth image. K: 3x3 intrinsics; X_WC: 4x4 camera pose (camera z = optical axis). World frame.
@@ -271,7 +285,9 @@ def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.nda
     highest point per cell), so the geometry is metric and orthographic whatever the camera's
     perspective: the object's footprint is the cells holding its mask's points, contacts are pairs
     of footprint-boundary cells whose 2D outward normals are antipodal within the friction cone,
-    the grasp axis is horizontal. (The first version paired image-boundary pixels and deprojected
+    the grasp axis is horizontal; both contacts must lie on an edge that stays inside the
+    footprint +-0.4 finger_width across the axis (2 cells in), which drops corner-to-corner pairs
+    whose smoothed normals look antipodal. (The first version paired image-boundary pixels and deprojected
     their midpoint: for a tall object off the optical axis the mask spans its top and its side, and
     the midpoint landed up to 2 cm beside the object.)
 
@@ -286,7 +302,8 @@ def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.nda
     neighbour, or an occluder lying on the mask's edge, is in the way). The defaults are the
     station's parallel jaw (ms_drake.station.grippers.ParallelJawConfig: fingers 12 mm + 6 mm
     pad thick and 20 mm wide, pads 30 mm long centred on the tool point, palm 130 x 50 mm
-    45 mm above it). Half-way down is where a lying cylinder is widest and
+    45 mm above it). `clearance` (metres) is kept between the jaw and what the height map shows,
+    vertically and around the palm's outline (the map is the visible surface only). Half-way down is where a lying cylinder is widest and
     where a tilted box's side faces are under both jaws; 1 cm under the highest point (the first
     version) put one jaw above a tilted top face.
 
@@ -337,7 +354,8 @@ def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.nda
     rc = np.stack([bcol, brow], axis=1).astype(float)
     centroid = np.array(np.nonzero(foot)[::-1], float).mean(axis=1)
     reach_c, half_c, margin_c = reach / cell, 0.5 * finger_width / cell, max(1.0, jaw_margin / cell)
-    palm_a, palm_b = 0.5 * palm_size[0] / cell, 0.5 * palm_size[1] / cell
+    edge_c = 0.4 * finger_width / cell  # +-8 mm of edge under the 20 mm pad
+    palm_a, palm_b = (0.5 * palm_size[0] + clearance) / cell, (0.5 * palm_size[1] + clearance) / cell
     wanted = count
     cands, kept = [], []
     for i in rng.permutation(len(brow))[: 40 * max(wanted, 1)]:
@@ -360,6 +378,8 @@ def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.nda
             continue
         z_top = float(zs.max())
         u2 = vv[j] / d[j]
+        if not (_edge_under_pad(foot, rc[i], u2, edge_c, 2) and _edge_under_pad(foot, rc[j], -u2, edge_c, 2)):
+            continue
         # neighbours anywhere between the contact and the finger's back; the object itself only
         # where the finger is (an axis oblique to the edge passes over the object's own corner)
         z_free = max(_rect_top(H_others, rc[i], -u2, (1, reach_c), half_c),
@@ -369,7 +389,7 @@ def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.nda
         below = grasp_depth if not np.isfinite(z_free) else float(
             np.clip(0.5 * (z_top - z_free), min_grasp_depth, max_grasp_depth))
         z_palm = _rect_top(H_all, 0.5 * (rc[i] + rc[j]), u2, (-palm_a, palm_a), palm_b)
-        z = max(z_top - below, z_free + pad_below, z_palm - palm_above)
+        z = max(z_top - below, z_free + pad_below + clearance, z_palm - palm_above + clearance)
         if z_top - z < min_grasp_depth - 1e-9:
             continue
         mid = 0.5 * (rc[i] + rc[j]) + 0.5
