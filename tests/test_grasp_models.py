@@ -123,6 +123,34 @@ def test_bad_input_gives_zero_with_reason_never_raises():
     assert ev.evaluate(empty, I4, CENTER, 0.3).quality == 0.0
 
 
+@pytest.mark.parametrize("model", MODELS)
+def test_every_model_bad_input_is_zero_with_a_reason(model):
+    """Issue 4's bad-input list for every model, nominal and robust: quality 0.0 (never NaN,
+    never an exception) and a reason the caller can read."""
+    from ms_drake.types import Grasp
+
+    ev = GraspEvaluator(model)
+    open_box = BOX.copy()
+    open_box.update_faces(np.arange(len(open_box.faces)) != 0)
+    flat = trimesh.Trimesh([[0, 0, 0], [0.05, 0, 0], [0, 0.05, 0]], [[0, 1, 2]], process=False)
+    far = ParallelJawGrasp([0, 0, 0.3], [1, 0, 0], [0, 0, -1], 0.08)
+    nan_grasp = Grasp("parallel_jaw", (np.nan, 0.0, 0.0), (0.0, 0.0, -1.0), (1.0, 0.0, 0.0), 0.08)
+    cases = [
+        ((open_box, I4, CENTER, 0.3), "non_watertight_mesh"),
+        ((flat, I4, CENTER, 0.3), "non_watertight_mesh"),
+        ((BOX, I4, far, 0.3), "miss"),
+        ((BOX, I4, nan_grasp, 0.3), "invalid_input"),
+        ((BOX, np.full((4, 4), np.nan), CENTER, 0.3), "invalid_input"),
+        ((BOX, I4, CENTER, 0.0), "invalid_input"),
+    ]
+    for args, reason in cases:
+        for n in (0, 3):
+            r = ev.evaluate(*args, robust_samples=n, seed=1)
+            assert (r.quality, r.reason) == (0.0, reason), (model, reason, n, r)
+            assert ev.quality(*args, robust_samples=n) == 0.0
+    assert ev.evaluate(BOX, I4, CENTER, 0.3, robust_samples=-1).reason == "invalid_input"
+
+
 def test_zero_area_patch():
     """A jaw meeting a box edge with (almost) no deformation touches a line: zero area."""
     ev = GraspEvaluator("6dfc", material_constant=1e-13)

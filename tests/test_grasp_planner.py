@@ -128,3 +128,33 @@ def test_planner_in_diagram_with_rendered_depth():
     assert np.linalg.norm(centers["box"][:2] - [-0.03, 0.0]) < 0.04
     assert np.linalg.norm(centers["cyl"][:2] - [0.07, 0.01]) < 0.04
     assert all(g.quality == 1.0 and g.model == "6dfc" for g in grasps)
+
+
+def test_object_geometry_source_alone():
+    from pydrake.multibody.plant import MultibodyPlant
+    from pydrake.multibody.tree import SpatialInertia
+
+    plant = MultibodyPlant(0.0)
+    box = plant.AddRigidBody("box", SpatialInertia.SolidBoxWithMass(0.2, 0.04, 0.06, 0.03))
+    plant.Finalize()
+    src = ObjectGeometrySource({"box": (box, BOX, 0.2, (0.0, 0.0, 0.001))})
+    ctx = src.CreateDefaultContext()
+    X = RigidTransform(RollPitchYaw(0, 0, 0.3), [0.1, -0.2, 0.05])
+    poses = [RigidTransform() for _ in range(plant.num_bodies())]
+    poses[int(box.index())] = X
+    src.GetInputPort("body_poses").FixValue(ctx, poses)
+    (g,) = src.GetOutputPort("objects").Eval(ctx)
+    assert g.id == "box" and g.mass == 0.2 and g.com == (0.0, 0.0, 0.001)
+    assert np.allclose(g.X_WO, X.GetAsMatrix4()) and len(g.faces) == len(BOX.faces)
+
+
+def test_planner_rejects_bad_parameters():
+    from ms_drake.grasping import GraspError
+
+    info = CameraInfo(128, 96, 300.0, 300.0, 63.5, 47.5)
+    with pytest.raises(GraspError, match="candidate_pool"):
+        GraspPlanner(info, model="soft_point", candidate_pool=0)
+    with pytest.raises(GraspError, match="jaw_margin"):
+        GraspPlanner(info, model="soft_point", jaw_margin=0.2)
+    with pytest.raises(GraspError, match="unknown"):
+        GraspPlanner(info, model="bogus")
