@@ -201,3 +201,97 @@ def test_estimator_wired_to_a_station(bin_scenario, small_heap):
     assert rho.sum() == pytest.approx(1.0) or not rho.any()
     if target.visible:  # the support holds the visible target
         assert (rho[target.mask] > 0).mean() > 0.9
+
+
+def raycast_depth(scene, window=(150, 490, 100, 380)):
+    """Exact depth image of CAM looking at the trimesh `scene` (world frame) over the floor z = 0,
+    ray cast inside the pixel window (u0, u1, v0, v1); the floor elsewhere."""
+    v, u = np.mgrid[0:CAM.height, 0:CAM.width]
+    d = heightfield_depth(lambda x, y: 0.0 * x)
+    u0, u1, v0, v1 = window
+    uu, vv = u[v0:v1, u0:u1].ravel(), v[v0:v1, u0:u1].ravel()
+    dirs = np.stack([(uu - CAM.cx) / CAM.fx, -(vv - CAM.cy) / CAM.fy, -np.ones(len(uu))], axis=1)
+    origins = np.tile([0.0, 0.0, 0.8], (len(uu), 1))
+    loc, ray, _ = scene.ray.intersects_location(origins, dirs, multiple_hits=False)
+    dd = d[v0:v1, u0:u1].ravel().copy()
+    dd[ray] = 0.8 - loc[:, 2]  # depth = distance along the optical axis (world -z)
+    d[v0:v1, u0:u1] = dd.reshape(v1 - v0, u1 - u0)
+    return d
+
+
+def lying_cylinder(x0=0.02, y0=-0.01, radius=0.015, length=0.08):
+    """A cylinder lying along the world x on the floor: (its mesh in the world, TargetMesh at its pose)."""
+    import trimesh
+
+    from ms_drake.perception.occupancy import TargetMesh
+
+    m = trimesh.creation.cylinder(radius=radius, height=length, sections=32)  # axis = its z
+    R = RollPitchYaw(0, np.pi / 2, 0).ToRotationMatrix().matrix()  # its z along the world x
+    p = np.array([x0, y0, radius])
+    world = m.copy().apply_transform(np.block([[R, p[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]))
+    return world, TargetMesh(np.asarray(m.vertices), np.asarray(m.faces), R, p)
+
+
+def test_a_visible_cylinder_matches_its_own_mesh_placement():
+    import trimesh
+
+    from ms_drake.perception.occupancy import TargetMesh
+
+    cyl, target = lying_cylinder()
+    grid = OccupancyGrid((64, 48), 8)
+    occ = AnalyticOccupancy(CAM, BIN, target, grid)
+    assert len(occ.angles) == 8 and np.isclose(occ.angles[-1], 7 * np.pi / 8)  # turned by pi it looks the same
+    # A 4 cm slab covers one end: the seen part is the rest of the cylinder.
+    cover = trimesh.creation.box((0.05, 0.10, 0.04)).apply_translation((0.075, 0.0, 0.02))
+    d = raycast_depth(trimesh.util.concatenate([cyl, cover]))
+    d_alone = raycast_depth(cyl)
+    seen = (d < 0.8 - 1e-4) & (np.abs(d - d_alone) < 1e-6)
+    x, _ = surface_xy(d)
+    assert 300 < seen.sum() and x[seen].max() < 0.05
+    rho = occ.estimate(d, seen)
+    assert occ.last_matches >= 1  # the grid was aligned on the true pose: its placement matches
+    assert rho.sum() == pytest.approx(1.0) and rho[seen].sum() > 0.5
+    v, u = np.nonzero(rho > 0)
+    assert x[v, u].max() > 0.05  # the amodal masks reach under the slab
+    # Hidden under a wide slab: the distribution spreads under the slab only.
+    wide = trimesh.creation.box((0.16, 0.12, 0.04)).apply_translation((0.02, 0.0, 0.02))
+    d2 = raycast_depth(trimesh.util.concatenate([cyl, wide]))
+    rho2 = occ.estimate(d2, np.zeros(d2.shape, bool))
+    under = d2 < 0.8 - 0.035
+    assert occ.last_matches > 0 and rho2[~under].sum() < 0.05
+    # Not symmetric under a half turn (an L-shaped mesh): the bins span the whole turn.
+    L = trimesh.util.concatenate([trimesh.creation.box((0.06, 0.02, 0.01)),
+                                  trimesh.creation.box((0.02, 0.04, 0.01)).apply_translation((0.02, 0.03, 0))])
+    occ_l = AnalyticOccupancy(CAM, BIN, TargetMesh(np.asarray(L.vertices), np.asarray(L.faces), np.eye(3)), grid)
+    assert np.isclose(occ_l.angles[-1], 7 * 2 * np.pi / 8) and occ_l.grid.offset == (0, 0)
+    with pytest.raises(PerceptionError, match="TargetMesh"):
+        TargetMesh(np.zeros((2, 3)), np.zeros((0, 3), int), np.eye(3))
+
+
+def test_visible_cylinder_target_in_a_heap_gets_a_distribution_on_its_mask(bin_scenario, small_heap):
+    """Every visible cylinder of a small heap as the target, its own mesh at its true pose: a
+    non-zero distribution that overlaps its mask (placements matched, or the mask as fallback)."""
+    from ms_drake.perception.masks import label_image_to_masks
+    from ms_drake.perception.occupancy import TargetMesh
+    from ms_drake.station import station_objects
+
+    s = scenario_with_heap(copy.deepcopy(bin_scenario), small_heap)
+    station = MakeStation(s)
+    ctx = station.CreateDefaultContext()
+    set_heap_poses(station, ctx, small_heap)
+    depth = np.array(station.GetOutputPort("overhead.depth_image").Eval(ctx).data)[:, :, 0]
+    labels = np.array(station.GetOutputPort("overhead.label_image").Eval(ctx).data)[:, :, 0]
+    plant = get_plant(station)
+    masks = label_image_to_masks(labels, object_labels(plant))
+    cam, ws = PinholeCamera.from_config(s.cameras["overhead"]), Workspace.from_scenario(s)
+    tried = matched = 0
+    for o, so in zip(small_heap.objects, station_objects(plant)):
+        if "cylinder" not in o.name or so.model_name not in masks.ids:
+            continue
+        M = masks.masks[masks.ids.index(so.model_name)]
+        occ = AnalyticOccupancy(cam, ws, TargetMesh.from_object(o.name, o.matrix()))
+        rho = occ.estimate(depth, M)
+        tried += 1
+        matched += occ.last_matches > 0
+        assert rho.sum() == pytest.approx(1.0) and rho[M].sum() > 0.5
+    assert tried >= 1 and matched >= 1

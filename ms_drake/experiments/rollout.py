@@ -143,7 +143,7 @@ def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSy
     from ms_drake.grasping.planner import GraspPlanner, ObjectGeometrySource
     from ms_drake.objects import get_object
     from ms_drake.perception.masks import PinholeCamera, object_labels
-    from ms_drake.perception.occupancy import OccupancyEstimator, TargetBox
+    from ms_drake.perception.occupancy import OccupancyEstimator, TargetBox, TargetMesh
     from ms_drake.perception.segmentation import Segmenter, Workspace
     from ms_drake.perception.target import TargetDetector
     from ms_drake.policies import PolicySelector, SelectorParams
@@ -202,8 +202,11 @@ def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSy
         builder.Connect(pushes.GetOutputPort("pushes"), selector.GetInputPort("pushes"))
         perception["pushes"] = pushes
     if params.policy == "xray" or meshcat is not None or params.policy == "oracle":
-        occ = builder.AddSystem(OccupancyEstimator("analytic", camera=cam, workspace=ws,
-                                                   target_size=TargetBox.from_object(heap.target)))
+        # The target's own mesh at its true initial pose (Ch. 8.3.1 renders the target itself):
+        # rotation bin 0 and a grid node are its true placement (see occupancy.TargetMesh).
+        shape = (TargetMesh.from_object(heap.target, heap.objects[heap.target_index].matrix())
+                 if heap.target_index >= 0 else TargetBox.from_object(heap.target))
+        occ = builder.AddSystem(OccupancyEstimator("analytic", camera=cam, workspace=ws, target_size=shape))
         builder.Connect(depth, occ.GetInputPort("depth_image"))
         builder.Connect(det.GetOutputPort("target"), occ.GetInputPort("target"))
         if params.policy == "xray":

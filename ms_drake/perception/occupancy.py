@@ -5,7 +5,13 @@ covers it given the observation. Backends share one interface, ``estimate(depth,
 -> (H, W) float`` (sums to 1, or all 0), so the learned network of a later issue plugs in.
 
 ``AnalyticOccupancy`` -- the ground-truth generator of Ch. 8.3.1. The target is a box of the
-given size lying flat (thickness along the world z). Its placements are a 64 x 48 grid of
+given size lying flat (thickness along the world z; the reference's dataset targets), or any
+object given as a ``TargetMesh``: its own mesh in its resting orientation (in simulation, the
+heap's true pose), whose silhouette (`mesh_silhouette`) is shifted and turned
+like the box's, its height above the floor playing the box's thickness. Rotation bin 0 is the
+given orientation and, with a known position, the grid is shifted (by less than a stride) so the
+true placement is one of the placements: a visible target then always has at least its own
+placement to match, up to the shift approximation below. Its placements are a 64 x 48 grid of
 image translations (the reference: every 8 px of its 512 x 384 images; here the grid scales with
 the image: every 10 px of 640 x 480) times 16 yaw rotations. Rotations span [0, pi) because the
 box looks the same turned by pi (the reference does not say; 16 bins over 2 pi would count
@@ -23,9 +29,14 @@ normalized. Choices where the text is silent (recorded here):
     camera; pixels whose centre falls inside, as a renderer samples them) and translated; the
     visible surface of the box is its top face;
   * a placement may overlap objects (the test is the image, not physics), as in the reference;
-  * when the target is visible but no placement matches (e.g. it rests tilted on another
-    object), the distribution collapses to the observed modal mask ("when the object is fully
-    visible, the distribution's support collapses to ... the modal segmentation mask").
+  * a TargetMesh pixel counts as seen where the observed surface is not above the target's
+    highest point (its height in the resting orientation): one threshold for the whole
+    silhouette, as for the box, so an occluder resting lower than the target's top on the
+    target's own footprint is not told apart (rare; per-pixel heights would multiply the runs);
+  * when the target is visible but no placement matches (the shift approximation far from the
+    image centre, or a target that moved since the generator was built), the distribution falls
+    back to the observed modal mask rather than all zeros ("when the object is fully visible,
+    the distribution's support collapses to ... the modal segmentation mask").
 
 Speed (the reference: 1.5 s per image): every silhouette is stored as row runs [x0, x1]. With
 S the row-wise prefix sums of the "would be visible" image V (packed with V & M in one int32,
@@ -96,6 +107,40 @@ class TargetBox:
         return np.asarray(m.vertices), np.asarray(m.faces)
 
 
+@dataclass(frozen=True, eq=False)
+class TargetMesh:
+    """A target of any shape in a resting orientation (Ch. 8.3.1 renders "a target-only depth
+    image" of the target itself). vertices (V, 3) / faces (F, 3): its surface in its own frame;
+    R_WO: its orientation in the world, rotation bin 0 (the other bins turn it about the world
+    z); p_WO: its position when known (simulation: the heap's true pose), which aligns the
+    translation grid so that the true placement is one of the placements (None: the plain grid).
+    The placement's anchor is the object frame's origin; the target rests on the floor (its
+    lowest vertex at the floor)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    R_WO: np.ndarray
+    p_WO: np.ndarray | None = None
+
+    def __post_init__(self):
+        v, f, R = np.asarray(self.vertices, float), np.asarray(self.faces), np.asarray(self.R_WO, float)
+        if v.ndim != 2 or v.shape[1] != 3 or len(v) < 4 or f.ndim != 2 or f.shape[1] != 3 or R.shape != (3, 3) \
+                or not np.allclose(R.T @ R, np.eye(3), atol=1e-6):
+            raise PerceptionError("TargetMesh needs vertices (V >= 4, 3), faces (F, 3) and a 3x3 rotation R_WO; "
+                                  "build it with TargetMesh.from_object(full_name, X_WO)")
+
+    @staticmethod
+    def from_object(full_name: str, X_WO=None) -> "TargetMesh":
+        """The registry object's mesh; X_WO (4x4 or RigidTransform): its pose (default: as modelled)."""
+        from ms_drake.objects import get_object
+
+        m = get_object(full_name).trimesh()
+        X = np.eye(4) if X_WO is None else (X_WO.GetAsMatrix4() if hasattr(X_WO, "GetAsMatrix4")
+                                             else np.asarray(X_WO, float))
+        return TargetMesh(np.asarray(m.vertices, float), np.asarray(m.faces), X[:3, :3],
+                          None if X_WO is None else X[:3, 3].copy())
+
+
 def _yaw(theta: float) -> np.ndarray:
     c, s = np.cos(theta), np.sin(theta)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -137,6 +182,32 @@ def convex_silhouette(camera: PinholeCamera, vertices_W: np.ndarray) -> np.ndarr
     return mask
 
 
+def mesh_silhouette(camera: PinholeCamera, vertices_W: np.ndarray, faces: np.ndarray, supersample: int = 4) -> np.ndarray:
+    """(H, W) bool silhouette of a mesh (in front of the camera) by the area rule: pixels at least
+    half covered, from a `supersample`-times finer rasterization of its triangles (a renderer's
+    pixel-centre rule within 1 / supersample pixel; masks.silhouette fills every pixel a triangle
+    touches, a 1-px wider mask, i.e. ~10 % more pixels for a 3 x 8 cm target 0.8 m away)."""
+    uv, z = camera.project(vertices_W)
+    if np.any(z <= 1e-3):
+        raise PerceptionError("the target must lie in front of the camera")
+    k = int(supersample)
+    lo = np.maximum(np.floor(uv.min(axis=0)).astype(int) - 1, 0)
+    hi = np.minimum(np.ceil(uv.max(axis=0)).astype(int) + 2, [camera.width, camera.height])
+    mask = np.zeros((camera.height, camera.width), bool)
+    if np.any(hi <= lo):
+        return mask
+    w, h = hi - lo
+    fine = np.zeros((h * k, w * k), np.uint8)
+    # Fine pixel (i, j) has its centre at fine coordinate (i, j); image pixel u spans fine pixels
+    # k u .. k u + k - 1, whose middle is k u + (k - 1) / 2.
+    pts = np.round(((uv - lo) * k + (k - 1) / 2.0) * 16).astype(np.int32)
+    for tri in pts[faces]:
+        cv2.fillConvexPoly(fine, tri, 1, lineType=cv2.LINE_8, shift=4)
+    cover = fine.reshape(h, k, w, k).mean(axis=(1, 3))
+    mask[lo[1]:hi[1], lo[0]:hi[0]] = cover >= 0.5
+    return mask
+
+
 def _runs(mask: np.ndarray, anchor: tuple[int, int]) -> np.ndarray:
     """Row runs (dy, dx0, dx1) (inclusive ends) of a bool mask relative to pixel `anchor` = (u, v)."""
     d = np.diff(np.pad(mask.astype(np.int8), ((0, 0), (1, 1))), axis=1)
@@ -151,55 +222,103 @@ class OccupancyGrid:
 
     grid: tuple[int, int] = (64, 48)
     rotations: int = 16
+    offset: tuple[int, int] = (0, 0)  # pixels (u, v) added to every node, within half a stride
+
+    def strides(self, width: int, height: int) -> tuple[int, int]:
+        return max(width // self.grid[0], 1), max(height // self.grid[1], 1)
 
     def pixels(self, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-        """Grid pixel coordinates (u (cols,), v (rows,)): stride W // cols, centred."""
+        """Grid pixel coordinates (u (cols,), v (rows,)): stride W // cols, centred, + offset."""
         gw, gh = self.grid
         if gw < 1 or gh < 1 or self.rotations < 1:
             raise PerceptionError(f"occupancy grid {self.grid} x {self.rotations} rotations: all must be >= 1")
-        sx, sy = max(width // gw, 1), max(height // gh, 1)
+        sx, sy = self.strides(width, height)
+        if not (-(sx // 2) <= self.offset[0] <= (sx - 1) // 2 and -(sy // 2) <= self.offset[1] <= (sy - 1) // 2):
+            raise PerceptionError(f"occupancy grid offset {self.offset}: keep it within half a stride ({sx}, {sy})")
         ox, oy = (width - sx * gw) // 2 + sx // 2, (height - sy * gh) // 2 + sy // 2
-        return ox + sx * np.arange(gw), oy + sy * np.arange(gh)
+        return ox + self.offset[0] + sx * np.arange(gw), oy + self.offset[1] + sy * np.arange(gh)
+
+    def aligned(self, u: float, v: float, width: int, height: int) -> "OccupancyGrid":
+        """This grid shifted (by less than half a stride) so that pixel (u, v) is a node."""
+        sx, sy = self.strides(width, height)
+        base = OccupancyGrid(self.grid, self.rotations)
+        us, vs = base.pixels(width, height)
+        dx = int((round(u) - us[0] + sx // 2) % sx - sx // 2)
+        dy = int((round(v) - vs[0] + sy // 2) % sy - sy // 2)
+        return OccupancyGrid(self.grid, self.rotations, (dx, dy))
 
     def angles(self) -> np.ndarray:
         return np.pi * np.arange(self.rotations) / self.rotations
 
 
-def _valid_placements(camera, workspace, box: TargetBox, grid: OccupancyGrid):
-    """Grid pixels (u, v), box centres (N, 3) and flat grid indices of the placements in the bin."""
+def _valid_placements(camera, workspace, box: TargetBox, grid: OccupancyGrid, anchor_height: float | None = None,
+                      margin: float | None = None):
+    """Grid pixels (u, v), anchor points (N, 3) and flat grid indices of the placements in the bin
+    (anchor: the box centre, or a TargetMesh's origin at `anchor_height` above the floor, kept
+    `margin` inside the walls; defaults: the box's half thickness and half width)."""
     us, vs = grid.pixels(camera.width, camera.height)
     U, Vv = np.meshgrid(us, vs)
     p = floor_points(camera, U.ravel().astype(float), Vv.ravel().astype(float),
-                     workspace.floor_z + 0.5 * box.thickness)
+                     workspace.floor_z + (0.5 * box.thickness if anchor_height is None else anchor_height))
     ok = np.all(np.isfinite(p), axis=1)
-    ok[ok] = workspace.inside_xy(p[ok], margin=0.5 * box.width)
+    ok[ok] = workspace.inside_xy(p[ok], margin=0.5 * box.width if margin is None else margin)
     return U.ravel()[ok], Vv.ravel()[ok], p[ok], np.flatnonzero(ok)
 
 
 class AnalyticOccupancy:
     """Ground-truth occupancy generator (see the module doc). Precomputes the placements and the
-    per-rotation silhouettes once for a camera, workspace and target box."""
+    per-rotation silhouettes once for a camera, workspace and target: a TargetBox (or its size)
+    lying flat, or a TargetMesh (the target's own mesh in its resting orientation)."""
 
     name = "analytic"
 
     def __init__(self, camera: PinholeCamera, workspace: Workspace, target_size, grid: OccupancyGrid = OccupancyGrid(),
                  iou_threshold: float = 0.9, height_tolerance: float = 0.003):
-        self.camera, self.workspace, self.box, self.grid = camera, workspace, TargetBox.of(target_size), grid
+        self.camera, self.workspace = camera, workspace
         self.iou_threshold, self.height_tolerance = float(iou_threshold), float(height_tolerance)
-        self.gu, self.gv, _, self.grid_index = _valid_placements(camera, workspace, self.box, grid)
+        self.mesh = target_size if isinstance(target_size, TargetMesh) else None
+        anchor = (int(round(camera.cx)), int(round(camera.cy)))
+        au, av = np.array([float(anchor[0])]), np.array([float(anchor[1])])
+        if self.mesh is None:
+            self.box = TargetBox.of(target_size)
+            anchor_height, margin, self.top = 0.5 * self.box.thickness, 0.5 * self.box.width, self.box.thickness
+            c = floor_points(camera, au, av, workspace.floor_z + anchor_height)[0]
+            verts, _ = self.box.mesh_vertices_faces()
+            self.angles = grid.angles()
+            sils = [convex_silhouette(camera, verts @ _yaw(theta).T + c) for theta in self.angles]
+        else:
+            m = self.mesh
+            V = np.asarray(m.vertices, float) @ np.asarray(m.R_WO, float).T  # resting, origin at 0
+            anchor_height = float(-V[:, 2].min())
+            ext = np.ptp(V, axis=0)
+            self.box = TargetBox.of((ext[0], ext[1], ext[2]))  # its bounding box, for reference
+            margin, self.top = 0.5 * float(min(ext[0], ext[1])), float(ext[2])
+            c = floor_points(camera, au, av, workspace.floor_z + anchor_height)[0]
+            faces = np.asarray(m.faces)
+
+            def sil_at(theta):
+                return mesh_silhouette(camera, V @ _yaw(theta).T + c, faces)
+
+            # Turned by pi the target looks the same (boxes, cylinders)? Then [0, pi) as for
+            # boxes, else the bins span [0, 2 pi) (our choice; the text says 16 bins).
+            s0, s1 = sil_at(0.0), sil_at(np.pi)
+            symmetric = (s0 & s1).sum() / max((s0 | s1).sum(), 1) > 0.95
+            self.angles = grid.angles() * (1.0 if symmetric else 2.0)
+            sils = [sil_at(theta) for theta in self.angles]
+            if grid.offset == (0, 0) and m.p_WO is not None:
+                uv, _ = camera.project(np.asarray(m.p_WO, float)[None])
+                grid = grid.aligned(uv[0, 0], uv[0, 1], camera.width, camera.height)
+        self.grid = grid
+        self.gu, self.gv, _, self.grid_index = _valid_placements(camera, workspace, self.box, grid, anchor_height,
+                                                                 margin)
         if len(self.gu) == 0:
             raise PerceptionError("AnalyticOccupancy: no placement of the target lies inside the bin in this camera's "
                                   "view; check the camera pose and the workspace")
-        # Silhouette of the box under the principal point, per rotation, as runs: row runs, or
+        # Silhouette of the target under the principal point, per rotation, as runs: row runs, or
         # column runs when a silhouette has fewer columns than rows (an elongated target turned
         # near 90 degrees); a column run is stored as a row run of the transposed image.
-        anchor = (int(round(camera.cx)), int(round(camera.cy)))
-        c = floor_points(camera, np.array([float(anchor[0])]), np.array([float(anchor[1])]),
-                         workspace.floor_z + 0.5 * self.box.thickness)[0]
-        verts, _ = self.box.mesh_vertices_faces()
-        runs, self.transposed = [], np.zeros(grid.rotations, bool)
-        for r, theta in enumerate(grid.angles()):
-            sil = convex_silhouette(camera, verts @ _yaw(theta).T + c)
+        runs, self.transposed = [], np.zeros(len(self.angles), bool)
+        for r, sil in enumerate(sils):
             rows, cols = _runs(sil, anchor), _runs(sil.T, anchor[::-1])
             self.transposed[r] = len(cols) < len(rows)
             runs.append(cols if self.transposed[r] else rows)
@@ -210,6 +329,9 @@ class AnalyticOccupancy:
         self.idx0, self.idx1 = self._spans(self.gu, self.gv)
         # Farthest silhouette pixel from the anchor (pixels), for pruning placements in `match`.
         self.reach = float(np.hypot(np.abs(self.runs[:, 0]).max(), np.abs(self.runs[:, 1:]).max()))
+        # A hidden target cannot sit where its anchor pixel would be seen (when the anchor lies in
+        # every rotation's silhouette; a box's centre always does).
+        self.anchor_inside = all(bool(sil[anchor[1], anchor[0]]) for sil in sils)
         # World z of a pixel's point = depth * ray_z + camera z (the ray's z per unit depth).
         v, u = np.mgrid[0:camera.height, 0:camera.width]
         R = camera.X_WC.rotation().matrix()
@@ -252,20 +374,20 @@ class AnalyticOccupancy:
         M = np.asarray(target_mask, bool)
         if M.shape != (H, W):
             raise PerceptionError(f"target mask is {M.shape[1]}x{M.shape[0]}, the camera {W}x{H}")
-        V = self.height_map(depth) <= self.box.thickness + self.height_tolerance
+        V = self.height_map(depth) <= self.top + self.height_tolerance
         # int32 is exact: a row's prefix sum is < 2^10 + 2^26, a placement's sum < 2^13 + 2^29.
         packed = V.astype(np.int32) + ((V & M).astype(np.int32) << 16)
         m = int(M.sum())
         # Placements that can match at all: a hidden target's silhouette must not see the floor at
-        # its own centre pixel (the centre lies in every rotation's silhouette); a seen target's
-        # must cover > 90 % of the observed mask, so its centre lies within reach of the mask.
+        # its own anchor pixel; a seen target's must cover > 90 % of the observed mask, so its
+        # anchor lies within reach of the mask.
         if m == 0:
-            cand = np.flatnonzero(~V[self.gv, self.gu])
+            cand = np.flatnonzero(~V[self.gv, self.gu]) if self.anchor_inside else np.arange(len(self.gu))
         else:
             ys, xs = np.nonzero(M)
             reach = self.reach + 0.5 * np.hypot(np.ptp(xs), np.ptp(ys)) + 1.0
             cand = np.flatnonzero(np.hypot(self.gu - xs.mean(), self.gv - ys.mean()) <= reach)
-        out = np.zeros((len(self.gu), self.grid.rotations), bool)
+        out = np.zeros((len(self.gu), len(self.angles)), bool)
         if len(cand) == 0:
             return out
         Sf = np.zeros(H * (W + 1) + W * (H + 1), np.int32)
@@ -287,7 +409,7 @@ class AnalyticOccupancy:
         H, W = self.camera.height, self.camera.width
         gw, gh = self.grid.grid
         us, vs = self.grid.pixels(W, H)
-        counts = np.zeros((self.grid.rotations, gh * gw), np.int32)
+        counts = np.zeros((len(self.angles), gh * gw), np.int32)
         counts[:, self.grid_index] = matches.T
         counts = counts.reshape(-1, gh, gw)
         active = counts.reshape(len(counts), -1).any(axis=1)
