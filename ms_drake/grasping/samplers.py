@@ -276,8 +276,8 @@ def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.nda
                                   pad_below: float = 0.015, finger_thickness: float = 0.018,
                                   finger_width: float = 0.02, palm_above: float = 0.045,
                                   palm_size: tuple[float, float] = (0.13, 0.05), clearance: float = 0.005,
-                                  cell: float = 0.002,
-                                  prefer_center: bool = False) -> list[ParallelJawGrasp]:
+                                  cell: float = 0.002, prefer_center: bool = False,
+                                  max_attempts: int | None = None) -> list[ParallelJawGrasp]:
     """Top-down (approach = world -z) antipodal grasps on the object under `mask` (H, W bool) of a
     depth image. K: 3x3 intrinsics; X_WC: 4x4 camera pose (camera z = optical axis). World frame.
 
@@ -309,7 +309,8 @@ def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.nda
 
     prefer_center: return the candidates sorted by the distance of their centre to the footprint's
     centroid (a proxy for the centre of mass: gravity's torque about the grasp axis is what the
-    jaws' torsional friction must resist); otherwise in the order drawn."""
+    jaws' torsional friction must resist); otherwise in the order drawn. max_attempts: first
+    contacts tried (default 15 per requested grasp)."""
     if depth.shape != mask.shape:
         raise GraspError(f"depth image {depth.shape} and mask {mask.shape} must have the same shape")
     if not (cell > 0 and max_width > 0 and friction > 0) or count < 0:
@@ -358,7 +359,7 @@ def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.nda
     palm_a, palm_b = (0.5 * palm_size[0] + clearance) / cell, (0.5 * palm_size[1] + clearance) / cell
     wanted = count
     cands, kept = [], []
-    for i in rng.permutation(len(brow))[: 40 * max(wanted, 1)]:
+    for i in rng.permutation(len(brow))[: max_attempts or 15 * max(wanted, 1)]:
         if len(cands) >= wanted:
             break
         vv = rc - rc[i]
