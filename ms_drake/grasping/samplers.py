@@ -286,10 +286,10 @@ def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.nda
     perspective: the object's footprint is the cells holding its mask's points, contacts are pairs
     of footprint-boundary cells whose 2D outward normals are antipodal within the friction cone,
     the grasp axis is horizontal; both contacts must lie on an edge that stays inside the
-    footprint +-0.4 finger_width across the axis (2 cells in), which drops corner-to-corner pairs
-    whose smoothed normals look antipodal. (The first version paired image-boundary pixels and deprojected
-    their midpoint: for a tall object off the optical axis the mask spans its top and its side, and
-    the midpoint landed up to 2 cm beside the object.)
+    footprint +-0.4 finger_width across the axis (2 cells in), which drops corner-to-corner
+    pairs whose smoothed normals look antipodal. (The first version paired image-boundary pixels
+    and deprojected their midpoint: for a tall object off the optical axis the mask spans its top
+    and its side, and the midpoint landed up to 2 cm beside the object.)
 
     How deep the jaws go (the reference is silent; our choice): z_top is the object's highest
     point along the segment joining the contacts; z_free the highest surface where the fingers land
@@ -303,9 +303,9 @@ def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.nda
     station's parallel jaw (ms_drake.station.grippers.ParallelJawConfig: fingers 12 mm + 6 mm
     pad thick and 20 mm wide, pads 30 mm long centred on the tool point, palm 130 x 50 mm
     45 mm above it). `clearance` (metres) is kept between the jaw and what the height map shows,
-    vertically and around the palm's outline (the map is the visible surface only). Half-way down is where a lying cylinder is widest and
-    where a tilted box's side faces are under both jaws; 1 cm under the highest point (the first
-    version) put one jaw above a tilted top face.
+    vertically and around the palm's outline (the map is the visible surface only). Half-way
+    down is where a lying cylinder is widest and where a tilted box's side faces are under both
+    jaws; 1 cm under the highest point (the first version) put one jaw above a tilted top face.
 
     prefer_center: return the candidates sorted by the distance of their centre to the footprint's
     centroid (a proxy for the centre of mass: gravity's torque about the grasp axis is what the
