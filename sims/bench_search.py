@@ -74,17 +74,17 @@ def report_records(out: Path, policy: str, objects: int, horizon: int | None):
 
 def scaling(args) -> None:
     """1 vs 2 workers on the same rollouts, heap generation included (fresh heap folders)."""
-    walls = {}
+    walls, n = {}, args.objects[0]
     for w in (1, 2):
         d = args.out / f"scaling_w{w}"
         shutil.rmtree(d, ignore_errors=True)
         load0 = os.getloadavg()
         t = time.perf_counter()
-        s = run_suite([("largest", args.objects, result_file(d, "largest", args.objects))], args.heaps,
-                      args.seed_start, workers=w, heap_dir=str(d / "heaps"))[("largest", args.objects)]
+        s = run_suite([("largest", n, result_file(d, "largest", n))], args.heaps,
+                      args.seed_start, workers=w, heap_dir=str(d / "heaps"))[("largest", n)]
         walls[w] = time.perf_counter() - t
         load1 = os.getloadavg()
-        print(f"workers {w}: {walls[w]:.1f} s wall for {args.heaps} heaps + rollouts (N={args.objects}), "
+        print(f"workers {w}: {walls[w]:.1f} s wall for {args.heaps} heaps + rollouts (N={n}), "
               f"median {s['median_cpu_seconds']:.1f} s CPU per rollout; load average "
               f"{load0[0]:.2f} before, {load1[0]:.2f} after (1-min)", flush=True)
     print(f"speed-up 2 vs 1 workers: {walls[1] / walls[2]:.2f}x")
