@@ -7,21 +7,21 @@ same command to resume a killed run (finished rollouts are kept, the ones in fli
 
     # Table C.1 (Ch. 7 selectors, N = 15, budget 2N)
     .venv/bin/python sims/bench_search.py --objects 15 --heaps 200 --seed-start 1000 --workers 2 \
-        --policies random preempted_random preempted_random_push largest largest_push --out sims/out/search
+        --policies random preempted_random preempted_random_push largest largest_push --out sims/out/tables
     # Table 8.2 (H = 10): X-Ray and the oracle; Random (= preempted_random) and Largest come from
     # the 2N runs above, truncated at 10 actions (harness.truncate_record)
     .venv/bin/python sims/bench_search.py --objects 15 --heaps 200 --seed-start 1000 --workers 2 \
-        --policies xray oracle --horizon 10 --out sims/out/search
+        --policies xray oracle --horizon 10 --out sims/out/tables
     # Fig. 7.4 A (heap size): the same at N = 10 and 20
     .venv/bin/python sims/bench_search.py --objects 10 20 --heaps 200 --seed-start 1000 --workers 2 \
-        --policies largest --out sims/out/search
+        --policies largest --out sims/out/tables
     # the tables
-    .venv/bin/python sims/bench_search.py --report --objects 15 --out sims/out/search
+    .venv/bin/python sims/bench_search.py --report --objects 15 --out sims/out/tables
     .venv/bin/python sims/bench_search.py --report --objects 15 --horizon 10 \
-        --policies preempted_random largest xray oracle --out sims/out/search
-    .venv/bin/python sims/bench_search.py --report --objects 10 15 20 --policies largest --out sims/out/search
+        --policies preempted_random largest xray oracle --out sims/out/tables
+    .venv/bin/python sims/bench_search.py --report --objects 10 15 20 --policies largest --out sims/out/tables
     # 1 vs 2 workers on 4 small heaps (heap generation included), with the load average
-    .venv/bin/python sims/bench_search.py --scaling --objects 5 --heaps 4 --seed-start 2000 --out sims/out/search
+    .venv/bin/python sims/bench_search.py --scaling --objects 5 --heaps 4 --seed-start 2000 --out sims/out/tables
 """
 
 from __future__ import annotations
@@ -98,7 +98,7 @@ def main(argv=None):
     ap.add_argument("--policies", nargs="*", default=list(POLICIES))
     ap.add_argument("--horizon", type=int, default=None, help="action budget H (default 2N)")
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--out", type=Path, default=Path("sims/out/search"))
+    ap.add_argument("--out", type=Path, default=Path("sims/out/tables"))
     ap.add_argument("--scaling", action="store_true", help="time 1 vs 2 workers (largest) instead")
     ap.add_argument("--report", action="store_true", help="only summarize the result files already written")
     args = ap.parse_args(argv)

@@ -60,6 +60,29 @@ def test_executor_alone_latches_only_when_idle_and_records_outcomes():
     np.testing.assert_allclose(ex.GetOutputPort("floating.position").Eval(ctx), park)  # parked again
 
 
+def test_an_action_ends_once_the_scene_is_at_rest():
+    grasp = Action("grasp", grasp=Grasp("parallel_jaw", (0, 0, 0.02), (0, 0, -1), quality=1.0, object_id="a"))
+
+    def run(moving: bool, connected: bool = True):
+        ex = ActionExecutor(backend(), period=0.05)
+        ctx = ex.CreateDefaultContext()
+        ex.action_port.FixValue(ctx, grasp)
+        sim = Simulator(ex, ctx)
+        ends = None
+        for k in range(1, 14):
+            if connected:
+                ex.poses_port.FixValue(ctx, poses(a=(0.005 * k if moving else 0.0, 0.0, 0.02)))
+            sim.AdvanceTo(0.05 * k)
+            st = ex.GetOutputPort("status").Eval(ctx)
+            if ends is None and st.steps == 1 and not st.busy:
+                ends = 0.05 * k
+        return ends
+
+    assert run(moving=False) <= 0.3  # at rest: ends after still_time, not the 0.5 s settle
+    assert run(moving=True) >= 0.5  # a body keeps moving 5 mm per update: the full settle
+    assert run(moving=False, connected=False) >= 0.5  # no body poses: the full settle
+
+
 def test_grasp_success_follows_quality_and_seed():
     def run(q, seed):
         b = backend(seed)
