@@ -71,12 +71,12 @@ class SearchParams:
     # Plant step [s]; None keeps the scenario's (2 ms). The primitive mode only needs the heap to
     # settle and the closed jaw to push, so it runs at 10 ms like the heap generator (our choice).
     time_step: float | None = None
-    # Discrete contact approximation; None keeps the scenario's ("lagged"). The primitive mode runs
-    # SAP (our choice): at 10 ms the station's rigid objects (point contact on corner spheres;
+    # Discrete contact approximation; None keeps the scenario's ("lagged"); "auto": SAP in the
+    # primitive mode, the scenario's in the full mode. The primitive mode runs SAP (our choice): at 10 ms the station's rigid objects (point contact on corner spheres;
     # the heaps were settled with compliant hydroelastic objects) keep bouncing under "lagged" --
     # measured on heap N15 s1000: median object 25 mm off its heap pose after 2 s, objects
     # leaving the bin -- while under SAP they come to rest (median 4 mm, max speed < 3 cm/s).
-    contact_approximation: str | None = None
+    contact_approximation: str | None = "auto"
 
     def __post_init__(self):
         from ms_drake.policies.bin_selectors import check_policy
@@ -155,8 +155,11 @@ def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSy
     s = scenario_with_heap(copy.deepcopy(scenario), heap)
     if params.time_step is not None:
         s.plant_config.time_step = float(params.time_step)
-    if params.contact_approximation is not None:
-        s.plant_config.discrete_contact_approximation = params.contact_approximation
+    approx = params.contact_approximation
+    if approx == "auto":
+        approx = "sap" if params.fidelity == "primitive" else None
+    if approx is not None:
+        s.plant_config.discrete_contact_approximation = approx
     builder = DiagramBuilder()
     station = builder.AddSystem(MakeStation(s, meshcat=meshcat, target_index=heap.target_index))
     plant = get_plant(station)
@@ -347,7 +350,6 @@ def rollout(policy: str, objects: int, seed: int, fidelity: str = "primitive", h
     from ms_drake.scenes.heaps import generate_heap
 
     kw.setdefault("time_step", 0.01 if fidelity == "primitive" else None)
-    kw.setdefault("contact_approximation", "sap" if fidelity == "primitive" else None)
     params = SearchParams(policy=policy, fidelity=fidelity, horizon=horizon, seed=seed, **kw)
     if heap is None:
         heap = generate_heap(load_scenario(None, "BinHeap15"), objects, seed)
