@@ -111,8 +111,8 @@ class LazyGraspPlanner(LeafSystem):
       output  grasps: LazyGrasps (a Mapping object id -> best Grasp; PolicySelector accepts it
               where it accepts a tuple of grasps)
 
-    Two savings, both leaving the planners' answers exactly as they are (choices of ours; the
-    reference plans every mask every step):
+    Two savings that leave the planners' answers exactly as they are, and one that was measured
+    and left out (choices of ours; the reference plans every mask every step):
       * on demand: the selector walks its priority list and stops at the first grasp above its
         threshold, so only the masks it reaches are planned (every mask when nothing qualifies);
       * per object: each mask is planned alone on the crop of the depth image around it (the
