@@ -187,7 +187,7 @@ def table(res: dict, cmd: str) -> str:
               "Both implement the same test, so the distributions agree up to the reference's shift approximation",
               "(the analytic generator translates one silhouette per rotation; the renders place the box exactly,",
               "so near the bin's edges a sliver of the box's side shows in the renders). tests/test_occupancy.py",
-              "checks that the fast path's counts equal shifting every silhouette pixel by pixel.", ""]
+              "checks that the fast path's counts equal shifting every silhouette pixel by pixel.", "", ""]
     return "\n".join(lines)
 
 
