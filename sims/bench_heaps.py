@@ -3,6 +3,7 @@
     .venv/bin/python sims/bench_heaps.py render              # depth + label images/s at 640x480
     .venv/bin/python sims/bench_heaps.py scaling --heaps 8   # 1 vs 2 workers on the same seeds
     .venv/bin/python sims/bench_heaps.py summary FILE.jsonl  # validity and time of an `ms-drake heaps` run
+    .venv/bin/python sims/bench_heaps.py reload FILE.jsonl [--count K]  # heaps reloaded into BinHeap15
 
 Prints a table; the figures go to docs/BENCHMARKS.md by hand with the command.
 """
@@ -82,6 +83,31 @@ def summary(path: str) -> None:
     print(f"| peak RSS of the worker | {rss:.0f} MB |")
 
 
+def reload_check(path: str, count: int = 20) -> None:
+    """Reload the first `count` heaps of an `ms-drake heaps` file into the BinHeap15 station (its
+    own rigid, point-contact physics), measure the deepest penetration at load and how far the
+    objects move in 0.5 s of simulation (ms_drake.scenes.heaps.station_check)."""
+    from ms_drake.scenario import load_scenario
+    from ms_drake.scenes.heaps import heap_from_dict, station_check
+
+    s = load_scenario(None, "BinHeap15")
+    recs = [json.loads(x) for x in Path(path).read_text().splitlines() if x.strip()][:count]
+    pen, mv, med = [], [], []
+    for r in recs:
+        c = station_check(s, heap_from_dict(r), seconds=0.5)
+        pen.append(c["max_penetration"])
+        mv.append(c["max_displacement"])
+        med.append(c["median_displacement"])
+    mm = lambda xs: 1e3 * np.asarray(xs)  # noqa: E731
+    print(f"| heaps reloaded into BinHeap15 | {len(recs)} |")
+    print(f"| max penetration at load, mm (median, p90, max) | {np.median(mm(pen)):.1f}, "
+          f"{np.percentile(mm(pen), 90):.1f}, {mm(pen).max():.1f} |")
+    print(f"| largest object displacement in 0.5 s, mm (median, p90, max) | {np.median(mm(mv)):.1f}, "
+          f"{np.percentile(mm(mv), 90):.1f}, {mm(mv).max():.1f} |")
+    print(f"| median object displacement in 0.5 s, mm (median over heaps) | {np.median(mm(med)):.1f} |")
+    print(f"| heaps whose objects all move <= 5 mm | {sum(m <= 0.005 for m in mv)}/{len(mv)} |")
+
+
 if __name__ == "__main__":
     cmd = sys.argv[1] if len(sys.argv) > 1 else "render"
     if cmd == "render":
@@ -91,5 +117,7 @@ if __name__ == "__main__":
         bench_scaling(k)
     elif cmd == "summary":
         summary(sys.argv[2])
+    elif cmd == "reload":
+        reload_check(sys.argv[2], int(sys.argv[sys.argv.index("--count") + 1]) if "--count" in sys.argv else 20)
     else:
         raise SystemExit(__doc__)

@@ -114,3 +114,29 @@ def test_heaps_of_mesh_objects(bin_scenario):
         heap = generate_heap(bin_scenario, 3, seed=1, object_set=set_name)
         assert all(o.name.startswith(set_name + "/") for o in heap.objects)
         assert heap.target in heap.object_names()
+
+
+def test_station_check_sees_penetration_and_motion(bin_scenario, small_heap):
+    from dataclasses import replace
+
+    from ms_drake.scenes.heaps import station_check
+    from ms_drake.types import ObjectPose
+
+    ok = station_check(bin_scenario, small_heap, seconds=0.1)
+    assert all(np.isfinite(v) for v in ok.values())
+    assert ok["max_penetration"] < 0.02 and ok["max_displacement"] < 0.05, ok
+    # Put object 1 where object 0 is: the two overlap deeply and fly apart in the station.
+    a, b = small_heap.objects[0], small_heap.objects[1]
+    bad = replace(small_heap, objects=(a, ObjectPose(b.name, a.q)) + small_heap.objects[2:])
+    c = station_check(bin_scenario, bad, seconds=0.1)
+    assert c["max_penetration"] > 0.01 and c["max_displacement"] > ok["max_displacement"], (ok, c)
+
+
+def test_drop_world_tessellation_option_only_changes_round_shapes():
+    from ms_drake.objects.sdf import Shape, hydroelastic_xml
+
+    cyl, box = Shape("cylinder", (0.04, 0.1)), Shape("box", (0.1, 0.1, 0.1))
+    hint = lambda xml: float(xml.split("<drake:mesh_resolution_hint>")[1].split("<")[0])  # noqa: E731
+    assert hint(hydroelastic_xml(cyl, "compliant", 5e6, 8)) > hint(hydroelastic_xml(cyl, "compliant", 5e6))
+    assert hydroelastic_xml(box, "compliant", 5e6, 8) == hydroelastic_xml(box, "compliant", 5e6)
+    assert hydroelastic_xml(cyl, "rigid", 5e6) == hydroelastic_xml(cyl, "rigid", 5e6, 12)

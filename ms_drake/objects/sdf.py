@@ -69,18 +69,19 @@ def _pose_xml(pose) -> str:
     return "<pose>" + " ".join(f"{v:.6g}" for v in pose) + "</pose>"
 
 
-def _resolution_xml(shape: Shape) -> str:
-    """Hydroelastic cylinders and spheres are tessellated: ~12 edges around."""
+def _resolution_xml(shape: Shape, edges: int = 12) -> str:
+    """Hydroelastic cylinders and spheres are tessellated: ~`edges` edges around."""
     if shape.kind in ("cylinder", "sphere"):
-        hint = max(0.002, 2 * 3.14159 * shape.size[0] / 12)
+        hint = max(0.002, 2 * 3.14159 * shape.size[0] / edges)
         return f"<drake:mesh_resolution_hint>{hint:.4g}</drake:mesh_resolution_hint>"
     return ""
 
 
-def hydroelastic_xml(shape: Shape, compliance: str, modulus: float) -> str:
-    """Proximity properties: 'rigid' or 'compliant' (with `modulus` in Pa) hydroelastic."""
+def hydroelastic_xml(shape: Shape, compliance: str, modulus: float, edges: int = 12) -> str:
+    """Proximity properties: 'rigid' or 'compliant' (with `modulus` in Pa) hydroelastic;
+    round shapes tessellated with ~`edges` edges around."""
     if compliance == "rigid":
-        return f"<drake:rigid_hydroelastic/>{_resolution_xml(shape)}"
+        return f"<drake:rigid_hydroelastic/>{_resolution_xml(shape, edges)}"
     if compliance == "compliant":
         # The hydroelastic pressure field of a primitive grows from 0 at the surface to E at
         # its medial axis, so a thin shape (a 4 mm cardboard backing) is far stiffer than a
@@ -91,7 +92,7 @@ def hydroelastic_xml(shape: Shape, compliance: str, modulus: float) -> str:
         if dims is not None:
             modulus = modulus * min(1.0, max(0.05, dims(shape.size) / 0.025))
         return (f"<drake:compliant_hydroelastic/><drake:hydroelastic_modulus>{modulus:.4g}"
-                f"</drake:hydroelastic_modulus>{_resolution_xml(shape)}")
+                f"</drake:hydroelastic_modulus>{_resolution_xml(shape, edges)}")
     raise ValueError(f"compliance {compliance!r}: use rigid or compliant")
 
 
@@ -135,6 +136,7 @@ def object_sdf(
     extra_points: list | None = None,
     point_radius: float = 0.001,
     contact_spheres: bool = True,
+    resolution_edges: int = 12,
 ) -> str:
     """SDF 1.9 text of a one-link model named `model_name` with link `body`.
 
@@ -143,6 +145,8 @@ def object_sdf(
     contact spheres on corners and rims (`contact_points`) so that point contact supports a
     resting object at several points. compliance="compliant" makes the object itself
     compliant-hydroelastic instead (slower: use it where object-object pressure matters).
+    resolution_edges: hydroelastic cylinders and spheres get ~this many edges around (12 by
+    default; the heap generator's drop world uses fewer, see ms_drake.scenes.heaps).
     """
     i = inertia
     vis = "".join(
@@ -152,7 +156,7 @@ def object_sdf(
     )
     col = "".join(
         f'<collision name="collision_{k}">{_pose_xml(s.pose)}<geometry>{_geometry_xml(s)}</geometry>'
-        f"<drake:proximity_properties>{hydroelastic_xml(s, compliance, modulus)}"
+        f"<drake:proximity_properties>{hydroelastic_xml(s, compliance, modulus, resolution_edges)}"
         f"<drake:mu_dynamic>{friction:.4g}</drake:mu_dynamic><drake:mu_static>{friction:.4g}</drake:mu_static>"
         f"</drake:proximity_properties></collision>"
         for k, s in enumerate(collisions)

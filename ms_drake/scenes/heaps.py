@@ -48,6 +48,7 @@ from scipy.spatial.transform import Rotation
 
 from ms_drake.errors import HeapError, ScenarioError
 from ms_drake.objects import get_object, get_object_set
+from ms_drake.objects.sdf import OBJECT_MODULUS
 from ms_drake.paths import make_parser
 from ms_drake.scenario import Scenario
 from ms_drake.station.station import add_cameras, add_environment, add_objects, station_objects
@@ -63,6 +64,8 @@ class HeapParams:
     time_step: float = 0.01
     contact_approximation: str = "lagged"
     object_contact: str = "hydroelastic"  # or "point" (rigid objects with contact spheres)
+    modulus: float = OBJECT_MODULUS  # Pa, compliant objects of the drop world (ms_drake.objects.sdf)
+    resolution_edges: int = 12  # edges around a hydroelastic cylinder / sphere in the drop world
     angular_damping: float = 1e-4  # N m s: stops a small cylinder rolling in ~0.2 s, negligible for tumbling
     settle_linear: float = 0.05  # m/s (a 1-cm cylinder rolling at 5 cm/s turns at 5 rad/s)
     settle_angular: float = 5.0  # rad/s
@@ -140,7 +143,8 @@ class _DropWorld:
         parser = make_parser(plant)
         add_environment(plant, scenario, parser)
         instances = add_objects(plant, names, scenario.objects.friction, parser,
-                                compliance="compliant" if hydro else "rigid", contact_spheres=not hydro)
+                                compliance="compliant" if hydro else "rigid", contact_spheres=not hydro,
+                                resolution_edges=params.resolution_edges, modulus=params.modulus)
         for k, mi in enumerate(instances):  # free joints with a little rolling resistance
             body = plant.GetBodyByName("body", mi)
             plant.AddJoint(QuaternionFloatingJoint(f"free_{k}", plant.world_frame(), body.body_frame(),
@@ -399,3 +403,30 @@ def set_heap_poses(station, context, heap: Heap) -> None:
     for o, op in zip(objs, heap.objects):
         plant.SetPositions(pc, o.model_instance, np.asarray(op.q))
         plant.SetVelocities(pc, o.model_instance, np.zeros(6))
+
+
+def station_check(scenario: Scenario, heap: Heap, seconds: float = 0.5) -> dict:
+    """How a heap behaves in a station's own physics: build `scenario_with_heap(scenario, heap)`
+    (cameras off), load the heap, and report the deepest penetration between any two geometries
+    at load (m), and the largest / median displacement of an object's origin after `seconds` of
+    simulation (m)."""
+    from pydrake.systems.analysis import Simulator
+
+    from ms_drake.station import MakeStation
+
+    s = scenario_with_heap(scenario, heap)
+    s.cameras = {}
+    station = MakeStation(s)
+    sim = Simulator(station)
+    ctx = sim.get_mutable_context()
+    set_heap_poses(station, ctx, heap)
+    plant = station.GetSubsystemByName("plant")
+    pc = plant.GetMyContextFromRoot(ctx)
+    query = station.GetOutputPort("query_object").Eval(ctx)
+    pen = max([p.depth for p in query.ComputePointPairPenetration()], default=0.0)
+    bodies = [plant.get_body(o.body_index) for o in station_objects(plant)]
+    p0 = [plant.EvalBodyPoseInWorld(pc, b).translation().copy() for b in bodies]
+    sim.AdvanceTo(seconds)
+    moved = [float(np.linalg.norm(plant.EvalBodyPoseInWorld(pc, b).translation() - p)) for b, p in zip(bodies, p0)]
+    return {"max_penetration": float(pen), "max_displacement": max(moved, default=0.0),
+            "median_displacement": float(np.median(moved)) if moved else 0.0}
