@@ -4,6 +4,7 @@
     .venv/bin/python sims/bench_heaps.py scaling --heaps 8   # 1 vs 2 workers on the same seeds
     .venv/bin/python sims/bench_heaps.py summary FILE.jsonl  # validity and time of an `ms-drake heaps` run
     .venv/bin/python sims/bench_heaps.py reload FILE.jsonl [--count K]  # heaps reloaded into BinHeap15
+    .venv/bin/python sims/bench_heaps.py compare --seeds 0:10 base edges8 ...  # drop-world variants, paired
 
 Prints a table; the figures go to docs/BENCHMARKS.md by hand with the command.
 """
@@ -108,6 +109,36 @@ def reload_check(path: str, count: int = 20) -> None:
     print(f"| heaps whose objects all move <= 5 mm | {sum(m <= 0.005 for m in mv)}/{len(mv)} |")
 
 
+#: Drop-world variants measured in docs/BENCHMARKS.md (HeapParams overrides).
+VARIANTS = {
+    "base": {},
+    "edges8": {"resolution_edges": 8},
+    "edges8_soft": {"resolution_edges": 8, "modulus": 2e6},
+    "point2ms": {"object_contact": "point", "time_step": 0.002},
+}
+
+
+def compare(names: list[str], seeds: range) -> None:
+    """Paired comparison of drop-world variants: for each seed every variant in turn, in one
+    process (CPU seconds drift with the machine's load; pairing keeps the comparison fair)."""
+    from ms_drake.scenario import load_scenario
+    from ms_drake.scenes.heaps import HeapParams, generate_heap
+
+    s = load_scenario(None, "BinHeap15")
+    params = {n: HeapParams(**VARIANTS[n]) for n in names}
+    for p in params.values():
+        generate_heap(s, 3, 999, params=p)  # warm caches
+    res = {n: [] for n in names}
+    for seed in seeds:
+        for n, p in params.items():
+            t = time.process_time()
+            _, d = generate_heap(s, 15, seed, params=p, return_diagnostics=True)
+            res[n].append((time.process_time() - t, d.settle_time, d.attempts))
+    for n, v in res.items():
+        print(f"| {n} | CPU s median {statistics.median(x[0] for x in v):.2f} | settle s median "
+              f"{statistics.median(x[1] for x in v):.2f} | first attempt {sum(x[2] == 1 for x in v)}/{len(v)} |")
+
+
 if __name__ == "__main__":
     cmd = sys.argv[1] if len(sys.argv) > 1 else "render"
     if cmd == "render":
@@ -117,6 +148,9 @@ if __name__ == "__main__":
         bench_scaling(k)
     elif cmd == "summary":
         summary(sys.argv[2])
+    elif cmd == "compare":
+        lo, hi = (sys.argv[sys.argv.index("--seeds") + 1] if "--seeds" in sys.argv else "0:10").split(":")
+        compare([a for a in sys.argv[2:] if a in VARIANTS], range(int(lo), int(hi)))
     elif cmd == "reload":
         reload_check(sys.argv[2], int(sys.argv[sys.argv.index("--count") + 1]) if "--count" in sys.argv else 20)
     else:
