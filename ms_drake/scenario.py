@@ -64,11 +64,17 @@ class EnvironmentConfig:
         return np.asarray(self.size if self.size else DEFAULT_SIZES[self.type], dtype=float)
 
 
+OBJECT_COMPLIANCE = ("rigid", "compliant")
+
+
 @dataclass
 class ObjectsConfig:
     """Which objects the station holds. Either `names` (full names '<set>/<name>', e.g. from a
     saved heap) or `count` objects sampled from `set` / `split` with `seed` (None: the
-    scenario's random_seed)."""
+    scenario's random_seed). `compliance`: the objects' contact -- "rigid" (rigid hydroelastic
+    shapes plus small contact spheres: point contact against the rigid bin and each other) or
+    "compliant" (compliant-hydroelastic objects, as in the heap generator's drop world, so a
+    reloaded heap keeps the contact it settled with)."""
 
     set: str = "procedural"
     split: str = "all"
@@ -76,6 +82,7 @@ class ObjectsConfig:
     seed: typing.Optional[int] = None
     names: list[str] = field(default_factory=list)
     friction: float = 0.5
+    compliance: str = "rigid"
 
 
 @dataclass
@@ -277,6 +284,8 @@ def _check_values(s: Scenario, ck: _Checker):
     contact_models = ("point", "hydroelastic", "hydroelastic_with_fallback")
     if s.plant_config.contact_model not in contact_models:
         ck.fail("plant_config.contact_model", f"{s.plant_config.contact_model!r}; allowed: {', '.join(contact_models)}")
+    if s.objects.compliance not in OBJECT_COMPLIANCE:
+        ck.fail("objects.compliance", f"{s.objects.compliance!r}; allowed: {', '.join(OBJECT_COMPLIANCE)}")
 
 
 def load_scenario(filename: typing.Union[str, Path, None] = None, scenario_name: str = "EmptyBin") -> Scenario:

@@ -140,3 +140,29 @@ def test_drop_world_tessellation_option_only_changes_round_shapes():
     assert hint(hydroelastic_xml(cyl, "compliant", 5e6, 8)) > hint(hydroelastic_xml(cyl, "compliant", 5e6))
     assert hydroelastic_xml(box, "compliant", 5e6, 8) == hydroelastic_xml(box, "compliant", 5e6)
     assert hydroelastic_xml(cyl, "rigid", 5e6) == hydroelastic_xml(cyl, "rigid", 5e6, 12)
+
+
+def test_compliant_station_objects_keep_a_15_object_heap_in_place():
+    """Heaps settle with compliant-hydroelastic objects; bin scenarios load them with the same
+    contact (objects.compliance: compliant). Rigid objects (point contact) pop apart. The heap is
+    a saved one (tests/data) so the check does not depend on the heap generator's version."""
+    import copy
+    from pathlib import Path
+
+    from ms_drake.scenes.heaps import station_check
+
+    heap = load_heap(Path(__file__).parent / "data" / "heap_N15_s1000.json")
+    compliant = load_scenario(None, "BinHeap15")
+    assert compliant.objects.compliance == "compliant"
+    rigid = copy.deepcopy(compliant)
+    rigid.objects.compliance = "rigid"
+    c, r = station_check(compliant, heap, 0.3), station_check(rigid, heap, 0.3)
+    assert c["median_displacement"] < 0.002, c
+    assert c["max_displacement"] < r["max_displacement"] and r["max_displacement"] > 0.01, (c, r)
+
+
+def test_object_compliance_is_validated(tmp_path):
+    f = tmp_path / "s.yaml"
+    f.write_text("S:\n  objects: { set: procedural, count: 2, compliance: squishy }\n")
+    with pytest.raises(ScenarioError, match="objects.compliance.*squishy.*rigid, compliant"):
+        load_scenario(f, "S")

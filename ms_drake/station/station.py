@@ -100,6 +100,16 @@ def add_environment(plant: MultibodyPlant, scenario: Scenario, parser=None):
     return mi
 
 
+def object_contact(compliance: str) -> dict:
+    """add_objects' contact options for ObjectsConfig.compliance: rigid (object_sdf's default)
+    or compliant hydroelastic with the heap generator's modulus and no contact spheres."""
+    if compliance == "compliant":
+        from ms_drake.objects.sdf import OBJECT_MODULUS
+
+        return dict(compliance="compliant", contact_spheres=False, modulus=OBJECT_MODULUS)
+    return {}
+
+
 def add_objects(plant: MultibodyPlant, names: list[str], friction: float = 0.5, parser=None,
                 rgba_overrides: dict[int, tuple] | None = None, **contact) -> list:
     """Add the objects `names` (full names) as free bodies; returns their model instances.
@@ -168,7 +178,8 @@ def MakeStation(scenario: Scenario, meshcat=None, hardware: bool = False, lcm=No
 
     overrides = {target_index: TARGET_RGBA} if 0 <= target_index < len(names) else None
     try:
-        instances = add_objects(plant, names, scenario.objects.friction, parser, overrides)
+        instances = add_objects(plant, names, scenario.objects.friction, parser, overrides,
+                                **object_contact(scenario.objects.compliance))
     except ObjectSetError:
         raise
     robot_handle = _add_robot(builder, plant, scene_graph, scenario, parser)
