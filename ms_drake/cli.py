@@ -207,7 +207,10 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
                  fidelity: str = typer.Option("primitive", "--fidelity", help="primitive | full"),
                  horizon: Optional[int] = typer.Option(None, "--horizon", min=1, help="Action budget (default 2N)"),
                  ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
-                 ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address")):
+                 ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address"),
+                 heap_dir: Optional[Path] = typer.Option(
+                     None, "--heap-dir", help="Folder of cached heaps (heap_N<N>_s<seed>.json), shared by "
+                     "runs of several policies so they search the same heaps; made on first use")):
     """Search heaps S..S+K-1 with a policy; one JSON line per rollout (resumable), then a summary."""
     from ms_drake.execution import FIDELITIES
     from ms_drake.experiments.harness import format_summary, run_bench
@@ -224,7 +227,8 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
                    f"{rec['actions']} actions ({rec.get('seconds', 0.0):.1f} s)")
 
     s = run_bench(policy, objects, heaps_, seed_start, out, workers=workers, fidelity=fidelity, horizon=horizon,
-                  use_ray=ray or ray_address is not None, ray_address=ray_address, progress=progress)
+                  use_ray=ray or ray_address is not None, ray_address=ray_address, progress=progress,
+                  heap_dir=str(heap_dir) if heap_dir is not None else None)
     if s["resumed"]:
         typer.echo(f"resuming: {s['resumed']} of {heaps_} rollouts already in {out}")
     typer.echo(format_summary(policy, s))

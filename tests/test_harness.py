@@ -36,8 +36,9 @@ def test_bench_search_writes_resumes_and_summarizes(tmp_path):
     # Interrupted run: a torn last line; the rerun keeps seed 5, drops the torn line, runs seed 6 only.
     out.write_text(out.read_text() + '{"seed": 6, "pol')
     p = run("bench", "search", "--policy", "largest", "--objects", 2, "--heaps", 2, "--seed-start", 5,
-            "--horizon", 3, "--out", out)
+            "--horizon", 3, "--out", out, "--heap-dir", tmp_path / "heaps")
     assert "resuming: 1 of 2" in p.stdout
+    assert [f.name for f in (tmp_path / "heaps").iterdir()] == ["heap_N2_s6.json"]  # cached for other policies
     recs = read_records(out)
     assert sorted(x["seed"] for x in recs) == [5, 6]
     assert recs[0] == r  # the finished result was not lost or redone
