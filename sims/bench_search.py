@@ -46,16 +46,17 @@ POLICIES = ("random", "preempted_random", "preempted_random_push", "largest", "l
 
 
 def table(rows) -> str:
-    lines = ["| policy | N | H | heaps | success % [95 % CI] | actions mean +/- SEM [95 % CI] | quartiles | "
-             "median wall s / CPU s per rollout | failures |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| policy | N | H | heaps | success % [95 % CI] | actions mean +/- SEM [95 % CI] (all) | quartiles (all) | "
+             "quartiles (successes) | median wall s / CPU s per rollout | failures |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for policy, n, h, s in rows:
         q = s["quartiles"]
         fails = ", ".join(f"{k} {v}" for k, v in sorted(s["failures"].items())) or "-"
         lines.append(f"| {policy} | {n} | {h} | {s['rollouts']} | {100 * s['success_rate']:.0f} "
                      f"[{100 * s['success_ci'][0]:.0f}, {100 * s['success_ci'][1]:.0f}] | {s['mean_actions']:.2f} "
                      f"+/- {s['sem_actions']:.2f} [{s['actions_ci'][0]:.2f}, {s['actions_ci'][1]:.2f}] | "
-                     f"{q[0]:g} / {q[1]:g} / {q[2]:g} | {s['median_seconds']:.1f} / {s['median_cpu_seconds']:.1f} | "
+                     f"{q[0]:g} / {q[1]:g} / {q[2]:g} | {' / '.join(f'{x:g}' for x in s['success_quartiles'])} | "
+                     f"{s['median_seconds']:.1f} / {s['median_cpu_seconds']:.1f} | "
                      f"{fails} |")
     return "\n".join(lines)
 

@@ -63,6 +63,7 @@ def test_summary_statistics():
     assert s["success_rate"] == 0.5 and s["success_ci"][0] < 0.5 < s["success_ci"][1]
     assert np.isclose(s["mean_actions"], 2.5) and s["actions_ci"][0] < 2.5 < s["actions_ci"][1]
     assert s["quartiles"] == (1.75, 2.5, 3.25) and s["failures"] == {"horizon": 20}
+    assert s["success_quartiles"] == (1.0, 2.0, 3.0)  # successes: even k, actions 1 or 3
     assert np.isclose(s["sem_actions"], np.std([k % 4 + 1 for k in range(40)], ddof=1) / np.sqrt(40))
     # A retried rollout replaces its failed line.
     assert final_records(recs[:1] + [dict(recs[0], success=False)])[0]["success"] is False

@@ -10,6 +10,8 @@ torn last line is dropped on resume.
 Statistics (our choices where the reference is silent): success rate with a percentile bootstrap
 95 % interval; mean actions +/- SEM and quartiles over *all* rollouts (the reference's Table C.1
 counts actions of every rollout), with a bootstrap interval of the mean; 2000 resamples, seeded.
+Also the quartiles over *successful* rollouts (`success_quartiles`: Table 8.2 and SPEC's
+efficiency metric report those).
 """
 
 from __future__ import annotations
@@ -209,6 +211,8 @@ def summarize(recs: list[dict], seed: int = 0) -> dict:
         sem_actions=float(acts.std(ddof=1) / np.sqrt(n)) if n > 1 else float("nan"),
         actions_ci=_boot(acts, np.mean, rng),
         quartiles=tuple(float(q) for q in np.percentile(acts, [25, 50, 75])) if n else (float("nan"),) * 3,
+        success_quartiles=(tuple(float(q) for q in np.percentile(acts[succ > 0], [25, 50, 75])) if succ.any()
+                           else (float("nan"),) * 3),
         median_seconds=float(np.median(secs)) if len(secs) else float("nan"),
         median_cpu_seconds=float(np.median(cpu)) if len(cpu) else float("nan"),
         failures=failures)
@@ -220,7 +224,8 @@ def format_summary(policy: str, s: dict) -> str:
     return (f"{policy}: {s['rollouts']} rollouts, success {100 * s['success_rate']:.1f} % "
             f"[{100 * s['success_ci'][0]:.1f}, {100 * s['success_ci'][1]:.1f}], "
             f"actions {s['mean_actions']:.2f} +/- {s['sem_actions']:.2f} (SEM) "
-            f"[{s['actions_ci'][0]:.2f}, {s['actions_ci'][1]:.2f}], quartiles {q[0]:g}/{q[1]:g}/{q[2]:g}, "
+            f"[{s['actions_ci'][0]:.2f}, {s['actions_ci'][1]:.2f}], quartiles {q[0]:g}/{q[1]:g}/{q[2]:g} "
+            f"(successes only: {'/'.join(f'{x:g}' for x in s['success_quartiles'])}), "
             f"median {s['median_seconds']:.1f} s wall / {s['median_cpu_seconds']:.1f} s CPU per rollout; failures: {fails}")
 
 
