@@ -115,6 +115,9 @@ VARIANTS = {
     "edges8": {"resolution_edges": 8},
     "edges8_soft": {"resolution_edges": 8, "modulus": 2e6},
     "point2ms": {"object_contact": "point", "time_step": 0.002},
+    "step20": {"time_step": 0.02},
+    "step30": {"time_step": 0.03},
+    "step20_e8": {"time_step": 0.02, "resolution_edges": 8},
 }
 
 
