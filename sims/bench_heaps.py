@@ -118,6 +118,21 @@ VARIANTS = {
     "step20": {"time_step": 0.02},
     "step30": {"time_step": 0.03},
     "step20_e8": {"time_step": 0.02, "resolution_edges": 8},
+    # third pass: "similar" approximation and Hunt-Crossley dissipation (s/m) of the drop world's objects
+    "d20": {"dissipation": 20.0},
+    "d50": {"dissipation": 50.0},
+    "similar": {"contact_approximation": "similar"},
+    "sim_d20": {"contact_approximation": "similar", "dissipation": 20.0},
+    "sim_d50": {"contact_approximation": "similar", "dissipation": 50.0},
+    "sim_d100": {"contact_approximation": "similar", "dissipation": 100.0},
+    "sim_d200": {"contact_approximation": "similar", "dissipation": 200.0},
+    "sim_d50_nr": {"contact_approximation": "similar", "dissipation": 50.0, "near_rigid_threshold": 0.0},
+    "sim_d50_mu8": {"contact_approximation": "similar", "dissipation": 50.0, "friction": 0.8},
+    "v15": {"terminal_speed": 1.5},
+    "sim_d50_v15": {"contact_approximation": "similar", "dissipation": 50.0, "terminal_speed": 1.5},
+    "sim_d100_v15": {"contact_approximation": "similar", "dissipation": 100.0, "terminal_speed": 1.5},
+    "sim_d200_v15": {"contact_approximation": "similar", "dissipation": 200.0, "terminal_speed": 1.5},
+    "sim_d50_v1": {"contact_approximation": "similar", "dissipation": 50.0, "terminal_speed": 1.0},
 }
 
 
@@ -136,10 +151,15 @@ def compare(names: list[str], seeds: range) -> None:
         for n, p in params.items():
             t = time.process_time()
             _, d = generate_heap(s, 15, seed, params=p, return_diagnostics=True)
-            res[n].append((time.process_time() - t, d.settle_time, d.attempts))
+            ph = d.phases
+            res[n].append((time.process_time() - t, d.settle_time, d.attempts, ph.get("waves_cpu", 0),
+                           ph.get("waves_sim", 0), ph.get("final_cpu", 0), ph.get("final_sim", 0)))
+            print(n, seed, " ".join(f"{x:.2f}" for x in res[n][-1]), d.rejected_reasons, flush=True)
+    print("| variant | CPU s | settle s | first attempt | waves CPU s / sim s | final settle CPU s / sim s |")
     for n, v in res.items():
-        print(f"| {n} | CPU s median {statistics.median(x[0] for x in v):.2f} | settle s median "
-              f"{statistics.median(x[1] for x in v):.2f} | first attempt {sum(x[2] == 1 for x in v)}/{len(v)} |")
+        med = [statistics.median(x[i] for x in v) for i in range(7)]
+        print(f"| {n} | {med[0]:.2f} | {med[1]:.2f} | {sum(x[2] == 1 for x in v)}/{len(v)} | "
+              f"{med[3]:.2f} / {med[4]:.2f} | {med[5]:.2f} / {med[6]:.2f} |")
 
 
 if __name__ == "__main__":

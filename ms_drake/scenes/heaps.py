@@ -51,10 +51,11 @@ from ms_drake.objects import get_object, get_object_set
 from ms_drake.objects.sdf import OBJECT_MODULUS
 from ms_drake.paths import make_parser
 from ms_drake.scenario import Scenario
-from ms_drake.station.station import add_cameras, add_environment, add_objects, station_objects
+from ms_drake.station.station import add_cameras, add_environment, object_model_name, station_objects
 from ms_drake.types import Heap, ObjectPose
 
 FAR_AWAY = np.array([0.0, 0.0, -50.0])  # where objects go to be out of view
+TUNNELLED = "an object tunnelled through the bin floor or the support"
 
 
 @dataclass
@@ -63,10 +64,14 @@ class HeapParams:
 
     time_step: float = 0.01
     contact_approximation: str = "lagged"
+    near_rigid_threshold: float = 1.0  # MultibodyPlantConfig.sap_near_rigid_threshold
+    dissipation: float | None = None  # s/m, Hunt-Crossley dissipation of the drop world's objects (None: scenario's)
+    friction: float | None = None  # objects' Coulomb friction in the drop world (None: scenario's objects.friction)
     object_contact: str = "hydroelastic"  # or "point" (rigid objects with contact spheres)
     modulus: float = OBJECT_MODULUS  # Pa, compliant objects of the drop world (ms_drake.objects.sdf)
     resolution_edges: int = 12  # edges around a hydroelastic cylinder / sphere in the drop world
     angular_damping: float = 1e-4  # N m s: stops a small cylinder rolling in ~0.2 s, negligible for tumbling
+    terminal_speed: float | None = None  # m/s: linear drag m g / v on each free joint (None: no drag)
     settle_linear: float = 0.05  # m/s (a 1-cm cylinder rolling at 5 cm/s turns at 5 rad/s)
     settle_angular: float = 5.0  # rad/s
     check_every: float = 0.03  # s of simulated time
@@ -89,6 +94,7 @@ class HeapDiagnostics:
     removed: list
     settle_time: float
     rejected_reasons: list
+    phases: dict = dataclasses.field(default_factory=dict)  # CPU s and simulated s per phase (last attempt)
 
 
 @functools.lru_cache(maxsize=4096)
@@ -137,18 +143,31 @@ class _DropWorld:
         hydro = params.object_contact == "hydroelastic"
         cfg = MultibodyPlantConfig(time_step=params.time_step,
                                    contact_model="hydroelastic_with_fallback" if hydro else "point",
-                                   discrete_contact_approximation=params.contact_approximation)
+                                   discrete_contact_approximation=params.contact_approximation,
+                                   sap_near_rigid_threshold=params.near_rigid_threshold)
         plant, sg = AddMultibodyPlant(cfg, builder)
         sg.set_config(scenario.scene_graph_config)
         parser = make_parser(plant)
         add_environment(plant, scenario, parser)
-        instances = add_objects(plant, names, scenario.objects.friction, parser,
-                                compliance="compliant" if hydro else "rigid", contact_spheres=not hydro,
-                                resolution_edges=params.resolution_edges, modulus=params.modulus)
-        for k, mi in enumerate(instances):  # free joints with a little rolling resistance
+        friction = scenario.objects.friction if params.friction is None else params.friction
+        instances = []
+        for k, full in enumerate(names):
+            sdf = get_object(full).sdf(object_model_name(k, full), friction=friction,
+                                       compliance="compliant" if hydro else "rigid", contact_spheres=not hydro,
+                                       resolution_edges=params.resolution_edges, modulus=params.modulus)
+            if params.dissipation is not None:  # the drop world's objects only (not the station's)
+                tag = "<drake:proximity_properties>"
+                sdf = sdf.replace(tag, f"{tag}<drake:hunt_crossley_dissipation>{params.dissipation:.6g}"
+                                       "</drake:hunt_crossley_dissipation>")
+            instances += parser.AddModelsFromString(sdf, "sdf")
+        self.joints = []
+        for k, mi in enumerate(instances):  # free joints with a little rolling resistance (and drag)
             body = plant.GetBodyByName("body", mi)
-            plant.AddJoint(QuaternionFloatingJoint(f"free_{k}", plant.world_frame(), body.body_frame(),
-                                                   angular_damping=params.angular_damping))
+            drag = 0.0 if params.terminal_speed is None else body.default_mass() * 9.81 / params.terminal_speed
+            self.joints.append(plant.AddJoint(QuaternionFloatingJoint(
+                f"free_{k}", plant.world_frame(), body.body_frame(), angular_damping=params.angular_damping,
+                translational_damping=drag)))
+        self.left: list[int] = []  # objects taken out of the simulation because they left the bin
         plant.Finalize()
         self.sensor = None
         if params.render and scenario.cameras:
@@ -167,6 +186,14 @@ class _DropWorld:
         self.simulator = Simulator(self.diagram)
         self.context = self.simulator.get_mutable_context()
         self.plant_context = plant.GetMyMutableContextFromRoot(self.context)
+
+    def take_out(self, i: int) -> None:
+        """Object i left the bin: park it far away and lock its joint (a locked body leaves the
+        contact problem, and it cannot fall off the support table and keep the heap 'moving')."""
+        self.plant.SetFreeBodyPose(self.plant_context, self.bodies[i], _parking(i))
+        self.plant.SetFreeBodySpatialVelocity(self.plant_context, self.bodies[i], _zero_velocity())
+        self.joints[i].Lock(self.plant_context)
+        self.left.append(i)
 
     def set_poses(self, poses):
         for b, X in zip(self.bodies, poses):
@@ -237,13 +264,39 @@ def _footprints_overlap(a: DropItem, b: DropItem) -> bool:
     return bool(np.all(a.xy + a.lo[:2] < b.xy + b.hi[:2]) and np.all(a.xy + a.hi[:2] > b.xy + b.lo[:2]))
 
 
+def _tunnelled(rel: np.ndarray, size: np.ndarray, wall: float) -> np.ndarray:
+    """Object origins (environment frame, rows) below the bin floor inside its footprint, or
+    below the support table (whose top is a wall thickness under the bin floor)."""
+    over_bin = np.all(np.abs(rel[:, :2]) <= 0.5 * size[:2] + 1e-3, axis=1)
+    return (over_bin & (rel[:, 2] < -0.02)) | (rel[:, 2] < -wall - 0.06)
+
+
+def _take_out_leavers(world: _DropWorld, placed: list[int], origin: np.ndarray, size: np.ndarray,
+                      wall: float) -> bool:
+    """Objects whose origin is beyond the bin's outer walls have left it for good: take them out
+    of the simulation (they are removed from the heap anyway). Returns True when an object
+    tunnelled (the attempt is lost: stop at once instead of simulating its fall)."""
+    for i in placed:
+        if i not in world.left:
+            p = world.plant.GetFreeBodyPose(world.plant_context, world.bodies[i]).translation() - origin
+            if _tunnelled(p[None], size, wall)[0]:
+                return True
+            if np.any(np.abs(p[:2]) > 0.5 * size[:2] + wall):
+                world.take_out(i)
+    return False
+
+
 def _drop_in_waves(world: _DropWorld, names: list[str], plan: list[DropItem], origin: np.ndarray,
-                   params: HeapParams) -> tuple[bool, float, str]:
+                   size: np.ndarray, wall: float, params: HeapParams,
+                   phases: dict | None = None) -> tuple[bool, float, str]:
     """Steps 3-4. Objects are dropped in drop order, each released `drop_gap` above the top of
     whatever already lies under its footprint, so impacts are slow and nothing tunnels.
     Objects whose footprints overlap no earlier object still waiting are released together
     in one "wave" (equivalent to dropping them one by one, in a fraction of the simulated
-    time); objects that wait are parked far away."""
+    time); objects that wait are parked far away. `phases` (if given) receives the CPU and
+    simulated seconds of the waves and of the final settle."""
+    phases = {} if phases is None else phases
+    cpu0 = time.process_time()
     sim = world.simulator
     plant, pc = world.plant, world.plant_context
     t = sim.get_context().get_time()
@@ -258,6 +311,8 @@ def _drop_in_waves(world: _DropWorld, names: list[str], plan: list[DropItem], or
                 wave.append(k)
         boxes = []
         for j in placed:
+            if j in world.left:
+                continue
             X = plant.GetFreeBodyPose(pc, world.bodies[j])
             v = _vertices(names[j]) @ X.rotation().matrix().T + (X.translation() - origin)
             boxes.append((v.min(axis=0), v.max(axis=0)))
@@ -279,19 +334,35 @@ def _drop_in_waves(world: _DropWorld, names: list[str], plan: list[DropItem], or
             t += params.check_every
             if not _advance(sim, t, plant, pc):
                 return False, t, "the simulation blew up (non-finite state)"
+            if _take_out_leavers(world, placed, origin, size, wall):
+                return False, t, TUNNELLED
             lin, ang = world.max_speeds(placed)
             if t - t_wave >= params.min_wave_time and lin < params.settle_linear and ang < params.settle_angular:
                 break
+    t_waves = t
+    phases.update(waves_cpu=time.process_time() - cpu0, waves_sim=t_waves)
+    cpu1 = time.process_time()
     t_end = t + params.max_final_time
     t_min = t + params.min_final_time
+
+    def done(ok, reason=""):
+        phases.update(final_cpu=time.process_time() - cpu1, final_sim=t - t_waves)
+        return ok, t, reason
+
     while t < t_end:
         t += params.check_every
         if not _advance(sim, t, plant, pc):
-            return False, t, "the simulation blew up (non-finite state)"
+            return done(False, "the simulation blew up (non-finite state)")
+        if _take_out_leavers(world, placed, origin, size, wall):
+            return done(False, TUNNELLED)
         lin, ang = world.max_speeds()
         if t >= t_min and lin < params.settle_linear and ang < params.settle_angular:
-            return True, t, ""
-    return False, t, f"did not settle within {params.max_final_time} s after the last drop"
+            return done(True)
+    v = plant.GetVelocities(pc).reshape(-1, 6)
+    k = int(np.argmax(np.maximum(np.abs(v[:, 3:]).max(axis=1) / params.settle_linear,
+                                 np.abs(v[:, :3]).max(axis=1) / params.settle_angular)))
+    return done(False, f"did not settle within {params.max_final_time} s after the last drop ({names[k]} still "
+                       f"moving at {np.abs(v[k, 3:]).max():.3f} m/s, {np.abs(v[k, :3]).max():.2f} rad/s)")
 
 
 def generate_heap(scenario: Scenario, num_objects: int, seed: int, object_set: str | None = None,
@@ -321,15 +392,16 @@ def generate_heap(scenario: Scenario, num_objects: int, seed: int, object_set: s
         names = [o.full_name for o in oset.sample(num_objects, rng, params.split)]
         world = _DropWorld(scenario, names, params)
         plan = sample_drop_plan(names, scenario, rng, params)
-        ok, settle_t, reason = _drop_in_waves(world, names, plan, origin, params)
+        phases = {}
+        wall = scenario.environment.wall_thickness
+        ok, settle_t, reason = _drop_in_waves(world, names, plan, origin, size, wall, params, phases)
         poses = world.poses()
         rel = np.array([X.translation() - origin for X in poses])
+        left = np.isin(np.arange(len(names)), world.left)
+        rel[left] = 0.5 * size + 1.0  # taken out of the simulation: outside the bin, not tunnelled
         over_bin = np.all(np.abs(rel[:, :2]) <= 0.5 * size[:2] + 1e-3, axis=1)
-        # Tunnelled: below the bin floor inside its footprint, or below the support table (whose
-        # top is a wall thickness under the bin floor; objects that fell out of the bin rest there).
-        support_top = -scenario.environment.wall_thickness
-        if ok and np.any((over_bin & (rel[:, 2] < -0.02)) | (rel[:, 2] < support_top - 0.06)):
-            ok, reason = False, "an object tunnelled through the bin floor or the support"
+        if ok and np.any(_tunnelled(rel, size, wall)):
+            ok, reason = False, TUNNELLED
         if not ok:
             reasons.append(f"attempt {attempt}: {reason}")
             continue
@@ -350,7 +422,7 @@ def generate_heap(scenario: Scenario, num_objects: int, seed: int, object_set: s
                     target=objects[target_k].name if target_k >= 0 else "", target_index=target_k,
                     visible_ratios=tuple(float(r) for r in ratios), seconds=time.perf_counter() - t0)
         if return_diagnostics:
-            return heap, HeapDiagnostics(attempt + 1, removed, settle_t, reasons)
+            return heap, HeapDiagnostics(attempt + 1, removed, settle_t, reasons, phases)
         return heap
     raise HeapError(f"heap seed {seed}: no valid heap in {params.max_attempts} attempts ({'; '.join(reasons)})")
 
