@@ -1,6 +1,7 @@
 """Benchmarks of the foundation (issue 2): heap generation, rendering, parallel scaling.
 
-    .venv/bin/python sims/bench_heaps.py render              # depth + label images/s at 640x480
+    .venv/bin/python sims/bench_heaps.py render [--heaps FILE.jsonl]  # depth + label images/s at 640x480,
+                                                             # rendered vs from-depth label images
     .venv/bin/python sims/bench_heaps.py scaling --heaps 8   # 1 vs 2 workers on the same seeds
     .venv/bin/python sims/bench_heaps.py summary FILE.jsonl  # validity and time of an `ms-drake heaps` run
     .venv/bin/python sims/bench_heaps.py reload FILE.jsonl [--count K]  # heaps reloaded into BinHeap15
@@ -20,31 +21,64 @@ from pathlib import Path
 import numpy as np
 
 
-def bench_render(n: int = 100) -> None:
+def bench_render(n: int = 40, rounds: int = 5, heaps_file: str | None = None, count: int = 8) -> None:
+    """Depth + label pairs at 640x480 of the 15-object heap (seed 0), paired: the station's two
+    VTK renders (MakeStation(label_images="render")) against one depth render + the label image
+    computed from it (label_images="depth", ms_drake.perception.masks.DepthLabelImage), in
+    `rounds` interleaved rounds of `n` pairs each, in this one process. Prints process CPU ms
+    (llvmpipe's render threads included) and wall ms per image and per pair (medians over the
+    rounds). With `heaps_file` (an `ms-drake heaps` JSONL) also the pixel agreement of the two
+    label images on its first `count` heaps."""
     from ms_drake.scenario import load_scenario
     from ms_drake.scenes.heaps import generate_heap, scenario_with_heap, set_heap_poses
     from ms_drake.station import MakeStation
 
     s = load_scenario(None, "BinHeap15")
     heap = generate_heap(s, 15, seed=0)
-    station = MakeStation(scenario_with_heap(s, heap))
-    ctx = station.CreateDefaultContext()
-    set_heap_poses(station, ctx, heap)
-    sensor = station.GetSubsystemByName("rgbd_sensor_overhead")
-    plant = station.GetSubsystemByName("plant")
-    sc = sensor.GetMyContextFromRoot(ctx)
-    sensor.depth_image_32F_output_port().Eval(sc)  # warm-up (VTK start)
-    q0 = plant.GetPositions(plant.GetMyContextFromRoot(ctx)).copy()
-    t = time.perf_counter()
-    for k in range(n):
-        q = q0.copy()
-        q[4::7] += 1e-4 * (k % 7)  # move the objects so every frame is really rendered
-        plant.SetPositions(plant.GetMyMutableContextFromRoot(ctx), q)
-        sensor.depth_image_32F_output_port().Eval(sc)
-        sensor.label_image_output_port().Eval(sc)
-    dt = time.perf_counter() - t
-    print(f"| depth + label render, 640x480, 15-object heap | {n / dt:.0f} image pairs/s "
-          f"({1e3 * dt / n:.1f} ms per pair) |")
+    rigs = {}
+    for mode in ("render", "depth"):
+        station = MakeStation(scenario_with_heap(s, heap), label_images=mode)
+        ctx = station.CreateDefaultContext()
+        set_heap_poses(station, ctx, heap)
+        plant = station.GetSubsystemByName("plant")
+        ports = station.GetOutputPort("overhead.depth_image"), station.GetOutputPort("overhead.label_image")
+        ports[0].Eval(ctx), ports[1].Eval(ctx)  # warm-up (VTK start)
+        rigs[mode] = (station, ctx, plant, plant.GetPositions(plant.GetMyContextFromRoot(ctx)).copy(), ports)
+    res = {mode: [] for mode in rigs}
+    for _ in range(rounds):
+        for mode, (station, ctx, plant, q0, (depth, label)) in rigs.items():
+            t = np.zeros((2, 2))  # [depth, label] x [cpu, wall]
+            for k in range(n):
+                q = q0.copy()
+                q[4::7] += 1e-4 * (k % 7)  # move the objects so every frame is really rendered
+                plant.SetPositions(plant.GetMyMutableContextFromRoot(ctx), q)
+                for j, port in enumerate((depth, label)):
+                    c, w = time.process_time(), time.perf_counter()
+                    port.Eval(ctx)
+                    t[j] += time.process_time() - c, time.perf_counter() - w
+            res[mode].append(1e3 * t / n)
+    print("| label image | depth ms CPU / wall | label ms CPU / wall | pair ms CPU / wall | pairs/s (images/s), wall |")
+    print("| --- | --- | --- | --- | --- |")
+    for mode, v in res.items():
+        m = np.median(np.array(v), axis=0)
+        pair = m.sum(axis=0)
+        print(f"| {mode} | {m[0, 0]:.1f} / {m[0, 1]:.1f} | {m[1, 0]:.1f} / {m[1, 1]:.1f} | "
+              f"{pair[0]:.1f} / {pair[1]:.1f} | {1e3 / pair[1]:.0f} ({2e3 / pair[1]:.0f}) |")
+    if heaps_file:
+        from ms_drake.scenes.heaps import heap_from_dict
+
+        recs = [json.loads(x) for x in Path(heaps_file).read_text().splitlines() if x.strip()][:count]
+        for r in recs:
+            h = heap_from_dict(r)
+            station = MakeStation(scenario_with_heap(s, h), label_images="depth")
+            ctx = station.CreateDefaultContext()
+            set_heap_poses(station, ctx, h)
+            ours = np.array(station.GetOutputPort("overhead.label_image").Eval(ctx).data)[:, :, 0]
+            sensor = station.GetSubsystemByName("rgbd_sensor_overhead")
+            vtk = np.array(sensor.label_image_output_port().Eval(sensor.GetMyContextFromRoot(ctx)).data)[:, :, 0]
+            renders = station.GetSubsystemByName("depth_label_overhead").renders
+            print(f"| heap seed {r.get('seed', '?')} | {100 * (ours == vtk).mean():.4f} % pixels equal | "
+                  f"{int((ours != vtk).sum())} differ | fallback renders {renders} |")
 
 
 def bench_scaling(heaps: int = 8, objects: int = 15, seed_start: int = 1000) -> None:
@@ -165,7 +199,7 @@ def compare(names: list[str], seeds: range) -> None:
 if __name__ == "__main__":
     cmd = sys.argv[1] if len(sys.argv) > 1 else "render"
     if cmd == "render":
-        bench_render()
+        bench_render(heaps_file=sys.argv[sys.argv.index("--heaps") + 1] if "--heaps" in sys.argv else None)
     elif cmd == "scaling":
         k = int(sys.argv[sys.argv.index("--heaps") + 1]) if "--heaps" in sys.argv else 8
         bench_scaling(k)

@@ -151,3 +151,312 @@ def make_amodal_masks(plant, camera: PinholeCamera) -> AmodalMasks:
 
     objs = [(o.model_name, int(o.body_index), get_object(o.full_name).trimesh()) for o in station_objects(plant)]
     return AmodalMasks(camera, objs)
+
+
+# --------------------------------------------------------------------------------------------
+# Label image from the rendered depth image (one VTK render per depth + label pair, not two)
+# --------------------------------------------------------------------------------------------
+
+# RenderEngineVtk tessellates cylinders with 50 sides and spheres with 50 x 50 (Drake's
+# SetCylinderOptions / SetSphereOptions): the drawn faces lie inside the true shape by at most
+# the chord sagitta r * (1 - cos(pi / 50)) = 0.002 r.
+_VTK_SAGITTA = 1.0 - np.cos(np.pi / 50)
+# Numerical tolerance of a de-projected depth pixel (float32 depth, 24-bit depth encoding over
+# <= 3 m is 0.2 um; measured on saved heaps: median 0.1 um from the true surface).
+_DEPTH_TOL = 2e-5
+_UNIT_CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
+_KIND_CODE = {"box": 0, "cylinder": 1, "sphere": 2}
+
+
+@dataclass(frozen=True)
+class _LabelPrimitive:
+    """One perception geometry as the labeller sees it (geometry frame G)."""
+
+    geometry_id: object  # GeometryId
+    label: int
+    kind: str  # "box" | "cylinder" | "sphere" | "unsupported" | "not_rendered"
+    size: np.ndarray  # (3,) half extents (box), (r, r, L/2) (cylinder), (r, r, r) (sphere)
+    eps: float  # how far outside the true shape a drawn surface point may lie
+    corners: np.ndarray  # (8, 3) corners of an inflated bounding box, in G
+
+    @property
+    def half(self) -> np.ndarray:
+        """Half extents of the claim region."""
+        return self.size + self.eps
+
+
+class DepthLabeler:
+    """The label image a renderer would draw, computed from its depth image instead.
+
+    Every valid depth pixel is de-projected to its surface point; the pixel takes the label of
+    the geometry whose surface that point lies on (within the renderer's tessellation error
+    plus a numerical tolerance: 0.02 mm + 0.002 r for cylinders/spheres); pixels within reach
+    of two geometries go to the one with the smaller |signed distance|. Pixels no geometry
+    claims take `default_label` (the environment: by default the label whose geometries have
+    the largest total bounding-box volume); pixels without depth (kTooFar) take kEmpty.
+    Supported shapes: Box, Cylinder, Sphere (every ms_drake object and environment). Claims
+    are SIMD OpenCV calls (cv2.transform, cv2.inRange) over each geometry's screen rectangle.
+
+    `label(...)` returns None when the answer could be inexact, and callers then render:
+    a geometry of another shape (mesh, capsule, ...) or with label kDoNotRender in the view
+    frustum of a non-default label, or a pixel closer than the depth range (kTooClose).
+
+    Pixel convention, measured: RenderEngineVtk's pixel (u, v) sees the ray through
+    ((u + 0.5 - cx) / fx, (v + 0.5 - cy) / fy); with the integer-centre convention of
+    drake::systems::sensors::CameraInfo (and of `PinholeCamera`) the de-projected points of
+    8 saved heaps are 0.15 mm (median) / 0.85 mm (max) off the geometry, with +0.5 they are
+    0.1 um / 0.085 mm (the cylinder sagitta). Drake knows of this half pixel
+    (RobotLocomotion/drake PR #10190).
+
+    Agreement with RenderEngineVtk's label image on 8 saved 15-object heaps at 640x480:
+    99.993-100 % of the pixels (2-21 differing pixels per image, where objects touch).
+    """
+
+    def __init__(self, inspector, intrinsics, renderer_name: str, default_label: int | None = None):
+        from pydrake.geometry import Box, Cylinder, RenderLabel, Role, Sphere
+
+        self.width, self.height = intrinsics.width(), intrinsics.height()
+        self.fx, self.fy = intrinsics.focal_x(), intrinsics.focal_y()
+        self.cx, self.cy = intrinsics.center_x(), intrinsics.center_y()
+        self._rx = ((np.arange(self.width) + 0.5 - self.cx) / self.fx).astype(np.float32)[None, :]
+        self._ry = ((np.arange(self.height) + 0.5 - self.cy) / self.fy).astype(np.float32)[:, None]
+        prims, volume = [], {}
+        for gid in inspector.GetAllGeometryIds(Role.kPerception):
+            props = inspector.GetPerceptionProperties(gid)
+            accepting = props.GetPropertyOrDefault("renderer", "accepting", set())
+            if accepting and renderer_name not in accepting:
+                continue  # this renderer never draws it
+            if not props.HasProperty("label", "id"):
+                raise ValueError(f"DepthLabeler: geometry {inspector.GetName(gid)!r} has no ('label', 'id') "
+                                 "perception property; RenderEngineVtk would refuse it too")
+            label = props.GetProperty("label", "id")
+            shape = inspector.GetShape(gid)
+            if label == RenderLabel.kDoNotRender:
+                kind, half, eps = "not_rendered", None, 0.0
+            elif isinstance(shape, Box):
+                kind, half, eps = "box", np.array([shape.width(), shape.depth(), shape.height()]) / 2, _DEPTH_TOL
+            elif isinstance(shape, Cylinder):
+                r = shape.radius()
+                kind, half, eps = "cylinder", np.array([r, r, shape.length() / 2]), _DEPTH_TOL + _VTK_SAGITTA * r
+            elif isinstance(shape, Sphere):
+                r = shape.radius()
+                kind, half, eps = "sphere", np.full(3, r), _DEPTH_TOL + 2 * _VTK_SAGITTA * r
+            else:
+                kind, half, eps = "unsupported", None, 0.0
+            if half is None:  # bounds of any shape: its axis-aligned bounding box in G
+                half, centre = _shape_aabb(shape)
+            else:
+                centre = np.zeros(3)
+            lab = int(label)
+            volume[lab] = volume.get(lab, 0.0) + float(np.prod(2 * half))
+            prims.append(_LabelPrimitive(gid, lab, kind, half, eps, centre + _UNIT_CORNERS * (half + eps)))
+        if default_label is None:
+            default_label = max(volume, key=volume.get) if volume else int(RenderLabel.kEmpty)
+        self.default_label = int(default_label)
+        self._prims = [p for p in prims if p.label != self.default_label or p.kind == "not_rendered"]
+        self._corners = np.array([p.corners for p in self._prims]).reshape(-1, 8, 3)
+        self._empty = np.int16(int(RenderLabel.kEmpty))
+        self._radial = {"cylinder": np.array([[1, 1, 0]], np.float32), "sphere": np.array([[1, 1, 1]], np.float32)}
+
+    @property
+    def geometry_ids(self) -> list:
+        """Geometries whose poses `label` asks for (all but those of the default label)."""
+        return [p.geometry_id for p in self._prims]
+
+    def _rects(self, X_CG: np.ndarray, z_near: float, z_far: float) -> np.ndarray:
+        """(N, 4) pixel rectangles [v0, v1, u0, u1) that can see each primitive (X_CG: (N, 4, 4));
+        an empty rectangle when it is out of view, the whole image when it straddles the camera
+        plane."""
+        pc = np.einsum("nij,nkj->nki", X_CG[:, :3, :3], self._corners) + X_CG[:, None, :3, 3]
+        z = pc[..., 2]
+        zs = np.where(z > 1e-6, z, 1.0)
+        u, v = self.fx * pc[..., 0] / zs + self.cx - 0.5, self.fy * pc[..., 1] / zs + self.cy - 0.5
+        r = np.stack([np.floor(v.min(1)), np.ceil(v.max(1)) + 1, np.floor(u.min(1)), np.ceil(u.max(1)) + 1], 1)
+        r = np.clip(r, 0, [self.height, self.height, self.width, self.width]).astype(int)
+        r[np.any(z <= 1e-6, axis=1)] = [0, self.height, 0, self.width]
+        r[np.all(z <= z_near, axis=1) | np.all(z > z_far, axis=1)] = 0
+        return r
+
+    def label(self, depth: np.ndarray, X_WC: RigidTransform, poses: dict, z_near: float = 0.0,
+              z_far: float = np.inf) -> np.ndarray | None:
+        """(H, W) int16 label image from a depth image (metres, Drake's kTooFar = inf and
+        kTooClose = 0) taken from X_WC; `poses` maps the `geometry_ids` to X_WG. None when the
+        result could differ from a rendered label image (see the class doc)."""
+        if depth.shape != (self.height, self.width):
+            raise ValueError(f"DepthLabeler: depth image is {depth.shape[1]}x{depth.shape[0]}, camera is "
+                             f"{self.width}x{self.height}")
+        depth = np.asarray(depth, np.float32)
+        if depth.min() <= 0:
+            return None  # kTooClose: the renderer's label shows what lies there; we cannot
+        label = np.where(depth < np.inf, np.int16(self.default_label), self._empty)
+        if not self._prims:
+            return label
+        X_CW = X_WC.inverse().GetAsMatrix4()
+        X_CG = X_CW @ np.stack([poses[p.geometry_id].GetAsMatrix4() for p in self._prims])
+        rects = self._rects(X_CG, z_near, z_far)
+        seen = np.flatnonzero((rects[:, 1] > rects[:, 0]) & (rects[:, 3] > rects[:, 2]))
+        if seen.size == 0:
+            return label
+        if any(self._prims[i].kind in ("unsupported", "not_rendered") for i in seen):
+            return None
+        v0, u0 = rects[seen, 0].min(), rects[seen, 2].min()
+        v1, u1 = rects[seen, 1].max(), rects[seen, 3].max()
+        z = depth[v0:v1, u0:u1]
+        # Camera-frame points of the union rectangle; kTooFar pixels become inf/NaN, which no
+        # cv2.inRange below accepts.
+        P = cv2.merge([self._rx[:, u0:u1] * z, self._ry[v0:v1] * z, z])
+        count = np.zeros(z.shape, np.uint8)
+        lab = label[v0:v1, u0:u1]
+        R_GC = np.swapaxes(X_CG[:, :3, :3], 1, 2)
+        M = np.concatenate([R_GC, -R_GC @ X_CG[:, :3, 3:]], axis=2).astype(np.float32)  # X_GC[:3]
+        work, crowded = [], []
+        for i in seen:
+            p = self._prims[i]
+            a0, a1, b0, b1 = rects[i] - [v0, v0, u0, u0]
+            pg = cv2.transform(P[a0:a1, b0:b1], M[i])
+            h = p.half
+            if p.kind == "box":
+                m = cv2.inRange(pg, (-h[0], -h[1], -h[2]), (h[0], h[1], h[2]))
+            else:
+                r2 = cv2.transform(cv2.multiply(pg, pg), self._radial[p.kind])
+                m = cv2.inRange(r2, 0.0, float(h[0] ** 2))
+                if p.kind == "cylinder":
+                    m &= cv2.inRange(pg, (-h[0], -h[1], -h[2]), (h[0], h[1], h[2]))
+            m >>= 7  # 255 -> 1
+            mb = m.view(bool)
+            np.copyto(lab[a0:a1, b0:b1], np.int16(p.label), where=mb)
+            c = count[a0:a1, b0:b1]
+            c += m
+            work.append((p, M[i], (a0, a1, b0, b1)))
+            if c.max() > 1:
+                crowded.append((a0, a1, b0, b1))
+        if crowded:
+            self._resolve(P, count, lab, work, crowded)
+        return label
+
+    @staticmethod
+    def _resolve(P, count, lab, work, crowded):
+        """Pixels claimed by several geometries: the smallest |signed distance| wins."""
+        W = count.shape[1]
+        flat = np.unique(np.concatenate([
+            ((np.nonzero(count[a0:a1, b0:b1] > 1)[0] + a0) * W + np.nonzero(count[a0:a1, b0:b1] > 1)[1] + b0)
+            for a0, a1, b0, b1 in crowded]))
+        vs, us = np.divmod(flat, W)
+        pts = P[vs, us].astype(np.float64)
+        best = np.full(len(vs), np.inf)
+        out = lab[vs, us].copy()
+        for p, M, (a0, a1, b0, b1) in work:
+            inside = (vs >= a0) & (vs < a1) & (us >= b0) & (us < b1)
+            if not inside.any():
+                continue
+            d = np.abs(_signed_distance(p, pts[inside] @ M[:, :3].T.astype(np.float64) + M[:, 3]))
+            cur = best[inside]
+            win = (d < cur) & (d <= p.eps)
+            cur[win] = d[win]
+            best[inside] = cur
+            sub = out[inside]
+            sub[win] = p.label
+            out[inside] = sub
+        lab[vs, us] = out
+
+
+def _signed_distance(p: _LabelPrimitive, x: np.ndarray) -> np.ndarray:
+    """Signed distance of points x (N, 3) in G to the primitive p."""
+    h = p.size
+    if p.kind == "box":
+        q = np.abs(x) - h
+        return np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0)
+    if p.kind == "cylinder":
+        rr = np.hypot(x[:, 0], x[:, 1]) - h[0]
+        qz = np.abs(x[:, 2]) - h[2]
+        return np.hypot(np.maximum(rr, 0), np.maximum(qz, 0)) + np.minimum(np.maximum(rr, qz), 0)
+    return np.linalg.norm(x, axis=1) - h[0]
+
+
+def _shape_aabb(shape) -> tuple[np.ndarray, np.ndarray]:
+    """(half extents, centre) of a bounding box of any Drake shape in its own frame."""
+    from pydrake.geometry import Capsule, Ellipsoid, HalfSpace
+
+    if isinstance(shape, Capsule):
+        r = shape.radius()
+        return np.array([r, r, shape.length() / 2 + r]), np.zeros(3)
+    if isinstance(shape, Ellipsoid):
+        return np.array([shape.a(), shape.b(), shape.c()]), np.zeros(3)
+    if isinstance(shape, HalfSpace):
+        return np.full(3, 1e4), np.array([0.0, 0.0, -1e4])
+    hull = getattr(shape, "GetConvexHull", None)
+    if hull is not None:
+        v = np.array([hull().vertex(i) for i in range(hull().num_vertices())])
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        return (hi - lo) / 2, (hi + lo) / 2
+    return np.full(3, 1e4), np.zeros(3)  # unknown shape: everywhere (always forces a render)
+
+
+class DepthLabelImage(LeafSystem):
+    """Label image from the depth image (`DepthLabeler`), rendering only when it must.
+
+    Inputs ``depth_image`` (ImageDepth32F, from the RgbdSensor), ``query_object`` (SceneGraph's
+    QueryObject, for the geometry and camera poses) and ``rendered_label_image`` (ImageLabel16I,
+    the sensor's own label port: evaluated, i.e. rendered, only for the images `DepthLabeler`
+    cannot do exactly; may stay unconnected if that never happens). Output ``label_image``
+    (ImageLabel16I). The camera is the sensor's default one (parent frame, X_PB, intrinsics);
+    geometries added to SceneGraph after construction are not seen.
+    """
+
+    def __init__(self, labeler: DepthLabeler, parent_frame, X_PC: RigidTransform, z_near: float, z_far: float):
+        super().__init__()
+        from pydrake.geometry import QueryObject
+        from pydrake.systems.sensors import ImageDepth32F
+
+        w, h = labeler.width, labeler.height
+        # Ports first.
+        self._depth = self.DeclareAbstractInputPort("depth_image", AbstractValue.Make(ImageDepth32F(w, h)))
+        self._query = self.DeclareAbstractInputPort("query_object", AbstractValue.Make(QueryObject()))
+        self._rendered = self.DeclareAbstractInputPort("rendered_label_image", AbstractValue.Make(ImageLabel16I(w, h)))
+        self.DeclareAbstractOutputPort("label_image", lambda: AbstractValue.Make(ImageLabel16I(w, h)), self._calc)
+        self.labeler = labeler
+        self._parent, self._X_PC = parent_frame, X_PC
+        self._z_near, self._z_far = z_near, z_far
+        self.renders = 0  # diagnostics: how many images fell back to the rendered label image
+
+    def _calc(self, context, output):
+        qo = self._query.Eval(context)
+        depth = np.asarray(self._depth.Eval(context).data)[:, :, 0]
+        X_WC = qo.GetPoseInWorld(self._parent) @ self._X_PC
+        poses = {g: qo.GetPoseInWorld(g) for g in self.labeler.geometry_ids}
+        label = self.labeler.label(depth, X_WC, poses, self._z_near, self._z_far)
+        if label is None:
+            if not self._rendered.HasValue(context):
+                raise ValueError("DepthLabelImage: this image needs the rendered label image (a mesh or "
+                                 "kDoNotRender geometry in view, or depth below z_near); connect the sensor's "
+                                 "label_image port to 'rendered_label_image'")
+            self.renders += 1
+            output.set_value(self._rendered.Eval(context))
+            return
+        img = output.get_mutable_value()
+        np.asarray(img.mutable_data)[:, :, 0] = label
+
+
+def make_depth_label_image(sensor, scene_graph) -> DepthLabelImage:
+    """A DepthLabelImage for an RgbdSensor (its default cameras and pose). The color (label) and
+    depth cameras must share renderer, intrinsics, pose and clipping range, and the depth range
+    must reach the far clipping plane (as ApplyCameraConfig makes them when clipping_near/far
+    equal z_near/z_far); otherwise the two images see different things and this raises."""
+    color, depth = sensor.default_color_render_camera(), sensor.default_depth_render_camera()
+    cc, dc = color.core(), depth.core()
+    ci, di = cc.intrinsics(), dc.intrinsics()
+    same = (cc.renderer_name() == dc.renderer_name()
+            and (ci.width(), ci.height()) == (di.width(), di.height())
+            and np.allclose([ci.focal_x(), ci.focal_y(), ci.center_x(), ci.center_y()],
+                            [di.focal_x(), di.focal_y(), di.center_x(), di.center_y()])
+            and cc.sensor_pose_in_camera_body().IsExactlyEqualTo(dc.sensor_pose_in_camera_body())
+            and (cc.clipping().near(), cc.clipping().far()) == (dc.clipping().near(), dc.clipping().far())
+            and depth.depth_range().max_depth() >= cc.clipping().far())
+    if not same:
+        raise ValueError(f"sensor {sensor.get_name()!r}: a label image from depth needs the color and depth "
+                         "cameras to share renderer, intrinsics, pose and clipping range, with z_far >= "
+                         "clipping_far; fix the camera config or render the label image")
+    labeler = DepthLabeler(scene_graph.model_inspector(), di, dc.renderer_name())
+    X_PC = sensor.default_X_PB() @ dc.sensor_pose_in_camera_body()
+    return DepthLabelImage(labeler, sensor.default_parent_frame_id(), X_PC,
+                           cc.clipping().near(), cc.clipping().far())
