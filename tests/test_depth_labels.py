@@ -1,0 +1,220 @@
+"""Label images from the depth image (ms_drake.perception.masks.DepthLabeler / DepthLabelImage):
+alone (analytic depth, FixValue'd inputs), wired to an RgbdSensor, and in a heap station —
+always compared with what RenderEngineVtk renders or with the analytic answer."""
+
+import copy
+
+import numpy as np
+import pytest
+from pydrake.common.value import AbstractValue
+from pydrake.geometry import (Box, Capsule, ClippingRange, ColorRenderCamera, Cylinder, DepthRange,
+                              DepthRenderCamera, GeometryInstance, MakeRenderEngineVtk, PerceptionProperties,
+                              RenderCameraCore, RenderEngineVtkParams, RenderLabel, Rgba, SceneGraph, Sphere)
+from pydrake.math import RigidTransform, RollPitchYaw
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.sensors import CameraInfo, ImageDepth32F, ImageLabel16I, RgbdSensor
+
+from ms_drake.errors import ScenarioError
+from ms_drake.perception.masks import DepthLabeler, DepthLabelImage, make_depth_label_image
+
+W, H = 160, 120
+INFO = CameraInfo(W, H, 150.0, 150.0, W / 2 - 0.5, H / 2 - 0.5)
+X_WC = RigidTransform(RollPitchYaw(np.pi, 0, 0), [0.0, 0.0, 1.0])  # 1 m above the floor, looking down
+FLOOR, BOX, CYL, BALL, CAPSULE = 1, 2, 3, 4, 5
+
+
+def _scene(extra=()):
+    """SceneGraph with a floor slab (top at z = 0) and a box, cylinder and sphere on it (odd
+    positions: no edge exactly on a pixel ray)."""
+    sg = SceneGraph()
+    sg.AddRenderer("vtk", MakeRenderEngineVtk(RenderEngineVtkParams()))
+    src = sg.RegisterSource("test")
+    items = [(FLOOR, Box(2.0, 2.0, 0.1), [0, 0, -0.05]),
+             (BOX, Box(0.12, 0.08, 0.2), [-0.1213, 0.0037, 0.1]),
+             (CYL, Cylinder(0.04, 0.15), [0.1011, 0.0613, 0.075]),
+             (BALL, Sphere(0.05), [0.08, -0.1, 0.05]), *extra]
+    for label, shape, p in items:
+        g = GeometryInstance(RigidTransform(p), shape, f"g{label}")
+        props = PerceptionProperties()
+        props.AddProperty("label", "id", RenderLabel(label))
+        props.AddProperty("phong", "diffuse", Rgba(0.5, 0.5, 0.5, 1.0))
+        g.set_perception_properties(props)
+        sg.RegisterAnchoredGeometry(src, g)
+    return sg
+
+
+def _analytic_depth_and_labels():
+    """Depth (camera z) and labels of _scene() by ray casting the primitives analytically, with
+    RenderEngineVtk's pixel convention (pixel (u, v) sees the ray through its centre u + 0.5)."""
+    v, u = np.mgrid[0:H, 0:W]
+    rx = (u + 0.5 - INFO.center_x()) / INFO.focal_x()
+    ry = (v + 0.5 - INFO.center_y()) / INFO.focal_y()
+    # Camera at (0, 0, 1) looking down: the ray o + t d reaches camera depth t.
+    o = np.array([0.0, 0.0, 1.0])
+    d = np.stack([rx, -ry, -np.ones_like(rx)], -1)
+    depth = np.full((H, W), 1.0)  # the floor's top face
+    labels = np.full((H, W), FLOOR, np.int16)
+
+    def keep(t, label):
+        closer = np.isfinite(t) & (t > 0) & (t < depth)
+        depth[closer] = t[closer]
+        labels[closer] = label
+
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lo, hi = np.array([-0.1813, -0.0363, 0.0]), np.array([-0.0613, 0.0437, 0.2])  # the box (slab method)
+        t1, t2 = (lo - o) / d, (hi - o) / d
+        tmin, tmax = np.minimum(t1, t2).max(-1), np.maximum(t1, t2).min(-1)
+        keep(np.where(tmin <= tmax, tmin, np.inf), BOX)
+        c, r, z1 = np.array([0.1011, 0.0613]), 0.04, 0.15  # the cylinder: side (quadratic) and top cap
+        a = (d[..., :2] ** 2).sum(-1)
+        b = 2 * (d[..., :2] @ (o[:2] - c))
+        disc = b * b - 4 * a * ((o[:2] - c) @ (o[:2] - c) - r * r)
+        t_side = (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a)
+        z_side = 1.0 - t_side
+        keep(np.where((disc > 0) & (z_side >= 0) & (z_side <= z1), t_side, np.inf), CYL)
+        t_cap = np.full((H, W), 1.0 - z1)
+        keep(np.where(np.hypot(rx * t_cap - c[0], -ry * t_cap - c[1]) <= r, t_cap, np.inf), CYL)
+    oc = o - np.array([0.08, -0.1, 0.05])  # the sphere
+    a, b = (d * d).sum(-1), 2 * (d @ oc)
+    disc = b * b - 4 * a * (oc @ oc - 0.05 ** 2)
+    keep(np.where(disc > 0, (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a), np.inf), BALL)
+    return depth.astype(np.float32), labels
+
+
+def _inspector_labeler(sg):
+    return DepthLabeler(sg.model_inspector(), INFO, "vtk")
+
+
+def _poses(sg, labeler):
+    inspector = sg.model_inspector()
+    return {g: inspector.GetPoseInFrame(g) for g in labeler.geometry_ids}  # anchored: frame = world
+
+
+def test_labeler_alone_matches_analytic_labels():
+    sg = _scene()
+    labeler = _inspector_labeler(sg)
+    assert labeler.default_label == FLOOR  # the largest geometry
+    depth, expected = _analytic_depth_and_labels()
+    got = labeler.label(depth, X_WC, _poses(sg, labeler), 0.1, 3.0)
+    assert got.dtype == np.int16 and got.shape == (H, W)
+    for lab in (BOX, CYL, BALL):
+        assert (expected == lab).sum() > 100
+    assert (got != expected).sum() <= 2  # measured: 0
+    depth[:5] = np.inf  # nothing there (kTooFar) -> kEmpty
+    got = labeler.label(depth, X_WC, _poses(sg, labeler), 0.1, 3.0)
+    assert np.all(got[:5] == int(RenderLabel.kEmpty))
+
+
+def test_labeler_declines_what_it_cannot_do_exactly():
+    sg = _scene(extra=[(CAPSULE, Capsule(0.02, 0.1), [0.0, 0.15, 0.05])])  # capsule: unsupported shape
+    labeler = _inspector_labeler(sg)
+    depth, _ = _analytic_depth_and_labels()
+    assert labeler.label(depth, X_WC, _poses(sg, labeler), 0.1, 3.0) is None  # capsule in view
+    poses = _poses(sg, labeler)
+    capsule = [g for g in labeler.geometry_ids if sg.model_inspector().GetName(g) == f"g{CAPSULE}"][0]
+    poses[capsule] = RigidTransform([5.0, 0.0, 0.0])  # far outside the view: no need to render
+    assert labeler.label(depth, X_WC, poses, 0.1, 3.0) is not None
+    depth[0, 0] = 0.0  # kTooClose: the rendered label would show what is there
+    assert labeler.label(depth, X_WC, poses, 0.1, 3.0) is None
+    with pytest.raises(ValueError, match="160x120"):
+        labeler.label(depth[:10], X_WC, poses, 0.1, 3.0)
+
+
+def _cameras(far_depth=3.0):
+    core = RenderCameraCore("vtk", INFO, ClippingRange(0.1, 3.0), RigidTransform())
+    return ColorRenderCamera(core, False), DepthRenderCamera(core, DepthRange(0.1, far_depth))
+
+
+def _wired(sg_extra=()):
+    builder = DiagramBuilder()
+    sg = builder.AddSystem(_scene(sg_extra))
+    color, depth = _cameras()
+    sensor = builder.AddSystem(RgbdSensor(sg.world_frame_id(), X_WC, color, depth))
+    builder.Connect(sg.get_query_output_port(), sensor.query_object_input_port())
+    labels = builder.AddSystem(make_depth_label_image(sensor, sg))
+    builder.Connect(sensor.depth_image_32F_output_port(), labels.GetInputPort("depth_image"))
+    builder.Connect(sg.get_query_output_port(), labels.GetInputPort("query_object"))
+    builder.Connect(sensor.label_image_output_port(), labels.GetInputPort("rendered_label_image"))
+    diagram = builder.Build()
+    return diagram, sg, sensor, labels
+
+
+def test_system_alone_with_fixed_inputs():
+    diagram, sg, sensor, _ = _wired()
+    ctx = diagram.CreateDefaultContext()
+    qo = sg.get_query_output_port().Eval(sg.GetMyContextFromRoot(ctx))
+    system = make_depth_label_image(sensor, sg)
+    sctx = system.CreateDefaultContext()
+    depth, expected = _analytic_depth_and_labels()
+    img = ImageDepth32F(W, H)
+    np.asarray(img.mutable_data)[:, :, 0] = depth
+    system.GetInputPort("depth_image").FixValue(sctx, img)
+    system.GetInputPort("query_object").FixValue(sctx, AbstractValue.Make(qo))
+    out = system.GetOutputPort("label_image").Eval(sctx)
+    assert isinstance(out, ImageLabel16I)
+    got = np.array(out.data)[:, :, 0]
+    assert (got != expected).sum() <= 3 and system.renders == 0
+
+
+def test_wired_system_equals_the_rendered_label_image():
+    diagram, sg, sensor, labels = _wired()
+    ctx = diagram.CreateDefaultContext()
+    ours = np.array(labels.GetOutputPort("label_image").Eval(labels.GetMyContextFromRoot(ctx)).data)[:, :, 0]
+    vtk = np.array(sensor.label_image_output_port().Eval(sensor.GetMyContextFromRoot(ctx)).data)[:, :, 0]
+    assert labels.renders == 0
+    for lab in (FLOOR, BOX, CYL, BALL):
+        assert (vtk == lab).sum() > 100
+    assert (ours == vtk).mean() >= 0.999
+
+
+def test_wired_system_renders_when_an_unsupported_shape_is_in_view():
+    diagram, sg, sensor, labels = _wired([(CAPSULE, Capsule(0.02, 0.1), [0.0, 0.15, 0.05])])
+    ctx = diagram.CreateDefaultContext()
+    ours = np.array(labels.GetOutputPort("label_image").Eval(labels.GetMyContextFromRoot(ctx)).data)[:, :, 0]
+    vtk = np.array(sensor.label_image_output_port().Eval(sensor.GetMyContextFromRoot(ctx)).data)[:, :, 0]
+    assert labels.renders == 1 and (vtk == CAPSULE).sum() > 20
+    np.testing.assert_array_equal(ours, vtk)
+
+
+def test_unconnected_fallback_is_a_clear_error():
+    diagram, sg, sensor, _ = _wired([(CAPSULE, Capsule(0.02, 0.1), [0.0, 0.15, 0.05])])
+    ctx = diagram.CreateDefaultContext()
+    system = make_depth_label_image(sensor, sg)
+    sctx = system.CreateDefaultContext()
+    system.GetInputPort("depth_image").FixValue(sctx, sensor.depth_image_32F_output_port().Eval(
+        sensor.GetMyContextFromRoot(ctx)))
+    system.GetInputPort("query_object").FixValue(
+        sctx, AbstractValue.Make(sg.get_query_output_port().Eval(sg.GetMyContextFromRoot(ctx))))
+    with pytest.raises(ValueError, match="rendered_label_image"):
+        system.GetOutputPort("label_image").Eval(sctx)
+
+
+def test_mismatched_cameras_are_refused():
+    sg = _scene()
+    color, _ = _cameras()
+    _, depth = _cameras(far_depth=1.0)  # depth range ends before the far clipping plane
+    sensor = RgbdSensor(sg.world_frame_id(), X_WC, color, depth)
+    with pytest.raises(ValueError, match="z_far >= clipping_far"):
+        make_depth_label_image(sensor, sg)
+    assert isinstance(make_depth_label_image(RgbdSensor(sg.world_frame_id(), X_WC, *_cameras()), sg),
+                      DepthLabelImage)
+
+
+def test_station_label_images_from_depth(bin_scenario, small_heap):
+    from ms_drake.scenes.heaps import scenario_with_heap, set_heap_poses
+    from ms_drake.station import MakeStation, get_plant, station_objects
+
+    s = scenario_with_heap(copy.deepcopy(bin_scenario), small_heap)
+    station = MakeStation(s, label_images="depth")
+    ctx = station.CreateDefaultContext()
+    set_heap_poses(station, ctx, small_heap)
+    ours = np.array(station.GetOutputPort("overhead.label_image").Eval(ctx).data)[:, :, 0]
+    sensor = station.GetSubsystemByName("rgbd_sensor_overhead")
+    vtk = np.array(sensor.label_image_output_port().Eval(sensor.GetMyContextFromRoot(ctx)).data)[:, :, 0]
+    assert station.GetSubsystemByName("depth_label_overhead").renders == 0
+    assert (ours == vtk).mean() >= 0.9995
+    for o in station_objects(get_plant(station)):
+        n = (vtk == int(o.body_index)).sum()
+        assert abs(int((ours == int(o.body_index)).sum()) - int(n)) <= max(3, 0.01 * n), o.full_name
+    with pytest.raises(ScenarioError, match="label_images"):
+        MakeStation(s, label_images="fast")
