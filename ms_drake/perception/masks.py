@@ -256,7 +256,14 @@ class DepthLabeler:
         self._prims = [p for p in prims if p.label != self.default_label or p.kind == "not_rendered"]
         self._corners = np.array([p.corners for p in self._prims]).reshape(-1, 8, 3)
         self._empty = np.int16(int(RenderLabel.kEmpty))
+        self._buf = np.empty((self.height, self.width), np.int16)
         self._radial = {"cylinder": np.array([[1, 1, 0]], np.float32), "sphere": np.array([[1, 1, 1]], np.float32)}
+
+    def _const(self, value: int, shape: tuple) -> np.ndarray:
+        """A (shape) int16 image filled with value (views into one reused buffer)."""
+        buf = self._buf[: shape[0], : shape[1]]
+        buf.fill(value)
+        return buf
 
     @property
     def geometry_ids(self) -> list:
@@ -288,7 +295,8 @@ class DepthLabeler:
         depth = np.asarray(depth, np.float32)
         if depth.min() <= 0:
             return None  # kTooClose: the renderer's label shows what lies there; we cannot
-        label = np.where(depth < np.inf, np.int16(self.default_label), self._empty)
+        label = np.full(depth.shape, np.int16(self.default_label))
+        cv2.copyTo(self._const(self._empty, depth.shape), cv2.compare(depth, np.inf, cv2.CMP_EQ), label)
         if not self._prims:
             return label
         X_CW = X_WC.inverse().GetAsMatrix4()
@@ -322,10 +330,9 @@ class DepthLabeler:
                 m = cv2.inRange(r2, 0.0, float(h[0] ** 2))
                 if p.kind == "cylinder":
                     m &= cv2.inRange(pg, (-h[0], -h[1], -h[2]), (h[0], h[1], h[2]))
-            m >>= 7  # 255 -> 1
-            mb = m.view(bool)
-            np.copyto(lab[a0:a1, b0:b1], np.int16(p.label), where=mb)
+            cv2.copyTo(self._const(p.label, m.shape), m, lab[a0:a1, b0:b1])  # cv2 writes into the view
             c = count[a0:a1, b0:b1]
+            m >>= 7  # 255 -> 1
             c += m
             work.append((p, M[i], (a0, a1, b0, b1)))
             if c.max() > 1:
