@@ -11,6 +11,8 @@ object, ignoring occlusion) masks by projecting the object's mesh through the ca
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -201,6 +203,10 @@ class DepthLabeler:
     a geometry of another shape (mesh, capsule, ...) or with label kDoNotRender in the view
     frustum of a non-default label, or a pixel closer than the depth range (kTooClose).
 
+    threads: the image is cut into this many row bands labelled in parallel threads (OpenCV
+    and numpy release the GIL); default 2, or 1 where LP_NUM_THREADS=1 (ms_drake.parallel's
+    workers, which also give the renderer one thread each).
+
     Pixel convention, measured: RenderEngineVtk's pixel (u, v) sees the ray through
     ((u + 0.5 - cx) / fx, (v + 0.5 - cy) / fy); with the integer-centre convention of
     drake::systems::sensors::CameraInfo (and of `PinholeCamera`) the de-projected points of
@@ -212,7 +218,8 @@ class DepthLabeler:
     99.993-100 % of the pixels (2-21 differing pixels per image, where objects touch).
     """
 
-    def __init__(self, inspector, intrinsics, renderer_name: str, default_label: int | None = None):
+    def __init__(self, inspector, intrinsics, renderer_name: str, default_label: int | None = None,
+                 threads: int | None = None):
         from pydrake.geometry import Box, Cylinder, RenderLabel, Role, Sphere
 
         self.width, self.height = intrinsics.width(), intrinsics.height()
@@ -256,14 +263,12 @@ class DepthLabeler:
         self._prims = [p for p in prims if p.label != self.default_label or p.kind == "not_rendered"]
         self._corners = np.array([p.corners for p in self._prims]).reshape(-1, 8, 3)
         self._empty = np.int16(int(RenderLabel.kEmpty))
-        self._buf = np.empty((self.height, self.width), np.int16)
+        if threads is None:  # the renderer's budget: ms_drake.parallel workers set LP_NUM_THREADS=1
+            threads = 1 if os.environ.get("LP_NUM_THREADS") == "1" else min(2, os.cpu_count() or 1)
+        self.threads = max(1, int(threads))
+        self._bufs = [np.empty((self.height, self.width), np.int16) for _ in range(self.threads)]
+        self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
         self._radial = {"cylinder": np.array([[1, 1, 0]], np.float32), "sphere": np.array([[1, 1, 1]], np.float32)}
-
-    def _const(self, value: int, shape: tuple) -> np.ndarray:
-        """A (shape) int16 image filled with value (views into one reused buffer)."""
-        buf = self._buf[: shape[0], : shape[1]]
-        buf.fill(value)
-        return buf
 
     @property
     def geometry_ids(self) -> list:
@@ -296,7 +301,7 @@ class DepthLabeler:
         if depth.min() <= 0:
             return None  # kTooClose: the renderer's label shows what lies there; we cannot
         label = np.full(depth.shape, np.int16(self.default_label))
-        cv2.copyTo(self._const(self._empty, depth.shape), cv2.compare(depth, np.inf, cv2.CMP_EQ), label)
+        label[depth == np.inf] = self._empty
         if not self._prims:
             return label
         X_CW = X_WC.inverse().GetAsMatrix4()
@@ -309,18 +314,32 @@ class DepthLabeler:
             return None
         v0, u0 = rects[seen, 0].min(), rects[seen, 2].min()
         v1, u1 = rects[seen, 1].max(), rects[seen, 3].max()
+        R_GC = np.swapaxes(X_CG[:, :3, :3], 1, 2)
+        M = np.concatenate([R_GC, -R_GC @ X_CG[:, :3, 3:]], axis=2).astype(np.float32)  # X_GC[:3]
+        if self.threads == 1 or v1 - v0 < 64:
+            self._claim(depth, label, rects, seen, M, v0, v1, u0, u1, self._bufs[0])
+        else:  # row bands in threads (OpenCV and numpy release the GIL); disjoint outputs
+            edges = np.linspace(v0, v1, self.threads + 1).astype(int)
+            jobs = [self._pool.submit(self._claim, depth, label, rects, seen, M, a, b, u0, u1, buf)
+                    for a, b, buf in zip(edges[:-1], edges[1:], self._bufs)]
+            for job in jobs:
+                job.result()
+        return label
+
+    def _claim(self, depth, label, rects, seen, M, v0, v1, u0, u1, buf) -> None:
+        """Label rows [v0, v1) x columns [u0, u1) of `label` in place."""
         z = depth[v0:v1, u0:u1]
-        # Camera-frame points of the union rectangle; kTooFar pixels become inf/NaN, which no
-        # cv2.inRange below accepts.
+        # Camera-frame points; kTooFar pixels become inf/NaN, which no cv2.inRange below accepts.
         P = cv2.merge([self._rx[:, u0:u1] * z, self._ry[v0:v1] * z, z])
         count = np.zeros(z.shape, np.uint8)
         lab = label[v0:v1, u0:u1]
-        R_GC = np.swapaxes(X_CG[:, :3, :3], 1, 2)
-        M = np.concatenate([R_GC, -R_GC @ X_CG[:, :3, 3:]], axis=2).astype(np.float32)  # X_GC[:3]
         work, crowded = [], []
         for i in seen:
             p = self._prims[i]
-            a0, a1, b0, b1 = rects[i] - [v0, v0, u0, u0]
+            a0, a1 = max(rects[i, 0], v0) - v0, min(rects[i, 1], v1) - v0
+            if a0 >= a1:
+                continue
+            b0, b1 = rects[i, 2] - u0, rects[i, 3] - u0
             pg = cv2.transform(P[a0:a1, b0:b1], M[i])
             h = p.half
             if p.kind == "box":
@@ -330,7 +349,9 @@ class DepthLabeler:
                 m = cv2.inRange(r2, 0.0, float(h[0] ** 2))
                 if p.kind == "cylinder":
                     m &= cv2.inRange(pg, (-h[0], -h[1], -h[2]), (h[0], h[1], h[2]))
-            cv2.copyTo(self._const(p.label, m.shape), m, lab[a0:a1, b0:b1])  # cv2 writes into the view
+            const = buf[: m.shape[0], : m.shape[1]]
+            const.fill(p.label)
+            cv2.copyTo(const, m, lab[a0:a1, b0:b1])  # cv2 writes into the view
             c = count[a0:a1, b0:b1]
             m >>= 7  # 255 -> 1
             c += m
@@ -339,7 +360,6 @@ class DepthLabeler:
                 crowded.append((a0, a1, b0, b1))
         if crowded:
             self._resolve(P, count, lab, work, crowded)
-        return label
 
     @staticmethod
     def _resolve(P, count, lab, work, crowded):

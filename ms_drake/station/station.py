@@ -185,9 +185,9 @@ def MakeStation(scenario: Scenario, meshcat=None, hardware: bool = False, lcm=No
     target_index: index of the object drawn in the target colour (red), -1 for none.
     label_images: how ``<cam>.label_image`` is made (sim only). "render": a second VTK render
       (RgbdSensor's label port). "depth": computed from the depth image and the geometry poses
-      (ms_drake.perception.masks.DepthLabelImage; 99.99 % of pixels equal to the render, ~3x
-      cheaper, so a depth + label pair costs one render; it renders the label image itself
-      whenever a mesh geometry is in view). Cameras without a depth image always render.
+      (ms_drake.perception.masks.DepthLabelImage: 99.99 % of the pixels equal to the render's,
+      about half its CPU; it renders the label image itself whenever it cannot be exact, e.g.
+      a mesh geometry in view). Cameras without a depth image always render.
     """
     if label_images not in LABEL_IMAGES:
         raise ScenarioError(f"MakeStation(label_images={label_images!r}): choose one of {', '.join(LABEL_IMAGES)}")
