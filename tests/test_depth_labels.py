@@ -100,6 +100,9 @@ def test_labeler_alone_matches_analytic_labels():
     for lab in (BOX, CYL, BALL):
         assert (expected == lab).sum() > 100
     assert (got != expected).sum() <= 2  # measured: 0
+    for threads in (1, 2):  # row bands in threads (45 rows here: 2 bands): the same image
+        banded = DepthLabeler(sg.model_inspector(), INFO, "vtk", threads=threads)
+        np.testing.assert_array_equal(banded.label(depth, X_WC, _poses(sg, banded), 0.1, 3.0), got)
     depth[:5] = np.inf  # nothing there (kTooFar) -> kEmpty
     got = labeler.label(depth, X_WC, _poses(sg, labeler), 0.1, 3.0)
     assert np.all(got[:5] == int(RenderLabel.kEmpty))

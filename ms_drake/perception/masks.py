@@ -316,7 +316,7 @@ class DepthLabeler:
         v1, u1 = rects[seen, 1].max(), rects[seen, 3].max()
         R_GC = np.swapaxes(X_CG[:, :3, :3], 1, 2)
         M = np.concatenate([R_GC, -R_GC @ X_CG[:, :3, 3:]], axis=2).astype(np.float32)  # X_GC[:3]
-        if self.threads == 1 or v1 - v0 < 64:
+        if self.threads == 1 or v1 - v0 < 16 * self.threads:
             self._claim(depth, label, rects, seen, M, v0, v1, u0, u1, self._bufs[0])
         else:  # row bands in threads (OpenCV and numpy release the GIL); disjoint outputs
             edges = np.linspace(v0, v1, self.threads + 1).astype(int)
