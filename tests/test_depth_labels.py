@@ -7,15 +7,34 @@ import copy
 import numpy as np
 import pytest
 from pydrake.common.value import AbstractValue
-from pydrake.geometry import (Box, Capsule, ClippingRange, ColorRenderCamera, Cylinder, DepthRange,
-                              DepthRenderCamera, GeometryInstance, MakeRenderEngineVtk, PerceptionProperties,
-                              RenderCameraCore, RenderEngineVtkParams, RenderLabel, Rgba, SceneGraph, Sphere)
+from pydrake.geometry import (
+    Box,
+    Capsule,
+    ClippingRange,
+    ColorRenderCamera,
+    Cylinder,
+    DepthRange,
+    DepthRenderCamera,
+    GeometryInstance,
+    MakeRenderEngineVtk,
+    PerceptionProperties,
+    RenderCameraCore,
+    RenderEngineVtkParams,
+    RenderLabel,
+    Rgba,
+    SceneGraph,
+    Sphere,
+)
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.sensors import CameraInfo, ImageDepth32F, ImageLabel16I, RgbdSensor
 
 from ms_drake.errors import ScenarioError
-from ms_drake.perception.masks import DepthLabeler, DepthLabelImage, make_depth_label_image
+from ms_drake.perception.masks import (
+    DepthLabeler,
+    DepthLabelImage,
+    make_depth_label_image,
+)
 
 W, H = 160, 120
 INFO = CameraInfo(W, H, 150.0, 150.0, W / 2 - 0.5, H / 2 - 0.5)
@@ -114,7 +133,7 @@ def test_labeler_declines_what_it_cannot_do_exactly():
     depth, _ = _analytic_depth_and_labels()
     assert labeler.label(depth, X_WC, _poses(sg, labeler), 0.1, 3.0) is None  # capsule in view
     poses = _poses(sg, labeler)
-    capsule = [g for g in labeler.geometry_ids if sg.model_inspector().GetName(g) == f"g{CAPSULE}"][0]
+    capsule = next(g for g in labeler.geometry_ids if sg.model_inspector().GetName(g) == f"g{CAPSULE}")
     poses[capsule] = RigidTransform([5.0, 0.0, 0.0])  # far outside the view: no need to render
     assert labeler.label(depth, X_WC, poses, 0.1, 3.0) is not None
     depth[0, 0] = 0.0  # kTooClose: the rendered label would show what is there
@@ -160,7 +179,7 @@ def test_system_alone_with_fixed_inputs():
 
 
 def test_wired_system_equals_the_rendered_label_image():
-    diagram, sg, sensor, labels = _wired()
+    diagram, _, sensor, labels = _wired()
     ctx = diagram.CreateDefaultContext()
     ours = np.array(labels.GetOutputPort("label_image").Eval(labels.GetMyContextFromRoot(ctx)).data)[:, :, 0]
     vtk = np.array(sensor.label_image_output_port().Eval(sensor.GetMyContextFromRoot(ctx)).data)[:, :, 0]
@@ -171,7 +190,7 @@ def test_wired_system_equals_the_rendered_label_image():
 
 
 def test_wired_system_renders_when_an_unsupported_shape_is_in_view():
-    diagram, sg, sensor, labels = _wired([(CAPSULE, Capsule(0.02, 0.1), [0.0, 0.15, 0.05])])
+    diagram, _, sensor, labels = _wired([(CAPSULE, Capsule(0.02, 0.1), [0.0, 0.15, 0.05])])
     ctx = diagram.CreateDefaultContext()
     ours = np.array(labels.GetOutputPort("label_image").Eval(labels.GetMyContextFromRoot(ctx)).data)[:, :, 0]
     vtk = np.array(sensor.label_image_output_port().Eval(sensor.GetMyContextFromRoot(ctx)).data)[:, :, 0]
