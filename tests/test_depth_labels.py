@@ -142,6 +142,18 @@ def test_labeler_declines_what_it_cannot_do_exactly():
         labeler.label(depth[:10], X_WC, poses, 0.1, 3.0)
 
 
+def test_labeler_renders_for_a_mesh_in_view():
+    from pydrake.geometry import Mesh
+
+    from ms_drake.paths import models_dir
+
+    mesh = Mesh(str(models_dir() / "objects/random_urdfs/blob957/visual.obj"), 1.0)
+    sg = _scene(extra=[(CAPSULE, mesh, [0.0, 0.15, 0.05])])
+    labeler = _inspector_labeler(sg)
+    depth, _ = _analytic_depth_and_labels()
+    assert labeler.label(depth, X_WC, _poses(sg, labeler), 0.1, 3.0) is None
+
+
 def _cameras(far_depth=3.0):
     core = RenderCameraCore("vtk", INFO, ClippingRange(0.1, 3.0), RigidTransform())
     return ColorRenderCamera(core, False), DepthRenderCamera(core, DepthRange(0.1, far_depth))
