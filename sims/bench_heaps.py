@@ -167,6 +167,22 @@ VARIANTS = {
     "sim_d100_v15": {"contact_approximation": "similar", "dissipation": 100.0, "terminal_speed": 1.5},
     "sim_d200_v15": {"contact_approximation": "similar", "dissipation": 200.0, "terminal_speed": 1.5},
     "sim_d50_v1": {"contact_approximation": "similar", "dissipation": 50.0, "terminal_speed": 1.0},
+    "sim_d50_w08": {"contact_approximation": "similar", "dissipation": 50.0, "wave_time": 0.08, "min_wave_time": 0.04},
+    "sim_d100_w08": {"contact_approximation": "similar", "dissipation": 100.0, "wave_time": 0.08, "min_wave_time": 0.04},
+    "sim_d200_w08": {"contact_approximation": "similar", "dissipation": 200.0, "wave_time": 0.08, "min_wave_time": 0.04},
+    "sim_d100_w06": {"contact_approximation": "similar", "dissipation": 100.0, "wave_time": 0.06, "min_wave_time": 0.03},
+    "sim_d100_w08_c2": {"contact_approximation": "similar", "dissipation": 100.0, "wave_time": 0.08,
+                        "min_wave_time": 0.04, "check_every": 0.02},
+    "land_d100_w06": {"contact_approximation": "similar", "dissipation": 100.0, "wave_time": 0.06,
+                      "min_wave_time": 0.03, "landed_speed": 0.2},
+    "land_d200_w06": {"contact_approximation": "similar", "dissipation": 200.0, "wave_time": 0.06,
+                      "min_wave_time": 0.03, "landed_speed": 0.2},
+    "land_d100_w03": {"contact_approximation": "similar", "dissipation": 100.0, "wave_time": 0.03,
+                      "min_wave_time": 0.03, "landed_speed": 0.2},
+    "land5_d100_w03": {"contact_approximation": "similar", "dissipation": 100.0, "wave_time": 0.03,
+                       "min_wave_time": 0.03, "landed_speed": 0.5, "max_wait": 0.2},
+    "land10_d100_w03": {"contact_approximation": "similar", "dissipation": 100.0, "wave_time": 0.03,
+                        "min_wave_time": 0.03, "landed_speed": 1.0, "max_wait": 0.2},
 }
 
 
@@ -188,7 +204,8 @@ def compare(names: list[str], seeds: range) -> None:
             ph = d.phases
             res[n].append((time.process_time() - t, d.settle_time, d.attempts, ph.get("waves_cpu", 0),
                            ph.get("waves_sim", 0), ph.get("final_cpu", 0), ph.get("final_sim", 0)))
-            print(n, seed, " ".join(f"{x:.2f}" for x in res[n][-1]), d.rejected_reasons, flush=True)
+            print(n, seed, " ".join(f"{x:.2f}" for x in res[n][-1]), f"drop {ph.get('max_drop', 0):.2f}",
+                  d.rejected_reasons, flush=True)
     print("| variant | CPU s | settle s | first attempt | waves CPU s / sim s | final settle CPU s / sim s |")
     for n, v in res.items():
         med = [statistics.median(x[i] for x in v) for i in range(7)]

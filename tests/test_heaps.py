@@ -75,7 +75,7 @@ def test_failed_attempts_are_resampled(bin_scenario):
     # Force every settle check to fail for attempt 0 by giving no time to settle; the
     # generator must report the reason instead of returning an unsettled heap.
     params = HeapParams(max_final_time=0.05, min_final_time=0.05, settle_linear=1e-9, max_attempts=2)
-    with pytest.raises(HeapError, match="did not settle"):
+    with pytest.raises(HeapError, match=r"did not settle.*still moving at"):
         generate_heap(bin_scenario, 2, seed=1, params=params)
 
 
@@ -166,3 +166,54 @@ def test_object_compliance_is_validated(tmp_path):
     f.write_text("S:\n  objects: { set: procedural, count: 2, compliance: squishy }\n")
     with pytest.raises(ScenarioError, match="objects.compliance.*squishy.*rigid, compliant"):
         load_scenario(f, "S")
+
+
+def test_drop_world_dissipation_goes_into_its_objects_only(bin_scenario):
+    """HeapParams.dissipation is written into the drop world's object SDFs; the station keeps the
+    scenario's default (5 s/m), and the bin keeps its own."""
+    from ms_drake.scenes.heaps import _DropWorld
+
+    names = ["procedural/box_003", "procedural/cylinder_001"]
+    params = HeapParams(dissipation=100.0, contact_approximation="similar", render=False)
+    world = _DropWorld(bin_scenario, names, params)
+    sg = world.diagram.GetSubsystemByName("scene_graph")
+    inspector = sg.model_inspector()
+    plant = world.plant
+    for body in world.bodies:
+        for gid in plant.GetCollisionGeometriesForBody(body):
+            props = inspector.GetProximityProperties(gid)
+            assert props.GetProperty("material", "hunt_crossley_dissipation") == 100.0
+    assert plant.get_discrete_contact_approximation().name == "kSimilar"
+    station = MakeStation(scenario_with_heap(bin_scenario, generate_heap(bin_scenario, 2, seed=0)))
+    splant = get_plant(station)
+    sinsp = station.GetSubsystemByName("scene_graph").model_inspector()
+    for o in station_objects(splant):
+        for gid in splant.GetCollisionGeometriesForBody(splant.get_body(o.body_index)):
+            assert sinsp.GetProximityProperties(gid).GetPropertyOrDefault(
+                "material", "hunt_crossley_dissipation", 5.0) == 5.0
+
+
+def test_objects_that_leave_the_bin_are_taken_out_and_tunnelling_is_seen(bin_scenario):
+    """An object beyond the bin's outer walls leaves the simulation (parked, joint locked: it
+    cannot fall off the support table and keep the heap from settling); an object below the
+    bin floor inside its footprint is a tunnel, and the attempt stops at once."""
+    from pydrake.math import RigidTransform
+
+    from ms_drake.scenes.heaps import _DropWorld, _take_out_leavers, _tunnelled
+
+    size = bin_scenario.environment.resolved_size()
+    wall = bin_scenario.environment.wall_thickness
+    origin = np.asarray(bin_scenario.environment.position, float)
+    world = _DropWorld(bin_scenario, ["procedural/box_003", "procedural/cylinder_001"], HeapParams(render=False))
+    plant, pc = world.plant, world.plant_context
+    plant.SetFreeBodyPose(pc, world.bodies[0], RigidTransform(origin + [0.0, 0.0, 0.05]))
+    plant.SetFreeBodyPose(pc, world.bodies[1], RigidTransform(origin + [size[0] / 2 + wall + 0.05, 0.0, 0.0]))
+    assert not _take_out_leavers(world, [0, 1], origin, size, wall)
+    assert world.left == [1] and world.joints[1].is_locked(pc) and not world.joints[0].is_locked(pc)
+    assert plant.GetFreeBodyPose(pc, world.bodies[1]).translation()[2] < -10  # parked far away
+    world.simulator.AdvanceTo(0.1)
+    assert np.all(plant.GetVelocities(pc).reshape(-1, 6)[1] == 0)  # locked: stays put
+    plant.SetFreeBodyPose(pc, world.bodies[0], RigidTransform(origin + [0.0, 0.0, -0.03]))
+    assert _take_out_leavers(world, [0, 1], origin, size, wall)
+    rows = np.array([[0.0, 0.0, 0.02], [0.0, 0.0, -0.03], [0.5, 0.0, -0.04], [0.5, 0.0, -0.1]])
+    assert _tunnelled(rows, size, wall).tolist() == [False, True, False, True]

@@ -77,6 +77,8 @@ class HeapParams:
     check_every: float = 0.03  # s of simulated time
     drop_gap: float = 0.01  # release height above what lies under the object
     wave_time: float = 0.12  # at most this long between two waves of drops
+    landed_speed: float | None = None  # m/s: an object waits while something under it moves faster (None: no wait)
+    max_wait: float = 0.3  # s: ... but at most this long
     min_wave_time: float = 0.06
     min_final_time: float = 0.1
     max_final_time: float = 5.0
@@ -304,23 +306,33 @@ def _drop_in_waves(world: _DropWorld, names: list[str], plan: list[DropItem], or
     waiting = list(range(len(plan)))
     for j in waiting:
         plant.SetFreeBodyPose(pc, world.bodies[j], _parking(j))
+    blocked_since: dict[int, float] = {}
     while waiting:
-        wave = []
-        for pos, k in enumerate(waiting):
-            if not any(_footprints_overlap(plan[k], plan[j]) for j in waiting[:pos]):
-                wave.append(k)
-        boxes = []
+        boxes, moving = [], []
+        vel = plant.GetVelocities(pc).reshape(-1, 6)
         for j in placed:
             if j in world.left:
                 continue
             X = plant.GetFreeBodyPose(pc, world.bodies[j])
             v = _vertices(names[j]) @ X.rotation().matrix().T + (X.translation() - origin)
             boxes.append((v.min(axis=0), v.max(axis=0)))
+            moving.append(params.landed_speed is not None and bool(np.abs(vel[j, 3:]).max() > params.landed_speed))
+        wave = []
+        for pos, k in enumerate(waiting):
+            it = plan[k]
+            if any(_footprints_overlap(it, plan[j]) for j in waiting[:pos]):
+                continue
+            under = [m for (lo, hi), m in zip(boxes, moving)
+                     if np.all(it.xy + it.lo[:2] < hi[:2]) and np.all(it.xy + it.hi[:2] > lo[:2])]
+            if any(under) and t - blocked_since.setdefault(k, t) < params.max_wait:
+                continue  # what lies under it is still falling: release it once that has landed
+            wave.append(k)
         for k in wave:
             it = plan[k]
             top = max([hi[2] for lo, hi in boxes
                        if np.all(it.xy + it.lo[:2] < hi[:2]) and np.all(it.xy + it.hi[:2] > lo[:2])], default=0.0)
             p = np.array([it.xy[0], it.xy[1], top + params.drop_gap - it.lo[2]])
+            phases["max_drop"] = max(phases.get("max_drop", 0.0), top + params.drop_gap)  # release height
             plant.SetFreeBodyPose(pc, world.bodies[k], RigidTransform(it.R, origin + p))
         placed += wave
         waiting = [k for k in waiting if k not in wave]
