@@ -25,6 +25,19 @@ def test_serial_and_local_pool_give_every_result():
             assert all(r.value[1] != os.getpid() for r in results if r.ok)
 
 
+def test_workers_are_replaced_after_max_tasks():
+    """Leaked Drake diagrams die with their workers: fresh workers every workers x
+    max_tasks_per_child jobs, also in a long serial run, which then leaves this process."""
+    results = list(run_jobs(square, [0, 1, 2, 4, 5, 6], workers=2, max_tasks_per_child=1))
+    assert sorted(r.value[0] for r in results) == [0, 1, 4, 16, 25, 36]
+    assert len({r.value[1] for r in results}) >= 3  # three batches of two jobs, one pool each
+    serial = list(run_jobs(square, [0, 1, 2, 4], workers=1, max_tasks_per_child=2))
+    pids = [r.value[1] for r in serial]
+    assert os.getpid() not in pids and len(set(pids)) == 2
+    with pytest.raises(ValueError, match="max_tasks_per_child=0"):
+        list(run_jobs(square, [0], max_tasks_per_child=0))
+
+
 def die(x):
     if x == 1:
         os._exit(3)
