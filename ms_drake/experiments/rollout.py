@@ -71,12 +71,13 @@ class SearchParams:
     # Plant step [s]; None keeps the scenario's (2 ms). The primitive mode only needs the heap to
     # settle and the closed jaw to push, so it runs at 10 ms like the heap generator (our choice).
     time_step: float | None = None
-    # Discrete contact approximation; None keeps the scenario's ("lagged"); "auto": SAP in the
-    # primitive mode, the scenario's in the full mode. The primitive mode runs SAP (our choice): at 10 ms the station's rigid objects (point contact on corner spheres;
-    # the heaps were settled with compliant hydroelastic objects) keep bouncing under "lagged" --
-    # measured on heap N15 s1000: median object 25 mm off its heap pose after 2 s, objects
-    # leaving the bin -- while under SAP they come to rest (median 4 mm, max speed < 3 cm/s).
-    contact_approximation: str | None = "auto"
+    # Discrete contact approximation; None (default) keeps the scenario's ("lagged"), the physics
+    # station_check validates. History: with the station's former rigid objects (point contact on
+    # corner spheres) the primitive mode ran SAP, because under "lagged" at 10 ms those objects kept
+    # bouncing. With the compliant station objects of the bin scenarios (objects.compliance) SAP at
+    # 10 ms blew up (non-finite poses) in 10 of 200 Random rollouts of Table C.1's heaps, while
+    # "lagged" and "similar" ran those heaps without a blow-up (docs/BENCHMARKS.md).
+    contact_approximation: str | None = None
 
     def __post_init__(self):
         from ms_drake.policies.bin_selectors import check_policy
@@ -156,8 +157,6 @@ def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSy
     if params.time_step is not None:
         s.plant_config.time_step = float(params.time_step)
     approx = params.contact_approximation
-    if approx == "auto":
-        approx = "sap" if params.fidelity == "primitive" else None
     if approx is not None:
         s.plant_config.discrete_contact_approximation = approx
     builder = DiagramBuilder()
