@@ -6,26 +6,44 @@ Generation of heap `seed` with N objects:
    planar offsets per object from a truncated 2D Gaussian (sigma 8 cm) kept inside the bin,
    uniformly random orientations;
 3. the objects are dropped one by one, each released `drop_gap` (1 cm) above the top of
-   whatever already lies under its footprint (objects not yet dropped wait far away);
-   objects whose footprints overlap no earlier waiting object fall together in one wave, and
-   the next wave starts once the heap is slow again (or after `wave_time`); releasing low
-   keeps impacts slow, so nothing tunnels and the heap settles quickly;
-4. simulated until settled: every 0.03 s of simulated time the largest linear and angular
-   speed are compared with `settle_linear` / `settle_angular` (timeout `max_final_time`);
-5. objects that left the bin (centre outside the inner walls) are removed; a heap whose state
-   is not finite, that did not settle, or in which an object tunnelled (below the support) is
-   rejected and the seed is resampled (attempt k uses the RNG stream (seed, k));
+   whatever already lies under its footprint (objects not yet dropped wait far away, parked);
+   objects whose footprints overlap no earlier waiting object fall together in one wave, a new
+   wave every `wave_time` (30 ms); an object also waits while something under its footprint
+   still moves faster than `landed_speed` (0.5 m/s: still falling), for at most `max_wait`
+   (0.2 s). The release height is taken over objects that may still be in the air: with waves
+   this frequent and no wait, the highest release of a heap grew to 1.0-1.5 m above the floor
+   (impacts at 4-5 m/s; at 0.12 s waves 0.6-0.9 m, and a 2 cm cylinder falling 2.7 cm per
+   10 ms step went through the 3 cm bin floor); with the wait it is 0.4-0.9 m;
+4. simulated until settled: every `check_every` (30 ms) of simulated time the largest linear
+   and angular speed are compared with `settle_linear` / `settle_angular` (timeout
+   `max_final_time` after the last drop). An object whose origin passes the bin's outer walls
+   has left the bin for good and is taken out of the simulation at once (parked, its joint
+   locked): before, such objects fell off the 1.6 x 1.2 m support table and kept falling, which
+   was 3 of the 5 heaps of 200 that "did not settle" (a fourth was the tunnel above, falling
+   for 5 s). An object below the bin floor (or the support) has tunnelled: the attempt stops
+   at once;
+5. objects that left the bin are removed from the heap; a heap whose state is not finite,
+   that did not settle, or in which an object tunnelled is rejected and the seed is resampled
+   (attempt k uses the RNG stream (seed, k)); the reason names the object still moving;
 6. the target is the object with the smallest visible / amodal mask ratio: the modal mask is
    the object's pixels in the label image of the heap, the amodal mask the object rendered
    alone (every other object moved out of view).
 
-Drop physics (documented choices, tuned for speed without losing validity): objects are
-compliant-hydroelastic here (E = 5 MPa, see ms_drake.objects.sdf) so that resting contacts
-are pressure patches and the heap really comes to rest; their free joints carry a small angular
-damping (`angular_damping`) as rolling resistance, without which a cylinder rolls across the
-bin for seconds (Drake has no rolling friction); discrete step `time_step` = 10 ms with
-Drake's "lagged" convex contact approximation. Loaded into a station (rigid objects with
-contact spheres, see MakeStation) a heap keeps its poses bit for bit and barely moves.
+Drop physics (documented choices, tuned for speed without losing validity; measured in
+docs/BENCHMARKS.md, "Heap speed, third pass"): objects are compliant-hydroelastic here (E =
+5 MPa, see ms_drake.objects.sdf) so that resting contacts are pressure patches and the heap
+really comes to rest; discrete step `time_step` = 10 ms with Drake's "similar" convex contact
+approximation (less CPU than "lagged" at equal validity). The free joints carry a small
+angular damping (`angular_damping`) as rolling resistance, without which a cylinder rolls
+across the bin for seconds (Drake has no rolling friction). Hunt-Crossley dissipation stays
+the scenario's (5 s/m); `dissipation` can raise it for the drop world's objects only (written
+into their SDFs). A high value (50-100 s/m: fully inelastic impacts, physically fine for
+cardboard and plastic landing on a heap) looked 25-35 % cheaper, but it is not adopted: it
+makes contacts viscous, so an object that is not yet supported sinks or tips at a few mm/s,
+under the settle thresholds, and the "settled" heap is not at rest -- reloaded into the
+station (dissipation 5 s/m) it moved 5-10x more (median object 1-4 mm vs 0.2-0.3 mm) with
+2-3x deeper overlaps at load. Loaded into a bin station (compliant objects, the same E) a heap
+keeps its poses bit for bit.
 """
 
 from __future__ import annotations
@@ -63,7 +81,7 @@ class HeapParams:
     """Knobs of heap generation (defaults as the module docstring states)."""
 
     time_step: float = 0.01
-    contact_approximation: str = "lagged"
+    contact_approximation: str = "similar"
     near_rigid_threshold: float = 1.0  # MultibodyPlantConfig.sap_near_rigid_threshold
     dissipation: float | None = None  # s/m, Hunt-Crossley dissipation of the drop world's objects (None: scenario's)
     friction: float | None = None  # objects' Coulomb friction in the drop world (None: scenario's objects.friction)
@@ -76,10 +94,10 @@ class HeapParams:
     settle_angular: float = 5.0  # rad/s
     check_every: float = 0.03  # s of simulated time
     drop_gap: float = 0.01  # release height above what lies under the object
-    wave_time: float = 0.12  # at most this long between two waves of drops
-    landed_speed: float | None = None  # m/s: an object waits while something under it moves faster (None: no wait)
-    max_wait: float = 0.3  # s: ... but at most this long
-    min_wave_time: float = 0.06
+    wave_time: float = 0.03  # at most this long between two waves of drops
+    landed_speed: float | None = 0.5  # m/s: an object waits while something under it moves faster (None: no wait)
+    max_wait: float = 0.2  # s: ... but at most this long
+    min_wave_time: float = 0.03
     min_final_time: float = 0.1
     max_final_time: float = 5.0
     center_sigma: float = 0.03
