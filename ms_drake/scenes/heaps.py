@@ -11,18 +11,18 @@ Generation of heap `seed` with N objects:
    wave every `wave_time` (30 ms); an object also waits while something under its footprint
    still moves faster than `landed_speed` (0.5 m/s: still falling), for at most `max_wait`
    (0.2 s). The release height is taken over objects that may still be in the air: with waves
-   this frequent and no wait, the highest release of a heap grew to 1.0-1.5 m above the floor
-   (impacts at 4-5 m/s; at 0.12 s waves 0.6-1.0 m, and a 2 cm cylinder falling 2.7 cm per
+   this frequent and no wait, the highest release of a heap grew to 1.0-1.8 m above the floor
+   (impacts at 4-6 m/s; at 0.12 s waves 0.6-1.2 m, and a 2 cm cylinder falling 2.7 cm per
    10 ms step went through the 3 cm bin floor); with the wait it is 0.4-0.6 m (seeds 0-9);
 4. simulated until settled: every `check_every` (30 ms) of simulated time the largest linear
    and angular speed of an object, averaged over those 30 ms (pose change / time: robust to
    the discrete solver's step-to-step chatter, see _mean_speeds), are compared with
-   `settle_linear` / `settle_angular` (timeout `max_final_time` after the last drop). An object whose origin passes the bin's outer walls
-   has left the bin for good and is taken out of the simulation at once (parked, its joint
-   locked): before, such objects fell off the 1.6 x 1.2 m support table and kept falling, which
-   was 3 of the 5 heaps of 200 that "did not settle" (a fourth was the tunnel above, falling
-   for 5 s). An object below the bin floor (or the support) has tunnelled: the attempt stops
-   at once;
+   `settle_linear` / `settle_angular` (timeout `max_final_time` after the last drop). An
+   object whose origin passes the bin's outer walls has left the bin for good and is taken out
+   of the simulation at once (parked, its joint locked): before, such objects fell off the
+   1.6 x 1.2 m support table and kept falling, which was 3 of the 5 heaps of 200 that "did
+   not settle" (a fourth was the tunnel above, falling for 5 s). An object below the bin
+   floor (or the support) has tunnelled: the attempt stops at once;
 5. objects that left the bin are removed from the heap; a heap whose state is not finite,
    that did not settle, or in which an object tunnelled is rejected and the seed is resampled
    (attempt k uses the RNG stream (seed, k)); the reason names the object still moving;
@@ -42,8 +42,8 @@ into their SDFs). A high value (50-100 s/m: fully inelastic impacts, physically 
 cardboard and plastic landing on a heap) looked 25-35 % cheaper, but it is not adopted: it
 makes contacts viscous, so an object that is not yet supported sinks or tips at a few mm/s,
 under the settle thresholds, and the "settled" heap is not at rest -- reloaded into the
-station (dissipation 5 s/m) it moved 5-10x more (median object 1-4 mm vs 0.2-0.3 mm) with
-2-3x deeper overlaps at load. Loaded into a bin station (compliant objects, the same E) a heap
+station (dissipation 5 s/m) it moved more (median object 1.1-3.6 mm vs 0.2-0.3 mm in 0.5 s)
+and overlapped ~3x deeper at load. Loaded into a bin station (compliant objects, the same E) a heap
 keeps its poses bit for bit.
 """
 
@@ -90,7 +90,8 @@ class HeapParams:
     modulus: float = OBJECT_MODULUS  # Pa, compliant objects of the drop world (ms_drake.objects.sdf)
     resolution_edges: int = 12  # edges around a hydroelastic cylinder / sphere in the drop world
     angular_damping: float = 1e-4  # N m s: stops a small cylinder rolling in ~0.2 s, negligible for tumbling
-    terminal_speed: float | None = None  # m/s: linear drag m g / v on each free joint (None: no drag)
+    terminal_speed: float | None = None  # m/s: linear drag m g / v on each free joint (None: no drag;
+    # it stops tunnelling but slows every fall and topple: heaps settled later, not adopted)
     settle_linear: float = 0.05  # m/s (a 1-cm cylinder rolling at 5 cm/s turns at 5 rad/s)
     settle_angular: float = 5.0  # rad/s
     check_every: float = 0.03  # s of simulated time
