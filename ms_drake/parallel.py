@@ -70,23 +70,43 @@ def _run_local(fn, jobs: list, workers: int, max_tasks: int) -> Iterator[JobResu
         for job in jobs:
             yield _call(fn, job)
         return
-    # Fresh worker processes every `workers * max_tasks` jobs (one pool per batch). Python
-    # 3.11's own ProcessPoolExecutor(max_tasks_per_child=...) hangs now and then when a worker
-    # retires (seen in tests/test_parallel.py), so batches it is; the cost is the batch's tail.
+    # At most `workers` jobs in flight; after `workers * max_tasks` submissions the pool is shut
+    # down without waiting (its running jobs finish, then its processes exit) and new jobs go to
+    # a fresh pool, so there is no barrier between pools. (Python 3.11's own
+    # ProcessPoolExecutor(max_tasks_per_child=...) hung now and then in tests/test_parallel.py.)
+    # A dead worker breaks only its pool: the jobs it had in flight are reported, the rest go on.
     workers = max(1, workers)
     ctx = multiprocessing.get_context("spawn")  # Drake and VTK are not fork-safe
-    batch = workers * max_tasks
-    for b in range(0, len(jobs), batch):
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-            futures = {pool.submit(_call, fn, job, True): job for job in jobs[b:b + batch]}
-            not_done = set(futures)
-            while not_done:
-                done, not_done = wait(not_done, return_when=FIRST_COMPLETED)
-                for f in done:
-                    try:
-                        yield f.result()
-                    except BrokenProcessPool:  # a worker died: this job (and others in flight) fail
-                        yield JobResult(futures[f], None, "worker process died (BrokenProcessPool)")
+    pending, inflight = list(reversed(jobs)), {}
+    pool, submitted = None, 0
+    try:
+        while pending or inflight:
+            while pending and len(inflight) < workers:
+                if pool is None or submitted >= workers * max_tasks:
+                    if pool is not None:
+                        pool.shutdown(wait=False)
+                    pool, submitted = ProcessPoolExecutor(max_workers=workers, mp_context=ctx), 0
+                job = pending.pop()
+                try:
+                    inflight[pool.submit(_call, fn, job, True)] = (job, pool)
+                    submitted += 1
+                except BrokenProcessPool:  # broken by a death noticed meanwhile: a fresh pool
+                    pending.append(job)
+                    pool.shutdown(wait=False)
+                    pool = None
+            done, _ = wait(set(inflight), return_when=FIRST_COMPLETED)
+            for f in done:
+                job, owner = inflight.pop(f)
+                try:
+                    yield f.result()
+                except BrokenProcessPool:  # a worker died: this job (and others in flight) fail
+                    yield JobResult(job, None, "worker process died (BrokenProcessPool)")
+                    if owner is pool:
+                        pool.shutdown(wait=False)
+                        pool = None
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True)
 
 
 def _run_ray(fn, jobs: list, workers: int, address: str | None, max_tasks: int) -> Iterator[JobResult]:
