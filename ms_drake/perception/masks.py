@@ -166,6 +166,9 @@ _VTK_SAGITTA = 1.0 - np.cos(np.pi / 50)
 # Numerical tolerance of a de-projected depth pixel (float32 depth, 24-bit depth encoding over
 # <= 3 m is 0.2 um; measured on saved heaps: median 0.1 um from the true surface).
 _DEPTH_TOL = 2e-5
+# Kind codes of the kernel (_label_kernel: BOX, CYLINDER, SPHERE); larger codes force a render.
+_KIND_CODES = {"box": 0, "cylinder": 1, "sphere": 2, "unsupported": 3, "not_rendered": 4}
+_SPHERE = 2
 _UNIT_CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
 
 
@@ -195,15 +198,18 @@ class DepthLabeler:
     of two geometries go to the one with the smaller |signed distance|. Pixels no geometry
     claims take `default_label` (the environment: by default the label whose geometries have
     the largest total bounding-box volume); pixels without depth (kTooFar) take kEmpty.
-    Supported shapes: Box, Cylinder, Sphere (every ms_drake object and environment). Claims
-    are SIMD OpenCV calls (cv2.transform, cv2.inRange) over each geometry's screen rectangle.
+    Supported shapes: Box, Cylinder, Sphere (every ms_drake object and environment). One
+    numba kernel (ms_drake.perception._label_kernel.label_rows, compiled on the first call
+    and cached in __pycache__) visits each pixel once and tests only the geometries whose
+    screen rectangle holds it; up to session 3 this was one OpenCV pass (cv2.transform,
+    cv2.inRange) per geometry plus a numpy pass over the crowded pixels, 2-4x slower.
 
     `label(...)` returns None when the answer could be inexact, and callers then render:
     a geometry of another shape (mesh, capsule, ...) or with label kDoNotRender in the view
     frustum of a non-default label, or a pixel closer than the depth range (kTooClose).
 
-    threads: the image is cut into this many row bands labelled in parallel threads (OpenCV
-    and numpy release the GIL); default 2, or 1 where LP_NUM_THREADS=1 (ms_drake.parallel's
+    threads: the image is cut into this many row bands labelled in parallel threads (the
+    kernel releases the GIL); default 2, or 1 where LP_NUM_THREADS=1 (ms_drake.parallel's
     workers, which also give the renderer one thread each).
 
     Pixel convention, measured: RenderEngineVtk's pixel (u, v) sees the ray through
@@ -224,8 +230,8 @@ class DepthLabeler:
         self.width, self.height = intrinsics.width(), intrinsics.height()
         self.fx, self.fy = intrinsics.focal_x(), intrinsics.focal_y()
         self.cx, self.cy = intrinsics.center_x(), intrinsics.center_y()
-        self._rx = ((np.arange(self.width) + 0.5 - self.cx) / self.fx).astype(np.float32)[None, :]
-        self._ry = ((np.arange(self.height) + 0.5 - self.cy) / self.fy).astype(np.float32)[:, None]
+        self._rx = ((np.arange(self.width) + 0.5 - self.cx) / self.fx).astype(np.float32)  # x / z of column u
+        self._ry = ((np.arange(self.height) + 0.5 - self.cy) / self.fy).astype(np.float32)  # y / z of row v
         prims, volume = [], {}
         for gid in inspector.GetAllGeometryIds(Role.kPerception):
             props = inspector.GetPerceptionProperties(gid)
@@ -262,13 +268,17 @@ class DepthLabeler:
         self.default_label = int(default_label)
         self._prims = [p for p in prims if p.label != self.default_label or p.kind == "not_rendered"]
         self._corners = np.array([p.corners for p in self._prims]).reshape(-1, 8, 3)
-        self._empty = np.int16(int(RenderLabel.kEmpty))
+        # The primitives packed for the kernel (ms_drake.perception._label_kernel.label_rows).
+        self._kind = np.array([_KIND_CODES[p.kind] for p in self._prims], np.int64)
+        self._size = np.array([p.size for p in self._prims], np.float64).reshape(-1, 3)
+        self._eps = np.array([p.eps for p in self._prims], np.float64)
+        self._half = self._size + self._eps[:, None]
+        self._labels = np.array([p.label for p in self._prims], np.int16)
+        self._empty = int(RenderLabel.kEmpty)
         if threads is None:  # the renderer's budget: ms_drake.parallel workers set LP_NUM_THREADS=1
             threads = 1 if os.environ.get("LP_NUM_THREADS") == "1" else min(2, os.cpu_count() or 1)
         self.threads = max(1, int(threads))
-        self._bufs = [np.empty((self.height, self.width), np.int16) for _ in range(self.threads)]
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
-        self._radial = {"cylinder": np.array([[1, 1, 0]], np.float32), "sphere": np.array([[1, 1, 1]], np.float32)}
 
     @property
     def geometry_ids(self) -> list:
@@ -297,107 +307,39 @@ class DepthLabeler:
         if depth.shape != (self.height, self.width):
             raise ValueError(f"DepthLabeler: depth image is {depth.shape[1]}x{depth.shape[0]}, camera is "
                              f"{self.width}x{self.height}")
-        depth = np.asarray(depth, np.float32)
-        if depth.min() <= 0:
-            return None  # kTooClose: the renderer's label shows what lies there; we cannot
-        label = np.full(depth.shape, np.int16(self.default_label))
-        label[depth == np.inf] = self._empty
-        if not self._prims:
-            return label
-        X_CW = X_WC.inverse().GetAsMatrix4()
-        X_CG = X_CW @ np.stack([poses[p.geometry_id].GetAsMatrix4() for p in self._prims])
-        rects = self._rects(X_CG, z_near, z_far)
-        seen = np.flatnonzero((rects[:, 1] > rects[:, 0]) & (rects[:, 3] > rects[:, 2]))
-        if seen.size == 0:
-            return label
-        if any(self._prims[i].kind in ("unsupported", "not_rendered") for i in seen):
-            return None
-        v0, u0 = rects[seen, 0].min(), rects[seen, 2].min()
-        v1, u1 = rects[seen, 1].max(), rects[seen, 3].max()
+        from ms_drake.perception._label_kernel import label_rows  # numba: imported on first use
+
+        depth = np.ascontiguousarray(depth, np.float32)
+        n = len(self._prims)
+        if n:
+            X_CW = X_WC.inverse().GetAsMatrix4()
+            X_CG = X_CW @ np.stack([poses[p.geometry_id].GetAsMatrix4() for p in self._prims])
+            rects = self._rects(X_CG, z_near, z_far)
+            seen = np.flatnonzero((rects[:, 1] > rects[:, 0]) & (rects[:, 3] > rects[:, 2]))
+        else:
+            X_CG, rects, seen = np.zeros((0, 4, 4)), np.zeros((0, 4), np.int64), np.zeros(0, np.int64)
+        if seen.size and np.any(self._kind[seen] > _SPHERE):
+            return None  # an unsupported or kDoNotRender geometry in view
+        if seen.size:
+            v0, u0 = int(rects[seen, 0].min()), int(rects[seen, 2].min())
+            v1, u1 = int(rects[seen, 1].max()), int(rects[seen, 3].max())
+        else:
+            v0 = v1 = u0 = u1 = 0
         R_GC = np.swapaxes(X_CG[:, :3, :3], 1, 2)
-        M = np.concatenate([R_GC, -R_GC @ X_CG[:, :3, 3:]], axis=2).astype(np.float32)  # X_GC[:3]
+        M = np.ascontiguousarray(np.concatenate([R_GC, -R_GC @ X_CG[:, :3, 3:]], axis=2))  # X_GC[:3]
+        rects = np.ascontiguousarray(rects, np.int64)
+        label = np.empty(depth.shape, np.int16)
+        args = (v0, v1, u0, u1, seen.astype(np.int64), rects, M, self._kind, self._half, self._size, self._eps,
+                self._labels, self.default_label, self._empty)
         if self.threads == 1 or v1 - v0 < 16 * self.threads:
-            self._claim(depth, label, rects, seen, M, v0, v1, u0, u1, self._bufs[0])
-        else:  # row bands in threads (OpenCV and numpy release the GIL); disjoint outputs
+            too_close = label_rows(depth, self._rx, self._ry, label, 0, self.height, *args)
+        else:  # row bands of the claimed rows in threads (the kernel releases the GIL); disjoint outputs
             edges = np.linspace(v0, v1, self.threads + 1).astype(int)
-            jobs = [self._pool.submit(self._claim, depth, label, rects, seen, M, a, b, u0, u1, buf)
-                    for a, b, buf in zip(edges[:-1], edges[1:], self._bufs)]
-            for job in jobs:
-                job.result()
-        return label
-
-    def _claim(self, depth, label, rects, seen, M, v0, v1, u0, u1, buf) -> None:
-        """Label rows [v0, v1) x columns [u0, u1) of `label` in place."""
-        z = depth[v0:v1, u0:u1]
-        # Camera-frame points; kTooFar pixels become inf/NaN, which no cv2.inRange below accepts.
-        P = cv2.merge([self._rx[:, u0:u1] * z, self._ry[v0:v1] * z, z])
-        count = np.zeros(z.shape, np.uint8)
-        lab = label[v0:v1, u0:u1]
-        work, crowded = [], []
-        for i in seen:
-            p = self._prims[i]
-            a0, a1 = max(rects[i, 0], v0) - v0, min(rects[i, 1], v1) - v0
-            if a0 >= a1:
-                continue
-            b0, b1 = rects[i, 2] - u0, rects[i, 3] - u0
-            pg = cv2.transform(P[a0:a1, b0:b1], M[i])
-            h = p.half
-            if p.kind == "box":
-                m = cv2.inRange(pg, (-h[0], -h[1], -h[2]), (h[0], h[1], h[2]))
-            else:
-                r2 = cv2.transform(cv2.multiply(pg, pg), self._radial[p.kind])
-                m = cv2.inRange(r2, 0.0, float(h[0] ** 2))
-                if p.kind == "cylinder":
-                    m &= cv2.inRange(pg, (-h[0], -h[1], -h[2]), (h[0], h[1], h[2]))
-            const = buf[: m.shape[0], : m.shape[1]]
-            const.fill(p.label)
-            cv2.copyTo(const, m, lab[a0:a1, b0:b1])  # cv2 writes into the view
-            c = count[a0:a1, b0:b1]
-            m >>= 7  # 255 -> 1
-            c += m
-            work.append((p, M[i], (a0, a1, b0, b1)))
-            if c.max() > 1:
-                crowded.append((a0, a1, b0, b1))
-        if crowded:
-            self._resolve(P, count, lab, work, crowded)
-
-    @staticmethod
-    def _resolve(P, count, lab, work, crowded):
-        """Pixels claimed by several geometries: the smallest |signed distance| wins."""
-        W = count.shape[1]
-        flat = np.unique(np.concatenate([
-            ((np.nonzero(count[a0:a1, b0:b1] > 1)[0] + a0) * W + np.nonzero(count[a0:a1, b0:b1] > 1)[1] + b0)
-            for a0, a1, b0, b1 in crowded]))
-        vs, us = np.divmod(flat, W)
-        pts = P[vs, us].astype(np.float64)
-        best = np.full(len(vs), np.inf)
-        out = lab[vs, us].copy()
-        for p, M, (a0, a1, b0, b1) in work:
-            inside = (vs >= a0) & (vs < a1) & (us >= b0) & (us < b1)
-            if not inside.any():
-                continue
-            d = np.abs(_signed_distance(p, pts[inside] @ M[:, :3].T.astype(np.float64) + M[:, 3]))
-            cur = best[inside]
-            win = (d < cur) & (d <= p.eps)
-            cur[win] = d[win]
-            best[inside] = cur
-            sub = out[inside]
-            sub[win] = p.label
-            out[inside] = sub
-        lab[vs, us] = out
-
-
-def _signed_distance(p: _LabelPrimitive, x: np.ndarray) -> np.ndarray:
-    """Signed distance of points x (N, 3) in G to the primitive p."""
-    h = p.size
-    if p.kind == "box":
-        q = np.abs(x) - h
-        return np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0)
-    if p.kind == "cylinder":
-        rr = np.hypot(x[:, 0], x[:, 1]) - h[0]
-        qz = np.abs(x[:, 2]) - h[2]
-        return np.hypot(np.maximum(rr, 0), np.maximum(qz, 0)) + np.minimum(np.maximum(rr, qz), 0)
-    return np.linalg.norm(x, axis=1) - h[0]
+            edges[0], edges[-1] = 0, self.height
+            jobs = [self._pool.submit(label_rows, depth, self._rx, self._ry, label, int(a), int(b), *args)
+                    for a, b in zip(edges[:-1], edges[1:])]
+            too_close = any([job.result() for job in jobs])
+        return None if too_close else label  # kTooClose: the renderer's label shows what lies there
 
 
 def _shape_aabb(shape) -> tuple[np.ndarray, np.ndarray]:
