@@ -272,7 +272,9 @@ class DepthLabeler:
         self._kind = np.array([_KIND_CODES[p.kind] for p in self._prims], np.int64)
         self._size = np.array([p.size for p in self._prims], np.float64).reshape(-1, 3)
         self._eps = np.array([p.eps for p in self._prims], np.float64)
-        self._half = self._size + self._eps[:, None]
+        half = self._size + self._eps[:, None]
+        self._half = half.astype(np.float32)  # the claim test is float32 (as OpenCV's was)
+        self._r2 = (half[:, 0] ** 2).astype(np.float32)
         self._labels = np.array([p.label for p in self._prims], np.int16)
         self._empty = int(RenderLabel.kEmpty)
         if threads is None:  # the renderer's budget: ms_drake.parallel workers set LP_NUM_THREADS=1
@@ -326,10 +328,10 @@ class DepthLabeler:
         else:
             v0 = v1 = u0 = u1 = 0
         R_GC = np.swapaxes(X_CG[:, :3, :3], 1, 2)
-        M = np.ascontiguousarray(np.concatenate([R_GC, -R_GC @ X_CG[:, :3, 3:]], axis=2))  # X_GC[:3]
+        M = np.concatenate([R_GC, -R_GC @ X_CG[:, :3, 3:]], axis=2).astype(np.float32)  # X_GC[:3]
         rects = np.ascontiguousarray(rects, np.int64)
         label = np.empty(depth.shape, np.int16)
-        args = (v0, v1, u0, u1, seen.astype(np.int64), rects, M, self._kind, self._half, self._size, self._eps,
+        args = (v0, v1, u0, u1, seen.astype(np.int64), rects, M, self._kind, self._half, self._r2, self._size, self._eps,
                 self._labels, self.default_label, self._empty)
         if self.threads == 1 or v1 - v0 < 16 * self.threads:
             too_close = label_rows(depth, self._rx, self._ry, label, 0, self.height, *args)
