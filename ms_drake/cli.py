@@ -105,13 +105,14 @@ def _peak_rss_mb() -> float:
 
 def heap_job(job: tuple) -> dict:
     """One heap as a JSON-able record (module-level so workers can unpickle it)."""
-    scenario_file, scenario_name, n, seed, object_set = job
+    scenario_file, scenario_name, n, seed, object_set, *rest = job
     from ms_drake.scenario import load_scenario
-    from ms_drake.scenes.heaps import generate_heap, heap_to_dict
+    from ms_drake.scenes.heaps import HeapParams, generate_heap, heap_to_dict
 
     s = load_scenario(scenario_file, scenario_name)
+    params = HeapParams(engine=rest[0]) if rest and rest[0] else None
     t, cpu0 = time.perf_counter(), time.process_time()
-    heap, diag = generate_heap(s, n, seed, object_set=object_set, return_diagnostics=True)
+    heap, diag = generate_heap(s, n, seed, object_set=object_set, params=params, return_diagnostics=True)
     rec = heap_to_dict(heap)
     rec.update(seconds=time.perf_counter() - t, attempts=diag.attempts, removed=diag.removed,
                settle_time=diag.settle_time, rejected=diag.rejected_reasons, pid=os.getpid(),
@@ -128,6 +129,8 @@ def heaps(objects: int = typer.Option(15, "--objects", min=1, max=60, help="Obje
           object_set: Optional[str] = typer.Option(None, "--object-set", help="Object set (default: scenario's)"),
           scenario: str = typer.Option("BinHeap15", help="Scenario name"),
           scenario_file: Optional[Path] = ScenarioFile,
+          engine: Optional[str] = typer.Option(None, "--engine", help="Drop physics: bullet or drake "
+                                               "(default: ms_drake.scenes.heaps.HeapParams.engine)"),
           ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
           ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address")):
     """Generate heaps for seeds S..S+K-1 in parallel, one JSON line per heap (resumable)."""
@@ -141,12 +144,14 @@ def heaps(objects: int = typer.Option(15, "--objects", min=1, max=60, help="Obje
         get_object_set(object_set)
     if out.suffix != ".jsonl":
         _fail(f"--out {out}: give a .jsonl file")
+    if engine not in (None, "bullet", "drake"):
+        _fail(f"--engine {engine}: use bullet or drake")
     out.parent.mkdir(parents=True, exist_ok=True)
     done = _read_done(out)
     seeds = [k for k in range(seed_start, seed_start + count) if k not in done]
     if len(seeds) < count:
         typer.echo(f"resuming: {count - len(seeds)} of {count} heaps already in {out}")
-    jobs = [(str(scenario_file) if scenario_file else None, scenario, objects, k, object_set) for k in seeds]
+    jobs = [(str(scenario_file) if scenario_file else None, scenario, objects, k, object_set, engine) for k in seeds]
     del s
     failures = 0
     t0 = time.perf_counter()

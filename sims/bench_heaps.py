@@ -145,12 +145,24 @@ def reload_check(path: str, count: int = 20) -> None:
 
 
 #: The drop world up to the second pass (12 waves of <= 0.12 s, lagged, the scenario's 5 s/m).
-V2 = {"contact_approximation": "lagged", "dissipation": None, "wave_time": 0.12, "min_wave_time": 0.06,
+V2 = {"engine": "drake", "contact_approximation": "lagged", "dissipation": None, "wave_time": 0.12, "min_wave_time": 0.06,
       "landed_speed": None}
 #: Drop-world variants measured in docs/BENCHMARKS.md (HeapParams overrides; all but "base" spelled
 #: out from the second-pass drop world V2, so their figures stay what they were).
 VARIANTS = {
-    "base": {},  # the current defaults (third pass: = land5_d5)
+    "base": {},  # the current defaults (session 4: Bullet = bullet_r3; the third pass's Drake world = "drake")
+    # session 4: the drop simulated in Bullet (ms_drake.scenes.bullet), same plan, waves and settle tests
+    "drake": {"engine": "drake"},  # the third-pass defaults (compliant hydroelastic Drake drop world)
+    "bullet": {"engine": "bullet", "bullet_rolling_friction": 1e-4},
+    "bullet120": {"engine": "bullet", "bullet_time_step": 1 / 120, "bullet_rolling_friction": 1e-4},
+    "bullet_it20": {"engine": "bullet", "bullet_iterations": 20, "bullet_rolling_friction": 1e-4},
+    "bullet120_it20": {"engine": "bullet", "bullet_time_step": 1 / 120, "bullet_iterations": 20,
+                       "bullet_rolling_friction": 1e-4},
+    "bullet_cone": {"engine": "bullet", "bullet_parameters": {"enableConeFriction": 1}, "bullet_rolling_friction": 1e-4},
+    "bullet_cone_r0": {"engine": "bullet", "bullet_parameters": {"enableConeFriction": 1}, "bullet_rolling_friction": 0.0},
+    "bullet480": {"engine": "bullet", "bullet_time_step": 1 / 480, "bullet_rolling_friction": 1e-4},
+    "bullet_r3": {"engine": "bullet", "bullet_rolling_friction": 1e-3},
+    "bullet_r2": {"engine": "bullet", "bullet_rolling_friction": 3e-4},
     # up to the second pass: 12 waves of <= 0.12 s, lagged, the scenario's dissipation (5 s/m)
     "v2": V2,
     "edges8": {**V2, "resolution_edges": 8},

@@ -21,6 +21,6 @@ def no_robot(scenario):
 
 @pytest.fixture(scope="session")
 def small_heap(bin_scenario):
-    from ms_drake.scenes.heaps import generate_heap
+    from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap
 
-    return generate_heap(bin_scenario, 4, seed=3)
+    return generate_heap(bin_scenario, 4, seed=3, params=SEARCH_HEAPS)  # as the search benchmarks

@@ -128,9 +128,9 @@ def test_grasp_tool_pose_axes():
 @pytest.fixture(scope="module")
 def heap5():
     from ms_drake.scenario import load_scenario
-    from ms_drake.scenes.heaps import generate_heap
+    from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap
 
-    return generate_heap(load_scenario(None, "BinHeap15"), 4, seed=3)
+    return generate_heap(load_scenario(None, "BinHeap15"), 4, seed=3, params=SEARCH_HEAPS)
 
 
 def test_one_search_step_primitive(heap5):

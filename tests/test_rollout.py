@@ -12,9 +12,9 @@ from ms_drake.types import InstanceMasks
 @pytest.fixture(scope="module")
 def heap4():
     from ms_drake.scenario import load_scenario
-    from ms_drake.scenes.heaps import generate_heap
+    from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap
 
-    return generate_heap(load_scenario(None, "BinHeap15"), 4, seed=3)
+    return generate_heap(load_scenario(None, "BinHeap15"), 4, seed=3, params=SEARCH_HEAPS)
 
 
 @pytest.fixture(scope="module")

@@ -79,13 +79,14 @@ def run_demo(out: Path, seed: int = 0, objects: int = 15, policy: str = "xray", 
     )
     from ms_drake.perception.masks import PinholeCamera
     from ms_drake.scenario import load_scenario
+    from ms_drake.scenes.heaps import SEARCH_HEAPS
     from ms_drake.scenes.render import make_scene, write_scene_images
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()
     base = load_scenario(None, "BinHeap15")
-    heap = make_scene(base, seed, objects)
+    heap = make_scene(base, seed, objects, params=SEARCH_HEAPS)  # the search's heaps (Drake drop world)
     log(f"  {len(heap.objects)} objects settled in {time.perf_counter() - t:.1f} s; target {heap.target}")
     written = write_scene_images(base, heap, out, meshcat_html=False)
     meshcat = None

@@ -31,12 +31,12 @@ def cached_heap(objects: int, seed: int, heap_dir: str | None):
     several policies search the very same heaps without regenerating them (a heap is a pure
     function of (N, seed); the file is written atomically)."""
     from ms_drake.scenario import load_scenario
-    from ms_drake.scenes.heaps import generate_heap, load_heap, save_heap
+    from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap, load_heap, save_heap
 
     path = Path(heap_dir) / f"heap_N{objects}_s{seed}.json" if heap_dir else None
     if path is not None and path.exists():
         return load_heap(path)
-    heap = generate_heap(load_scenario(None, "BinHeap15"), objects, seed)
+    heap = generate_heap(load_scenario(None, "BinHeap15"), objects, seed, params=SEARCH_HEAPS)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(f".{os.getpid()}.tmp")

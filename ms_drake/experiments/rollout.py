@@ -346,12 +346,12 @@ def rollout(policy: str, objects: int, seed: int, fidelity: str = "primitive", h
             heap=None, keep_frames: bool = False, meshcat=None, **kw) -> RolloutResult:
     """Generate heap `seed` (N objects, BinHeap15's bin) and search it with `policy`."""
     from ms_drake.scenario import load_scenario
-    from ms_drake.scenes.heaps import generate_heap
+    from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap
 
     kw.setdefault("time_step", 0.01 if fidelity == "primitive" else None)
     params = SearchParams(policy=policy, fidelity=fidelity, horizon=horizon, seed=seed, **kw)
     if heap is None:
-        heap = generate_heap(load_scenario(None, "BinHeap15"), objects, seed)
+        heap = generate_heap(load_scenario(None, "BinHeap15"), objects, seed, params=SEARCH_HEAPS)
     scenario = load_scenario(None, SCENARIOS[fidelity])
     system = build_search(scenario, heap, params, meshcat=meshcat)
     res = run_search(system, heap, params, keep_frames=keep_frames, meshcat=meshcat)

@@ -162,9 +162,10 @@ def object_sdf(
         for k, s in enumerate(collisions)
     )
     # Contact spheres tucked into corners and rims (flush with the faces).
-    points = [(_compose(s.pose, p), r) for s in collisions for p, r in contact_points(s)]
-    points += [(p, point_radius) for p in (extra_points or [])]
-    points = points if contact_spheres else []
+    points = []
+    if contact_spheres:
+        points = [(_compose(s.pose, p), r) for s in collisions for p, r in contact_points(s)]
+        points += [(p, point_radius) for p in (extra_points or [])]
     for k, (p, r) in enumerate(points):
         sph = Shape("sphere", (r,))
         pose = (*p, 0, 0, 0)

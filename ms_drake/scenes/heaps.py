@@ -30,7 +30,17 @@ Generation of heap `seed` with N objects:
    the object's pixels in the label image of the heap, the amodal mask the object rendered
    alone (every other object moved out of view).
 
-Drop physics (documented choices, tuned for speed without losing validity; measured in
+Drop physics: `HeapParams.engine`. The default, "bullet", simulates the drop in the Bullet
+Physics Engine as the reference did (ms_drake.scenes.bullet mirrors this module's Drake drop
+world: same shapes, masses, frictions, drop plan, waves and settle tests; Drake then renders
+and stores the heap): ~0.5 CPU-s per 15-object heap instead of ~3 (docs/BENCHMARKS.md, "Heaps
+with Bullet"). Bullet heaps are rigid-contact heaps: reloaded into a bin station (compliant
+objects) they overlap less at load than Drake-dropped ones (median 1.0 vs 3.1 mm) but relax by
+1-2 mm (median object) in its first 0.5 s. Cylinders get a rolling friction of 1 mm (with
+0.1 mm, 3 of 200 heaps kept a cylinder rolling for 5 s). engine="drake" is the third-pass
+Drake drop world below, kept for heaps that must be at rest in Drake's own contact model.
+
+Drake drop physics (documented choices, tuned for speed without losing validity; measured in
 docs/BENCHMARKS.md, "Heap speed, third pass"): objects are compliant-hydroelastic here (E =
 5 MPa, see ms_drake.objects.sdf) so that resting contacts are pressure patches and the heap
 really comes to rest; discrete step `time_step` = 10 ms with Drake's "similar" convex contact
@@ -108,6 +118,17 @@ class HeapParams:
     max_attempts: int = 5
     split: str = "all"
     render: bool = True
+    engine: str = "bullet"  # "bullet" (ms_drake.scenes.bullet, as the reference) or "drake" (compliant hydroelastic)
+    bullet_time_step: float = 1.0 / 240.0
+    bullet_iterations: int = 50
+    bullet_rolling_friction: float = 1e-3  # m (1e-4: 3 of 200 heaps had a cylinder still rolling after 5 s)
+    bullet_parameters: dict = dataclasses.field(default_factory=dict)  # pybullet.setPhysicsEngineParameter
+
+
+#: Heaps of the search benchmarks (ms_drake.experiments): the Drake drop world, whose heaps are
+#: at rest in the bin stations' own contact model and with which the tables of docs/BENCHMARKS.md
+#: were run (a Bullet heap relaxes by mm to cm in the station before the first action).
+SEARCH_HEAPS = HeapParams(engine="drake")
 
 
 @dataclass
@@ -122,7 +143,10 @@ class HeapDiagnostics:
 @functools.lru_cache(maxsize=4096)
 def _vertices(full_name: str) -> np.ndarray:
     """Convex-hull vertices of an object's mesh (object frame), for bounding boxes."""
-    return np.asarray(get_object(full_name).trimesh().convex_hull.vertices)
+    from scipy.spatial import ConvexHull
+
+    v = _mesh(full_name)[0]
+    return v[ConvexHull(v).vertices] if len(v) > 64 else v
 
 
 @dataclass(frozen=True)
@@ -162,7 +186,10 @@ class _DropWorld:
 
     def __init__(self, scenario: Scenario, names: list[str], params: HeapParams):
         builder = DiagramBuilder()
-        hydro = params.object_contact == "hydroelastic"
+        hydro = params.object_contact == "hydroelastic" and params.engine == "drake"
+        # With engine="bullet" this plant only mirrors shapes and renders: rigid objects without
+        # contact spheres and no hydroelastic meshes (cheaper to build).
+        spheres = params.object_contact != "hydroelastic" and params.engine == "drake"
         cfg = MultibodyPlantConfig(time_step=params.time_step,
                                    contact_model="hydroelastic_with_fallback" if hydro else "point",
                                    discrete_contact_approximation=params.contact_approximation,
@@ -175,7 +202,7 @@ class _DropWorld:
         instances = []
         for k, full in enumerate(names):
             sdf = get_object(full).sdf(object_model_name(k, full), friction=friction,
-                                       compliance="compliant" if hydro else "rigid", contact_spheres=not hydro,
+                                       compliance="compliant" if hydro else "rigid", contact_spheres=spheres,
                                        resolution_edges=params.resolution_edges, modulus=params.modulus)
             if params.dissipation is not None:  # the drop world's objects only (not the station's)
                 tag = "<drake:proximity_properties>"
@@ -202,7 +229,7 @@ class _DropWorld:
 
             self.camera = PinholeCamera.from_config(cam)
         self.diagram = builder.Build()
-        self.plant = plant
+        self.plant, self.scene_graph = plant, sg
         self.objects = station_objects(plant)
         self.bodies = [plant.get_body(o.body_index) for o in self.objects]
         self.simulator = Simulator(self.diagram)
@@ -230,9 +257,32 @@ class _DropWorld:
     def poses(self) -> list[RigidTransform]:
         return [self.plant.GetFreeBodyPose(self.plant_context, b) for b in self.bodies]
 
+    # The engine interface of _drop_in_waves (shared with ms_drake.scenes.bullet.BulletDropWorld).
+    def time(self) -> float:
+        return self.simulator.get_context().get_time()
+
+    def pose(self, i: int) -> RigidTransform:
+        return self.plant.GetFreeBodyPose(self.plant_context, self.bodies[i])
+
+    def set_pose(self, i: int, X: RigidTransform) -> None:
+        """Object i at X with zero velocity."""
+        self.plant.SetFreeBodyPose(self.plant_context, self.bodies[i], X)
+        self.plant.SetFreeBodySpatialVelocity(self.plant_context, self.bodies[i], _zero_velocity())
+
+    def park(self, i: int) -> None:
+        """Object i waits far away (at rest)."""
+        self.set_pose(i, _parking(i))
+
+    def velocities(self) -> np.ndarray:
+        """(N, 6): angular, linear velocity per object."""
+        return self.plant.GetVelocities(self.plant_context).reshape(-1, 6)
+
+    def advance_to(self, t: float) -> bool:
+        return _advance(self.simulator, t, self.plant, self.plant_context)
+
     def max_speeds(self, which: list[int] | None = None) -> tuple[float, float]:
         """Largest (linear, angular) speed of the objects `which` (default: all)."""
-        v = self.plant.GetVelocities(self.plant_context).reshape(-1, 6)
+        v = self.velocities()
         v = v[which] if which is not None else v
         return float(np.abs(v[:, 3:]).max(initial=0.0)), float(np.abs(v[:, :3]).max(initial=0.0))
 
@@ -300,7 +350,7 @@ def _take_out_leavers(world: _DropWorld, placed: list[int], origin: np.ndarray, 
     tunnelled (the attempt is lost: stop at once instead of simulating its fall)."""
     for i in placed:
         if i not in world.left:
-            p = world.plant.GetFreeBodyPose(world.plant_context, world.bodies[i]).translation() - origin
+            p = world.pose(i).translation() - origin
             if _tunnelled(p[None], size, wall)[0]:
                 return True
             if np.any(np.abs(p[:2]) > 0.5 * size[:2] + wall):
@@ -336,21 +386,19 @@ def _drop_in_waves(world: _DropWorld, names: list[str], plan: list[DropItem], or
     simulated seconds of the waves and of the final settle."""
     phases = {} if phases is None else phases
     cpu0 = time.process_time()
-    sim = world.simulator
-    plant, pc = world.plant, world.plant_context
-    t = sim.get_context().get_time()
+    t = world.time()
     placed: list[int] = []
     waiting = list(range(len(plan)))
     for j in waiting:
-        plant.SetFreeBodyPose(pc, world.bodies[j], _parking(j))
+        world.park(j)
     blocked_since: dict[int, float] = {}
     while waiting:
         boxes, moving = [], []
-        vel = plant.GetVelocities(pc).reshape(-1, 6)
+        vel = world.velocities()
         for j in placed:
             if j in world.left:
                 continue
-            X = plant.GetFreeBodyPose(pc, world.bodies[j])
+            X = world.pose(j)
             v = _vertices(names[j]) @ X.rotation().matrix().T + (X.translation() - origin)
             boxes.append((v.min(axis=0), v.max(axis=0)))
             moving.append(params.landed_speed is not None and bool(np.abs(vel[j, 3:]).max() > params.landed_speed))
@@ -370,18 +418,15 @@ def _drop_in_waves(world: _DropWorld, names: list[str], plan: list[DropItem], or
                        if np.all(it.xy + it.lo[:2] < hi[:2]) and np.all(it.xy + it.hi[:2] > lo[:2])], default=0.0)
             p = np.array([it.xy[0], it.xy[1], top + params.drop_gap - it.lo[2]])
             phases["max_drop"] = max(phases.get("max_drop", 0.0), top + params.drop_gap)  # release height
-            plant.SetFreeBodyPose(pc, world.bodies[k], RigidTransform(it.R, origin + p))
+            world.set_pose(k, RigidTransform(it.R, origin + p))
         placed += wave
         waiting = [k for k in waiting if k not in wave]
-        for j in range(len(plan)):
-            if j in waiting:
-                plant.SetFreeBodyPose(pc, world.bodies[j], _parking(j))
-            if j in waiting or j in wave:
-                plant.SetFreeBodySpatialVelocity(pc, world.bodies[j], _zero_velocity())
+        for j in waiting:
+            world.park(j)
         t_wave = t
         while t - t_wave < params.wave_time:
             t += params.check_every
-            if not _advance(sim, t, plant, pc):
+            if not world.advance_to(t):
                 return False, t, "the simulation blew up (non-finite state)"
             if _take_out_leavers(world, placed, origin, size, wall):
                 return False, t, TUNNELLED
@@ -401,7 +446,7 @@ def _drop_in_waves(world: _DropWorld, names: list[str], plan: list[DropItem], or
     before = world.poses()
     while t < t_end:
         t += params.check_every
-        if not _advance(sim, t, plant, pc):
+        if not world.advance_to(t):
             return done(False, "the simulation blew up (non-finite state)")
         if _take_out_leavers(world, placed, origin, size, wall):
             return done(False, TUNNELLED)
@@ -410,7 +455,7 @@ def _drop_in_waves(world: _DropWorld, names: list[str], plan: list[DropItem], or
         before = now
         if t >= t_min and lin < params.settle_linear and ang < params.settle_angular:
             return done(True)
-    v = plant.GetVelocities(pc).reshape(-1, 6)
+    v = world.velocities()
     k = int(np.argmax(np.maximum(np.abs(v[:, 3:]).max(axis=1) / params.settle_linear,
                                  np.abs(v[:, :3]).max(axis=1) / params.settle_angular)))
     return done(False, f"did not settle within {params.max_final_time} s after the last drop ({names[k]} still "
@@ -421,6 +466,8 @@ def generate_heap(scenario: Scenario, num_objects: int, seed: int, object_set: s
                   params: HeapParams | None = None, return_diagnostics: bool = False):
     """Generate heap `seed` of `num_objects` objects into the scenario's bin (see module doc)."""
     params = params or HeapParams()
+    if params.engine not in ("drake", "bullet"):
+        raise HeapError(f"HeapParams.engine={params.engine!r}: use 'drake' or 'bullet'")
     if scenario.environment.type != "bin":
         raise ScenarioError(f"heaps need a bin environment; scenario has environment.type="
                             f"{scenario.environment.type!r}")
@@ -446,7 +493,21 @@ def generate_heap(scenario: Scenario, num_objects: int, seed: int, object_set: s
         plan = sample_drop_plan(names, scenario, rng, params)
         phases = {}
         wall = scenario.environment.wall_thickness
-        ok, settle_t, reason = _drop_in_waves(world, names, plan, origin, size, wall, params, phases)
+        if params.engine == "bullet":
+            from ms_drake.scenes.bullet import BulletDropWorld
+
+            engine = BulletDropWorld(world, params.bullet_time_step, params.bullet_iterations,
+                                     params.bullet_rolling_friction, params.bullet_parameters)
+        else:
+            engine = world
+        ok, settle_t, reason = _drop_in_waves(engine, names, plan, origin, size, wall, params, phases)
+        if engine is not world:  # the settled poses into the Drake world (rendering, saving)
+            for i in range(len(names)):
+                if i in engine.left:
+                    world.take_out(i)
+                else:
+                    world.set_pose(i, engine.pose(i))
+            engine.close()
         poses = world.poses()
         rel = np.array([X.translation() - origin for X in poses])
         left = np.isin(np.arange(len(names)), world.left)
@@ -553,4 +614,4 @@ def station_check(scenario: Scenario, heap: Heap, seconds: float = 0.5) -> dict:
     sim.AdvanceTo(seconds)
     moved = [float(np.linalg.norm(plant.EvalBodyPoseInWorld(pc, b).translation() - p)) for b, p in zip(bodies, p0)]
     return {"max_penetration": float(pen), "max_displacement": max(moved, default=0.0),
-            "median_displacement": float(np.median(moved)) if moved else 0.0}
+            "median_displacement": float(np.median(moved)) if moved else 0.0, "displacements": moved}
