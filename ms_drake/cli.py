@@ -110,11 +110,11 @@ def heap_job(job: tuple) -> dict:
     from ms_drake.scenes.heaps import HeapParams, generate_heap, heap_to_dict
 
     s = load_scenario(scenario_file, scenario_name)
-    params = HeapParams(engine=rest[0]) if rest and rest[0] else None
+    params = HeapParams(engine=rest[0]) if rest and rest[0] else HeapParams()
     t, cpu0 = time.perf_counter(), time.process_time()
     heap, diag = generate_heap(s, n, seed, object_set=object_set, params=params, return_diagnostics=True)
     rec = heap_to_dict(heap)
-    rec.update(seconds=time.perf_counter() - t, attempts=diag.attempts, removed=diag.removed,
+    rec.update(engine=params.engine, seconds=time.perf_counter() - t, attempts=diag.attempts, removed=diag.removed,
                settle_time=diag.settle_time, rejected=diag.rejected_reasons, pid=os.getpid(),
                cpu_seconds=time.process_time() - cpu0, peak_rss_mb=_peak_rss_mb())
     return rec

@@ -77,6 +77,11 @@ def test_heaps_resume_without_duplicates(tmp_path):
     a = json.loads(again.read_text())
     b = [r for r in recs if r["seed"] == 13][0]
     assert a["objects"] == b["objects"]
+    # The Drake drop world on request: another heap for the same seed.
+    drake = tmp_path / "drake.jsonl"
+    run("heaps", "--objects", 2, "--count", 1, "--seed-start", 13, "--engine", "drake", "--out", drake)
+    assert json.loads(drake.read_text())["objects"] != b["objects"]
+    assert json.loads(drake.read_text())["engine"] == "drake" and b["engine"] == "bullet"
 
 
 def test_diagram(tmp_path):
@@ -95,6 +100,7 @@ def test_diagram(tmp_path):
     (["heaps", "--objects", "0", "--out", "x.jsonl"], "--objects"),
     (["heaps", "--count", "1", "--out", "x.txt"], ".jsonl"),
     (["heaps", "--count", "1", "--object-set", "nope", "--out", "x.jsonl"], "unknown object set 'nope'"),
+    (["heaps", "--count", "1", "--engine", "ode", "--out", "x.jsonl"], "--engine ode: use bullet or drake"),
     (["diagram", "--out", "x.gif"], ".svg, .png or .dot"),
 ])
 def test_bad_input_is_a_clear_error_without_traceback(tmp_path, args, needle):
