@@ -256,6 +256,20 @@ def test_station_label_images_from_depth(bin_scenario, small_heap):
 
 # ---- The session-3 OpenCV labeller, kept here only as the reference of the numba kernel ----
 
+def _reference_rects(labeler, X_CG, z_near, z_far):
+    """The screen rectangles [v0, v1, u0, u1) that can see each geometry (numpy, session 3)."""
+    pc = np.einsum("nij,nkj->nki", X_CG[:, :3, :3], labeler._corners) + X_CG[:, None, :3, 3]
+    z = pc[..., 2]
+    zs = np.where(z > 1e-6, z, 1.0)
+    u = labeler.fx * pc[..., 0] / zs + labeler.cx - 0.5
+    v = labeler.fy * pc[..., 1] / zs + labeler.cy - 0.5
+    rects = np.stack([np.floor(v.min(1)), np.ceil(v.max(1)) + 1, np.floor(u.min(1)), np.ceil(u.max(1)) + 1], 1)
+    rects = np.clip(rects, 0, [labeler.height, labeler.height, labeler.width, labeler.width]).astype(int)
+    rects[np.any(z <= 1e-6, axis=1)] = [0, labeler.height, 0, labeler.width]
+    rects[np.all(z <= z_near, axis=1) | np.all(z > z_far, axis=1)] = 0
+    return rects
+
+
 def _opencv_reference_label(labeler, depth, X_WC, poses, z_near, z_far):
     """DepthLabeler.label as it was up to session 3 (one OpenCV pass per geometry, then numpy
     for the pixels several geometries claim; one thread)."""
@@ -270,7 +284,7 @@ def _opencv_reference_label(labeler, depth, X_WC, poses, z_near, z_far):
     if not prims:
         return label
     X_CG = X_WC.inverse().GetAsMatrix4() @ np.stack([poses[p.geometry_id].GetAsMatrix4() for p in prims])
-    rects = labeler._rects(X_CG, z_near, z_far)
+    rects = _reference_rects(labeler, X_CG, z_near, z_far)
     seen = np.flatnonzero((rects[:, 1] > rects[:, 0]) & (rects[:, 3] > rects[:, 2]))
     if seen.size == 0:
         return label
@@ -392,3 +406,51 @@ def test_numba_kernel_equals_the_opencv_labeller_on_overlapping_shapes():
         got = banded.label(depth, X_WC_near, poses, 0.1, 3.0)
         assert (got != ref).sum() <= 10  # float64 vs OpenCV's float32 at the claim edges; measured 0
     assert set(np.unique(ref).tolist()) >= {FLOOR, BOX, CYL, BALL, 6, 7, 8, int(RenderLabel.kEmpty)}
+
+
+def test_kernel_rectangles_and_transforms_equal_numpy():
+    """_label_kernel.prepare (per image: X_GC rows and screen rectangles) against numpy, for
+    random camera poses: in view, partly out of the image, straddling the camera plane, behind
+    the camera, before z_near and beyond z_far."""
+    from ms_drake.perception._label_kernel import prepare
+
+    sg = _scene()
+    labeler = _inspector_labeler(sg)
+    poses = _poses(sg, labeler)
+    X_WG = np.array([poses[g].GetAsMatrix4() for g in labeler.geometry_ids])
+    rng = np.random.default_rng(3)
+    kinds = set()
+    for k in range(200):
+        X = RigidTransform(RollPitchYaw(np.pi + rng.normal(0, 0.6, 3)),
+                           rng.uniform([-0.5, -0.5, 0.05], [0.5, 0.5, 1.5]))
+        z_near, z_far = (0.1, 3.0) if k % 3 else (0.9, 1.05)
+        M, rects = prepare(X.inverse().GetAsMatrix4(), X_WG, labeler._corners, labeler.fx, labeler.fy, labeler.cx,
+                           labeler.cy, labeler.height, labeler.width, z_near, z_far)
+        X_CG = X.inverse().GetAsMatrix4() @ X_WG
+        np.testing.assert_array_equal(rects, _reference_rects(labeler, X_CG, z_near, z_far))
+        X_GC = np.linalg.inv(X_CG)[:, :3]
+        np.testing.assert_allclose(M, X_GC, atol=1e-6)
+        assert M.dtype == np.float32
+        area = (rects[:, 1] - rects[:, 0]) * (rects[:, 3] - rects[:, 2])
+        kinds |= {"empty" if a == 0 else "whole" if a == H * W else "part" for a in area}
+    assert kinds == {"empty", "whole", "part"}
+
+
+def test_kernel_compiles_without_a_writable_cache_dir(monkeypatch):
+    """numba raises at decoration when no cache directory is writable; _label_kernel._jit then
+    compiles without a cache (here: every cache directory refused, as read-only)."""
+    import numba.core.caching as caching
+
+    from ms_drake.perception import _label_kernel
+
+    def read_only(self):
+        raise PermissionError(f"read-only: {self.get_cache_path()}")
+
+    monkeypatch.setattr(caching._CacheLocator, "ensure_cache_path", read_only)
+
+    def twice(a):
+        return 2 * a
+
+    jitted = _label_kernel._jit(twice)
+    assert jitted(np.arange(3)).tolist() == [0, 2, 4]
+    assert isinstance(jitted._cache, caching.NullCache)

@@ -150,7 +150,7 @@ def label_rows(depth, rx, ry, label, r0, r1, v0, v1, u0, u1, seen, rects, M, kin
                 z = drow[u]
                 x, y, zd = np.float64(rx[u] * z), np.float64(yv * z), np.float64(z)
                 if count[u] == 2:  # a second claimer: the first one's distance too
-                    f = first[u]
+                    f = np.int64(first[u])
                     d = _abs_signed_distance(kind[f], size[f, 0], size[f, 1], size[f, 2], _row64(M, f, 0, x, y, zd),
                                              _row64(M, f, 1, x, y, zd), _row64(M, f, 2, x, y, zd))
                     best[u] = d if d <= eps[f] else np.inf
@@ -162,3 +162,50 @@ def label_rows(depth, rx, ry, label, r0, r1, v0, v1, u0, u1, seen, rects, M, kin
                     best_lab[u] = li
                 lrow[u] = best_lab[u] if best[u] < np.inf else li
     return too_close
+
+
+@_jit
+def prepare(X_CW, X_WG, corners, fx, fy, cx, cy, height, width, z_near, z_far):
+    """Per image: M (N x 3 x 4, float32), the rows of X_GC = (X_CW X_WG)^-1, and the pixel
+    rectangles rects (N x 4, [v0, v1, u0, u1)) that can see each primitive: the bounds of its
+    8 `corners` (N x 8 x 3, frame G) projected with the +0.5 pixel convention; an empty
+    rectangle when it is out of view or wholly before z_near or beyond z_far, the whole image
+    when it straddles the camera plane."""
+    N = X_WG.shape[0]
+    M = np.empty((N, 3, 4), np.float32)
+    rects = np.zeros((N, 4), np.int64)
+    X = np.empty((4, 4))
+    for n in range(N):
+        for r in range(3):
+            for c in range(4):
+                X[r, c] = (X_CW[r, 0] * X_WG[n, 0, c] + X_CW[r, 1] * X_WG[n, 1, c] + X_CW[r, 2] * X_WG[n, 2, c]
+                           + X_CW[r, 3] * X_WG[n, 3, c])
+        for r in range(3):  # X_GC = [R^T, -R^T p]
+            for c in range(3):
+                M[n, r, c] = X[c, r]
+            M[n, r, 3] = -(X[0, r] * X[0, 3] + X[1, r] * X[1, 3] + X[2, r] * X[2, 3])
+        umin = vmin = np.inf
+        umax = vmax = -np.inf
+        behind = False
+        near = far = True
+        for k in range(8):
+            q = corners[n, k]
+            x = X[0, 0] * q[0] + X[0, 1] * q[1] + X[0, 2] * q[2] + X[0, 3]
+            y = X[1, 0] * q[0] + X[1, 1] * q[1] + X[1, 2] * q[2] + X[1, 3]
+            z = X[2, 0] * q[0] + X[2, 1] * q[1] + X[2, 2] * q[2] + X[2, 3]
+            behind |= z <= 1e-6
+            near &= z <= z_near
+            far &= z > z_far
+            zs = z if z > 1e-6 else 1.0
+            u, v = fx * x / zs + cx - 0.5, fy * y / zs + cy - 0.5
+            umin, umax, vmin, vmax = min(umin, u), max(umax, u), min(vmin, v), max(vmax, v)
+        if near or far:
+            continue
+        if behind:
+            rects[n, 1], rects[n, 3] = height, width
+            continue
+        rects[n, 0] = int(min(max(math.floor(vmin), 0.0), height))
+        rects[n, 1] = int(min(max(math.ceil(vmax) + 1, 0.0), height))
+        rects[n, 2] = int(min(max(math.floor(umin), 0.0), width))
+        rects[n, 3] = int(min(max(math.ceil(umax) + 1, 0.0), width))
+    return M, rects

@@ -11,7 +11,6 @@ object, ignoring occlusion) masks by projecting the object's mesh through the ca
 
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -209,8 +208,9 @@ class DepthLabeler:
     frustum of a non-default label, or a pixel closer than the depth range (kTooClose).
 
     threads: the image is cut into this many row bands labelled in parallel threads (the
-    kernel releases the GIL); default 2, or 1 where LP_NUM_THREADS=1 (ms_drake.parallel's
-    workers, which also give the renderer one thread each).
+    kernel releases the GIL); default 1: at 640x480 with 19 geometries one thread takes 0.98 ms
+    wall, two 0.91 ms wall for 1.3x the CPU (idle 2-core machine), and two are slower when the
+    other core is busy (the renderer's or another process's), docs/BENCHMARKS.md.
 
     Pixel convention, measured: RenderEngineVtk's pixel (u, v) sees the ray through
     ((u + 0.5 - cx) / fx, (v + 0.5 - cy) / fy); with the integer-centre convention of
@@ -267,7 +267,8 @@ class DepthLabeler:
             default_label = max(volume, key=volume.get) if volume else int(RenderLabel.kEmpty)
         self.default_label = int(default_label)
         self._prims = [p for p in prims if p.label != self.default_label or p.kind == "not_rendered"]
-        self._corners = np.array([p.corners for p in self._prims]).reshape(-1, 8, 3)
+        self._corners = np.array([p.corners for p in self._prims], np.float64).reshape(-1, 8, 3)
+        self._ids = [p.geometry_id for p in self._prims]
         # The primitives packed for the kernel (ms_drake.perception._label_kernel.label_rows).
         self._kind = np.array([_KIND_CODES[p.kind] for p in self._prims], np.int64)
         self._size = np.array([p.size for p in self._prims], np.float64).reshape(-1, 3)
@@ -277,29 +278,13 @@ class DepthLabeler:
         self._r2 = (half[:, 0] ** 2).astype(np.float32)
         self._labels = np.array([p.label for p in self._prims], np.int16)
         self._empty = int(RenderLabel.kEmpty)
-        if threads is None:  # the renderer's budget: ms_drake.parallel workers set LP_NUM_THREADS=1
-            threads = 1 if os.environ.get("LP_NUM_THREADS") == "1" else min(2, os.cpu_count() or 1)
-        self.threads = max(1, int(threads))
+        self.threads = max(1, int(threads or 1))
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
 
     @property
     def geometry_ids(self) -> list:
         """Geometries whose poses `label` asks for (all but those of the default label)."""
         return [p.geometry_id for p in self._prims]
-
-    def _rects(self, X_CG: np.ndarray, z_near: float, z_far: float) -> np.ndarray:
-        """(N, 4) pixel rectangles [v0, v1, u0, u1) that can see each primitive (X_CG: (N, 4, 4));
-        an empty rectangle when it is out of view, the whole image when it straddles the camera
-        plane."""
-        pc = np.einsum("nij,nkj->nki", X_CG[:, :3, :3], self._corners) + X_CG[:, None, :3, 3]
-        z = pc[..., 2]
-        zs = np.where(z > 1e-6, z, 1.0)
-        u, v = self.fx * pc[..., 0] / zs + self.cx - 0.5, self.fy * pc[..., 1] / zs + self.cy - 0.5
-        r = np.stack([np.floor(v.min(1)), np.ceil(v.max(1)) + 1, np.floor(u.min(1)), np.ceil(u.max(1)) + 1], 1)
-        r = np.clip(r, 0, [self.height, self.height, self.width, self.width]).astype(int)
-        r[np.any(z <= 1e-6, axis=1)] = [0, self.height, 0, self.width]
-        r[np.all(z <= z_near, axis=1) | np.all(z > z_far, axis=1)] = 0
-        return r
 
     def label(self, depth: np.ndarray, X_WC: RigidTransform, poses: dict, z_near: float = 0.0,
               z_far: float = np.inf) -> np.ndarray | None:
@@ -309,17 +294,17 @@ class DepthLabeler:
         if depth.shape != (self.height, self.width):
             raise ValueError(f"DepthLabeler: depth image is {depth.shape[1]}x{depth.shape[0]}, camera is "
                              f"{self.width}x{self.height}")
-        from ms_drake.perception._label_kernel import label_rows  # numba: imported on first use
+        from ms_drake.perception._label_kernel import label_rows, prepare  # numba: imported on first use
 
         depth = np.ascontiguousarray(depth, np.float32)
-        n = len(self._prims)
-        if n:
-            X_CW = X_WC.inverse().GetAsMatrix4()
-            X_CG = X_CW @ np.stack([poses[p.geometry_id].GetAsMatrix4() for p in self._prims])
-            rects = self._rects(X_CG, z_near, z_far)
-            seen = np.flatnonzero((rects[:, 1] > rects[:, 0]) & (rects[:, 3] > rects[:, 2]))
-        else:
-            X_CG, rects, seen = np.zeros((0, 4, 4)), np.zeros((0, 4), np.int64), np.zeros(0, np.int64)
+        if depth.flags.writeable:  # one compiled kernel: numba specialises on read-only (Drake's images)
+            depth = depth.view()
+            depth.flags.writeable = False
+        X_WG = np.array([poses[g].GetAsMatrix4() for g in self._ids]).reshape(-1, 4, 4)
+        X_CW = np.ascontiguousarray(X_WC.inverse().GetAsMatrix4())
+        M, rects = prepare(X_CW, X_WG, self._corners, self.fx, self.fy, self.cx, self.cy, self.height, self.width,
+                           float(z_near), float(z_far))
+        seen = np.flatnonzero((rects[:, 1] > rects[:, 0]) & (rects[:, 3] > rects[:, 2]))
         if seen.size and np.any(self._kind[seen] > _SPHERE):
             return None  # an unsupported or kDoNotRender geometry in view
         if seen.size:
@@ -327,11 +312,8 @@ class DepthLabeler:
             v1, u1 = int(rects[seen, 1].max()), int(rects[seen, 3].max())
         else:
             v0 = v1 = u0 = u1 = 0
-        R_GC = np.swapaxes(X_CG[:, :3, :3], 1, 2)
-        M = np.concatenate([R_GC, -R_GC @ X_CG[:, :3, 3:]], axis=2).astype(np.float32)  # X_GC[:3]
-        rects = np.ascontiguousarray(rects, np.int64)
         label = np.empty(depth.shape, np.int16)
-        args = (v0, v1, u0, u1, seen.astype(np.int64), rects, M, self._kind, self._half, self._r2, self._size, self._eps,
+        args = (v0, v1, u0, u1, seen, rects, M, self._kind, self._half, self._r2, self._size, self._eps,
                 self._labels, self.default_label, self._empty)
         if self.threads == 1 or v1 - v0 < 16 * self.threads:
             too_close = label_rows(depth, self._rx, self._ry, label, 0, self.height, *args)
