@@ -1,7 +1,7 @@
 """Benchmarks of the foundation (issue 2): heap generation, rendering, parallel scaling.
 
-    .venv/bin/python sims/bench_heaps.py render [--heaps FILE.jsonl]  # depth + label images/s at 640x480,
-                                                             # rendered vs from-depth label images
+    .venv/bin/python sims/bench_heaps.py render [--heaps FILE.jsonl] [--labeler-ref COMMIT]  # depth + label
+                           # images/s at 640x480, rendered vs from-depth label images; DepthLabeler alone
     .venv/bin/python sims/bench_heaps.py scaling --heaps 8   # 1 vs 2 workers on the same seeds
     .venv/bin/python sims/bench_heaps.py summary FILE.jsonl  # validity and time of an `ms-drake heaps` run
     .venv/bin/python sims/bench_heaps.py reload FILE.jsonl [--count K]  # heaps reloaded into BinHeap15
@@ -22,14 +22,18 @@ from pathlib import Path
 import numpy as np
 
 
-def bench_render(n: int = 40, rounds: int = 5, heaps_file: str | None = None, count: int = 8) -> None:
+def bench_render(n: int = 40, rounds: int = 5, heaps_file: str | None = None, count: int = 8,
+                 labeler_ref: str | None = None) -> None:
     """Depth + label pairs at 640x480 of the 15-object heap (seed 0), paired: the station's two
     VTK renders (MakeStation(label_images="render")) against one depth render + the label image
     computed from it (label_images="depth", ms_drake.perception.masks.DepthLabelImage), in
     `rounds` interleaved rounds of `n` pairs each, in this one process. Prints process CPU ms
     (llvmpipe's render threads included) and wall ms per image and per pair (medians over the
-    rounds). With `heaps_file` (an `ms-drake heaps` JSONL) also the pixel agreement of the two
-    label images on its first `count` heaps."""
+    rounds). Then `DepthLabeler.label` alone on that heap's depth image with 1 and 2 threads
+    (and, with `labeler_ref` = a git commit, the DepthLabeler of ms_drake/perception/masks.py
+    at that commit, e.g. 9855c8e for the OpenCV one of session 3), interleaved, 5 x 200 calls.
+    With `heaps_file` (an `ms-drake heaps` JSONL) also the pixel agreement of the two label
+    images on its first `count` heaps."""
     from ms_drake.scenario import load_scenario
     from ms_drake.scenes.heaps import generate_heap, scenario_with_heap, set_heap_poses
     from ms_drake.station import MakeStation
@@ -65,6 +69,7 @@ def bench_render(n: int = 40, rounds: int = 5, heaps_file: str | None = None, co
         pair = m.sum(axis=0)
         print(f"| {mode} | {m[0, 0]:.1f} / {m[0, 1]:.1f} | {m[1, 0]:.1f} / {m[1, 1]:.1f} | "
               f"{pair[0]:.1f} / {pair[1]:.1f} | {1e3 / pair[1]:.0f} ({2e3 / pair[1]:.0f}) |")
+    _bench_labeler(*rigs["depth"][:2], labeler_ref)
     if heaps_file:
         from ms_drake.scenes.heaps import heap_from_dict
 
@@ -80,6 +85,52 @@ def bench_render(n: int = 40, rounds: int = 5, heaps_file: str | None = None, co
             renders = station.GetSubsystemByName("depth_label_overhead").renders
             print(f"| heap seed {r.get('seed', '?')} | {100 * (ours == vtk).mean():.4f} % pixels equal | "
                   f"{int((ours != vtk).sum())} differ | fallback renders {renders} |")
+
+
+def _bench_labeler(station, ctx, labeler_ref: str | None, calls: int = 200, rounds: int = 5) -> None:
+    """DepthLabeler.label alone (see bench_render)."""
+    import subprocess
+    import types
+
+    from ms_drake.perception.masks import DepthLabeler
+    from ms_drake.station import get_scene_graph
+
+    system = station.GetSubsystemByName("depth_label_overhead")
+    sensor = station.GetSubsystemByName("rgbd_sensor_overhead")
+    sg = get_scene_graph(station)
+    qo = sg.get_query_output_port().Eval(sg.GetMyContextFromRoot(ctx))
+    depth = np.array(station.GetOutputPort("overhead.depth_image").Eval(ctx).data)[:, :, 0]
+    X_WC = qo.GetPoseInWorld(sensor.default_parent_frame_id()) @ system._X_PC
+    core = sensor.default_depth_render_camera().core()
+    classes = {"": DepthLabeler}
+    if labeler_ref:  # the module at that commit, loaded under another name
+        src = subprocess.run(["git", "show", f"{labeler_ref}:ms_drake/perception/masks.py"], check=True,
+                             capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1]).stdout
+        old = sys.modules.setdefault("masks_" + labeler_ref, types.ModuleType("masks_" + labeler_ref))
+        exec(compile(src, f"masks@{labeler_ref}", "exec"), old.__dict__)
+        classes[f" @{labeler_ref}"] = old.DepthLabeler
+    labelers = {f"{t} thread(s){tag}": cls(sg.model_inspector(), core.intrinsics(), core.renderer_name(), threads=t)
+                for tag, cls in classes.items() for t in (1, 2)}
+    poses = {g: qo.GetPoseInWorld(g) for g in system.labeler.geometry_ids}
+    args = (depth, X_WC, poses, system._z_near, system._z_far)
+    first = time.perf_counter()
+    ref = system.labeler.label(*args)  # (the station's labeller ran already: compiled or loaded)
+    first = time.perf_counter() - first
+    times = {k: [] for k in labelers}
+    for _ in range(rounds):
+        for k, lab in labelers.items():
+            assert np.array_equal(lab.label(*args), ref), k
+            c, w = time.process_time(), time.perf_counter()
+            for _ in range(calls):
+                lab.label(*args)
+            times[k].append((1e3 * (time.process_time() - c) / calls, 1e3 * (time.perf_counter() - w) / calls))
+    print(f"\n| DepthLabeler.label alone, 640x480, {len(poses)} geometries | ms CPU / wall, median of "
+          f"{rounds} x {calls} |")
+    print("| --- | --- |")
+    for k, v in times.items():
+        m = np.median(np.array(v), axis=0)
+        print(f"| {k} | {m[0]:.2f} / {m[1]:.2f} |")
+    print(f"(one more call on the station's labeller: {1e3 * first:.1f} ms)\n")
 
 
 def bench_scaling(heaps: int = 8, objects: int = 15, seed_start: int = 1000) -> None:
@@ -268,7 +319,8 @@ def station_compare(names: list[str], seeds: range, seconds: float = 0.5) -> Non
 if __name__ == "__main__":
     cmd = sys.argv[1] if len(sys.argv) > 1 else "render"
     if cmd == "render":
-        bench_render(heaps_file=sys.argv[sys.argv.index("--heaps") + 1] if "--heaps" in sys.argv else None)
+        bench_render(heaps_file=sys.argv[sys.argv.index("--heaps") + 1] if "--heaps" in sys.argv else None,
+                     labeler_ref=sys.argv[sys.argv.index("--labeler-ref") + 1] if "--labeler-ref" in sys.argv else None)
     elif cmd == "scaling":
         k = int(sys.argv[sys.argv.index("--heaps") + 1]) if "--heaps" in sys.argv else 8
         bench_scaling(k)
