@@ -64,9 +64,10 @@ def label_rows(depth, rx, ry, label, r0, r1, v0, v1, u0, u1, seen, rects, M, kin
     session 3 did it (cv2.transform, cv2.inRange), and 8 pixels per AVX2 instruction.
 
     Each row is visited primitive by primitive over the primitive's columns: a branch-free
-    (vectorised) claim test into a row mask, then the claims; the label written at each claim
-    is the resolution of the claims so far, so after the last claimer it is final. Distances
-    are computed only for pixels with a second claimer.
+    (vectorised) claim test into a row mask, then branch-free bookkeeping (claim count, first
+    claimer, the claimer's label written); pixels claimed before then get the resolution of
+    their claims so far, so after the last claimer the label is final. Distances are computed
+    only for pixels with a second claimer.
 
     Returns True when a pixel of these rows has depth <= 0 (kTooClose), where the caller
     must render instead.
