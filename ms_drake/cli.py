@@ -103,6 +103,12 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+#: Heap workers are not recycled every 20 jobs like rollout workers: a heap's diagram is all C++
+#: and is freed (peak RSS 412 MB after 10 and after 80 heaps in one worker), while a fresh worker
+#: costs ~3 s of start-up, 5 heaps' worth (docs/BENCHMARKS.md, "Heaps with Bullet").
+HEAP_TASKS_PER_CHILD = 1000
+
+
 def heap_job(job: tuple) -> dict:
     """One heap as a JSON-able record (module-level so workers can unpickle it)."""
     scenario_file, scenario_name, n, seed, object_set, *rest = job
@@ -156,7 +162,8 @@ def heaps(objects: int = typer.Option(15, "--objects", min=1, max=60, help="Obje
     failures = 0
     t0 = time.perf_counter()
     with open(out, "a") as f, tqdm(total=len(jobs), desc="heaps", unit="heap") as bar:
-        for r in run_jobs(heap_job, jobs, workers=workers, use_ray=ray, ray_address=ray_address):
+        for r in run_jobs(heap_job, jobs, workers=workers, use_ray=ray, ray_address=ray_address,
+                          max_tasks_per_child=HEAP_TASKS_PER_CHILD):
             if r.ok:
                 f.write(json.dumps(r.value) + "\n")
                 f.flush()

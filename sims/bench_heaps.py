@@ -2,7 +2,7 @@
 
     .venv/bin/python sims/bench_heaps.py render [--heaps FILE.jsonl] [--labeler-ref COMMIT]  # depth + label
                            # images/s at 640x480, rendered vs from-depth label images; DepthLabeler alone
-    .venv/bin/python sims/bench_heaps.py scaling --heaps 8   # 1 vs 2 workers on the same seeds
+    .venv/bin/python sims/bench_heaps.py scaling --heaps 60 --rounds 3  # 1 vs 2 workers, same seeds
     .venv/bin/python sims/bench_heaps.py summary FILE.jsonl  # validity and time of an `ms-drake heaps` run
     .venv/bin/python sims/bench_heaps.py reload FILE.jsonl [--count K]  # heaps reloaded into BinHeap15
     .venv/bin/python sims/bench_heaps.py compare --seeds 0:10 base edges8 ...  # drop-world variants, paired
@@ -133,22 +133,23 @@ def _bench_labeler(station, ctx, labeler_ref: str | None, calls: int = 200, roun
     print(f"(one more call on the station's labeller: {1e3 * first:.1f} ms)\n")
 
 
-def bench_scaling(heaps: int = 8, objects: int = 15, seed_start: int = 1000) -> None:
+def bench_scaling(heaps: int = 8, objects: int = 15, seed_start: int = 1000, rounds: int = 1) -> None:
     import tempfile
 
-    from ms_drake.cli import heap_job
+    from ms_drake.cli import HEAP_TASKS_PER_CHILD, heap_job
     from ms_drake.parallel import run_jobs
 
     jobs = [(None, "BinHeap15", objects, k, None) for k in range(seed_start, seed_start + heaps)]
-    res = {}
-    for workers in (1, 2):
+    res = {1: [], 2: []}
+    for workers in (1, 2) * rounds:  # interleaved rounds: start-up and cache effects vary by seconds
         t = time.perf_counter()
-        out = list(run_jobs(heap_job, jobs, workers=workers))
-        res[workers] = time.perf_counter() - t
+        out = list(run_jobs(heap_job, jobs, workers=workers, max_tasks_per_child=HEAP_TASKS_PER_CHILD))
+        res[workers].append(time.perf_counter() - t)
         rss = max(r.value["peak_rss_mb"] for r in out if r.ok)
-        print(f"| {heaps} heaps of {objects}, {workers} worker(s) | {res[workers]:.1f} s wall | "
-              f"peak RSS per worker {rss:.0f} MB |")
-    print(f"| speed-up 2 workers vs 1 | {res[1] / res[2]:.2f}x |")
+        print(f"| {heaps} heaps of {objects}, {workers} worker(s) | {res[workers][-1]:.1f} s wall | "
+              f"peak RSS per worker {rss:.0f} MB |", flush=True)
+    m = {w: statistics.median(v) for w, v in res.items()}
+    print(f"| speed-up 2 workers vs 1 (medians of {rounds} rounds) | {m[1] / m[2]:.2f}x |")
     del tempfile
 
 
@@ -201,19 +202,23 @@ V2 = {"engine": "drake", "contact_approximation": "lagged", "dissipation": None,
 #: Drop-world variants measured in docs/BENCHMARKS.md (HeapParams overrides; all but "base" spelled
 #: out from the second-pass drop world V2, so their figures stay what they were).
 VARIANTS = {
-    "base": {},  # the current defaults (session 4: Bullet = bullet_r3; the third pass's Drake world = "drake")
+    "base": {},  # the current defaults (session 4: Bullet = bullet_res; the third pass's Drake world = "drake")
     # session 4: the drop simulated in Bullet (ms_drake.scenes.bullet), same plan, waves and settle tests
     "drake": {"engine": "drake"},  # the third-pass defaults (compliant hydroelastic Drake drop world)
-    "bullet": {"engine": "bullet", "bullet_rolling_friction": 1e-4},
-    "bullet120": {"engine": "bullet", "bullet_time_step": 1 / 120, "bullet_rolling_friction": 1e-4},
-    "bullet_it20": {"engine": "bullet", "bullet_iterations": 20, "bullet_rolling_friction": 1e-4},
+    "bullet_v0": {"engine": "bullet", "bullet_parameters": {}},  # the first Bullet default (50 iterations always)
+    "bullet": {"engine": "bullet", "bullet_rolling_friction": 1e-4, "bullet_parameters": {}},
+    "bullet120": {"engine": "bullet", "bullet_time_step": 1 / 120, "bullet_rolling_friction": 1e-4, "bullet_parameters": {}},
+    "bullet_it20": {"engine": "bullet", "bullet_iterations": 20, "bullet_rolling_friction": 1e-4, "bullet_parameters": {}},
     "bullet120_it20": {"engine": "bullet", "bullet_time_step": 1 / 120, "bullet_iterations": 20,
-                       "bullet_rolling_friction": 1e-4},
+                       "bullet_rolling_friction": 1e-4, "bullet_parameters": {}},
     "bullet_cone": {"engine": "bullet", "bullet_parameters": {"enableConeFriction": 1}, "bullet_rolling_friction": 1e-4},
     "bullet_cone_r0": {"engine": "bullet", "bullet_parameters": {"enableConeFriction": 1}, "bullet_rolling_friction": 0.0},
-    "bullet480": {"engine": "bullet", "bullet_time_step": 1 / 480, "bullet_rolling_friction": 1e-4},
-    "bullet_r3": {"engine": "bullet", "bullet_rolling_friction": 1e-3},
-    "bullet_r2": {"engine": "bullet", "bullet_rolling_friction": 3e-4},
+    "bullet480": {"engine": "bullet", "bullet_time_step": 1 / 480, "bullet_rolling_friction": 1e-4, "bullet_parameters": {}},
+    "bullet_r3": {"engine": "bullet", "bullet_rolling_friction": 1e-3, "bullet_parameters": {}},
+    "bullet_r2": {"engine": "bullet", "bullet_rolling_friction": 3e-4, "bullet_parameters": {}},
+    "bullet_it30": {"engine": "bullet", "bullet_iterations": 30, "bullet_parameters": {}},
+    "bullet_it20_r3": {"engine": "bullet", "bullet_iterations": 20, "bullet_parameters": {}},
+    "bullet_res": {"engine": "bullet", "bullet_parameters": {"solverResidualThreshold": 1e-4}},
     # up to the second pass: 12 waves of <= 0.12 s, lagged, the scenario's dissipation (5 s/m)
     "v2": V2,
     "edges8": {**V2, "resolution_edges": 8},
@@ -323,7 +328,7 @@ if __name__ == "__main__":
                      labeler_ref=sys.argv[sys.argv.index("--labeler-ref") + 1] if "--labeler-ref" in sys.argv else None)
     elif cmd == "scaling":
         k = int(sys.argv[sys.argv.index("--heaps") + 1]) if "--heaps" in sys.argv else 8
-        bench_scaling(k)
+        bench_scaling(k, rounds=int(sys.argv[sys.argv.index("--rounds") + 1]) if "--rounds" in sys.argv else 1)
     elif cmd == "summary":
         summary(sys.argv[2])
     elif cmd == "compare":
