@@ -177,17 +177,19 @@ LABEL_IMAGES = ("render", "depth")
 
 
 def MakeStation(scenario: Scenario, meshcat=None, hardware: bool = False, lcm=None,
-                target_index: int = -1, name: str = "station", label_images: str = "render"):
+                target_index: int = -1, name: str = "station", label_images: str = "depth"):
     """Build the station Diagram for `scenario`.
 
     meshcat: a pydrake Meshcat to visualize into (None: no visualization).
     hardware: True swaps the plant for LCM drivers with the same ports (robots issue).
     target_index: index of the object drawn in the target colour (red), -1 for none.
-    label_images: how ``<cam>.label_image`` is made (sim only). "render": a second VTK render
-      (RgbdSensor's label port). "depth": computed from the depth image and the geometry poses
-      (ms_drake.perception.masks.DepthLabelImage: 99.99 % of the pixels equal to the render's,
-      about half its CPU; it renders the label image itself whenever it cannot be exact, e.g.
-      a mesh geometry in view). Cameras without a depth image always render.
+    label_images: how ``<cam>.label_image`` is made (sim only). "depth" (default): computed
+      from the depth image and the geometry poses (ms_drake.perception.masks.DepthLabelImage, a
+      numba kernel: ~1.8 ms per 640x480 image instead of a ~16 ms second render; 99.99 % of the
+      pixels equal to the render's; it renders the label image itself whenever it cannot be
+      exact, e.g. a mesh geometry in view). "render": a second VTK render (RgbdSensor's label
+      port). Cameras without a depth image always render. The kernel compiles on its first use
+      in a fresh install (~7 s, cached on disk afterwards).
     """
     if label_images not in LABEL_IMAGES:
         raise ScenarioError(f"MakeStation(label_images={label_images!r}): choose one of {', '.join(LABEL_IMAGES)}")
