@@ -116,11 +116,12 @@ def heap_job(job: tuple) -> dict:
     from ms_drake.scenes.heaps import HeapParams, generate_heap, heap_to_dict
 
     s = load_scenario(scenario_file, scenario_name)
-    params = HeapParams(engine=rest[0]) if rest and rest[0] else HeapParams()
+    engine = rest[0] if rest and rest[0] else HeapParams.engine
+    params = HeapParams(engine=engine, polish_time=rest[1] if len(rest) > 1 else 0.0)
     t, cpu0 = time.perf_counter(), time.process_time()
     heap, diag = generate_heap(s, n, seed, object_set=object_set, params=params, return_diagnostics=True)
     rec = heap_to_dict(heap)
-    rec.update(engine=params.engine, seconds=time.perf_counter() - t, attempts=diag.attempts, removed=diag.removed,
+    rec.update(engine=params.engine, polish_time=params.polish_time, seconds=time.perf_counter() - t, attempts=diag.attempts, removed=diag.removed,
                settle_time=diag.settle_time, rejected=diag.rejected_reasons, pid=os.getpid(),
                cpu_seconds=time.process_time() - cpu0, peak_rss_mb=_peak_rss_mb())
     return rec
@@ -137,6 +138,9 @@ def heaps(objects: int = typer.Option(15, "--objects", min=1, max=60, help="Obje
           scenario_file: Optional[Path] = ScenarioFile,
           engine: Optional[str] = typer.Option(None, "--engine", help="Drop physics: bullet or drake "
                                                "(default: ms_drake.scenes.heaps.HeapParams.engine)"),
+          polish: float = typer.Option(0.0, "--polish", min=0.0, max=5.0,
+                                       help="With bullet: then settle up to this many simulated seconds in the "
+                                            "compliant Drake drop world (0.5: heaps at rest in the bin stations)"),
           ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
           ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address")):
     """Generate heaps for seeds S..S+K-1 in parallel, one JSON line per heap (resumable)."""
@@ -157,7 +161,10 @@ def heaps(objects: int = typer.Option(15, "--objects", min=1, max=60, help="Obje
     seeds = [k for k in range(seed_start, seed_start + count) if k not in done]
     if len(seeds) < count:
         typer.echo(f"resuming: {count - len(seeds)} of {count} heaps already in {out}")
-    jobs = [(str(scenario_file) if scenario_file else None, scenario, objects, k, object_set, engine) for k in seeds]
+    if polish > 0 and engine == "drake":
+        _fail("--polish: only with --engine bullet (a Drake-dropped heap is already at rest in Drake)")
+    jobs = [(str(scenario_file) if scenario_file else None, scenario, objects, k, object_set, engine, polish)
+            for k in seeds]
     del s
     failures = 0
     t0 = time.perf_counter()

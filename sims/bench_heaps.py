@@ -219,6 +219,8 @@ VARIANTS = {
     "bullet_it30": {"engine": "bullet", "bullet_iterations": 30, "bullet_parameters": {}},
     "bullet_it20_r3": {"engine": "bullet", "bullet_iterations": 20, "bullet_parameters": {}},
     "bullet_res": {"engine": "bullet", "bullet_parameters": {"solverResidualThreshold": 1e-4}},
+    "polish02": {"engine": "bullet", "polish_time": 0.2},
+    "polish05": {"engine": "bullet", "polish_time": 0.5},
     # up to the second pass: 12 waves of <= 0.12 s, lagged, the scenario's dissipation (5 s/m)
     "v2": V2,
     "edges8": {**V2, "resolution_edges": 8},

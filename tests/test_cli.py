@@ -101,6 +101,7 @@ def test_diagram(tmp_path):
     (["heaps", "--count", "1", "--out", "x.txt"], ".jsonl"),
     (["heaps", "--count", "1", "--object-set", "nope", "--out", "x.jsonl"], "unknown object set 'nope'"),
     (["heaps", "--count", "1", "--engine", "ode", "--out", "x.jsonl"], "--engine ode: use bullet or drake"),
+    (["heaps", "--count", "1", "--engine", "drake", "--polish", "0.5", "--out", "x.jsonl"], "--polish: only with"),
     (["diagram", "--out", "x.gif"], ".svg, .png or .dot"),
 ])
 def test_bad_input_is_a_clear_error_without_traceback(tmp_path, args, needle):

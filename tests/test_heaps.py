@@ -291,3 +291,14 @@ def test_bullet_and_drake_engines_give_valid_heaps(bin_scenario):
         assert diag.phases["waves_sim"] > 0 and heap.target in heap.object_names()
     with pytest.raises(HeapError, match="engine='ode'"):
         generate_heap(bin_scenario, 2, seed=0, params=HeapParams(engine="ode"))
+
+
+def test_bullet_heap_polished_in_the_drake_drop_world(bin_scenario):
+    """polish_time: after Bullet, the heap settles in the compliant Drake world (its own phase);
+    the polished heap is the Bullet heap moved by at most a few cm, and it is valid."""
+    plain, _ = generate_heap(bin_scenario, 4, seed=5, return_diagnostics=True)
+    heap, diag = generate_heap(bin_scenario, 4, seed=5, params=HeapParams(polish_time=0.3), return_diagnostics=True)
+    assert diag.attempts == 1 and 0 < diag.phases["polish_sim"] <= 0.3 + 1e-9
+    assert heap.object_names() == plain.object_names()
+    moved = [np.linalg.norm(a.matrix()[:3, 3] - b.matrix()[:3, 3]) for a, b in zip(heap.objects, plain.objects)]
+    assert max(moved) < 0.03 and any(m > 0 for m in moved), moved
