@@ -26,3 +26,7 @@ class HeapError(MsDrakeError, RuntimeError):
 
 class ModelNotFoundError(MsDrakeError, FileNotFoundError):
     """A model file (mesh, SDF, URDF, weights) is missing."""
+
+
+class PerceptionError(MsDrakeError, ValueError):
+    """A perception system was configured or fed with impossible values (names what and how to fix)."""

@@ -67,9 +67,9 @@ def timed(fn, repeats=5):
 
 
 def run(heaps: int, seed_start: int, render_images: int, cache: Path) -> dict:
-    from ms_drake.perception.masks import PinholeCamera
+    from ms_drake.geometry import PinholeCamera
     from ms_drake.perception.occupancy import AnalyticOccupancy, RenderedOccupancy, TargetMesh
-    from ms_drake.perception.segmentation import Workspace
+    from ms_drake.geometry import Workspace
     from ms_drake.scenario import load_scenario
 
     s = load_scenario(None, "BinHeap15")

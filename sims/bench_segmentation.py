@@ -65,9 +65,9 @@ def dataset(scenario, seeds, cache: Path):
 
 
 def run(heaps: int, seed_start: int, cache: Path) -> dict:
-    from ms_drake.perception.masks import PinholeCamera
-    from ms_drake.perception.segmentation import (Workspace, coco_mask_metrics, euclidean_clustering,
-                                                  region_growing, world_points)
+    from ms_drake.geometry import PinholeCamera
+    from ms_drake.geometry import Workspace, world_points
+    from ms_drake.perception.segmentation import coco_mask_metrics, euclidean_clustering, region_growing
     from ms_drake.scenario import load_scenario
 
     s = load_scenario(None, "BinHeap15")

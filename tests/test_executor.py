@@ -14,7 +14,7 @@ from ms_drake.execution import (
     connect_executor,
     grasp_tool_pose,
 )
-from ms_drake.perception.segmentation import Workspace
+from ms_drake.geometry import Workspace
 from ms_drake.types import Action, Grasp, Push
 
 WS = Workspace((0.0, 0.0), (0.5, 0.4), 0.0, 0.12)

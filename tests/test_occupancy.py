@@ -9,10 +9,13 @@ from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.sensors import ImageDepth32F
 
-from ms_drake.perception.masks import PinholeCamera, object_labels
+from ms_drake.geometry import PinholeCamera
+from ms_drake.perception.masks import object_labels
 from ms_drake.perception.occupancy import (AnalyticOccupancy, OccupancyEstimator, OccupancyGrid, RenderedOccupancy,
                                            TargetBox, _yaw, convex_silhouette, floor_points)
-from ms_drake.perception.segmentation import PerceptionError, Segmenter, Workspace
+from ms_drake.errors import PerceptionError
+from ms_drake.geometry import Workspace
+from ms_drake.perception.segmentation import Segmenter
 from ms_drake.perception.target import TargetDetector
 from ms_drake.scenes.heaps import scenario_with_heap, set_heap_poses
 from ms_drake.station import MakeStation, get_plant

@@ -8,8 +8,8 @@ from pydrake.math import RigidTransform
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.sensors import ImageLabel16I
 
-from ms_drake.perception.masks import (AmodalMasks, LabelImageToMasks, PinholeCamera, make_amodal_masks,
-                                       object_labels, silhouette)
+from ms_drake.geometry import PinholeCamera, silhouette
+from ms_drake.perception.masks import AmodalMasks, LabelImageToMasks, make_amodal_masks, object_labels
 from ms_drake.perception.point_cloud import add_point_cloud, finite_points
 from ms_drake.station import MakeStation, get_plant, station_objects
 from ms_drake.types import InstanceMasks

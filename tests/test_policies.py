@@ -7,9 +7,11 @@ import pytest
 from pydrake.systems.framework import DiagramBuilder
 
 from ms_drake.objects import get_object
-from ms_drake.perception.masks import PinholeCamera, object_labels
+from ms_drake.geometry import PinholeCamera
+from ms_drake.perception.masks import object_labels
 from ms_drake.perception.occupancy import OccupancyEstimator, TargetBox
-from ms_drake.perception.segmentation import Segmenter, Workspace
+from ms_drake.geometry import Workspace
+from ms_drake.perception.segmentation import Segmenter
 from ms_drake.perception.target import TargetDetector
 from ms_drake.policies import (POLICIES, PolicyError, PolicySelector, SelectorParams, priority_largest,
                                priority_xray, select_action, termination, xray_scores)

@@ -8,8 +8,10 @@ from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.sensors import ImageDepth32F
 
-from ms_drake.perception.masks import PinholeCamera, object_labels
-from ms_drake.perception.segmentation import Segmenter, Workspace, world_points
+from ms_drake.geometry import PinholeCamera
+from ms_drake.perception.masks import object_labels
+from ms_drake.geometry import Workspace, world_points
+from ms_drake.perception.segmentation import Segmenter
 from ms_drake.pushing import PushError, PushParams, PushPlanner, obstacle_map, plan_push, plan_pushes
 from ms_drake.scenes.heaps import scenario_with_heap, set_heap_poses
 from ms_drake.station import MakeStation, get_plant

@@ -8,9 +8,11 @@ from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
 
-from ms_drake.perception.masks import PinholeCamera, label_image_to_masks, object_labels
-from ms_drake.perception.segmentation import (PerceptionError, Segmenter, Workspace, coco_mask_metrics,
-                                              euclidean_clustering, region_growing, world_points)
+from ms_drake.geometry import PinholeCamera
+from ms_drake.perception.masks import label_image_to_masks, object_labels
+from ms_drake.errors import PerceptionError
+from ms_drake.geometry import Workspace, world_points
+from ms_drake.perception.segmentation import Segmenter, coco_mask_metrics, euclidean_clustering, region_growing
 from ms_drake.scenes.heaps import scenario_with_heap, set_heap_poses
 from ms_drake.station import MakeStation, get_plant
 from ms_drake.types import InstanceMasks

@@ -9,7 +9,8 @@ from pydrake.systems.sensors import ImageRgba8U
 
 from ms_drake.objects import TARGET_RGBA
 from ms_drake.perception.masks import object_labels
-from ms_drake.perception.segmentation import PerceptionError, Segmenter
+from ms_drake.errors import PerceptionError
+from ms_drake.perception.segmentation import Segmenter
 from ms_drake.perception.target import (Template, TemplateMatcher, TargetDetector, detect_color, red_pixels,
                                         render_templates)
 from ms_drake.scenes.heaps import scenario_with_heap, set_heap_poses

@@ -77,7 +77,7 @@ def run_demo(out: Path, seed: int = 0, objects: int = 15, policy: str = "xray", 
         build_search,
         run_search,
     )
-    from ms_drake.perception.masks import PinholeCamera
+    from ms_drake.geometry import PinholeCamera
     from ms_drake.scenario import load_scenario
     from ms_drake.scenes.heaps import SEARCH_HEAPS
     from ms_drake.scenes.render import make_scene, write_scene_images

@@ -143,9 +143,11 @@ def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSy
     """Station of `scenario` holding `heap` (target drawn red) + the controller diagram."""
     from ms_drake.grasping.planner import GraspPlanner, ObjectGeometrySource
     from ms_drake.objects import get_object
-    from ms_drake.perception.masks import PinholeCamera, object_labels
+    from ms_drake.geometry import PinholeCamera
+    from ms_drake.perception.masks import object_labels
     from ms_drake.perception.occupancy import OccupancyEstimator, TargetBox, TargetMesh
-    from ms_drake.perception.segmentation import Segmenter, Workspace
+    from ms_drake.geometry import Workspace
+    from ms_drake.perception.segmentation import Segmenter
     from ms_drake.perception.target import TargetDetector
     from ms_drake.policies import PolicySelector, SelectorParams
     from ms_drake.pushing import PushPlanner

@@ -35,7 +35,8 @@ class HeapGraspInputs:
 def heap_grasp_inputs(scenario, heap, camera: str = "overhead", min_pixels: int = 20) -> HeapGraspInputs:
     """Build the station holding `heap`, render `camera` and collect what a GraspPlanner reads."""
     from ms_drake.objects import get_object
-    from ms_drake.perception.masks import PinholeCamera, label_image_to_masks, object_labels, silhouette
+    from ms_drake.geometry import PinholeCamera, silhouette
+    from ms_drake.perception.masks import label_image_to_masks, object_labels
     from ms_drake.scenes.heaps import scenario_with_heap, set_heap_poses
     from ms_drake.station import MakeStation, get_plant, station_objects
 

@@ -14,66 +14,14 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import LeafSystem
-from pydrake.systems.sensors import CameraConfig, ImageLabel16I
+from pydrake.systems.sensors import ImageLabel16I
 
+from ms_drake.geometry import PinholeCamera, silhouette
 from ms_drake.types import InstanceMasks
-
-
-@dataclass(frozen=True)
-class PinholeCamera:
-    """Intrinsics and world pose of a colour/label camera (Drake convention: +z forward,
-    +x right, +y down)."""
-
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    X_WC: RigidTransform
-
-    @staticmethod
-    def from_config(cfg: CameraConfig, X_WP: RigidTransform | None = None) -> "PinholeCamera":
-        color, _ = cfg.MakeCameras()
-        intr = color.core().intrinsics()
-        X_PB = cfg.X_PB.GetDeterministicValue()
-        X_BC = cfg.X_BC.GetDeterministicValue()
-        X_WC = (X_WP or RigidTransform()) @ X_PB @ X_BC
-        return PinholeCamera(intr.width(), intr.height(), intr.focal_x(), intr.focal_y(),
-                             intr.center_x(), intr.center_y(), X_WC)
-
-    def project(self, p_W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Pixel coordinates (N, 2) and depths (N,) of world points (N, 3)."""
-        X_CW = self.X_WC.inverse()
-        p_C = (X_CW.rotation().matrix() @ p_W.T).T + X_CW.translation()
-        z = p_C[:, 2]
-        zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
-        uv = np.stack([self.fx * p_C[:, 0] / zs + self.cx, self.fy * p_C[:, 1] / zs + self.cy], axis=1)
-        return uv, z
-
-    def deproject(self, depth: np.ndarray) -> np.ndarray:
-        """(H, W, 3) points in the camera frame from a depth image (metres; NaN where invalid)."""
-        v, u = np.mgrid[0:self.height, 0:self.width]
-        z = np.where(np.isfinite(depth) & (depth > 0), depth, np.nan)
-        return np.stack([(u - self.cx) * z / self.fx, (v - self.cy) * z / self.fy, z], axis=-1)
-
-
-def silhouette(camera: PinholeCamera, vertices_W: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(H, W) bool mask of a mesh's projection (triangles behind the camera are dropped)."""
-    uv, z = camera.project(vertices_W)
-    mask = np.zeros((camera.height, camera.width), np.uint8)
-    ok = np.all(z[faces] > 1e-3, axis=1)
-    # fillPoly takes integer pixel coords; use 4 bits of sub-pixel precision (shift=4).
-    # (fillPoly would XOR overlapping triangles, so each is filled on its own.)
-    tris = np.round(uv[faces[ok]] * 16).astype(np.int32)  # pixel centres at integer coordinates
-    for tri in tris:
-        cv2.fillConvexPoly(mask, tri, 1, lineType=cv2.LINE_8, shift=4)
-    return mask.astype(bool)
 
 
 def label_image_to_masks(labels: np.ndarray, label_to_id: dict[int, str], min_pixels: int = 1) -> InstanceMasks:

@@ -63,8 +63,9 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 from pydrake.systems.sensors import ImageDepth32F
 
-from ms_drake.perception.masks import PinholeCamera
-from ms_drake.perception.segmentation import PerceptionError, Workspace, depth_array
+from ms_drake.geometry import PinholeCamera
+from ms_drake.errors import PerceptionError
+from ms_drake.geometry import Workspace, depth_array
 from ms_drake.types import OccupancyMap, TargetEstimate
 
 

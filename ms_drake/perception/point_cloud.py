@@ -13,7 +13,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.perception import BaseField, DepthImageToPointCloud
 from pydrake.systems.primitives import ConstantValueSource
 
-from ms_drake.perception.masks import PinholeCamera
+from ms_drake.geometry import PinholeCamera
 
 
 def add_point_cloud(builder, station, camera_name: str, camera_config, color: bool = True):

@@ -38,67 +38,15 @@ from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from ms_drake.errors import MsDrakeError
-from ms_drake.perception.masks import PinholeCamera, label_image_to_masks
+from ms_drake.errors import PerceptionError
+from ms_drake.geometry import PinholeCamera, Workspace, depth_array, world_points
+from ms_drake.perception.masks import label_image_to_masks
 from ms_drake.types import InstanceMasks
 
 BACKENDS = ("ground_truth", "euclidean", "region_growing")
 
 
-class PerceptionError(MsDrakeError, ValueError):
-    """A perception system was configured or fed with impossible values (names what and how to fix)."""
 
-
-@dataclass(frozen=True)
-class Workspace:
-    """The bin's inner box in the world: floor top at `floor_z`, inner x/y extents centred on
-    `center_xy`, walls `wall_height` high. `Workspace.from_scenario(scenario)` reads it from the
-    scenario's environment (ms_drake.station.environments conventions)."""
-
-    center_xy: tuple[float, float]
-    size_xy: tuple[float, float]
-    floor_z: float
-    wall_height: float
-
-    @staticmethod
-    def from_scenario(scenario) -> "Workspace":
-        env = scenario.environment
-        if env.type != "bin":
-            raise PerceptionError(f"environment.type is {env.type!r}: bin segmentation, occupancy and pushing "
-                                  "need a bin scenario (e.g. BinHeap15)")
-        size = env.resolved_size()
-        pos = np.asarray(env.position, float)
-        return Workspace((float(pos[0]), float(pos[1])), (float(size[0]), float(size[1])), float(pos[2]),
-                         float(size[2]))
-
-    def inside_xy(self, p: np.ndarray, margin: float = 0.0) -> np.ndarray:
-        """Bool array: points (..., >=2) whose x, y lie inside the inner box shrunk by `margin`."""
-        half = 0.5 * np.asarray(self.size_xy) - margin
-        d = np.abs(p[..., :2] - np.asarray(self.center_xy))
-        return np.all(d <= half, axis=-1)
-
-    def foreground(self, P_W: np.ndarray, min_height: float = 0.004, margin: float = 0.004) -> np.ndarray:
-        """(H, W) bool: valid points inside the bin, above the floor by `min_height` (the bin removed)."""
-        ok = np.all(np.isfinite(P_W), axis=-1)
-        z = np.where(ok, P_W[..., 2], -np.inf) - self.floor_z
-        return ok & self.inside_xy(np.where(ok[..., None], P_W, 0.0), margin) & (z > min_height)
-
-
-def depth_array(depth) -> np.ndarray:
-    """(H, W) float depth in metres from an ImageDepth32F or array; 0 / inf / NaN -> NaN."""
-    d = np.asarray(depth.data if hasattr(depth, "data") else depth, dtype=np.float64)
-    d = d[..., 0] if d.ndim == 3 else d
-    return np.where(np.isfinite(d) & (d > 0), d, np.nan)
-
-
-def world_points(camera: PinholeCamera, depth: np.ndarray) -> np.ndarray:
-    """(H, W, 3) world points of a depth image (NaN where invalid)."""
-    if depth.shape != (camera.height, camera.width):
-        raise PerceptionError(f"depth image is {depth.shape[1]}x{depth.shape[0]} but the camera is "
-                              f"{camera.width}x{camera.height}; build the system from the same camera config")
-    P_C = camera.deproject(depth)
-    R = camera.X_WC.rotation().matrix()
-    return P_C @ R.T + camera.X_WC.translation()
 
 
 def _masks_from_labels(labels: np.ndarray, min_pixels: int, max_pixels: int) -> InstanceMasks:

@@ -33,7 +33,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 from pydrake.systems.sensors import ImageRgba8U
 
-from ms_drake.perception.segmentation import PerceptionError
+from ms_drake.errors import PerceptionError
 from ms_drake.types import InstanceMasks, TargetEstimate
 
 BACKENDS = ("color", "template")

@@ -234,7 +234,7 @@ class _DropWorld:
             cam.rgb = False
             add_cameras(builder, [cam], plant, sg)
             self.sensor = builder.GetSubsystemByName(f"rgbd_sensor_{cam.name}")
-            from ms_drake.perception.masks import PinholeCamera
+            from ms_drake.geometry import PinholeCamera
 
             self.camera = PinholeCamera.from_config(cam)
         self.diagram = builder.Build()
@@ -319,7 +319,7 @@ def _mesh(full_name: str):
 def visible_ratios(world: _DropWorld, names: list[str], present: list[int], camera) -> tuple[np.ndarray, np.ndarray]:
     """(modal, amodal) pixel counts of the objects `present`: modal from the label image,
     amodal from the object's mesh projected through the camera (ms_drake.perception.masks)."""
-    from ms_drake.perception.masks import silhouette
+    from ms_drake.geometry import silhouette
 
     labels = world.label_image()
     poses = world.poses()

@@ -15,7 +15,8 @@ import cv2
 import numpy as np
 
 from ms_drake.objects import get_object_set
-from ms_drake.perception.masks import PinholeCamera, label_image_to_masks, object_labels, silhouette
+from ms_drake.geometry import PinholeCamera, silhouette
+from ms_drake.perception.masks import label_image_to_masks, object_labels
 from ms_drake.scenario import Scenario
 from ms_drake.scenes.heaps import HeapParams, generate_heap, heap_to_dict, scenario_with_heap, set_heap_poses
 from ms_drake.scenes.tabletop import place_objects

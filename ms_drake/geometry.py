@@ -1,0 +1,125 @@
+"""Shared geometry below every capability: the pinhole camera model and the bin workspace.
+
+- `PinholeCamera`: intrinsics + world pose of a camera (Drake convention: +z forward, +x right,
+  +y down), built from a `CameraConfig`; projects points, deprojects depth images, draws a mesh's
+  silhouette.
+- `Workspace`: the bin's inner box in the world, read from a bin scenario.
+- `depth_array`, `world_points`: depth images as arrays and as world points.
+
+Only numpy, cv2 and pydrake value types are imported here, so every layer may import it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from pydrake.math import RigidTransform
+from pydrake.systems.sensors import CameraConfig
+
+from ms_drake.errors import PerceptionError
+
+
+@dataclass(frozen=True)
+class PinholeCamera:
+    """Intrinsics and world pose of a colour/label camera (Drake convention: +z forward,
+    +x right, +y down)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    X_WC: RigidTransform
+
+    @staticmethod
+    def from_config(cfg: CameraConfig, X_WP: RigidTransform | None = None) -> "PinholeCamera":
+        color, _ = cfg.MakeCameras()
+        intr = color.core().intrinsics()
+        X_PB = cfg.X_PB.GetDeterministicValue()
+        X_BC = cfg.X_BC.GetDeterministicValue()
+        X_WC = (X_WP or RigidTransform()) @ X_PB @ X_BC
+        return PinholeCamera(intr.width(), intr.height(), intr.focal_x(), intr.focal_y(),
+                             intr.center_x(), intr.center_y(), X_WC)
+
+    def project(self, p_W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel coordinates (N, 2) and depths (N,) of world points (N, 3)."""
+        X_CW = self.X_WC.inverse()
+        p_C = (X_CW.rotation().matrix() @ p_W.T).T + X_CW.translation()
+        z = p_C[:, 2]
+        zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
+        uv = np.stack([self.fx * p_C[:, 0] / zs + self.cx, self.fy * p_C[:, 1] / zs + self.cy], axis=1)
+        return uv, z
+
+    def deproject(self, depth: np.ndarray) -> np.ndarray:
+        """(H, W, 3) points in the camera frame from a depth image (metres; NaN where invalid)."""
+        v, u = np.mgrid[0:self.height, 0:self.width]
+        z = np.where(np.isfinite(depth) & (depth > 0), depth, np.nan)
+        return np.stack([(u - self.cx) * z / self.fx, (v - self.cy) * z / self.fy, z], axis=-1)
+
+
+def silhouette(camera: PinholeCamera, vertices_W: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(H, W) bool mask of a mesh's projection (triangles behind the camera are dropped)."""
+    uv, z = camera.project(vertices_W)
+    mask = np.zeros((camera.height, camera.width), np.uint8)
+    ok = np.all(z[faces] > 1e-3, axis=1)
+    # fillPoly takes integer pixel coords; use 4 bits of sub-pixel precision (shift=4).
+    # (fillPoly would XOR overlapping triangles, so each is filled on its own.)
+    tris = np.round(uv[faces[ok]] * 16).astype(np.int32)  # pixel centres at integer coordinates
+    for tri in tris:
+        cv2.fillConvexPoly(mask, tri, 1, lineType=cv2.LINE_8, shift=4)
+    return mask.astype(bool)
+
+
+@dataclass(frozen=True)
+class Workspace:
+    """The bin's inner box in the world: floor top at `floor_z`, inner x/y extents centred on
+    `center_xy`, walls `wall_height` high. `Workspace.from_scenario(scenario)` reads it from the
+    scenario's environment (ms_drake.station.environments conventions)."""
+
+    center_xy: tuple[float, float]
+    size_xy: tuple[float, float]
+    floor_z: float
+    wall_height: float
+
+    @staticmethod
+    def from_scenario(scenario) -> "Workspace":
+        env = scenario.environment
+        if env.type != "bin":
+            raise PerceptionError(f"environment.type is {env.type!r}: bin segmentation, occupancy and pushing "
+                                  "need a bin scenario (e.g. BinHeap15)")
+        size = env.resolved_size()
+        pos = np.asarray(env.position, float)
+        return Workspace((float(pos[0]), float(pos[1])), (float(size[0]), float(size[1])), float(pos[2]),
+                         float(size[2]))
+
+    def inside_xy(self, p: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """Bool array: points (..., >=2) whose x, y lie inside the inner box shrunk by `margin`."""
+        half = 0.5 * np.asarray(self.size_xy) - margin
+        d = np.abs(p[..., :2] - np.asarray(self.center_xy))
+        return np.all(d <= half, axis=-1)
+
+    def foreground(self, P_W: np.ndarray, min_height: float = 0.004, margin: float = 0.004) -> np.ndarray:
+        """(H, W) bool: valid points inside the bin, above the floor by `min_height` (the bin removed)."""
+        ok = np.all(np.isfinite(P_W), axis=-1)
+        z = np.where(ok, P_W[..., 2], -np.inf) - self.floor_z
+        return ok & self.inside_xy(np.where(ok[..., None], P_W, 0.0), margin) & (z > min_height)
+
+
+def depth_array(depth) -> np.ndarray:
+    """(H, W) float depth in metres from an ImageDepth32F or array; 0 / inf / NaN -> NaN."""
+    d = np.asarray(depth.data if hasattr(depth, "data") else depth, dtype=np.float64)
+    d = d[..., 0] if d.ndim == 3 else d
+    return np.where(np.isfinite(d) & (d > 0), d, np.nan)
+
+
+def world_points(camera: PinholeCamera, depth: np.ndarray) -> np.ndarray:
+    """(H, W, 3) world points of a depth image (NaN where invalid)."""
+    if depth.shape != (camera.height, camera.width):
+        raise PerceptionError(f"depth image is {depth.shape[1]}x{depth.shape[0]} but the camera is "
+                              f"{camera.width}x{camera.height}; build the system from the same camera config")
+    P_C = camera.deproject(depth)
+    R = camera.X_WC.rotation().matrix()
+    return P_C @ R.T + camera.X_WC.translation()
