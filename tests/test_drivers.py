@@ -16,7 +16,8 @@ from ms_drake.planning import TimedTrajectory, TrajectoryStreamer, plan_joint_mo
 from ms_drake.scenario import ArmDriver, JawDriver, SuctionDriver, load_scenario
 from ms_drake.station import MakeStation, get_plant
 from ms_drake.station.drivers import CommandField, CommandGuard, station_arms, station_grippers
-from ms_drake.station.robots import arm_joint_limits, resolve_robot_config, station_robot_spec
+from ms_drake.robots import arm_joint_limits, station_robot_spec
+from ms_drake.scenario import resolve_robot_config
 
 SCENARIOS = ["YuMiBin", "PandaTable", "FetchShelf", "FloatingGripperBin"]
 
@@ -237,7 +238,8 @@ def test_the_same_controller_moves_every_robot(name):
         q = station.GetOutputPort(f"{arm}.position_measured").Eval(sc)
         np.testing.assert_allclose(q, q_now[arm] + delta, atol=5e-3, err_msg=f"{name}: {arm} did not track")
         x = station.GetOutputPort(f"{arm}.state_estimated").Eval(sc)
-        np.testing.assert_allclose(x[:len(q)], q) and np.testing.assert_allclose(x[len(q):], 0, atol=0.02)
+        np.testing.assert_allclose(x[:len(q)], q)
+        np.testing.assert_allclose(x[len(q):], 0, atol=0.02)
         assert station.GetOutputPort(f"{arm}.fault").Eval(sc)[0] == 0
     for port, kind in station_grippers(station).items():
         if kind == "parallel_jaw":

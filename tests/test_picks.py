@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from ms_drake.station.picks import TASKS, Schedule, Timeline, plan_task, run_task
-from ms_drake.planning import JointLimits, plan_joint_motion
+from ms_drake.types import JointLimits
+from ms_drake.planning import plan_joint_motion
 
 
 def _check(out, task):
@@ -56,7 +57,8 @@ def test_timeline_plays_trajectories_and_holds():
     np.testing.assert_allclose(tl.value(0.1), [0, 0])
     np.testing.assert_allclose(tl.value(0.2 + a.duration / 2), a.value(a.duration / 2))
     assert np.linalg.norm(tl.velocity(0.2 + a.duration / 2)) > 0.1
-    np.testing.assert_allclose(tl.value(10.0), [0.5, -0.5]) and np.testing.assert_allclose(tl.velocity(10.0), 0)
+    np.testing.assert_allclose(tl.value(10.0), [0.5, -0.5])
+    np.testing.assert_allclose(tl.velocity(10.0), 0)
 
 
 def test_schedule_is_a_zero_order_hold():
