@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from pydrake.math import RigidTransform
+from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.systems.sensors import CameraConfig
 
 from ms_drake.errors import PerceptionError
@@ -123,3 +123,9 @@ def world_points(camera: PinholeCamera, depth: np.ndarray) -> np.ndarray:
     P_C = camera.deproject(depth)
     R = camera.X_WC.rotation().matrix()
     return P_C @ R.T + camera.X_WC.translation()
+
+
+def transform_from_rpy_xyz(rpy, xyz) -> RigidTransform:
+    """RigidTransform from Drake roll-pitch-yaw angles [rad] and a translation [m] (the robot
+    tables store weld transforms as these plain tuples)."""
+    return RigidTransform(RollPitchYaw(*rpy), np.asarray(xyz, float))

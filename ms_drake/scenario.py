@@ -23,7 +23,9 @@ from pydrake.systems.analysis import SimulatorConfig
 from pydrake.systems.sensors import CameraConfig
 from pydrake.visualization import VisualizationConfig
 
-from ms_drake.errors import ScenarioError, ObjectSetError
+from ms_drake.errors import ObjectSetError, ScenarioError
+from ms_drake.objects import available_sets, get_object
+from ms_drake.robots import GRIPPERS, gripper_port_name, station_robot_spec
 
 ENVIRONMENT_TYPES = ("bin", "shelf", "table")
 ROBOTS = ("", "yumi", "panda", "fetch", "floating")
@@ -244,8 +246,6 @@ class _Checker:
 
 
 def _check_values(s: Scenario, ck: _Checker):
-    from ms_drake.objects import available_sets, get_object
-
     env = s.environment
     if env.type not in ENVIRONMENT_TYPES:
         ck.fail("environment.type", f"{env.type!r} is not an environment; allowed: {', '.join(ENVIRONMENT_TYPES)}")
@@ -270,8 +270,6 @@ def _check_values(s: Scenario, ck: _Checker):
     if s.robot.name not in ROBOTS:
         ck.fail("robot.name", f"unknown robot {s.robot.name!r}; allowed: {', '.join(repr(r) for r in ROBOTS)}")
     if s.robot.name:
-        from ms_drake.station.robots import resolve_robot_config  # grippers and drivers, at load time
-
         try:
             resolve_robot_config(s.robot)
         except ScenarioError as e:
@@ -286,6 +284,49 @@ def _check_values(s: Scenario, ck: _Checker):
         ck.fail("plant_config.contact_model", f"{s.plant_config.contact_model!r}; allowed: {', '.join(contact_models)}")
     if s.objects.compliance not in OBJECT_COMPLIANCE:
         ck.fail("objects.compliance", f"{s.objects.compliance!r}; allowed: {', '.join(OBJECT_COMPLIANCE)}")
+
+
+def resolve_robot_config(robot_config):
+    """Check a scenario's RobotConfig; returns [(arm, gripper name, gripper port)] and the
+    driver of every port prefix ({prefix: driver dataclass}, defaults filled in).
+
+    Errors (ScenarioError) name the key, the bad value and the valid names."""
+    spec = station_robot_spec(robot_config.name)
+    arms = list(spec.arms)
+    names = list(robot_config.grippers)
+    if len(names) > len(arms):
+        raise ScenarioError(f"robot.grippers: {names} lists {len(names)} grippers but {robot_config.name!r} has "
+                            f"{len(arms)} arm(s) ({', '.join(arms)}); give one gripper per arm, in that order")
+    chosen = []
+    for i, arm in enumerate(arms):
+        g = names[i] if i < len(names) else spec.arms[arm].default_gripper
+        if g not in GRIPPERS:
+            raise ScenarioError(f"robot.grippers[{i}]: unknown gripper {g!r}; valid grippers: "
+                                f"{', '.join(sorted(GRIPPERS))}")
+        chosen.append((arm, g, gripper_port_name(arm, GRIPPERS[g].kind)))
+    wanted = {arm: ArmDriver for arm in arms}
+    wanted.update({port: JawDriver if GRIPPERS[g].kind == "parallel_jaw" else SuctionDriver
+                   for _, g, port in chosen})
+    drivers = {}
+    for key, d in robot_config.drivers.items():
+        if key not in wanted:
+            raise ScenarioError(f"robot.drivers: no arm or gripper named {key!r} on {robot_config.name!r}; "
+                                f"valid driver names: {', '.join(wanted)}")
+        if not isinstance(d, wanted[key]):
+            raise ScenarioError(f"robot.drivers.{key}: a {type(d).__name__} cannot drive {key!r}; "
+                                f"use !{wanted[key].__name__}")
+        drivers[key] = d
+    for key, cls in wanted.items():
+        drivers.setdefault(key, cls())
+    for arm in arms:
+        kp = drivers[arm].kp
+        n = len(spec.arms[arm].joints)
+        if kp and (len(kp) != n or min(kp) <= 0):
+            raise ScenarioError(f"robot.drivers.{arm}.kp: give {n} positive stiffnesses (one per joint of "
+                                f"{', '.join(spec.arms[arm].joints)}) or [] for the defaults; got {list(kp)}")
+        if drivers[arm].damping_ratio < 0:
+            raise ScenarioError(f"robot.drivers.{arm}.damping_ratio: must be >= 0, got {drivers[arm].damping_ratio}")
+    return chosen, drivers
 
 
 def load_scenario(filename: typing.Union[str, Path, None] = None, scenario_name: str = "EmptyBin") -> Scenario:

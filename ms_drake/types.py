@@ -165,3 +165,17 @@ class ObjectGeometry:
     X_WO: np.ndarray
     mass: float
     com: tuple[float, float, float] | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class JointLimits:
+    """Per-joint velocity, acceleration and jerk limits of an arm (ruckig timing); the table of
+    every station arm is ms_drake.robots (`arm_joint_limits(arm)`)."""
+
+    velocity: np.ndarray
+    acceleration: np.ndarray
+    jerk: np.ndarray
+
+    @staticmethod
+    def uniform(n: int, velocity: float, acceleration: float, jerk: float) -> "JointLimits":
+        return JointLimits(np.full(n, velocity), np.full(n, acceleration), np.full(n, jerk))

@@ -27,7 +27,7 @@ def bench_ik(solves: int, seed: int = 0) -> dict:
     from pydrake.multibody.plant import CoulombFriction
 
     from ms_drake.planning import ArmIk, ik_pose, make_ik_diagram
-    from ms_drake.station.robots import ROBOTS
+    from ms_drake.robots import ROBOTS
 
     def table(plant, parser):
         plant.RegisterCollisionGeometry(plant.world_body(), RigidTransform([0.5, 0, -0.05]), Box(0.6, 0.8, 0.1),
@@ -61,9 +61,9 @@ def bench_ik(solves: int, seed: int = 0) -> dict:
 def bench_ruckig(calls: int = 2000, seed: int = 0) -> dict:
     from ruckig import InputParameter, Ruckig, Trajectory
 
-    from ms_drake.planning import JointLimits
+    from ms_drake.robots import arm_joint_limits
 
-    lim = JointLimits.for_arm("panda")
+    lim = arm_joint_limits("panda")
     rng = np.random.default_rng(seed)
     otg, inp, traj = Ruckig(7), InputParameter(7), Trajectory(7)
     inp.max_velocity, inp.max_acceleration, inp.max_jerk = list(lim.velocity), list(lim.acceleration), list(lim.jerk)

@@ -14,10 +14,10 @@ from pydrake.trajectories import PiecewisePolynomial
 
 from ms_drake.errors import ScenarioError
 from ms_drake.paths import make_parser, models_dir
-from ms_drake.station.grippers import (BluctionConfig, PadConfig, ParallelJawConfig, bluction_sdf,
-                                       gripper_spec, parallel_jaw_sdf, write_default_models)
-from ms_drake.station.robots import (FLOATING_JOINTS, ROBOTS, add_arm_gripper, add_floating_gripper,
-                                     add_robot, floating_gripper_positions)
+from ms_drake.robots import BluctionConfig, PadConfig, ParallelJawConfig, gripper_spec
+from ms_drake.station.grippers import bluction_sdf, parallel_jaw_sdf, write_default_models
+from ms_drake.robots import FLOATING_JOINTS, ROBOTS
+from ms_drake.station.robots import add_arm_gripper, add_floating_gripper, add_robot, floating_gripper_positions
 
 
 def box_sdf(mass, size=0.05, name="box"):

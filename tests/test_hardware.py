@@ -14,7 +14,7 @@ from pydrake.systems.lcm import PySerializer
 
 from ms_drake.errors import ScenarioError
 from ms_drake.scenario import ArmDriver
-from ms_drake.station.robots import ROBOTS
+from ms_drake.robots import ROBOTS
 from ms_drake.station.drivers import station_arms, station_grippers
 from ms_drake.station.hardware import (GatedLcmPublisher, MakeEmulatedRobot, MakeHardwareStation, RobotStateReceiver,
                                        RobotStateSender, SignalReceiver, SignalSender, camera_channel,

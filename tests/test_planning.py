@@ -12,10 +12,11 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import Multiplexer
 
 from ms_drake.paths import make_parser
-from ms_drake.planning import (ArmIk, JointLimits, TimedTrajectory, TrajectoryStreamer, ik_pose,
-                               make_ik_diagram, plan_approach, plan_cartesian_line, plan_joint_motion,
-                               plan_lift, plan_path_motion, plan_push)
-from ms_drake.station.robots import ROBOTS, add_robot
+from ms_drake.robots import arm_joint_limits
+from ms_drake.types import JointLimits
+from ms_drake.planning import ArmIk, TimedTrajectory, TrajectoryStreamer, ik_pose, make_ik_diagram, plan_approach, plan_cartesian_line, plan_joint_motion, plan_lift, plan_path_motion, plan_push
+from ms_drake.robots import ROBOTS
+from ms_drake.station.robots import add_robot
 
 Q_PANDA = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 1.9, 0.785])
 
@@ -93,7 +94,7 @@ def _sampled(traj, n=400):
 
 
 def test_ruckig_motion_within_limits_and_ends_at_target():
-    limits = JointLimits.for_arm("panda")
+    limits = arm_joint_limits("panda")
     W = np.array([Q_PANDA, Q_PANDA + 0.5, Q_PANDA - np.array([0.2, 0.1, 0, 0.3, 0, 0.2, 0])])
     traj = plan_joint_motion(W, limits)
     assert traj.duration > 0
@@ -103,7 +104,7 @@ def test_ruckig_motion_within_limits_and_ends_at_target():
     v = np.diff(q, axis=0) / np.diff(t)[:, None]
     assert np.all(np.abs(v) <= limits.velocity * 1.01)
     # a slower table gives a longer motion
-    assert plan_joint_motion(W, JointLimits.for_arm("panda", scale=0.5)).duration > traj.duration
+    assert plan_joint_motion(W, arm_joint_limits("panda", scale=0.5)).duration > traj.duration
 
 
 def test_path_timing_respects_joint_limits():
@@ -119,7 +120,7 @@ def test_path_timing_respects_joint_limits():
 
 def test_cartesian_lift_is_a_straight_line(panda):
     _, _, ik = panda
-    limits = JointLimits.for_arm("panda")
+    limits = arm_joint_limits("panda")
     X0 = ik_pose(ik, Q_PANDA)
     plan = plan_lift(ik, Q_PANDA, limits, height=0.1)
     assert plan.success and plan.fraction == 1.0
@@ -136,7 +137,7 @@ def test_cartesian_lift_is_a_straight_line(panda):
 @pytest.mark.parametrize("axis_only", [False, True])
 def test_approach_then_push(panda, axis_only):
     _, _, ik = panda
-    limits = JointLimits.for_arm("panda")
+    limits = arm_joint_limits("panda")
     X_grasp = RigidTransform(RollPitchYaw(np.pi, 0, 0.4), [0.45, -0.1, 0.04])
     q_pre, plan = plan_approach(ik, X_grasp, limits, distance=0.1, q_seed=Q_PANDA, axis_only=axis_only)
     assert q_pre is not None and plan.success
@@ -175,7 +176,7 @@ def test_streamer_drives_a_panda_in_a_diagram():
     add_robot(control_plant, make_parser(control_plant), "panda")
     control_plant.Finalize()
     q_end = Q_PANDA + np.array([0.4, 0.3, -0.3, 0.4, 0.2, -0.3, 0.5])
-    traj = plan_joint_motion([Q_PANDA, q_end], JointLimits.for_arm("panda", scale=0.5))
+    traj = plan_joint_motion([Q_PANDA, q_end], arm_joint_limits("panda", scale=0.5))
     streamer = builder.AddSystem(TrajectoryStreamer(7, trajectory=TimedTrajectory(traj, start_time=0.2)))
     idc = builder.AddSystem(InverseDynamicsController(control_plant, [400.0] * 7, [1.0] * 7, [40.0] * 7, False))
     mux = builder.AddSystem(Multiplexer([7, 7]))

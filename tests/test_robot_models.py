@@ -95,7 +95,8 @@ def test_robot_renders_with_vtk(robot):
     from pydrake.systems.framework import DiagramBuilder
     from pydrake.systems.sensors import CameraInfo, RgbdSensor
 
-    from ms_drake.station.robots import add_arm_gripper, add_robot, ROBOTS as SPECS
+    from ms_drake.robots import ROBOTS as SPECS
+    from ms_drake.station.robots import add_arm_gripper, add_robot
 
     builder = DiagramBuilder()
     plant, sg = AddMultibodyPlantSceneGraph(builder, 0.0)

@@ -238,7 +238,7 @@ def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSy
 def _set_initial(system: SearchSystem, context, heap):
     """Heap poses, and the robot at the executor's initial commands (parked / home)."""
     from ms_drake.scenes.heaps import set_heap_poses
-    from ms_drake.station.robots import station_robot_spec
+    from ms_drake.robots import station_robot_spec
 
     set_heap_poses(system.station, context, heap)
     plant, pc = system.plant, system.plant.GetMyMutableContextFromRoot(context)

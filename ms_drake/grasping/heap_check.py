@@ -152,7 +152,7 @@ def scene_shapes(scenario, inputs: HeapGraspInputs) -> list[tuple[str, object, n
 def gripper_boxes(grasp, config=None) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """(name, size (3,), 4x4 world pose) of the station's parallel jaw (palm, two fingers with
     their pads) opened to grasp.width with its tool point at the grasp centre."""
-    from ms_drake.station.grippers import ParallelJawConfig
+    from ms_drake.robots import ParallelJawConfig
 
     c = config or ParallelJawConfig()
     p = c.pads

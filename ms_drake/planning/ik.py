@@ -174,7 +174,8 @@ def make_ik_diagram(robot: str, grippers: dict[str, str] | None = None, add_envi
     from pydrake.systems.framework import DiagramBuilder
 
     from ms_drake.paths import make_parser
-    from ms_drake.station.robots import add_arm_gripper, add_robot, robot_spec
+    from ms_drake.robots import robot_spec
+    from ms_drake.station.robots import add_arm_gripper, add_robot
 
     builder = DiagramBuilder()
     plant, _ = AddMultibodyPlantSceneGraph(builder, 0.0)

@@ -1,7 +1,7 @@
 """Time-optimal joint trajectories with ruckig, under per-robot velocity/acceleration/jerk limits.
 
-* `JointLimits.for_arm("panda", "panda")` reads the small per-robot table in
-  ms_drake/station/robots.py (ROBOTS[...].arms[...].velocity/acceleration/jerk_limits).
+* Limits are `ms_drake.types.JointLimits`; `ms_drake.robots.arm_joint_limits("panda")` reads the
+  per-arm table (velocity / acceleration / jerk limits) of ms_drake/robots.py.
 * `plan_joint_motion(waypoints, limits)`: rest-to-rest ruckig segments through the waypoints
   (the open-source ruckig has no intermediate waypoints; stopping at each is the safe choice for
   approach / grasp / lift phases that stop anyway).
@@ -20,30 +20,7 @@ import numpy as np
 from ruckig import InputParameter, Result, Ruckig, Trajectory
 
 from ms_drake.errors import ScenarioError
-
-
-@dataclass(frozen=True)
-class JointLimits:
-    velocity: np.ndarray
-    acceleration: np.ndarray
-    jerk: np.ndarray
-
-    @staticmethod
-    def for_arm(robot: str, arm: str | None = None, scale: float = 1.0) -> "JointLimits":
-        """Limits of `arm` of `robot` (first arm by default), velocity and acceleration scaled by `scale`."""
-        from ms_drake.station.robots import robot_spec
-
-        spec = robot_spec(robot)
-        arm = arm or next(iter(spec.arms))
-        if arm not in spec.arms:
-            raise ScenarioError(f"robot {robot!r} has no arm {arm!r}; arms: {', '.join(spec.arms)}")
-        a = spec.arms[arm]
-        return JointLimits(np.array(a.velocity_limits) * scale, np.array(a.acceleration_limits) * scale,
-                           np.array(a.jerk_limits) * scale)
-
-    @staticmethod
-    def uniform(n: int, velocity: float, acceleration: float, jerk: float) -> "JointLimits":
-        return JointLimits(np.full(n, velocity), np.full(n, acceleration), np.full(n, jerk))
+from ms_drake.types import JointLimits
 
 
 class JointTrajectory:

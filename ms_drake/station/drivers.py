@@ -54,14 +54,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydrake.systems.framework import BasicVector, LeafSystem
 
+from ms_drake.geometry import transform_from_rpy_xyz
+
 CONTROL_PERIOD = 0.005  # [s] command rate of every guard (200 Hz)
 STIFFNESS_ANGLE = 0.05  # [rad] error at which the default stiffness reaches the effort limit
-GRIPPER_SHORT_NAMES = {"parallel_jaw": "jaw", "suction": "suction", "bluction": "bluction"}
-
-
-def gripper_port_name(arm: str, gripper_kind: str) -> str:
-    """Port prefix of the gripper on `arm`: <arm>_jaw | <arm>_suction | <arm>_bluction."""
-    return f"{arm}_{GRIPPER_SHORT_NAMES[gripper_kind]}"
 
 
 # --------------------------------------------------------------------------------- guard
@@ -335,7 +331,7 @@ def make_control_plant(plant, handle: RobotHandle):
             mount, X_FG = control.GetFrameByName("floating_yaw_link", instance), None
         else:
             a = robots.robot_spec(handle.robot).arms[g.arm]
-            mount, X_FG = control.GetFrameByName(a.flange, instance), a.X_FG()
+            mount, X_FG = control.GetFrameByName(a.flange, instance), transform_from_rpy_xyz(*a.X_FG_rpy_xyz)
         lumped = control.AddRigidBody(f"{g.port}_lumped", instance, M_GGo_G)
         from pydrake.math import RigidTransform
 
@@ -515,7 +511,7 @@ def apply_suction_driver(builder, plant, scene_graph, g: GripperHandle):
     """SuctionCup at the gripper's tcp; for the bluction also the blade's joint PD."""
     from pydrake.multibody.tree import PdControllerGains
 
-    from ms_drake.station.grippers import gripper_spec
+    from ms_drake.robots import gripper_spec
     from ms_drake.station.suction import SuctionCup
 
     d = g.driver

@@ -39,106 +39,16 @@ from __future__ import annotations
 import hashlib
 import math
 import tempfile
-from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from ms_drake.errors import ScenarioError
+from ms_drake.robots import BluctionConfig, PadConfig, ParallelJawConfig, SuctionCupConfig
 
 GRIPPERS_PKG = "package://ms_drake_models/grippers"
 
 
-@dataclass(frozen=True)
-class PadConfig:
-    """A compliant jaw pad: a polygon in the pad plane extruded along the closing axis.
-
-    polygon: convex outline (u, v) [m], u along the gripper y axis, v along the approach z,
-        centred on the pad centre. None -> rectangle `width` x `length` (written as a box).
-    thickness: extrusion along x [m] (the compliant layer).
-    hydroelastic_modulus [Pa]: 1e5-1e6 for rubber-like pads.
-    relaxation_time [s]: dissipation under SAP. hunt_crossley_dissipation [s/m]: under TAMSI.
-    mu_static, mu_dynamic: Coulomb friction of the pad.
-    resolution_hint [m]: tetrahedral mesh size for non-box pads.
-    """
-
-    polygon: tuple[tuple[float, float], ...] | None = None
-    width: float = 0.02
-    length: float = 0.03
-    thickness: float = 0.006
-    hydroelastic_modulus: float = 3e5
-    relaxation_time: float = 0.1
-    hunt_crossley_dissipation: float = 5.0
-    mu_static: float = 1.0
-    mu_dynamic: float = 0.9
-    resolution_hint: float = 0.004
-
-    def __post_init__(self):
-        for name in ("width", "length", "thickness", "hydroelastic_modulus", "resolution_hint"):
-            if getattr(self, name) <= 0:
-                raise ScenarioError(f"PadConfig.{name} must be > 0, got {getattr(self, name)}")
-        if self.mu_dynamic > self.mu_static or self.mu_dynamic < 0:
-            raise ScenarioError("PadConfig: need 0 <= mu_dynamic <= mu_static "
-                                f"(got mu_static={self.mu_static}, mu_dynamic={self.mu_dynamic})")
-        if self.polygon is not None and len(self.polygon) < 3:
-            raise ScenarioError("PadConfig.polygon needs at least 3 (u, v) points")
-
-
-@dataclass(frozen=True)
-class ParallelJawConfig:
-    """Parallel-jaw gripper geometry; defaults are close to the YuMi smart gripper's size."""
-
-    pads: PadConfig = field(default_factory=PadConfig)
-    max_opening: float = 0.10  # [m] between pad faces
-    max_force: float = 40.0  # [N] per finger (actuator effort limit)
-    palm_size: tuple[float, float, float] = (0.13, 0.05, 0.05)  # x, y, z
-    finger_length: float = 0.06  # along z, below the palm
-    finger_thickness: float = 0.012  # along x
-    finger_depth: float = 0.02  # along y
-    palm_mass: float = 0.25
-    finger_mass: float = 0.03
-
-    def __post_init__(self):
-        if self.max_opening <= 0 or self.max_force <= 0:
-            raise ScenarioError("ParallelJawConfig: max_opening and max_force must be > 0")
-        if self.pads.length > self.finger_length:
-            raise ScenarioError("ParallelJawConfig: pad length exceeds finger_length")
-
-
-@dataclass(frozen=True)
-class SuctionCupConfig:
-    """Suction tool: a stem (cylinder) ending in a cup of radius `cup_radius`."""
-
-    cup_radius: float = 0.015
-    cup_height: float = 0.012
-    stem_radius: float = 0.01
-    stem_length: float = 0.10
-    mass: float = 0.15
-    cup_modulus: float = 2e5  # compliant cup lip
-    relaxation_time: float = 0.1
-    mu: float = 1.0
-
-
-@dataclass(frozen=True)
-class BluctionConfig:
-    """Bluction tool of the Fetch (reference Ch. 9.3)."""
-
-    shaft_length: float = 0.40
-    shaft_diameter: float = 0.03
-    blade_width: float = 0.065  # along the shaft
-    blade_height: float = 0.075  # radial, away from the shaft
-    blade_thickness: float = 0.004
-    cup_diameter: float = 0.03
-    cup_height: float = 0.012
-    blade_offset: float = 0.06  # blade centre, measured back from the shaft tip
-    mass_shaft: float = 0.2
-    mass_blade: float = 0.05
-    cup_modulus: float = 2e5
-    relaxation_time: float = 0.1
-    mu: float = 0.8
-
-
-# ----------------------------------------------------------------------------- helpers
 def _pose(x=0.0, y=0.0, z=0.0, r=0.0, p=0.0, yw=0.0) -> str:
     return f"<pose>{x:.6g} {y:.6g} {z:.6g} {r:.6g} {p:.6g} {yw:.6g}</pose>"
 
@@ -374,36 +284,6 @@ def floating_base_sdf(model_name: str = "floating_base", kp_lin: float = 2e4, kd
             f"<upper>{hi:.6g}</upper><effort>{effort:.6g}</effort><velocity>{2.0 if lin else 6.0}</velocity>"
             f'</limit></axis><drake:controller_gains p="{kp:.6g}" d="{kd:.6g}"/></joint>')
     return _sdf(model_name, "\n".join(parts))
-
-
-# ----------------------------------------------------------------------------- registry
-@dataclass(frozen=True)
-class GripperSpec:
-    """What the station needs to know about a gripper model."""
-
-    name: str
-    file: str  # relative to models/
-    kind: str  # parallel_jaw | suction | bluction
-    tcp_frame: str = "tcp"
-    finger_joints: tuple[str, ...] = ()
-    suction_radius: float = 0.0
-    extra_joints: tuple[str, ...] = ()
-
-
-GRIPPERS: dict[str, GripperSpec] = {
-    "parallel_jaw": GripperSpec("parallel_jaw", "grippers/parallel_jaw.sdf", "parallel_jaw",
-                                finger_joints=("left_finger_sliding_joint", "right_finger_sliding_joint")),
-    "suction_cup": GripperSpec("suction_cup", "grippers/suction_cup.sdf", "suction",
-                               suction_radius=SuctionCupConfig().cup_radius),
-    "bluction": GripperSpec("bluction", "grippers/bluction.sdf", "bluction",
-                            suction_radius=BluctionConfig().cup_diameter / 2, extra_joints=("blade_joint",)),
-}
-
-
-def gripper_spec(name: str) -> GripperSpec:
-    if name not in GRIPPERS:
-        raise ScenarioError(f"unknown gripper {name!r}; valid grippers: {', '.join(sorted(GRIPPERS))}")
-    return GRIPPERS[name]
 
 
 def write_default_models(out_dir: Path | None = None) -> list[Path]:

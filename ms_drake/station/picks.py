@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydrake.math import RigidTransform
 
-from ms_drake.planning import (ArmIk, JointLimits, TimedTrajectory, TrajectoryStreamer, approach_pose, ik_pose,
-                               make_ik_diagram, plan_cartesian_line, plan_joint_motion)
+from ms_drake.types import JointLimits
+from ms_drake.planning import ArmIk, TimedTrajectory, TrajectoryStreamer, approach_pose, ik_pose, make_ik_diagram, plan_cartesian_line, plan_joint_motion
 from ms_drake.planning.trajectories import JointTrajectory
 
 
@@ -118,7 +118,9 @@ def arm_ik(scenario, arm: str, frame: str = "tcp", min_distance: float | None = 
     """ArmIk for `arm` of the scenario's robot on a plant with the robot, its grippers (jaws
     open, every arm at home) and the environment (no objects). Returns (ik, limits, q_home,
     keep_alive) -- keep `keep_alive` (the diagram and its context) while using ik."""
-    from ms_drake.station.robots import base_transform, resolve_robot_config, set_home, station_robot_spec
+    from ms_drake.scenario import resolve_robot_config
+    from ms_drake.robots import station_robot_spec
+    from ms_drake.station.robots import base_transform, set_home
     from ms_drake.station.station import add_environment
 
     chosen, _ = resolve_robot_config(scenario.robot)
@@ -314,7 +316,7 @@ def build_run(scenario, plan: PickPlan, object_poses=(), meshcat=None) -> Run:
     diagram = builder.Build()
     simulator = Simulator(diagram)
     pc = plant.GetMyMutableContextFromRoot(simulator.get_mutable_context())
-    from ms_drake.station.robots import station_robot_spec
+    from ms_drake.robots import station_robot_spec
 
     instance = plant.GetModelInstanceByName(scenario.robot.name) if scenario.robot.name != "floating" else None
     q_all = plant.GetPositions(pc)

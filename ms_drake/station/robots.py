@@ -29,101 +29,13 @@ Roots: Panda panda_link0 and YuMi yumi_body are welded to the world at X_WR; the
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import numpy as np
 
 from ms_drake.errors import ScenarioError
 from ms_drake.paths import models_dir
-from ms_drake.station.grippers import gripper_spec
-
-
-@dataclass(frozen=True)
-class ArmSpec:
-    """One arm: its joints in command order, flange frame, weld transform and default gripper."""
-
-    joints: tuple[str, ...]
-    flange: str
-    X_FG_rpy_xyz: tuple[tuple[float, float, float], tuple[float, float, float]]
-    default_gripper: str
-    velocity_limits: tuple[float, ...]
-    acceleration_limits: tuple[float, ...]
-    jerk_limits: tuple[float, ...]
-    home: tuple[float, ...] = ()  # default joint positions in a station (() -> zeros within limits)
-
-    def X_FG(self):
-        from pydrake.math import RigidTransform, RollPitchYaw
-
-        rpy, xyz = self.X_FG_rpy_xyz
-        return RigidTransform(RollPitchYaw(*rpy), np.array(xyz))
-
-
-@dataclass(frozen=True)
-class RobotSpec:
-    name: str
-    file: str  # relative to models/
-    root: str  # body / frame welded to the world
-    arms: dict[str, ArmSpec] = field(default_factory=dict)
-    other_joints: tuple[str, ...] = ()  # e.g. the Fetch base and head
-
-
-def _yumi_arm(side: str, gripper: str, home: tuple) -> ArmSpec:
-    joints = tuple(f"yumi_joint_{n}_{side}" for n in (1, 2, 7, 3, 4, 5, 6))
-    return ArmSpec(
-        joints=joints, flange=f"yumi_link_7_{side}", X_FG_rpy_xyz=((0, 0, np.pi), (0, 0, 0.007)),
-        default_gripper=gripper,
-        velocity_limits=(3.1416, 3.1416, 3.1416, 3.1416, 6.9813, 6.9813, 6.9813),
-        # Not published by ABB; conservative values chosen for smooth motion (about 1/2 s to full speed).
-        acceleration_limits=(6.0, 6.0, 6.0, 6.0, 12.0, 12.0, 12.0),
-        jerk_limits=(60.0, 60.0, 60.0, 60.0, 120.0, 120.0, 120.0),
-        home=home,
-    )
-
-
-# Limits for trajectory timing (ruckig). Panda: Franka's published limits (franka docs "Robot and
-# interface specifications"): velocity from franka_ros; acceleration [15, 7.5, 10, 12.5, 15, 20, 20];
-# jerk [7500, 3750, 5000, 6250, 7500, 10000, 10000] scaled by 1/10 for smoother plans.
-ROBOTS: dict[str, RobotSpec] = {
-    "panda": RobotSpec(
-        "panda", "robots/panda/panda.sdf", "panda_link0",
-        arms={"panda": ArmSpec(
-            joints=tuple(f"panda_joint{i}" for i in range(1, 8)), flange="panda_link8",
-            X_FG_rpy_xyz=((0, 0, np.pi / 4), (0, 0, 0)), default_gripper="parallel_jaw",
-            velocity_limits=(2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61),
-            acceleration_limits=(15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0),
-            jerk_limits=(750.0, 375.0, 500.0, 625.0, 750.0, 1000.0, 1000.0),
-            home=(0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785))},  # Franka's "ready" pose
-    ),
-    "yumi": RobotSpec(
-        "yumi", "robots/yumi/yumi.sdf", "yumi_body",
-        # Homes: tools pointing down 30 cm above the near half of a bin 0.55 m in front (by IK).
-        arms={"yumi_right": _yumi_arm("r", "parallel_jaw", (-1.109, -0.708, 0.322, 1.067, 0.532, 0.116, 0.851)),
-              "yumi_left": _yumi_arm("l", "suction_cup", (0.558, -0.759, -0.017, 1.074, 0.99, 0.378, 0.816))},
-    ),
-    "fetch": RobotSpec(
-        "fetch", "robots/fetch/fetch.sdf", "base_origin",
-        arms={"fetch": ArmSpec(
-            joints=("torso_lift_joint", "shoulder_pan_joint", "shoulder_lift_joint", "upperarm_roll_joint",
-                    "elbow_flex_joint", "forearm_roll_joint", "wrist_flex_joint", "wrist_roll_joint"),
-            flange="wrist_flange", X_FG_rpy_xyz=((0, np.pi / 2, 0), (0, 0, 0)), default_gripper="bluction",
-            velocity_limits=(0.1, 1.256, 1.454, 1.571, 1.521, 1.571, 2.268, 2.268),
-            # fetch_description gives no acceleration limits; conservative choices (MoveIt config
-            # of the Fetch uses 1.5 rad/s^2 for the arm).
-            acceleration_limits=(0.5, 1.5, 1.5, 1.5, 1.5, 1.5, 2.5, 2.5),
-            jerk_limits=(5.0, 15.0, 15.0, 15.0, 15.0, 15.0, 25.0, 25.0),
-            # Home: torso down, tool level and pointing forward, blade down, tip 0.9 m ahead of
-            # the base and 1.04 m above its floor (at the front of the FetchShelf shelf, by IK).
-            home=(0.039, 0.498, -0.06, 0.607, -2.227, -0.468, 1.938, 0.707))},
-        other_joints=("base_x", "base_y", "base_yaw", "head_pan_joint", "head_tilt_joint"),
-    ),
-}
-
-
-def robot_spec(name: str) -> RobotSpec:
-    if name not in ROBOTS:
-        raise ScenarioError(f"unknown robot {name!r}; valid robots: {', '.join(sorted(ROBOTS))} "
-                            "(or a floating gripper via add_floating_gripper)")
-    return ROBOTS[name]
+from ms_drake.geometry import transform_from_rpy_xyz
+from ms_drake.robots import RobotSpec, gripper_spec, robot_spec, station_robot_spec
+from ms_drake.scenario import resolve_robot_config
 
 
 def _add_file(parser, path):
@@ -208,7 +120,7 @@ def add_arm_gripper(plant, parser, robot_instance, robot_name: str, arm: str, gr
         raise ScenarioError(f"robot {robot_name!r} has no arm {arm!r}; arms: {', '.join(spec.arms)}")
     a = spec.arms[arm]
     flange = plant.GetFrameByName(a.flange, robot_instance)
-    gripper = add_gripper(plant, parser, gripper_name or a.default_gripper, flange, a.X_FG(), model_name)
+    gripper = add_gripper(plant, parser, gripper_name or a.default_gripper, flange, transform_from_rpy_xyz(*a.X_FG_rpy_xyz), model_name)
     exclude_gripper_wrist_collisions(plant, parser, gripper, flange.body())
     return gripper
 
@@ -252,7 +164,7 @@ def add_floating_gripper(plant, parser, gripper_name: str, X_WB=None, model_name
     return base, gripper
 
 
-FLOATING_JOINTS = ("floating_x", "floating_y", "floating_z", "floating_roll", "floating_pitch", "floating_yaw")
+
 
 
 def floating_gripper_positions(X_WG) -> np.ndarray:
@@ -265,95 +177,6 @@ def floating_gripper_positions(X_WG) -> np.ndarray:
     R = X_WG.rotation().matrix()
     rpy = Rotation.from_matrix(R).as_euler("XYZ")
     return np.concatenate([X_WG.translation(), rpy])
-
-
-# ----------------------------------------------------------------------------- stations
-# The floating gripper as a one-arm "robot" for stations: arm `floating` = the 6 base joints.
-# Its limits for trajectory timing are choices (a fast but not violent gripper).
-FLOATING_ARM = ArmSpec(
-    joints=FLOATING_JOINTS, flange="floating_yaw_link", X_FG_rpy_xyz=((0, 0, 0), (0, 0, 0)),
-    default_gripper="parallel_jaw",
-    velocity_limits=(1.0, 1.0, 1.0, 3.0, 3.0, 3.0), acceleration_limits=(3.0, 3.0, 3.0, 8.0, 8.0, 8.0),
-    jerk_limits=(30.0, 30.0, 30.0, 80.0, 80.0, 80.0),
-    home=(0.0, 0.0, 0.45, np.pi, 0.0, 0.0))  # 0.45 m above the base origin, pointing down
-FLOATING = RobotSpec("floating", "grippers/floating_base.sdf", "floating_origin_link", arms={"floating": FLOATING_ARM})
-STATION_ROBOTS = ("fetch", "floating", "panda", "yumi")
-
-
-def station_robot_spec(name: str) -> RobotSpec:
-    """robot_spec for stations, including the `floating` gripper."""
-    if name == "floating":
-        return FLOATING
-    if name not in ROBOTS:
-        raise ScenarioError(f"robot.name: unknown robot {name!r}; valid robots: {', '.join(STATION_ROBOTS)}")
-    return ROBOTS[name]
-
-
-def station_arm_spec(arm: str) -> ArmSpec:
-    """The ArmSpec of a station arm by its port name (panda, yumi_right, yumi_left, fetch, floating)."""
-    for name in STATION_ROBOTS:
-        spec = station_robot_spec(name)
-        if arm in spec.arms:
-            return spec.arms[arm]
-    raise ScenarioError(f"unknown arm {arm!r}; arms: "
-                        f"{', '.join(a for n in STATION_ROBOTS for a in station_robot_spec(n).arms)}")
-
-
-def arm_joint_limits(arm: str, scale: float = 1.0):
-    """planning.JointLimits (velocity, acceleration, jerk) of a station arm, velocity and
-    acceleration scaled by `scale`."""
-    from ms_drake.planning import JointLimits
-
-    a = station_arm_spec(arm)
-    return JointLimits(np.array(a.velocity_limits) * scale, np.array(a.acceleration_limits) * scale,
-                       np.array(a.jerk_limits) * scale)
-
-
-def resolve_robot_config(robot_config):
-    """Check a scenario's RobotConfig; returns [(arm, gripper name, gripper port)] and the
-    driver of every port prefix ({prefix: driver dataclass}, defaults filled in).
-
-    Errors (ScenarioError) name the key, the bad value and the valid names."""
-    from ms_drake.scenario import ArmDriver, JawDriver, SuctionDriver
-    from ms_drake.station.drivers import gripper_port_name
-    from ms_drake.station.grippers import GRIPPERS
-
-    spec = station_robot_spec(robot_config.name)
-    arms = list(spec.arms)
-    names = list(robot_config.grippers)
-    if len(names) > len(arms):
-        raise ScenarioError(f"robot.grippers: {names} lists {len(names)} grippers but {robot_config.name!r} has "
-                            f"{len(arms)} arm(s) ({', '.join(arms)}); give one gripper per arm, in that order")
-    chosen = []
-    for i, arm in enumerate(arms):
-        g = names[i] if i < len(names) else spec.arms[arm].default_gripper
-        if g not in GRIPPERS:
-            raise ScenarioError(f"robot.grippers[{i}]: unknown gripper {g!r}; valid grippers: "
-                                f"{', '.join(sorted(GRIPPERS))}")
-        chosen.append((arm, g, gripper_port_name(arm, GRIPPERS[g].kind)))
-    wanted = {arm: ArmDriver for arm in arms}
-    wanted.update({port: JawDriver if GRIPPERS[g].kind == "parallel_jaw" else SuctionDriver
-                   for _, g, port in chosen})
-    drivers = {}
-    for key, d in robot_config.drivers.items():
-        if key not in wanted:
-            raise ScenarioError(f"robot.drivers: no arm or gripper named {key!r} on {robot_config.name!r}; "
-                                f"valid driver names: {', '.join(wanted)}")
-        if not isinstance(d, wanted[key]):
-            raise ScenarioError(f"robot.drivers.{key}: a {type(d).__name__} cannot drive {key!r}; "
-                                f"use !{wanted[key].__name__}")
-        drivers[key] = d
-    for key, cls in wanted.items():
-        drivers.setdefault(key, cls())
-    for arm in arms:
-        kp = drivers[arm].kp
-        n = len(spec.arms[arm].joints)
-        if kp and (len(kp) != n or min(kp) <= 0):
-            raise ScenarioError(f"robot.drivers.{arm}.kp: give {n} positive stiffnesses (one per joint of "
-                                f"{', '.join(spec.arms[arm].joints)}) or [] for the defaults; got {list(kp)}")
-        if drivers[arm].damping_ratio < 0:
-            raise ScenarioError(f"robot.drivers.{arm}.damping_ratio: must be >= 0, got {drivers[arm].damping_ratio}")
-    return chosen, drivers
 
 
 def base_transform(robot_config):
@@ -373,7 +196,7 @@ def add_robot_from_scenario(builder, plant, scene_graph, scenario, parser):
     are named by their port prefix (e.g. yumi_right_jaw); the floating gripper's base is
     `<port>_base` (e.g. floating_jaw_base)."""
     from ms_drake.station.drivers import ArmHandle, GripperHandle, RobotHandle
-    from ms_drake.station.grippers import GRIPPERS
+    from ms_drake.robots import GRIPPERS
 
     rc = scenario.robot
     chosen, drivers = resolve_robot_config(rc)
