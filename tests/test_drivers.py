@@ -20,6 +20,12 @@ from ms_drake.robots import arm_joint_limits, station_robot_spec
 from ms_drake.scenario import resolve_robot_config
 
 SCENARIOS = ["YuMiBin", "PandaTable", "FetchShelf", "FloatingGripperBin"]
+GRIPPERS = {  # {gripper port prefix: kind} of each scenario's station
+    "YuMiBin": {"yumi_right_jaw": "parallel_jaw", "yumi_left_suction": "suction"},
+    "PandaTable": {"panda_jaw": "parallel_jaw"},
+    "FetchShelf": {"fetch_bluction": "bluction"},
+    "FloatingGripperBin": {"floating_jaw": "parallel_jaw"},
+}
 
 
 def bare(name, **robot):
@@ -241,12 +247,15 @@ def test_the_same_controller_moves_every_robot(name):
         np.testing.assert_allclose(x[:len(q)], q)
         np.testing.assert_allclose(x[len(q):], 0, atol=0.02)
         assert station.GetOutputPort(f"{arm}.fault").Eval(sc)[0] == 0
-    for port, kind in station_grippers(station).items():
+    grippers = station_grippers(station)
+    assert grippers == GRIPPERS[name]
+    for port, kind in grippers.items():
         if kind == "parallel_jaw":
             assert station.GetOutputPort(f"{port}.state_measured").Eval(sc)[0] < 0.003  # closed on nothing
-        else:
+        elif kind == "suction":
             assert station.GetOutputPort(f"{port}.suction_state").Eval(sc)[0] == 0  # vacuum on, nothing held
-        if kind == "bluction":
+        else:  # bluction: vacuum on with nothing held, blade turned to pi/2
+            assert station.GetOutputPort(f"{port}.suction_state").Eval(sc)[0] == 0
             assert station.GetOutputPort(f"{port}.state_measured").Eval(sc)[0] == pytest.approx(np.pi / 2, abs=0.02)
 
 

@@ -176,8 +176,9 @@ def _twin(scenario, bus, status_until=np.inf, controller=None):
     return Simulator(diagram), hw, robot, q_home, lcm
 
 
-@pytest.mark.parametrize("name", ["PandaTable", "FetchShelf"])
-def test_the_same_controller_drives_the_hardware_twin(name):
+@pytest.mark.parametrize("name, grippers", [("PandaTable", {"panda_jaw": "parallel_jaw"}),
+                                            ("FetchShelf", {"fetch_bluction": "bluction"})])
+def test_the_same_controller_drives_the_hardware_twin(name, grippers):
     scenario = bare(name)
     delta = 0.06
     sim, hw, robot, q_home, _ = _twin(scenario, f"twin_{name}", controller=lambda b, s, q: add_joint_move_controller(
@@ -189,12 +190,13 @@ def test_the_same_controller_drives_the_hardware_twin(name):
         np.testing.assert_allclose(q_robot, q0 + delta, atol=5e-3)  # the far side moved
         np.testing.assert_allclose(hw.GetOutputPort(f"{arm}.position_measured").Eval(hc), q_robot, atol=2e-3)
         assert hw.GetOutputPort(f"{arm}.fault").Eval(hc)[0] == 0
-    for port, kind in station_grippers(hw).items():
+    assert station_grippers(hw) == grippers
+    for port, kind in grippers.items():
         if kind == "parallel_jaw":  # closed over WSG messages; status back within a mm
             width = robot.GetOutputPort(f"{port}.state_measured").Eval(rc)[0]
             assert width < 0.003
             assert hw.GetOutputPort(f"{port}.state_measured").Eval(hc)[0] == pytest.approx(width, abs=1e-3)
-        if kind == "bluction":
+        else:  # bluction: blade at pi/2, vacuum on with nothing held
             blade = robot.GetOutputPort(f"{port}.state_measured").Eval(rc)[0]
             assert blade == pytest.approx(np.pi / 2, abs=0.02)
             assert hw.GetOutputPort(f"{port}.state_measured").Eval(hc)[0] == pytest.approx(blade, abs=0.01)
