@@ -36,17 +36,20 @@ def heap_rows():
 
 def test_jaw_planner_on_heap_graspable_objects_and_collision_free(heap_rows):
     _, inputs, rows = heap_rows
-    assert len(rows) == len(inputs.masks) >= 4
-    target = [r for r in rows if r["graspable_size"] and r["visible"] >= 0.5]
-    assert len(target) >= 3
-    good = [r for r in target if r["quality"] > 0.15]
-    # the first version: 2 of these 4 above 0.15, and the upright cylinder's jaw hit two neighbours
-    assert len(good) >= 0.7 * len(target), [(r["name"], r["quality"]) for r in target]
-    for r in rows:
-        if r["grasp"] is not None and r["quality"] > 0.0:
-            assert r["collides"] == [], (r["name"], r["collides"])
-            g = r["grasp"]
-            assert np.allclose(g.approach, [0, 0, -1]) and abs(g.axis[2]) < 1e-9 and g.width <= 0.1 + 1e-12
+    assert len(rows) == len(inputs.masks) == 5
+    # (name, graspable size, >= 50 % visible, robust quality over 4 samples): the box lying on
+    # another (box_231) has no grasp that holds; the rest hold in every sample.
+    assert [(r["name"], r["graspable_size"], r["visible"] >= 0.5, r["quality"]) for r in rows] == [
+        ("procedural/cylinder_391", True, True, 1.0),
+        ("procedural/packaged_101", False, True, 0.0),
+        ("procedural/box_231", True, True, 0.0),
+        ("procedural/box_162", True, True, 1.0),
+        ("procedural/box_309", True, True, 1.0),
+    ]
+    for r in rows:  # every object gets a top-down grasp whose jaws clear the neighbours and the bin
+        g = r["grasp"]
+        assert g is not None and r["collides"] == [], (r["name"], r["collides"])
+        assert np.allclose(g.approach, [0, 0, -1]) and abs(g.axis[2]) < 1e-9 and g.width <= 0.1 + 1e-12
 
 
 def test_chosen_heap_grasp_lifts_in_physics(heap_rows):
