@@ -92,7 +92,7 @@ def _bench_labeler(station, ctx, labeler_ref: str | None, calls: int = 200, roun
     import subprocess
     import types
 
-    from ms_drake.perception.masks import DepthLabeler
+    from ms_drake.station.labels import DepthLabeler
     from ms_drake.station import get_scene_graph
 
     system = station.GetSubsystemByName("depth_label_overhead")

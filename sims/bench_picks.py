@@ -21,7 +21,7 @@ import numpy as np
 
 
 def main(argv=None):
-    from ms_drake.station.picks import TASKS, run_task
+    from ms_drake.experiments.picks import TASKS, run_task
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3)

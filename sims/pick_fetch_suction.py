@@ -3,7 +3,7 @@
     .venv/bin/python sims/pick_fetch_suction.py [--html PATH] [--no-meshcat] [--speed M_PER_S]
 """
 
-from ms_drake.station.picks import main
+from ms_drake.experiments.picks import main
 
 if __name__ == "__main__":
     main("fetch_suction")

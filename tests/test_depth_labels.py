@@ -1,4 +1,4 @@
-"""Label images from the depth image (ms_drake.perception.masks.DepthLabeler / DepthLabelImage):
+"""Label images from the depth image (ms_drake.station.labels.DepthLabeler / DepthLabelImage):
 alone (analytic depth, FixValue'd inputs), wired to an RgbdSensor, and in a heap station —
 always compared with what RenderEngineVtk renders or with the analytic answer."""
 
@@ -30,11 +30,7 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.sensors import CameraInfo, ImageDepth32F, ImageLabel16I, RgbdSensor
 
 from ms_drake.errors import ScenarioError
-from ms_drake.perception.masks import (
-    DepthLabeler,
-    DepthLabelImage,
-    make_depth_label_image,
-)
+from ms_drake.station.labels import DepthLabeler, DepthLabelImage, make_depth_label_image
 
 W, H = 160, 120
 INFO = CameraInfo(W, H, 150.0, 150.0, W / 2 - 0.5, H / 2 - 0.5)
@@ -412,7 +408,7 @@ def test_kernel_rectangles_and_transforms_equal_numpy():
     """_label_kernel.prepare (per image: X_GC rows and screen rectangles) against numpy, for
     random camera poses: in view, partly out of the image, straddling the camera plane, behind
     the camera, before z_near and beyond z_far."""
-    from ms_drake.perception._label_kernel import prepare
+    from ms_drake.station._label_kernel import prepare
 
     sg = _scene()
     labeler = _inspector_labeler(sg)
@@ -441,7 +437,7 @@ def test_kernel_compiles_without_a_writable_cache_dir(monkeypatch):
     compiles without a cache (here: every cache directory refused, as read-only)."""
     import numba.core.caching as caching
 
-    from ms_drake.perception import _label_kernel
+    from ms_drake.station import _label_kernel
 
     def read_only(self):
         raise PermissionError(f"read-only: {self.get_cache_path()}")

@@ -183,7 +183,7 @@ class FullBackend(_Base):
     def __init__(self, scenario, objects: dict, workspace, target_id: str = "", seed: int = 0, settle: float = 0.5,
                  lift: float = 0.15, speed: float = 0.25, close_time: float = 0.5, hold_time: float = 0.3):
         super().__init__(objects, workspace, target_id, seed, settle)
-        from ms_drake.station.picks import arm_ik
+        from ms_drake.planning.sequences import arm_ik
 
         if scenario.robot.name != "yumi":
             raise ExecutionError(f"full fidelity runs on the YuMi (scenario YuMiBin), not robot {scenario.robot.name!r}")
@@ -215,7 +215,7 @@ class FullBackend(_Base):
                       settle_from=tl.duration)
 
     def plan(self, action: Action, hold: dict, step: int, poses=None):
-        from ms_drake.station.picks import plan_pick, plan_push
+        from ms_drake.planning.sequences import plan_pick, plan_push
 
         if action.kind == "grasp":
             g = action.grasp
@@ -244,7 +244,7 @@ class FullBackend(_Base):
             if not plan.success:
                 return plan.status
             jaw = f"{self.JAW_ARM}_jaw"
-            from ms_drake.station.picks import Schedule
+            from ms_drake.planning.sequences import Schedule
 
             close = Schedule()
             close.set(0.0, 0.0)

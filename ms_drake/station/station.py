@@ -161,7 +161,7 @@ def _label_image_port(builder, sensor, scene_graph, cam, label_images: str):
     depth image, with the rendered port as its lazily evaluated fallback."""
     if label_images != "depth" or not cam.depth:
         return sensor.label_image_output_port()
-    from ms_drake.perception.masks import make_depth_label_image
+    from ms_drake.station.labels import make_depth_label_image
 
     try:
         labels = builder.AddNamedSystem(f"depth_label_{cam.name}", make_depth_label_image(sensor, scene_graph))

@@ -1,0 +1,258 @@
+"""Pick, place and push motion sequences for an arm of a station: IK + ruckig plans played by a
+`Timeline` into `<arm>.position`, with gripper commands as zero-order-hold `Schedule`s.
+
+A pick is planned open-loop before it is executed (the reference's simulation experiments
+execute a planned grasp; re-planning belongs to the action executor):
+  jaw:     home -> pre-grasp (`approach` above along the tool axis, ruckig joint motion) ->
+           straight approach -> close with a force limit -> straight lift -> hold
+  suction: the same with vacuum on at contact instead of closing
+  push:    home -> pre-push above the start -> straight down -> straight push -> straight up
+Planning failures return a PickPlan with success False and the IK status ("unreachable" /
+"collision"), never an exception. ms_drake.experiments.picks runs these plans on a station.
+"""
+
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydrake.math import RigidTransform
+
+from ms_drake.types import JointLimits
+from ms_drake.planning import ArmIk, approach_pose, ik_pose, make_ik_diagram, plan_cartesian_line, plan_joint_motion
+from ms_drake.planning.trajectories import JointTrajectory
+
+
+# --------------------------------------------------------------------------------- timelines
+class Timeline:
+    """Arm joint positions over time: trajectories and holds played one after another."""
+
+    def __init__(self, q_start):
+        self._pieces = []  # (start time, duration, trajectory or None for a hold)
+        self._q = np.asarray(q_start, float)
+        self.q_start = self._q.copy()
+        self.duration = 0.0
+        self.marks = {}  # name -> time
+
+    def __deepcopy__(self, memo):
+        return self
+
+    def mark(self, name):
+        self.marks[name] = self.duration
+
+    def hold(self, seconds):
+        self._pieces.append((self.duration, seconds, None, self._q.copy()))
+        self.duration += seconds
+
+    def play(self, trajectory: JointTrajectory):
+        self._pieces.append((self.duration, trajectory.duration, trajectory, None))
+        self.duration += trajectory.duration
+        self._q = np.asarray(trajectory.final(), float)
+
+    def final(self):
+        return self._q.copy()
+
+    def _piece(self, t):
+        for start, dur, traj, q in self._pieces:
+            if t < start + dur:
+                return start, traj, q
+        return None
+
+    def value(self, t):
+        p = self._piece(t)
+        if p is None:
+            return self._q.copy()
+        start, traj, q = p
+        return q.copy() if traj is None else traj.value(t - start)
+
+    def velocity(self, t):
+        p = self._piece(t)
+        if p is None or p[1] is None:
+            return np.zeros_like(self._q)
+        return p[1].velocity(t - p[0])
+
+
+@dataclass
+class Schedule:
+    """Zero-order-hold commands for one input port: (time, value) steps, the first at t = 0."""
+
+    steps: list = field(default_factory=list)
+
+    def set(self, t, value):
+        self.steps.append((float(t), np.atleast_1d(np.asarray(value, float))))
+
+    def source(self):
+        from pydrake.systems.primitives import TrajectorySource
+        from pydrake.trajectories import PiecewisePolynomial
+
+        steps = sorted(self.steps, key=lambda s: s[0])
+        times = [s[0] for s in steps]
+        values = np.stack([s[1] for s in steps], 1)
+        if len(times) == 1:  # PiecewisePolynomial needs two breaks
+            times.append(times[0] + 1.0)
+            values = np.concatenate([values, values], 1)
+        times.append(times[-1] + 1e3)
+        values = np.concatenate([values, values[:, -1:]], 1)
+        return TrajectorySource(PiecewisePolynomial.ZeroOrderHold(times, values))
+
+
+@dataclass
+class PickPlan:
+    """What to play: the arm timeline and the gripper command schedules ({port: Schedule})."""
+
+    success: bool
+    status: str
+    arm: str
+    timeline: Timeline | None = None
+    commands: dict = field(default_factory=dict)
+    X_target: RigidTransform | None = None
+
+
+# --------------------------------------------------------------------------------- planning
+def arm_ik(scenario, arm: str, frame: str = "tcp", min_distance: float | None = 0.005, seed: int = 0):
+    """ArmIk for `arm` of the scenario's robot on a plant with the robot, its grippers (jaws
+    open, every arm at home) and the environment (no objects). Returns (ik, limits, q_home,
+    keep_alive) -- keep `keep_alive` (the diagram and its context) while using ik."""
+    from ms_drake.scenario import resolve_robot_config
+    from ms_drake.robots import station_robot_spec
+    from ms_drake.station.robots import base_transform
+    from ms_drake.station.station import add_environment
+
+    chosen, _ = resolve_robot_config(scenario.robot)
+    grippers = {a: g for a, g, _ in chosen}
+    spec = station_robot_spec(scenario.robot.name)
+    diagram, plant, robot, g = _ik_diagram(scenario, grippers, add_environment, base_transform(scenario.robot))
+    ctx = diagram.CreateDefaultContext()
+    pc = plant.GetMyMutableContextFromRoot(ctx)
+    q = plant.GetPositions(pc)
+    for a in spec.arms.values():
+        for n, v in zip(a.joints, a.home):
+            q[plant.GetJointByName(n, robot).position_start()] = v
+    for inst in g.values():  # open jaws
+        for name, sign in (("left_finger_sliding_joint", -1), ("right_finger_sliding_joint", 1)):
+            if plant.HasJointNamed(name, inst):
+                j = plant.GetJointByName(name, inst)
+                q[j.position_start()] = j.position_lower_limits()[0] if sign < 0 else j.position_upper_limits()[0]
+    plant.SetPositions(pc, q)
+    a = spec.arms[arm]
+    ik = ArmIk(plant, pc, a.joints, plant.GetFrameByName(frame, g[arm]), min_distance=min_distance, restarts=5,
+               seed=seed)
+    limits = JointLimits(np.array(a.velocity_limits), np.array(a.acceleration_limits), np.array(a.jerk_limits))
+    return ik, limits, np.array(a.home, float), (diagram, ctx)
+
+
+def _ik_diagram(scenario, grippers, add_environment, X_WR):
+    return make_ik_diagram(scenario.robot.name, grippers,
+                           add_environment=lambda plant, parser: add_environment(plant, scenario, parser), X_WR=X_WR)
+
+
+def nearest_equivalent(ik, q, q_ref):
+    """q with every continuous joint (infinite limits) shifted by whole turns to within pi of
+    q_ref, so a motion from q_ref does not spin a wrist or roll joint by 2 pi for nothing."""
+    q = np.array(q, float)
+    free = ~np.isfinite(ik.lower) & ~np.isfinite(ik.upper)
+    q[free] -= 2 * np.pi * np.round((q[free] - np.asarray(q_ref)[free]) / (2 * np.pi))
+    return q
+
+
+def _line(ik, q_start, displacement, limits, speed):
+    from ms_drake.planning import ik_pose
+
+    return plan_cartesian_line(ik, ik_pose(ik, q_start), displacement, q_start, limits, max_speed=speed)
+
+
+def plan_pick(ik, limits, q_home, X_grasp: RigidTransform, arm: str, gripper_port: str, kind: str,
+              approach: float = 0.10, lift: float = 0.20, force_limit: float = 30.0, max_opening: float = 0.10,
+              close_time: float = 0.8, hold_time: float = 0.5, speed: float = 0.15,
+              blade: float | None = None, from_home: bool = True) -> PickPlan:
+    """Plan a pick at the tool pose X_grasp (kind: parallel_jaw | suction | bluction).
+    from_home False: the timeline starts at the pre-grasp configuration (build_run puts the arm
+    there), skipping the joint motion from home."""
+    axis_only = kind != "parallel_jaw"
+    pre = approach_pose(X_grasp, approach)
+    res = ik.solve(pre, q_seed=q_home, axis_only=axis_only)
+    if not res.success:
+        return PickPlan(False, res.status, arm, X_target=X_grasp)
+    q_pre = nearest_equivalent(ik, res.q, q_home)
+    X_pre = ik_pose(ik, q_pre) if axis_only else pre
+    approach_plan = plan_cartesian_line(ik, X_pre, approach * X_grasp.rotation().matrix()[:, 2], q_pre, limits,
+                                        axis_only=axis_only, max_speed=speed)
+    if not approach_plan.success:
+        return PickPlan(False, approach_plan.status, arm, X_target=X_grasp)
+    q_grasp = approach_plan.trajectory.final()
+    lift_plan = _line(ik, q_grasp, [0, 0, lift], limits, speed)
+    if not lift_plan.success:
+        return PickPlan(False, lift_plan.status, arm, X_target=X_grasp)
+    tl = Timeline(q_home if from_home else q_pre)
+    tl.hold(0.2)
+    if from_home:
+        tl.play(plan_joint_motion([q_home, q_pre], limits))
+    tl.mark("approach")
+    tl.play(approach_plan.trajectory)
+    tl.mark("contact")
+    tl.hold(close_time)
+    tl.mark("lift")
+    tl.play(lift_plan.trajectory)
+    tl.mark("lifted")
+    tl.hold(hold_time)
+    commands = {}
+    if kind == "parallel_jaw":
+        pos, force = Schedule(), Schedule()
+        pos.set(0.0, max_opening)
+        pos.set(tl.marks["contact"], 0.0)
+        force.set(0.0, force_limit)
+        commands = {f"{gripper_port}.position": pos, f"{gripper_port}.force_limit": force}
+    else:
+        vac = Schedule()
+        vac.set(0.0, 0.0)
+        vac.set(tl.marks["contact"] - 0.1, 1.0)  # vacuum on just before touching
+        commands = {f"{gripper_port}.suction": vac}
+        if kind == "bluction":
+            b = Schedule()
+            b.set(0.0, np.pi if blade is None else blade)
+            commands[f"{gripper_port}.position"] = b
+    return PickPlan(True, "ok", arm, tl, commands, X_grasp)
+
+
+def plan_push(ik, limits, q_home, X_start: RigidTransform, direction, distance: float, arm: str,
+              gripper_port: str | None = None, approach: float = 0.10, retreat: float = 0.05,
+              speed: float = 0.1, blade: float = 0.0, settle: float = 0.3, from_home: bool = True) -> PickPlan:
+    """A straight push: down onto X_start (from `approach` above), `distance` along `direction`
+    (world), then up by `retreat`. For the bluction the blade is commanded to `blade` (down)."""
+    from ms_drake.planning import ik_pose
+
+    above = RigidTransform(X_start.rotation(), X_start.translation() + [0, 0, approach])
+    res = ik.solve(above, q_seed=q_home)
+    if not res.success:
+        return PickPlan(False, res.status, arm, X_target=X_start)
+    q_above = nearest_equivalent(ik, res.q, q_home)
+    down = plan_cartesian_line(ik, above, [0, 0, -approach], q_above, limits, max_speed=speed)
+    if not down.success:
+        return PickPlan(False, down.status, arm, X_target=X_start)
+    u = np.asarray(direction, float)
+    u = u / np.linalg.norm(u)
+    q_start = down.trajectory.final()
+    push = plan_cartesian_line(ik, ik_pose(ik, q_start), u * distance, q_start, limits, max_speed=speed)
+    if not push.success:
+        return PickPlan(False, push.status, arm, X_target=X_start)
+    up = _line(ik, push.trajectory.final(), [0, 0, retreat], limits, speed)
+    if not up.success:
+        return PickPlan(False, up.status, arm, X_target=X_start)
+    tl = Timeline(q_home if from_home else q_above)
+    tl.hold(0.2)
+    if from_home:
+        tl.play(plan_joint_motion([q_home, q_above], limits))
+    tl.play(down.trajectory)
+    tl.mark("push")
+    tl.play(push.trajectory)
+    tl.hold(settle)  # the arm catches up with the end of the push (joint-stiffness lag) before leaving
+    tl.mark("pushed")
+    tl.play(up.trajectory)
+    tl.hold(0.3)
+    commands = {}
+    if gripper_port is not None:
+        b = Schedule()
+        b.set(0.0, blade)
+        commands[f"{gripper_port}.position"] = b
+    return PickPlan(True, "ok", arm, tl, commands, X_start)
