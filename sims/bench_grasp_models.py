@@ -1,4 +1,4 @@
-"""Speed of the grasp contact models (issue 4): median time per grasp on ~1,000-triangle objects.
+"""Speed of the grasp contact models: median time per grasp on ~1,000-triangle objects.
 
     OMP_NUM_THREADS=1 python sims/bench_grasp_models.py [--grasps 40] [--robust 10]
 

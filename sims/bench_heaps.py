@@ -1,4 +1,4 @@
-"""Benchmarks of the foundation (issue 2): heap generation, rendering, parallel scaling.
+"""Benchmarks of the foundation: heap generation, rendering, parallel scaling.
 
     .venv/bin/python sims/bench_heaps.py render [--heaps FILE.jsonl] [--labeler-ref COMMIT]  # depth + label
                            # images/s at 640x480, rendered vs from-depth label images; DepthLabeler alone
@@ -31,7 +31,7 @@ def bench_render(n: int = 40, rounds: int = 5, heaps_file: str | None = None, co
     (llvmpipe's render threads included) and wall ms per image and per pair (medians over the
     rounds). Then `DepthLabeler.label` alone on that heap's depth image with 1 and 2 threads
     (and, with `labeler_ref` = a git commit, the DepthLabeler of ms_drake/perception/masks.py
-    at that commit, e.g. 9855c8e for the OpenCV one of session 3), interleaved, 5 x 200 calls.
+    at that commit, e.g. 9855c8e for the OpenCV labeller), interleaved, 5 x 200 calls.
     With `heaps_file` (an `ms-drake heaps` JSONL) also the pixel agreement of the two label
     images on its first `count` heaps."""
     from ms_drake.scenario import load_scenario
@@ -196,16 +196,16 @@ def reload_check(path: str, count: int = 20) -> None:
     print(f"| heaps whose objects all move <= 5 mm | {sum(m <= 0.005 for m in mv)}/{len(mv)} |")
 
 
-#: The drop world up to the second pass (12 waves of <= 0.12 s, lagged, the scenario's 5 s/m).
+#: The lagged Drake drop world (12 waves of <= 0.12 s, lagged, the scenario's 5 s/m), base of the variants below.
 V2 = {"engine": "drake", "contact_approximation": "lagged", "dissipation": None, "wave_time": 0.12, "min_wave_time": 0.06,
       "landed_speed": None}
-#: Drop-world variants measured in docs/BENCHMARKS.md (HeapParams overrides; all but "base" spelled
-#: out from the second-pass drop world V2, so their figures stay what they were).
+#: Drop-world variants measured in docs/BENCHMARKS.md (HeapParams overrides; the Drake ones spelled
+#: out from the lagged drop world V2, so that they do not follow the defaults).
 VARIANTS = {
-    "base": {},  # the current defaults (session 4: Bullet = bullet_res; the third pass's Drake world = "drake")
-    # session 4: the drop simulated in Bullet (ms_drake.scenes.bullet), same plan, waves and settle tests
-    "drake": {"engine": "drake"},  # the third-pass defaults (compliant hydroelastic Drake drop world)
-    "bullet_v0": {"engine": "bullet", "bullet_parameters": {}},  # the first Bullet default (50 iterations always)
+    "base": {},  # the defaults (Bullet, = bullet_res)
+    # the drop simulated in Bullet (ms_drake.scenes.bullet), same plan, waves and settle tests
+    "drake": {"engine": "drake"},  # the Drake drop world's defaults (compliant hydroelastic; SEARCH_HEAPS)
+    "bullet_v0": {"engine": "bullet", "bullet_parameters": {}},  # Bullet, 50 solver iterations always
     "bullet": {"engine": "bullet", "bullet_rolling_friction": 1e-4, "bullet_parameters": {}},
     "bullet120": {"engine": "bullet", "bullet_time_step": 1 / 120, "bullet_rolling_friction": 1e-4, "bullet_parameters": {}},
     "bullet_it20": {"engine": "bullet", "bullet_iterations": 20, "bullet_rolling_friction": 1e-4, "bullet_parameters": {}},
@@ -221,7 +221,7 @@ VARIANTS = {
     "bullet_res": {"engine": "bullet", "bullet_parameters": {"solverResidualThreshold": 1e-4}},
     "polish02": {"engine": "bullet", "polish_time": 0.2},
     "polish05": {"engine": "bullet", "polish_time": 0.5},
-    # up to the second pass: 12 waves of <= 0.12 s, lagged, the scenario's dissipation (5 s/m)
+    # the lagged drop world: 12 waves of <= 0.12 s, lagged, the scenario's dissipation (5 s/m)
     "v2": V2,
     "edges8": {**V2, "resolution_edges": 8},
     "edges8_soft": {**V2, "resolution_edges": 8, "modulus": 2e6},
@@ -229,7 +229,7 @@ VARIANTS = {
     "step20": {**V2, "time_step": 0.02},
     "step30": {**V2, "time_step": 0.03},
     "step20_e8": {**V2, "time_step": 0.02, "resolution_edges": 8},
-    # third pass: "similar" approximation and Hunt-Crossley dissipation (s/m) of the drop world's objects
+    # "similar" approximation and Hunt-Crossley dissipation (s/m) of the drop world's objects
     "d20": {**V2, "dissipation": 20.0},
     "d50": {**V2, "dissipation": 50.0},
     "similar": {**V2, "contact_approximation": "similar"},

@@ -1,4 +1,4 @@
-"""Physics labels and the AP / AR table of the grasp contact models (issue 4, Table 2.1).
+"""Physics labels and the AP / AR table of the grasp contact models (Table 2.1 / 3.1 analogue).
 
   python sims/grasp_labels.py labels   [--objects 24] [--grasps 45] [--trials 2]
   python sims/grasp_labels.py predict  [--param-sets 8] [--robust 10]

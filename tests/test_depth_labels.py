@@ -250,10 +250,10 @@ def test_station_label_images_from_depth(bin_scenario, small_heap):
         MakeStation(s, label_images="fast")
 
 
-# ---- The session-3 OpenCV labeller, kept here only as the reference of the numba kernel ----
+# ---- An OpenCV labeller, kept here only as the reference of the numba kernel ----
 
 def _reference_rects(labeler, X_CG, z_near, z_far):
-    """The screen rectangles [v0, v1, u0, u1) that can see each geometry (numpy, session 3)."""
+    """The screen rectangles [v0, v1, u0, u1) that can see each geometry (numpy)."""
     pc = np.einsum("nij,nkj->nki", X_CG[:, :3, :3], labeler._corners) + X_CG[:, None, :3, 3]
     z = pc[..., 2]
     zs = np.where(z > 1e-6, z, 1.0)
@@ -267,7 +267,7 @@ def _reference_rects(labeler, X_CG, z_near, z_far):
 
 
 def _opencv_reference_label(labeler, depth, X_WC, poses, z_near, z_far):
-    """DepthLabeler.label as it was up to session 3 (one OpenCV pass per geometry, then numpy
+    """DepthLabeler.label with OpenCV (one OpenCV pass per geometry, then numpy
     for the pixels several geometries claim; one thread)."""
     import cv2
 
@@ -339,7 +339,7 @@ def _opencv_reference_label(labeler, depth, X_WC, poses, z_near, z_far):
 
 
 def test_numba_kernel_equals_the_opencv_labeller_on_heap_views(bin_scenario, small_heap):
-    """The numba kernel against the session-3 OpenCV labeller on depth images of a heap station
+    """The numba kernel against the OpenCV reference labeller on depth images of a heap station
     rendered from 5 camera poses (overhead, tilted, closer), with 1 and 2 threads."""
     from ms_drake.scenes.heaps import scenario_with_heap, set_heap_poses
     from ms_drake.station import MakeStation, get_scene_graph

@@ -112,7 +112,8 @@ def test_depth_sampler_keeps_fingers_off_a_tall_neighbour():
 
 def test_depth_sampler_follows_a_tall_object_off_the_optical_axis():
     """A 10 cm tall box 6 cm off the optical axis: the image mask spans its top and one side
-    face; the grasp centre must still be over the box (the first version was 2 cm off)."""
+    face; the grasp centre must still be over the box (the deprojected midpoint of two mask-boundary
+    pixels lands 2 cm beside it)."""
     K, X_WC = overhead_camera()
     box = trimesh.creation.box(extents=(0.03, 0.03, 0.10))
     X = pose_xyz_yaw(0.06, 0.02, 0.05, 0.0)

@@ -1,4 +1,4 @@
-"""Contact models of issue 4: analytic cases, App. A integrals, bad input."""
+"""Contact models: analytic cases, App. A integrals, bad input."""
 
 import numpy as np
 import pytest
@@ -125,7 +125,7 @@ def test_bad_input_gives_zero_with_reason_never_raises():
 
 @pytest.mark.parametrize("model", MODELS)
 def test_every_model_bad_input_is_zero_with_a_reason(model):
-    """Issue 4's bad-input list for every model, nominal and robust: quality 0.0 (never NaN,
+    """The bad-input list for every model, nominal and robust: quality 0.0 (never NaN,
     never an exception) and a reason the caller can read."""
     from ms_drake.types import Grasp
 

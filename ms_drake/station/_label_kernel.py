@@ -59,8 +59,9 @@ def label_rows(depth, rx, ry, label, r0, r1, v0, v1, u0, u1, seen, rects, M, kin
     claimer takes the pixel. Of several, the one with the smallest |signed distance| (float64,
     to the true shape `size`) among those within eps wins, the first of equals in `seen` order;
     when none is within eps, the last claimer. (v0, v1, u0, u1) bound the union of the
-    rectangles of `seen`. The claim test is float32 arithmetic as the OpenCV labeller of
-    session 3 did it (cv2.transform, cv2.inRange), and 8 pixels per AVX2 instruction.
+    rectangles of `seen`. The claim test is float32 arithmetic as in the OpenCV reference
+    labeller of tests/test_depth_labels.py (cv2.transform, cv2.inRange), and 8 pixels per AVX2
+    instruction.
 
     Each row is visited primitive by primitive over the primitive's columns: a branch-free
     (vectorised) claim test into a row mask, then branch-free bookkeeping (claim count, first
