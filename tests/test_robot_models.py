@@ -6,6 +6,7 @@ this test needs only our converted files.
 """
 
 import json
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,11 @@ from ms_drake.paths import make_parser, models_dir
 
 DATA = Path(__file__).parent / "data"
 ROBOTS = ["panda", "yumi", "fetch"]
+JOINTS = {  # joint types of each model, with the floating base that Finalize adds
+    "panda": {"revolute": 7, "quaternion_floating": 1},
+    "yumi": {"revolute": 14, "quaternion_floating": 1},
+    "fetch": {"revolute": 10, "prismatic": 3, "weld": 1, "quaternion_floating": 1},
+}
 
 
 def _load(robot):
@@ -59,20 +65,19 @@ def test_model_is_well_formed(robot):
     assert ".stl" not in text.lower() and ".dae" not in text.lower()
     assert "drake:declare_convex" in text
     assert (models_dir() / "robots" / robot / "NOTICE").read_text().count("Licen") >= 1
-    # every movable joint has finite velocity limits; revolute limits within the source ranges
-    for i in range(plant.num_joints()):
-        j = plant.get_joint(JointIndex(i))
-        if j.num_velocities() == 1:
-            assert np.isfinite(j.velocity_upper_limits()[0]), j.name()
-    # positive mass and a valid spatial inertia on every body with geometry
+    # the model's joints (Finalize adds the floating base); every 1-dof joint has finite velocity limits
+    joints = [plant.get_joint(JointIndex(i)) for i in range(plant.num_joints())]
+    assert Counter(j.type_name() for j in joints) == JOINTS[robot]
+    for j in joints:
+        assert j.num_velocities() == {"revolute": 1, "prismatic": 1, "weld": 0, "quaternion_floating": 6}[j.type_name()]
+        assert j.num_velocities() != 1 or np.isfinite(j.velocity_upper_limits()[0]), j.name()
+    # positive mass and a valid spatial inertia on every body
     ctx = plant.CreateDefaultContext()
     total = sum(plant.get_body(b).get_mass(ctx) for b in plant.GetBodyIndices(model))
     assert total > 5.0
     for b in plant.GetBodyIndices(model):
         body = plant.get_body(b)
-        if body.get_mass(ctx) > 0:
-            M = body.CalcSpatialInertiaInBodyFrame(ctx)
-            assert M.IsPhysicallyValid(), body.name()
+        assert body.get_mass(ctx) > 0 and body.CalcSpatialInertiaInBodyFrame(ctx).IsPhysicallyValid(), body.name()
 
 
 def test_arm_joint_counts():
