@@ -201,9 +201,8 @@ def test_estimator_wired_to_a_station(bin_scenario, small_heap):
     target = det.GetOutputPort("target").Eval(det.GetMyContextFromRoot(ctx))
     rho = occ.GetOutputPort("occupancy").Eval(occ.GetMyContextFromRoot(ctx)).distribution
     assert rho.shape == (480, 640) and rho.min() >= 0
-    assert rho.sum() == pytest.approx(1.0) or not rho.any()
-    if target.visible:  # the support holds the visible target
-        assert (rho[target.mask] > 0).mean() > 0.9
+    assert rho.sum() == pytest.approx(1.0)
+    assert target.visible and (rho[target.mask] > 0).all()  # small_heap's target shows; the support holds it
 
 
 def raycast_depth(scene, window=(150, 490, 100, 380)):
@@ -297,4 +296,4 @@ def test_visible_cylinder_target_in_a_heap_gets_a_distribution_on_its_mask(bin_s
         tried += 1
         matched += occ.last_matches > 0
         assert rho.sum() == pytest.approx(1.0) and rho[M].sum() > 0.5
-    assert tried >= 1 and matched >= 1
+    assert tried == matched == 2  # small_heap's two cylinders are visible, and the grid matches each
