@@ -25,8 +25,8 @@ def test_heap_is_deterministic_for_a_seed(bin_scenario, small_heap):
     bullet = [generate_heap(bin_scenario, 4, seed=3) for _ in range(2)]  # the default engine (Bullet) too
     assert bullet[0] == dataclasses.replace(bullet[1], seconds=bullet[0].seconds)
     other = generate_heap(bin_scenario, 4, seed=4, params=SEARCH_HEAPS)
-    assert other.object_names() != small_heap.object_names() or not np.allclose(
-        other.objects[0].matrix(), small_heap.objects[0].matrix())
+    assert other.object_names() == ["procedural/packaged_290", "procedural/packaged_377", "procedural/cylinder_352",
+                                    "procedural/box_204"]  # seed 4: other objects than seed 3
 
 
 def test_heap_lies_in_the_bin_and_target_is_least_visible(bin_scenario, small_heap):

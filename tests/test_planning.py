@@ -76,7 +76,7 @@ def test_ik_keeps_clear_of_the_environment(panda):
     above = ik.solve(RigidTransform(down, [0.5, 0.0, 0.03]), q_seed=Q_PANDA)
     assert above.success and above.min_distance >= ik.min_distance - 1e-4
     inside = ik.solve(RigidTransform(down, [0.5, 0.0, -0.03]), q_seed=Q_PANDA)  # tcp inside the table
-    assert not inside.success and inside.status in ("collision", "unreachable")
+    assert not inside.success and inside.status == "unreachable"
 
 
 def test_ik_axis_only_frees_rotation_about_the_approach(panda):
