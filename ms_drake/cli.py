@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import resource
 import shutil
 import subprocess
 import sys
@@ -22,8 +23,20 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+from tqdm import tqdm
 
 from ms_drake.errors import MsDrakeError
+from ms_drake.execution import FIDELITIES
+from ms_drake.experiments.demo import run_demo
+from ms_drake.experiments.harness import format_summary, plot, run_bench
+from ms_drake.grasping.cli import grasp_command
+from ms_drake.objects import get_object_set
+from ms_drake.parallel import run_jobs
+from ms_drake.policies.bin_selectors import check_policy
+from ms_drake.scenario import load_scenario
+from ms_drake.scenes.heaps import HeapParams, generate_heap, heap_to_dict
+from ms_drake.experiments.scene_images import make_scene, write_scene_images
+from ms_drake.station import MakeStation
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Robot mechanical search in Drake.")
@@ -37,8 +50,6 @@ def _fail(msg: str, code: int = 2):
 
 
 def _scenario(file: Optional[Path], name: str):
-    from ms_drake.scenario import load_scenario
-
     return load_scenario(file, name)
 
 
@@ -51,9 +62,6 @@ def demo(out: Path = typer.Option(Path("out/demo"), help="Output folder"),
          meshcat: bool = typer.Option(True, help="Write a Meshcat HTML recording")):
     """A full search: heap, X-Ray on the floating gripper; per-step PNGs (masks, occupancy, action),
     a GIF and a Meshcat recording."""
-    from ms_drake.experiments.demo import run_demo
-    from ms_drake.policies.bin_selectors import check_policy
-
     check_policy(policy)
     t = time.perf_counter()
     typer.echo(f"generating a {objects}-object heap (seed {seed}) and searching it with {policy} ...")
@@ -71,8 +79,6 @@ def scene(scenario: str = typer.Argument(..., help="Scenario name, e.g. BinHeap1
           out: Path = typer.Option(Path("out/scene"), help="Output folder"),
           scenario_file: Optional[Path] = ScenarioFile):
     """Make the scene of a scenario and seed, and write its images."""
-    from ms_drake.scenes.render import make_scene, write_scene_images
-
     s = _scenario(scenario_file, scenario)
     heap = make_scene(s, seed, objects)
     written = write_scene_images(s, heap, out)
@@ -98,8 +104,6 @@ def _read_done(path: Path) -> set[int]:
 
 
 def _peak_rss_mb() -> float:
-    import resource
-
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
@@ -112,8 +116,6 @@ HEAP_TASKS_PER_CHILD = 1000
 def heap_job(job: tuple) -> dict:
     """One heap as a JSON-able record (module-level so workers can unpickle it)."""
     scenario_file, scenario_name, n, seed, object_set, *rest = job
-    from ms_drake.scenario import load_scenario
-    from ms_drake.scenes.heaps import HeapParams, generate_heap, heap_to_dict
 
     s = load_scenario(scenario_file, scenario_name)
     engine = rest[0] if rest and rest[0] else HeapParams.engine
@@ -144,10 +146,6 @@ def heaps(objects: int = typer.Option(15, "--objects", min=1, max=60, help="Obje
           ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
           ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address")):
     """Generate heaps for seeds S..S+K-1 in parallel, one JSON line per heap (resumable)."""
-    from tqdm import tqdm
-
-    from ms_drake.objects import get_object_set
-    from ms_drake.parallel import run_jobs
 
     s = _scenario(scenario_file, scenario)  # validate before starting workers
     if object_set:
@@ -191,8 +189,6 @@ def diagram(scenario: str = typer.Argument("BinHeap15", help="Scenario name"),
             depth: int = typer.Option(1, help="Graphviz max depth"),
             scenario_file: Optional[Path] = ScenarioFile):
     """Write the station's Graphviz diagram."""
-    from ms_drake.station import MakeStation
-
     if out.suffix not in (".svg", ".png", ".dot"):
         _fail(f"--out {out}: use a .svg, .png or .dot file")
     station = MakeStation(_scenario(scenario_file, scenario))
@@ -231,10 +227,6 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
                      None, "--heap-dir", help="Folder of cached heaps (heap_N<N>_s<seed>.json), shared by "
                      "runs of several policies so they search the same heaps; made on first use")):
     """Search heaps S..S+K-1 with a policy; one JSON line per rollout (resumable), then a summary."""
-    from ms_drake.execution import FIDELITIES
-    from ms_drake.experiments.harness import format_summary, run_bench
-    from ms_drake.policies.bin_selectors import check_policy
-
     check_policy(policy)
     if fidelity not in FIDELITIES:
         _fail(f"--fidelity {fidelity!r}: choose one of {', '.join(FIDELITIES)}")
@@ -258,8 +250,6 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
 def bench_plot(files: list[Path] = typer.Argument(..., help="Result .jsonl files (ms-drake bench search)"),
                out: Path = typer.Option(Path("out/bench"), "--out", help="Output folder for the PNGs")):
     """Cumulative successes vs actions (Fig. 7.4 B) and the actions histogram (Fig. 8.6) as PNG."""
-    from ms_drake.experiments.harness import plot
-
     missing = [str(f) for f in files if not f.exists()]
     if missing:
         _fail(f"no such result file: {', '.join(missing)}; run `ms-drake bench search ... --out FILE.jsonl` first")
@@ -267,7 +257,6 @@ def bench_plot(files: list[Path] = typer.Argument(..., help="Result .jsonl files
         typer.echo(f"wrote {p}")
 
 
-from ms_drake.grasping.cli import grasp_command  # noqa: E402
 app.command("grasp")(grasp_command)
 
 

@@ -30,3 +30,7 @@ class ModelNotFoundError(MsDrakeError, FileNotFoundError):
 
 class PerceptionError(MsDrakeError, ValueError):
     """A perception system was configured or fed with impossible values (names what and how to fix)."""
+
+
+class SceneError(MsDrakeError, RuntimeError):
+    """A shelf scene could not be generated (impossible request, no hiding place after the bounded tries)."""

@@ -17,11 +17,14 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import socket
 import traceback
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Iterator
+
+from ms_drake.errors import MsDrakeError
 
 
 @dataclass
@@ -38,8 +41,6 @@ class JobResult:
 def probe(x):
     """A tiny job for checking a pool or cluster: (x squared, worker pid, host); raises on
     negative x so error reporting can be checked too."""
-    import socket
-
     if x < 0:
         raise ValueError(f"probe({x}): negative input")
     return x * x, os.getpid(), socket.gethostname()
@@ -113,8 +114,6 @@ def _run_ray(fn, jobs: list, workers: int, address: str | None, max_tasks: int) 
     try:
         import ray
     except ImportError:
-        from ms_drake.errors import MsDrakeError
-
         raise MsDrakeError("Ray is not installed; install the extra with `pip install -e '.[ray]'` "
                            "or run without --ray") from None
     if not ray.is_initialized():

@@ -11,6 +11,8 @@ import functools
 import importlib.util
 from pathlib import Path
 
+from pydrake.multibody.parsing import Parser
+
 PACKAGE_NAME = "ms_drake_models"
 
 
@@ -42,8 +44,6 @@ def make_parser(plant, scene_graph=None):
     `package://drake_models/...` would download at run time; we remove it so an accidental
     use fails at once with "unknown package".
     """
-    from pydrake.multibody.parsing import Parser
-
     parser = Parser(plant, scene_graph) if scene_graph is not None else Parser(plant)
     pm = parser.package_map()
     if pm.Contains("drake_models"):

@@ -11,14 +11,15 @@ what is allowed. Unknown keys and wrong types are errors.
 
 import dataclasses
 import difflib
+import importlib.util
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from pydrake.common.yaml import yaml_load_data, yaml_load_typed
-from pydrake.multibody.plant import MultibodyPlantConfig
 from pydrake.geometry import SceneGraphConfig
+from pydrake.multibody.plant import MultibodyPlantConfig
 from pydrake.systems.analysis import SimulatorConfig
 from pydrake.systems.sensors import CameraConfig
 from pydrake.visualization import VisualizationConfig
@@ -38,8 +39,6 @@ DEFAULT_SIZES = {"bin": [0.50, 0.40, 0.12], "shelf": [0.60, 0.60, 0.60], "table"
 
 def default_scenarios_file() -> Path:
     """diagrams/scenarios.yaml of the checkout (or the installed copy)."""
-    import importlib.util
-
     candidates = [Path(__file__).resolve().parent.parent / "diagrams" / "scenarios.yaml"]
     spec = importlib.util.find_spec("ms_drake_diagrams")  # installed from a wheel
     if spec is not None and spec.submodule_search_locations:

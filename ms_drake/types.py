@@ -88,12 +88,84 @@ class Push:
 
 @dataclass(frozen=True)
 class ShelfAction:
-    """A shelf action (Ch. 9): blade push or suction pick-and-place of one object."""
+    """A shelf action (Ch. 9.2) with the bluction tool, in the shelf frame (x across the opening,
+    y into the shelf, z up; the open front at y = -depth/2).
+
+    kind "push": the blade, inserted beside `object_id`, pushes it a signed distance `dx` along x
+      (it stops earlier where it touches a neighbour).
+    kind "suction": the cup grasps the object's front face, lifts it, pulls it out of the shelf,
+      translates it by `dx` along x and pushes it back in until its front face is `dy` behind the
+      shelf's front plane (the reference's "distance d_y into the shelf").
+    """
 
     kind: str  # "push" | "suction"
     object_id: str
     dx: float = 0.0
     dy: float = 0.0
+
+
+SHELF_OBJECT_KINDS = ("box", "cylinder")
+
+
+@dataclass(frozen=True)
+class ShelfObject:
+    """An upright object on the shelf floor (shelf frame, metres): a box axis-aligned with the
+    shelf (`width` along x, `depth` along y) or a cylinder (`width` = `depth` = diameter), its
+    footprint centred at (x, y), standing on the floor (z from 0 to `height`)."""
+
+    id: str
+    kind: str  # "box" | "cylinder"
+    x: float
+    y: float
+    width: float
+    depth: float
+    height: float
+
+    def __post_init__(self):
+        if self.kind not in SHELF_OBJECT_KINDS:
+            raise ValueError(f"ShelfObject {self.id!r}: kind={self.kind!r}; use one of {', '.join(SHELF_OBJECT_KINDS)}")
+        if min(self.width, self.depth, self.height) <= 0:
+            raise ValueError(f"ShelfObject {self.id!r}: width, depth and height must be > 0, got "
+                             f"{self.width}, {self.depth}, {self.height}")
+        if self.kind == "cylinder" and abs(self.width - self.depth) > 1e-12:
+            raise ValueError(f"ShelfObject {self.id!r}: a cylinder has width == depth (its diameter), got "
+                             f"{self.width} and {self.depth}")
+
+    def moved(self, x: float, y: float) -> "ShelfObject":
+        return ShelfObject(self.id, self.kind, float(x), float(y), self.width, self.depth, self.height)
+
+
+@dataclass(frozen=True)
+class ShelfScene:
+    """A shelf scene: the occluding objects, the target (None when unknown, e.g. to a policy) and
+    the seed it was generated from."""
+
+    objects: tuple[ShelfObject, ...]
+    target: ShelfObject | None = None
+    seed: int = -1
+
+    def object(self, object_id: str) -> ShelfObject:
+        for o in self.objects:
+            if o.id == object_id:
+                return o
+        raise KeyError(f"no object {object_id!r} in the shelf scene; objects: {', '.join(o.id for o in self.objects)}")
+
+    def without_target(self) -> "ShelfScene":
+        return ShelfScene(self.objects, None, self.seed)
+
+
+@dataclass(frozen=True, eq=False)
+class ShelfOccupancy:
+    """Target occupancy on a shelf (Ch. 9.4.2): `floor` (ny, nx) over target footprint centres on
+    the shelf floor, cell (i, j) at (x0 + j * step, y0 + i * step) in the shelf frame; `image_x`
+    (W,) the 1D distribution P_t(x) along the camera image's x axis. Each sums to 1, or is all 0
+    when no placement is possible."""
+
+    floor: np.ndarray
+    image_x: np.ndarray
+    x0: float = 0.0
+    y0: float = 0.0
+    step: float = 0.0
 
 
 @dataclass(frozen=True)

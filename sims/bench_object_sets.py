@@ -53,7 +53,7 @@ def summary(root: Path) -> None:
 
 
 def bench(set_name: str, limit: int | None) -> None:
-    from ms_drake.objects.convert import build_set
+    from tools.convert_objects import build_set
 
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()

@@ -34,7 +34,7 @@ def main():
     ap.add_argument("--heap-dir", default="", help="cache the generated heaps here (JSON) and reuse them")
     args = ap.parse_args()
 
-    from ms_drake.grasping.heap_check import heap_grasp_inputs, heap_grasp_report
+    from ms_drake.experiments.heap_grasps import heap_grasp_inputs, heap_grasp_report
     from ms_drake.grasping.planner import GraspPlanner
     from ms_drake.scenario import load_scenario
     from ms_drake.scenes.heaps import generate_heap, load_heap, save_heap

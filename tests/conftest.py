@@ -1,8 +1,13 @@
 """Shared fixtures: scenarios from diagrams/scenarios.yaml, small heaps."""
 
 import copy
+import sys
+from pathlib import Path
 
 import pytest
+
+# tools/ (dev-time converters and model writers, not installed) is imported from the checkout.
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from ms_drake.scenario import load_scenario
 

@@ -185,26 +185,3 @@ def test_one_search_step_full_yumi(heap5):
     # one grasp lifts an object other than the target; the horizon of 1 action ends the search
     assert (res.actions, res.action_kinds, res.grasp_successes) == (1, ["grasp"], 1)
     assert (res.success, res.stop_reason, res.failure) == (False, "horizon", "horizon")
-
-
-def test_adapters_alone():
-    from ms_drake.experiments.adapters import MergeGrasps, TargetAmodalMask
-    from ms_drake.types import InstanceMasks
-
-    merge = MergeGrasps(2)
-    ctx = merge.CreateDefaultContext()
-    jaw = (Grasp("parallel_jaw", (0, 0, 0), (0, 0, -1), quality=0.2, object_id="a"),)
-    suction = (Grasp("suction", (0, 0, 0), (0, 0, -1), quality=0.9, object_id="a"),)
-    merge.GetInputPort("grasps_0").FixValue(ctx, jaw)
-    assert merge.GetOutputPort("grasps").Eval(ctx) == jaw  # an unconnected input counts as empty
-    merge.GetInputPort("grasps_1").FixValue(ctx, suction)
-    assert merge.GetOutputPort("grasps").Eval(ctx) == jaw + suction
-    pick = TargetAmodalMask("t")
-    ctx = pick.CreateDefaultContext()
-    m = np.zeros((2, 4, 5), bool)
-    m[1, 1:3, 1:4] = True
-    pick.get_input_port().FixValue(ctx, InstanceMasks(m, ("x", "t"), np.ones(2)))
-    assert pick.get_output_port().Eval(ctx).sum() == 6
-    pick.get_input_port().FixValue(ctx, InstanceMasks(m[:1], ("x",), np.ones(1)))
-    out = pick.get_output_port().Eval(ctx)
-    assert out.shape == (4, 5) and not out.any()

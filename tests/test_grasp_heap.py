@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from ms_drake.grasping.heap_check import grasp_collisions, heap_grasp_inputs, heap_grasp_report, scene_shapes
+from ms_drake.experiments.heap_grasps import grasp_collisions, heap_grasp_inputs, heap_grasp_report, scene_shapes
 from ms_drake.grasping.planner import GraspPlanner
 from ms_drake.grasping.samplers import sample_antipodal_grasps_depth
 from test_grasp_samplers import _render_depth, overhead_camera, pose_xyz_yaw

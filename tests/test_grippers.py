@@ -1,6 +1,8 @@
 """Gripper models: the compliant parallel jaw lifts 0.05-0.5 kg boxes, pad parameters are
 configurable, the bluction tool has the reference's dimensions, every gripper welds to every arm."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from pydrake.geometry import Box, ProximityProperties, AddContactMaterial, AddRigidHydroelasticProperties
@@ -15,7 +17,8 @@ from pydrake.trajectories import PiecewisePolynomial
 from ms_drake.errors import ScenarioError
 from ms_drake.paths import make_parser, models_dir
 from ms_drake.robots import BluctionConfig, PadConfig, ParallelJawConfig, gripper_spec
-from ms_drake.station.grippers import bluction_sdf, parallel_jaw_sdf, write_default_models
+from ms_drake.station.grippers import bluction_sdf, parallel_jaw_sdf
+from tools.write_models import write_environment_models, write_gripper_models
 from ms_drake.robots import FLOATING_JOINTS, ROBOTS
 from ms_drake.station.robots import add_arm_gripper, add_floating_gripper, add_robot, floating_gripper_positions
 
@@ -115,9 +118,19 @@ def test_pads_are_configurable_and_polygon_pads_parse(tmp_path):
 
 
 def test_default_files_are_generated_from_the_dataclasses(tmp_path):
-    written = write_default_models(tmp_path)
+    written = write_gripper_models(tmp_path)
+    assert sorted(f.name for f in written) == ["bluction.sdf", "floating_base.sdf", "parallel_jaw.sdf", "suction_cup.sdf"]
     for f in written:
-        assert f.read_text() == (models_dir() / "grippers" / f.name).read_text(), f"{f.name} is stale"
+        assert f.read_text() == (models_dir() / "grippers" / f.name).read_text(), \
+            f"{f.name} is stale: run `python -m tools.write_models`"
+
+
+def test_environment_files_are_generated_from_the_generator(tmp_path):
+    written = [Path(f) for f in write_environment_models(tmp_path)]
+    assert sorted(f.name for f in written) == ["bin.sdf", "shelf.sdf", "table.sdf"]
+    for f in written:
+        assert f.read_text() == (models_dir() / "environments" / f.name).read_text(), \
+            f"{f.name} is stale: run `python -m tools.write_models`"
 
 
 def test_bluction_dimensions_and_blade_rotation():

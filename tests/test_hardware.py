@@ -16,9 +16,8 @@ from ms_drake.errors import ScenarioError
 from ms_drake.scenario import ArmDriver
 from ms_drake.robots import ROBOTS
 from ms_drake.station.drivers import station_arms, station_grippers
-from ms_drake.station.hardware import (GatedLcmPublisher, MakeEmulatedRobot, MakeHardwareStation, RobotStateReceiver,
-                                       RobotStateSender, SignalReceiver, SignalSender, camera_channel,
-                                       command_channel, status_channel)
+from ms_drake.station.emulator import MakeEmulatedRobot
+from ms_drake.station.hardware import GatedLcmPublisher, MakeHardwareStation, RobotStateReceiver, RobotStateSender, SignalReceiver, SignalSender, camera_channel, command_channel, status_channel
 from test_drivers import add_joint_move_controller, bare, gripper_commands
 
 
@@ -264,7 +263,7 @@ def test_camera_images_arrive_through_lcmt_image_array():
     from pydrake.systems.sensors import ImageDepth32F, ImageRgba8U
 
     from ms_drake.scenario import load_scenario
-    from ms_drake.station.hardware import add_image_publisher
+    from ms_drake.station.emulator import add_image_publisher
 
     scenario = load_scenario(None, "YuMiBin")
     cam = scenario.cameras["overhead"]

@@ -126,7 +126,7 @@ def test_mesh_set_mass_properties_physical(set_name):
 
 @pytest.mark.parametrize("set_name", MESH_SETS)
 def test_mesh_set_splits_disjoint_by_object(set_name):
-    from ms_drake.objects.convert import split_of
+    from tools.convert_objects import split_of
 
     s = get_object_set(set_name)
     train, test = set(s.names("train")), set(s.names("test"))
@@ -202,7 +202,7 @@ def test_mesh_set_converter_on_generated_meshes(tmp_path, monkeypatch):
     (made unimportable here, installed or not): the hull fallback."""
     import trimesh
 
-    from ms_drake.objects.convert import ConvertOptions, convert_meshes, write_notice
+    from tools.convert_objects import ConvertOptions, convert_meshes, write_notice
 
     box = trimesh.creation.box(extents=(0.08, 0.06, 0.04))
     box.apply_translation([0.3, -0.2, 0.1])  # origin offset from the geometry, like YCB
@@ -252,7 +252,7 @@ def test_mesh_set_converter_on_generated_meshes(tmp_path, monkeypatch):
 
 
 def test_mesh_set_converter_cli_rejects_bad_values(capsys):
-    from ms_drake.objects.convert import main
+    from tools.convert_objects import main
 
     with pytest.raises(SystemExit):
         main(["--set", "ycb", "--limit", "0"])

@@ -1,4 +1,4 @@
-"""Perception basics: LabelImageToMasks, AmodalMasks, point clouds — alone and wired."""
+"""Perception basics: AmodalMasks, TargetAmodalMask, silhouettes, point clouds — alone and wired."""
 
 import copy
 
@@ -9,7 +9,8 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.sensors import ImageLabel16I
 
 from ms_drake.geometry import PinholeCamera, silhouette
-from ms_drake.perception.masks import AmodalMasks, LabelImageToMasks, make_amodal_masks, object_labels
+from ms_drake.perception.masks import AmodalMasks, TargetAmodalMask, make_amodal_masks, object_labels
+from ms_drake.perception.segmentation import Segmenter
 from ms_drake.perception.point_cloud import add_point_cloud, finite_points
 from ms_drake.station import MakeStation, get_plant, station_objects
 from ms_drake.types import InstanceMasks
@@ -19,21 +20,6 @@ def _label_image(arr):
     img = ImageLabel16I(arr.shape[1], arr.shape[0])
     np.array(img.mutable_data, copy=False)[:, :, 0] = arr
     return img
-
-
-def test_label_masks_alone():
-    arr = np.zeros((40, 50), np.int16)
-    arr[5:15, 5:20] = 7
-    arr[20:30, 30:45] = 9
-    arr[0, 0] = 11  # one pixel: below min_pixels
-    system = LabelImageToMasks({7: "a", 9: "b", 11: "c"}, min_pixels=5)
-    ctx = system.CreateDefaultContext()
-    system.get_input_port(0).FixValue(ctx, _label_image(arr))
-    masks = system.get_output_port(0).Eval(ctx)
-    assert isinstance(masks, InstanceMasks)
-    assert masks.ids == ("a", "b")
-    assert list(masks.areas()) == [150, 150]
-    assert masks.masks[0, 10, 10] and not masks.masks[0, 25, 35]
 
 
 def test_amodal_masks_alone_match_a_box_projection():
@@ -56,15 +42,15 @@ def test_masks_wired_in_a_station(bin_scenario):
     builder = DiagramBuilder()
     station = builder.AddSystem(MakeStation(s))
     plant = get_plant(station)
-    labels = builder.AddSystem(LabelImageToMasks(object_labels(plant)))
-    builder.Connect(station.GetOutputPort("overhead.label_image"), labels.get_input_port(0))
+    labels = builder.AddSystem(Segmenter("ground_truth", label_to_id=object_labels(plant)))
+    builder.Connect(station.GetOutputPort("overhead.label_image"), labels.GetInputPort("label_image"))
     cam = PinholeCamera.from_config(s.cameras["overhead"])
     amodal = builder.AddSystem(make_amodal_masks(plant, cam))
     builder.Connect(station.GetOutputPort("body_poses"), amodal.get_input_port(0))
     cloud = add_point_cloud(builder, station, "overhead", s.cameras["overhead"])
     diagram = builder.Build()
     ctx = diagram.CreateDefaultContext()
-    modal = labels.get_output_port(0).Eval(labels.GetMyContextFromRoot(ctx))
+    modal = labels.GetOutputPort("masks").Eval(labels.GetMyContextFromRoot(ctx))
     full = amodal.get_output_port(0).Eval(amodal.GetMyContextFromRoot(ctx))
     assert len(modal) == 3 and len(full) == 3
     for i, name in enumerate(full.ids):
@@ -98,3 +84,16 @@ def test_silhouette_ignores_geometry_behind_the_camera():
     cam = PinholeCamera(50, 50, 50.0, 50.0, 24.5, 24.5, RigidTransform())
     v = np.array([[0, 0, -1.0], [0.1, 0, -1.0], [0, 0.1, -1.0]])
     assert not silhouette(cam, v, np.array([[0, 1, 2]])).any()
+
+
+def test_target_amodal_mask_alone_picks_the_target_or_nothing():
+    masks = np.zeros((2, 6, 8), bool)
+    masks[0, 1:3, 1:3] = True
+    masks[1, 3:5, 4:7] = True
+    system = TargetAmodalMask("t")
+    ctx = system.CreateDefaultContext()
+    system.get_input_port().FixValue(ctx, InstanceMasks(masks, ("a", "t"), np.ones(2)))
+    np.testing.assert_array_equal(system.get_output_port().Eval(ctx), masks[1])
+    system.get_input_port().FixValue(ctx, InstanceMasks(masks[:1], ("a",), np.ones(1)))
+    out = system.get_output_port().Eval(ctx)
+    assert out.shape == (6, 8) and not out.any()  # the target was removed

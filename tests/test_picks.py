@@ -11,7 +11,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from ms_drake.station.picks import TASKS, Schedule, Timeline, plan_task, run_task
+from ms_drake.experiments.picks import TASKS, plan_task, run_task
+from ms_drake.planning.sequences import Schedule, Timeline
 from ms_drake.types import JointLimits
 from ms_drake.planning import plan_joint_motion
 

@@ -1,7 +1,7 @@
 """Converted robot models: they parse with package:// URIs, keep limits, and match the source FK.
 
 The reference poses in tests/data/fk_<robot>.json were computed from the SOURCE models (MuJoCo for
-the MJCF sources, Drake's URDF parser for the Panda URDF) by ms_drake/station/convert_robots.py;
+the MJCF sources, Drake's URDF parser for the Panda URDF) by tools/convert_robots.py;
 this test needs only our converted files.
 """
 
@@ -125,3 +125,14 @@ def test_robot_renders_with_vtk(robot):
     ctx = diagram.CreateDefaultContext()
     depth = cam.depth_image_32F_output_port().Eval(cam.GetMyContextFromRoot(ctx)).data
     assert np.isfinite(depth).mean() > 0.02  # the robot covers part of the image
+
+
+def test_robot_converter_is_importable_and_checks_its_arguments(capsys):
+    """tools/convert_robots.py (dev time, not installed) loads without its converter-only
+    dependencies and refuses an unknown robot with an argparse error."""
+    from tools.convert_robots import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["--robot", "ur5"])
+    assert e.value.code == 2
+    assert "invalid choice: 'ur5'" in capsys.readouterr().err

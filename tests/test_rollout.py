@@ -4,7 +4,7 @@ planners' own answers; a rollout is reproducible from its seed."""
 import numpy as np
 import pytest
 
-from ms_drake.experiments.adapters import LazyGraspPlanner, LazyGrasps, object_seed
+from ms_drake.grasping.planner import LazyGraspPlanner, LazyGrasps, object_seed
 from ms_drake.policies import select_action
 from ms_drake.types import InstanceMasks
 
@@ -30,7 +30,7 @@ def scene(heap4):
     sim = Simulator(system.diagram)
     ctx = sim.get_mutable_context()
     _set_initial(system, ctx, heap4)
-    gp = system.perception["grasps"]
+    gp = system.controller.GetSubsystemByName("grasp_planner")
     gctx = gp.GetMyContextFromRoot(ctx)
     depth = np.asarray(gp.depth_port.Eval(gctx).data, float)[..., 0]
     masks = gp.masks_port.Eval(gctx)
@@ -40,7 +40,7 @@ def scene(heap4):
 
 def test_cropped_per_object_plan_equals_the_whole_image(scene):
     system, _, depth, masks, geoms = scene
-    gp = system.perception["grasps"]
+    gp = system.controller.GetSubsystemByName("grasp_planner")
     fresh = LazyGraspPlanner(gp.planners, depth.shape[1], depth.shape[0], seed=5)
     assert len(masks) == 4
     models = set()
@@ -48,8 +48,8 @@ def test_cropped_per_object_plan_equals_the_whole_image(scene):
         cropped = fresh.plan_object(depth, masks, geoms, oid)
         whole = []
         for p in gp.planners:  # the wrapped planner itself, on the whole image, the same seed
-            p.seed = object_seed(5, oid)
-            whole.extend(p.plan(depth, InstanceMasks(masks.masks[k:k + 1], (oid,), np.ones(1)), (geoms[oid],)))
+            whole.extend(p.plan(depth, InstanceMasks(masks.masks[k:k + 1], (oid,), np.ones(1)), (geoms[oid],),
+                                seed=object_seed(5, oid)))
         assert cropped == tuple(whole)
         models |= {g.model for g in whole}
     assert models == {"soft_point", "suction"}
@@ -57,7 +57,7 @@ def test_cropped_per_object_plan_equals_the_whole_image(scene):
 
 def test_lazy_grasps_plan_only_what_the_selector_reaches(scene):
     system, _, depth, masks, geoms = scene
-    gp = system.perception["grasps"]
+    gp = system.controller.GetSubsystemByName("grasp_planner")
     lazy_planner = LazyGraspPlanner(gp.planners, depth.shape[1], depth.shape[0], seed=5)
     lazy = LazyGrasps(lambda oid: lazy_planner.plan_object(depth, masks, geoms, oid), masks.ids)
     eager = tuple(g for oid in masks.ids for g in lazy_planner.plan_object(depth, masks, geoms, oid))
@@ -77,23 +77,29 @@ def test_lazy_grasps_plan_only_what_the_selector_reaches(scene):
 
 def test_a_lookup_plans_an_object_once_per_step(scene):
     system, _, depth, masks, geoms = scene
-    gp = system.perception["grasps"]
+    gp = system.controller.GetSubsystemByName("grasp_planner")
     planner = LazyGraspPlanner(gp.planners, depth.shape[1], depth.shape[0], seed=5)
-    lazy = LazyGrasps(lambda oid: planner.plan_object(depth, masks, geoms, oid), masks.ids)
+    calls = []
+
+    def plan_one(oid):
+        calls.append(oid)
+        return planner.plan_object(depth, masks, geoms, oid)
+
+    lazy = LazyGrasps(plan_one, masks.ids)
     oid = masks.ids[0]
     first = lazy.get(oid)
-    assert lazy.get(oid) is first and planner.planned == 1
-    assert lazy.get("no such id") is None and planner.planned == 1
+    assert lazy.get(oid) is first and calls == [oid] and lazy.planned == (oid,)
+    assert lazy.get("no such id") is None and calls == [oid]
     # A fresh step (a new LazyGrasps) plans again, and gets the same answer for the same input.
-    again = LazyGrasps(lambda o: planner.plan_object(depth, masks, geoms, o), masks.ids).get(oid)
-    assert again == first and planner.planned == 2
+    again = LazyGrasps(plan_one, masks.ids).get(oid)
+    assert again == first and calls == [oid, oid]
 
 
 def test_lazy_grasp_planner_alone(scene):
     system, _, depth, masks, geoms = scene
     from pydrake.systems.sensors import ImageDepth32F
 
-    gp = system.perception["grasps"]
+    gp = system.controller.GetSubsystemByName("grasp_planner")
     alone = LazyGraspPlanner(gp.planners, depth.shape[1], depth.shape[0], seed=5)
     ctx = alone.CreateDefaultContext()
     img = ImageDepth32F(depth.shape[1], depth.shape[0])
@@ -133,10 +139,8 @@ def test_rollout_is_reproducible_from_its_seed(heap4):
 
 def test_lazy_planner_wired_in_the_search_diagram(scene):
     system, ctx, _, masks, _ = scene
-    sel = system.selector
-    action = sel.GetOutputPort("action").Eval(sel.GetMyContextFromRoot(ctx))
-    grasps = system.perception["grasps"].GetOutputPort("grasps").Eval(
-        system.perception["grasps"].GetMyContextFromRoot(ctx))
+    action = system.output(ctx, "action")
+    grasps = system.output(ctx, "grasps")
     assert isinstance(grasps, LazyGrasps)
     # the target's grasp (quality 0.5) reaches t_thresh: the target is planned first and grasped
     target = masks.ids[1]

@@ -9,10 +9,11 @@ PrimitiveBackend (floating gripper, large benchmarks):
   push   the closed jaw moves along the push segment in simulation: park -> above the start
          (travel height above the walls) -> down to the start -> along the segment -> up -> park,
          each leg a smooth (cosine) profile at `travel_speed` / `push_speed`; then `settle` s.
-FullBackend (YuMi): IK + ruckig through ms_drake.station.picks (plan_pick / plan_push) from the
-  arm's current configuration; parallel-jaw grasps on `yumi_right` (compliant pads), suction grasps
-  on `yumi_left`; a grasp succeeds when the object rose by more than half the lift; then the
-  object leaves the scene, the gripper releases and the arm returns home (out of the camera view).
+FullBackend (YuMi, Panda, floating gripper): IK + ruckig through ms_drake.planning.sequences
+  (plan_pick / plan_push) from the arm's current configuration; parallel-jaw grasps and pushes on
+  the arm with the jaw (compliant pads), suction grasps on the arm with the suction cup; a grasp
+  succeeds when the object rose by more than half the lift; then the object leaves the scene,
+  the gripper releases and the arm returns to park (out of the camera view).
 Both: after an action, every object (other than the grasped one) that left the bin (fell over a
 wall, or below the floor) is reported; the target among them sets message "target_removed".
 """
@@ -23,6 +24,10 @@ import numpy as np
 from pydrake.math import RigidTransform, RotationMatrix
 
 from ms_drake.execution.executor import ExecutionError, Motion
+from ms_drake.planning import plan_joint_motion
+from ms_drake.planning.sequences import Schedule, arm_ik, plan_pick, plan_push
+from ms_drake.robots import GRIPPERS
+from ms_drake.scenario import resolve_robot_config
 from ms_drake.types import Action, ActionOutcome
 
 FIDELITIES = ("primitive", "full")
@@ -175,38 +180,63 @@ def grasp_tool_pose(grasp) -> RigidTransform:
 
 
 class FullBackend(_Base):
-    """The YuMi (YuMiBin): jaw grasps and pushes on the right arm, suction grasps on the left.
+    """Any arm-and-gripper station (YuMiBin, PandaBin, FloatingGripperBin in full fidelity): IK +
+    ruckig plans (ms_drake.planning.sequences) from the arm's current configuration, executed
+    through the station's drivers. Parallel-jaw grasps and pushes go to the first arm carrying a
+    parallel jaw, suction grasps to the first arm carrying a suction cup (`grasp_kinds` says which
+    the robot can do). A grasp succeeds when the object rose by more than half the lift (needs
+    body_poses; on hardware, without them, every grasp reports "not_lifted"); then the gripper
+    releases and the arm returns to its park configuration out of the camera's view: ArmSpec.home
+    for arms, beside the bin for the floating gripper.
     scenario: the station's scenario (its robot, grippers and environment; objects are ignored)."""
 
-    JAW_ARM, SUCTION_ARM = "yumi_right", "yumi_left"
-
     def __init__(self, scenario, objects: dict, workspace, target_id: str = "", seed: int = 0, settle: float = 0.5,
-                 lift: float = 0.15, speed: float = 0.25, close_time: float = 0.5, hold_time: float = 0.3):
+                 lift: float = 0.15, speed: float = 0.25, close_time: float = 0.5, hold_time: float = 0.3,
+                 park_distance: float = 0.35, park_height: float = 0.10):
         super().__init__(objects, workspace, target_id, seed, settle)
-        from ms_drake.planning.sequences import arm_ik
-
-        if scenario.robot.name != "yumi":
-            raise ExecutionError(f"full fidelity runs on the YuMi (scenario YuMiBin), not robot {scenario.robot.name!r}")
+        if not scenario.robot.name:
+            raise ExecutionError("full fidelity needs a robot: the scenario has none (robot.name is empty); "
+                                 "use YuMiBin, PandaBin or FloatingGripperBin")
+        chosen, _ = resolve_robot_config(scenario.robot)
+        by_kind = {}
+        for arm, gripper, port in chosen:
+            by_kind.setdefault(GRIPPERS[gripper].kind, (arm, port))
+        self.jaw = by_kind.get("parallel_jaw")  # (arm, gripper port) or None
+        self.suction = by_kind.get("suction")
+        if self.jaw is None and self.suction is None:
+            raise ExecutionError(f"robot {scenario.robot.name!r} carries no parallel jaw or suction cup "
+                                 f"(grippers: {', '.join(g for _, g, _ in chosen)}); a bin search needs one")
         self.lift, self.speed, self.close_time, self.hold_time = lift, speed, close_time, hold_time
         self.ik, self._keep = {}, []
-        for arm in (self.JAW_ARM, self.SUCTION_ARM):
+        for arm in dict.fromkeys(a for a, _ in (self.jaw, self.suction) if a is not None):
             ik, limits, q_home, keep = arm_ik(scenario, arm, seed=seed)
-            self.ik[arm] = (ik, limits, q_home)
+            if scenario.robot.name == "floating":  # park beside the bin, tool down, above the walls
+                cx, cy = workspace.center_xy
+                X_park = RigidTransform(RotationMatrix.MakeXRotation(np.pi),
+                                        [cx + 0.5 * workspace.size_xy[0] + park_distance, cy,
+                                         workspace.floor_z + workspace.wall_height + park_height])
+                q_home = ik.solve(X_park, q_home).q
+            self.ik[arm] = (ik, limits, np.asarray(q_home, float))
             self._keep.append(keep)
 
+    @property
+    def grasp_kinds(self) -> tuple[str, ...]:
+        """The grasp kinds this robot executes ("parallel_jaw", "suction")."""
+        return tuple(k for k, g in (("parallel_jaw", self.jaw), ("suction", self.suction)) if g is not None)
+
     def initial_commands(self) -> dict:
-        return {f"{self.JAW_ARM}.position": self.ik[self.JAW_ARM][2],
-                f"{self.SUCTION_ARM}.position": self.ik[self.SUCTION_ARM][2],
-                f"{self.JAW_ARM}_jaw.position": [0.1], f"{self.JAW_ARM}_jaw.force_limit": [30.0],
-                f"{self.SUCTION_ARM}_suction.suction": [0.0]}
+        out = {f"{arm}.position": q_home for arm, (_, _, q_home) in self.ik.items()}
+        if self.jaw is not None:
+            out.update({f"{self.jaw[1]}.position": [0.1], f"{self.jaw[1]}.force_limit": [30.0]})
+        if self.suction is not None:
+            out[f"{self.suction[1]}.suction"] = [0.0]
+        return out
 
     def _finish_motion(self, plan, arm, release: dict, info: dict):
-        from ms_drake.planning import plan_joint_motion
-
         _, limits, q_home = self.ik[arm]
         tl = plan.timeline
         check = tl.duration
-        tl.play(plan_joint_motion([tl.final(), q_home], limits))  # back home, out of the camera's view
+        tl.play(plan_joint_motion([tl.final(), q_home], limits))  # back to park, out of the camera's view
         commands = {f"{arm}.position": tl.value}
         for port, schedule in plan.commands.items():
             steps = list(schedule.steps) + [(check + 0.05, v) for p, v in release.items() if p == port]
@@ -215,12 +245,14 @@ class FullBackend(_Base):
                       settle_from=tl.duration)
 
     def plan(self, action: Action, hold: dict, step: int, poses=None):
-        from ms_drake.planning.sequences import plan_pick, plan_push
-
         if action.kind == "grasp":
             g = action.grasp
-            arm = self.JAW_ARM if g.kind == "parallel_jaw" else self.SUCTION_ARM
-            port = f"{arm}_jaw" if g.kind == "parallel_jaw" else f"{arm}_suction"
+            if g is None:
+                raise ExecutionError("a grasp Action without its Grasp")
+            tool = self.jaw if g.kind == "parallel_jaw" else self.suction
+            if tool is None:
+                return f"no_{g.kind}_gripper"
+            arm, port = tool
             ik, limits, _ = self.ik[arm]
             q_now = np.asarray(hold[f"{arm}.position"], float)
             plan = plan_pick(ik, limits, q_now, grasp_tool_pose(g), arm, port, g.kind, lift=self.lift,
@@ -232,24 +264,26 @@ class FullBackend(_Base):
             release = {f"{port}.position": [0.1]} if g.kind == "parallel_jaw" else {f"{port}.suction": [0.0]}
             return self._finish_motion(plan, arm, release, {"z0": z0, "step": step})
         if action.kind == "push":
+            if action.push is None:
+                raise ExecutionError("a push Action without its Push")
+            if self.jaw is None:
+                return "no_parallel_jaw_gripper"
+            arm, jaw = self.jaw
             p = action.push
             a, b = np.asarray(p.start, float), np.asarray(p.end, float)
             d = b - a
             yaw = float(np.arctan2(d[1], d[0])) + np.pi / 2
             R = RotationMatrix.MakeZRotation(yaw) @ RotationMatrix.MakeXRotation(np.pi)
-            ik, limits, _ = self.ik[self.JAW_ARM]
-            q_now = np.asarray(hold[f"{self.JAW_ARM}.position"], float)
-            plan = plan_push(ik, limits, q_now, RigidTransform(R, a), d, float(np.linalg.norm(d)), self.JAW_ARM,
+            ik, limits, _ = self.ik[arm]
+            q_now = np.asarray(hold[f"{arm}.position"], float)
+            plan = plan_push(ik, limits, q_now, RigidTransform(R, a), d, float(np.linalg.norm(d)), arm,
                              speed=min(self.speed, 0.1))
             if not plan.success:
                 return plan.status
-            jaw = f"{self.JAW_ARM}_jaw"
-            from ms_drake.planning.sequences import Schedule
-
             close = Schedule()
             close.set(0.0, 0.0)
             plan.commands[f"{jaw}.position"] = close
-            return self._finish_motion(plan, self.JAW_ARM, {f"{jaw}.position": [0.1]}, {"step": step})
+            return self._finish_motion(plan, arm, {f"{jaw}.position": [0.1]}, {"step": step})
         raise ExecutionError(f"the full executor cannot execute an Action of kind {action.kind!r}")
 
     def outcome(self, action: Action, motion: Motion, poses, step: int, removed):

@@ -35,6 +35,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
+from pydrake.multibody.math import SpatialVelocity
+from pydrake.multibody.tree import BodyIndex
 from pydrake.systems.framework import BasicVector, LeafSystem
 
 from ms_drake.errors import MsDrakeError
@@ -230,8 +232,6 @@ def remove_objects(plant, plant_context, body_indices) -> None:
     """Move bodies far out of the scene (1 m apart, 5 m below the floor), at rest and locked, so
     they neither fall forever nor touch anything: the scene edit of a lifted object."""
     for j, b in enumerate(body_indices):
-        from pydrake.multibody.tree import BodyIndex
-
         body = plant.get_body(BodyIndex(int(b)))
         X = RigidTransform([20.0 + 1.0 * int(b), 0.0, -5.0])
         plant.SetFreeBodyPose(plant_context, body, X)
@@ -240,8 +240,6 @@ def remove_objects(plant, plant_context, body_indices) -> None:
 
 
 def _zero_velocity():
-    from pydrake.multibody.math import SpatialVelocity
-
     return SpatialVelocity(np.zeros(3), np.zeros(3))
 
 

@@ -10,10 +10,24 @@ meshcat_recording.html (the whole search, a Meshcat StaticHtml recording).
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import cv2
+import imageio.v2 as imageio
 import numpy as np
+from pydrake.geometry import Meshcat
+
+from ms_drake.experiments.rollout import (
+    SCENARIOS,
+    SearchParams,
+    build_search,
+    run_search,
+)
+from ms_drake.geometry import PinholeCamera
+from ms_drake.scenario import load_scenario
+from ms_drake.scenes.heaps import SEARCH_HEAPS
+from ms_drake.experiments.scene_images import colorize_masks, make_scene, write_scene_images
 
 
 def _overlay_occupancy(rgb: np.ndarray, occ) -> np.ndarray:
@@ -49,8 +63,6 @@ def _draw_action(rgb: np.ndarray, action, camera) -> np.ndarray:
 
 def frame_image(frame, camera) -> np.ndarray:
     """The three panels of one step side by side (RGB, uint8)."""
-    from ms_drake.scenes.render import colorize_masks
-
     rgb = frame.rgb
     masks = colorize_masks(frame.masks, rgb, alpha=0.45)
     if frame.target.visible:
@@ -67,21 +79,6 @@ def frame_image(frame, camera) -> np.ndarray:
 def run_demo(out: Path, seed: int = 0, objects: int = 15, policy: str = "xray", horizon: int = 10,
              meshcat_html: bool = True, log=print) -> dict:
     """Generate the heap, write the initial scene, run the search and write its pictures."""
-    import time
-
-    import imageio.v2 as imageio
-
-    from ms_drake.experiments.rollout import (
-        SCENARIOS,
-        SearchParams,
-        build_search,
-        run_search,
-    )
-    from ms_drake.geometry import PinholeCamera
-    from ms_drake.scenario import load_scenario
-    from ms_drake.scenes.heaps import SEARCH_HEAPS
-    from ms_drake.scenes.render import make_scene, write_scene_images
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()
@@ -91,8 +88,6 @@ def run_demo(out: Path, seed: int = 0, objects: int = 15, policy: str = "xray", 
     written = write_scene_images(base, heap, out, meshcat_html=False)
     meshcat = None
     if meshcat_html:
-        from pydrake.geometry import Meshcat
-
         meshcat = Meshcat()
     params = SearchParams(policy=policy, fidelity="primitive", horizon=horizon, seed=seed, time_step=0.01)
     scenario = load_scenario(None, SCENARIOS["primitive"])

@@ -21,7 +21,14 @@ import os
 import time
 from pathlib import Path
 
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
+
+from ms_drake.experiments.rollout import rollout
+from ms_drake.parallel import run_jobs
+from ms_drake.scenario import load_scenario
+from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap, load_heap, save_heap
 
 BOOTSTRAP = 2000
 
@@ -30,9 +37,6 @@ def cached_heap(objects: int, seed: int, heap_dir: str | None):
     """Heap `seed` of N objects (BinHeap15's bin), read from / saved to `heap_dir` when given, so
     several policies search the very same heaps without regenerating them (a heap is a pure
     function of (N, seed); the file is written atomically)."""
-    from ms_drake.scenario import load_scenario
-    from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap, load_heap, save_heap
-
     path = Path(heap_dir) / f"heap_N{objects}_s{seed}.json" if heap_dir else None
     if path is not None and path.exists():
         return load_heap(path)
@@ -48,7 +52,6 @@ def cached_heap(objects: int, seed: int, heap_dir: str | None):
 def rollout_job(job: tuple) -> dict:
     """(policy, objects, seed, fidelity, horizon[, heap_dir]) -> record; module-level for pickling."""
     policy, objects, seed, fidelity, horizon, *rest = job
-    from ms_drake.experiments.rollout import rollout
 
     heap = cached_heap(objects, seed, rest[0] if rest else None)
     rec = rollout(policy, objects, seed, fidelity, horizon, heap=heap).record()
@@ -105,8 +108,6 @@ def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, wo
     resumes it. Jobs are queued run by run (all seeds of the first run, then the next), so with a
     shared `heap_dir` the first run's workers generate the heaps in parallel, each heap once, and
     later runs load them. Returns {(policy, N): summary}."""
-    from ms_drake.parallel import run_jobs
-
     jobs, done = [], {}
     for policy, objects, out in runs:
         out = Path(out)
@@ -232,10 +233,7 @@ def format_summary(policy: str, s: dict) -> str:
 def plot(files: list[Path], out_dir: Path) -> list[Path]:
     """Fig. 7.4 B (cumulative successes vs actions, one curve per policy) and Fig. 8.6 (histogram
     of actions per successful rollout) as PNG. Returns the written paths."""
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     by_policy: dict[str, list[dict]] = {}
     for f in files:

@@ -6,15 +6,24 @@ and what happened to the object measured (`run_task`, the `ms-drake pick` comman
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
-from pydrake.math import RigidTransform
+from pydrake.geometry import StartMeshcat
+from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
 
+from ms_drake.objects import get_object
 from ms_drake.planning import TimedTrajectory, TrajectoryStreamer
 from ms_drake.planning.sequences import PickPlan, arm_ik, plan_pick, plan_push
+from ms_drake.robots import station_robot_spec
+from ms_drake.scenario import load_scenario
+from ms_drake.station.station import MakeStation, get_plant, station_objects
 
 
 # --------------------------------------------------------------------------------- execution
@@ -50,10 +59,6 @@ def pick_scenario(scenario, object_names, cameras: bool = False):
 def build_run(scenario, plan: PickPlan, object_poses=(), meshcat=None) -> Run:
     """Station + TrajectoryStreamer + command schedules; objects (in station order) at
     `object_poses`. Unscheduled command inputs keep the drivers' defaults."""
-    from pydrake.systems.analysis import Simulator
-    from pydrake.systems.framework import DiagramBuilder
-
-    from ms_drake.station.station import MakeStation, get_plant, station_objects
 
     builder = DiagramBuilder()
     station = builder.AddSystem(MakeStation(scenario, meshcat=meshcat))
@@ -71,7 +76,6 @@ def build_run(scenario, plan: PickPlan, object_poses=(), meshcat=None) -> Run:
     diagram = builder.Build()
     simulator = Simulator(diagram)
     pc = plant.GetMyMutableContextFromRoot(simulator.get_mutable_context())
-    from ms_drake.robots import station_robot_spec
 
     instance = plant.GetModelInstanceByName(scenario.robot.name) if scenario.robot.name != "floating" else None
     q_all = plant.GetPositions(pc)
@@ -91,7 +95,6 @@ def record(run: Run, meshcat, until: float, html_path) -> float:
     wall = time.perf_counter() - start
     meshcat.StopRecording()
     meshcat.PublishRecording()
-    from pathlib import Path
 
     Path(html_path).parent.mkdir(parents=True, exist_ok=True)
     Path(html_path).write_text(meshcat.StaticHtml())
@@ -119,8 +122,6 @@ class PickTask:
 
 
 def _tool_rotation(task):
-    from pydrake.math import RollPitchYaw, RotationMatrix
-
     if task.scenario == "FetchShelf":  # tool level, pointing into the shelf (+y), body y up (blade down)
         return RotationMatrix(np.array([[-1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]]))
     if task.kind == "parallel_jaw":  # pointing down, closing across the object's y (its short side)
@@ -146,8 +147,6 @@ def task_tool_pose(task) -> RigidTransform:
     """The tool pose of the task: the jaw's tcp 17 mm below the object's top (pads fully on it);
     the suction cup's lip 2 mm above the top (or in front of the face for the Fetch); the
     bluction blade 15 mm beside the object's -x face, 6 mm above the shelf."""
-    from ms_drake.objects import get_object
-
     ext = get_object(task.object).extents
     x, y = task.xy
     R = _tool_rotation(task)
@@ -163,9 +162,6 @@ def task_tool_pose(task) -> RigidTransform:
 def plan_task(task: PickTask, from_home: bool = True, speed: float = 0.15, scenario=None, quick: bool = False):
     """(scenario, plan, X_object) of a task; scenario defaults to the task's, holding only the object.
     quick: shorter pauses (close 0.5 s, hold 0.25 s) for tests."""
-    from ms_drake.objects import get_object
-    from ms_drake.scenario import load_scenario
-
     base = scenario or load_scenario(None, task.scenario)
     scn = pick_scenario(base, [task.object])
     ext = get_object(task.object).extents
@@ -212,8 +208,6 @@ class PickOutcome:
 def run_task(task: PickTask, from_home: bool = True, speed: float = 0.15, meshcat=None, html_path=None,
              scenario=None, quick: bool = False) -> PickOutcome:
     """Plan and simulate a task; with meshcat + html_path also write the Meshcat recording."""
-    from ms_drake.station.station import station_objects
-
     scn, plan, X_object = plan_task(task, from_home, speed, scenario, quick)
     if not plan.success:
         return PickOutcome(task.name, False, plan.status)
@@ -254,8 +248,6 @@ def run_task(task: PickTask, from_home: bool = True, speed: float = 0.15, meshca
         meshcat.StopRecording()
         meshcat.PublishRecording()
         if html_path is not None:
-            from pathlib import Path
-
             Path(html_path).parent.mkdir(parents=True, exist_ok=True)
             Path(html_path).write_text(meshcat.StaticHtml())
     out.sim_seconds, out.wall_seconds, out.cpu_seconds = plan.timeline.duration, wall, cpu
@@ -265,8 +257,6 @@ def run_task(task: PickTask, from_home: bool = True, speed: float = 0.15, meshca
 def main(task_name: str, argv=None):
     """Command line of the sims/pick_*.py scripts: run one task from home and write its Meshcat
     recording (default sims/out/<task>.html)."""
-    import argparse
-
     parser = argparse.ArgumentParser(description=f"Full-fidelity pick: {task_name}")
     parser.add_argument("--html", default=f"sims/out/{task_name}.html", help="Meshcat recording to write")
     parser.add_argument("--no-meshcat", action="store_true", help="simulate only (no recording)")
@@ -274,8 +264,6 @@ def main(task_name: str, argv=None):
     args = parser.parse_args(argv)
     meshcat = None
     if not args.no_meshcat:
-        from pydrake.geometry import StartMeshcat
-
         meshcat = StartMeshcat()
     out = run_task(TASKS[task_name], from_home=True, speed=args.speed, meshcat=meshcat,
                    html_path=None if args.no_meshcat else args.html)

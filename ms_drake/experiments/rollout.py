@@ -1,16 +1,9 @@
-"""One mechanical-search rollout in the bin: station + controller diagram + the driver loop.
+"""One mechanical-search rollout in the bin: a simulated station holding a heap, the bin-search
+controller of ms_drake.policies.bin_search (MakeBinSearchController, ground-truth segmentation
+and exact grasp meshes through SimulationInfo) and the driver loop.
 
-The controller diagram is the same in both fidelities (DESIGN.md "Data flow"):
-  overhead.label_image -> Segmenter(ground_truth) -> masks
-  overhead.rgb_image + masks -> TargetDetector(color) -> target
-  overhead.depth_image + target -> OccupancyEstimator(analytic)      (xray only)
-  depth + masks (+ simulation meshes) -> LazyGraspPlanner (jaw + suction GraspPlanners, robust
-                                         contact-model quality, planned per object on demand)
-  depth + masks -> PushPlanner                                       (pushing selectors only)
-  -> PolicySelector(policy) -> action -> ActionExecutor(backend) -> station command inputs
-  ActionExecutor.history -> PolicySelector.history
 Only the fidelity's backend and station differ: primitive = FloatingGripperBin + PrimitiveBackend,
-full = YuMiBin + FullBackend (jaw grasps; suction grasps are also planned for the YuMi's left arm).
+full = YuMiBin (or any robot scenario, `rollout(..., scenario_name=...)`) + FullBackend.
 
 The driver advances the simulator in executor periods; when `removed` grows it moves those
 objects out of the plant (remove_objects), and it stops when the executor is done, the simulation
@@ -29,16 +22,20 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 
 from ms_drake.errors import MsDrakeError
-from ms_drake.execution import (
-    FIDELITIES,
-    ActionExecutor,
-    ExecutionError,
-    FullBackend,
-    PrimitiveBackend,
-    connect_executor,
-    remove_objects,
-    tcp_offset_of,
+from ms_drake.execution import FIDELITIES, ExecutionError, remove_objects
+from ms_drake.perception.occupancy import TargetBox, TargetMesh
+from ms_drake.policies.bin_search import (
+    BinSearchController,
+    BinSearchParams,
+    MakeBinSearchController,
+    SimulationInfo,
+    connect_controller,
 )
+from ms_drake.policies.bin_selectors import check_policy
+from ms_drake.robots import station_robot_spec
+from ms_drake.scenario import load_scenario
+from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap, scenario_with_heap, set_heap_poses
+from ms_drake.station import MakeStation, get_plant, station_objects
 
 FAILURE_MODES = {
     "target_never_visible": "the target was not seen in any step",
@@ -80,8 +77,6 @@ class SearchParams:
     contact_approximation: str | None = None
 
     def __post_init__(self):
-        from ms_drake.policies.bin_selectors import check_policy
-
         check_policy(self.policy)
         if self.fidelity not in FIDELITIES:
             raise ExecutionError(f"fidelity {self.fidelity!r} unknown; choose one of {', '.join(FIDELITIES)}")
@@ -128,122 +123,61 @@ class RolloutResult:
 
 @dataclass
 class SearchSystem:
+    """A simulated station holding a heap, wired to a bin-search controller."""
+
     diagram: object
     station: object
     plant: object
-    executor: ActionExecutor
-    selector: object
-    perception: dict
+    controller: BinSearchController
     target_id: str
     bodies: dict  # object id -> body index
     scenario: object
 
+    def output(self, context, name: str):
+        """The controller's output `name` evaluated in the root `context`."""
+        return self.controller.GetOutputPort(name).Eval(self.controller.GetMyContextFromRoot(context))
+
+
+def controller_params(params: SearchParams, num_objects: int) -> BinSearchParams:
+    """The controller's settings of a rollout (horizon 2N unless given)."""
+    horizon = params.horizon if params.horizon is not None else 2 * num_objects
+    return BinSearchParams(policy=params.policy, fidelity=params.fidelity, horizon=horizon, seed=params.seed,
+                           grasp_models=tuple(params.grasp_models), grasp_samples=params.grasp_samples,
+                           robust_samples=params.robust_samples, grasp_params=params.grasp_params,
+                           period=params.period)
+
 
 def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSystem:
-    """Station of `scenario` holding `heap` (target drawn red) + the controller diagram."""
-    from ms_drake.grasping.planner import GraspPlanner, ObjectGeometrySource
-    from ms_drake.objects import get_object
-    from ms_drake.geometry import PinholeCamera
-    from ms_drake.perception.masks import object_labels
-    from ms_drake.perception.occupancy import OccupancyEstimator, TargetBox, TargetMesh
-    from ms_drake.geometry import Workspace
-    from ms_drake.perception.segmentation import Segmenter
-    from ms_drake.perception.target import TargetDetector
-    from ms_drake.policies import PolicySelector, SelectorParams
-    from ms_drake.pushing import PushPlanner
-    from ms_drake.scenes.heaps import scenario_with_heap
-    from ms_drake.station import MakeStation, get_plant, station_objects
-
-    n = len(heap.objects)
+    """Station of `scenario` holding `heap` (target drawn red) + the bin-search controller."""
     s = scenario_with_heap(copy.deepcopy(scenario), heap)
     if params.time_step is not None:
         s.plant_config.time_step = float(params.time_step)
-    approx = params.contact_approximation
-    if approx is not None:
-        s.plant_config.discrete_contact_approximation = approx
+    if params.contact_approximation is not None:
+        s.plant_config.discrete_contact_approximation = params.contact_approximation
     builder = DiagramBuilder()
     station = builder.AddSystem(MakeStation(s, meshcat=meshcat, target_index=heap.target_index))
-    plant = get_plant(station)
-    objs = station_objects(plant)
-    bodies = {o.model_name: int(o.body_index) for o in objs}
-    target_id = objs[heap.target_index].model_name if heap.target_index >= 0 else ""
-    cfg = s.cameras["overhead"]
-    cam = PinholeCamera.from_config(cfg)
-    ws = Workspace.from_scenario(s)
-    seg = builder.AddSystem(Segmenter("ground_truth", label_to_id=object_labels(plant)))
-    det = builder.AddSystem(TargetDetector("color", width=cam.width, height=cam.height))
-    color_cam, _ = cfg.MakeCameras()
-    from ms_drake.experiments.adapters import LazyGraspPlanner
-
-    # The GraspPlanners are not systems of this diagram: LazyGraspPlanner calls them per object.
-    planners = [GraspPlanner(color_cam.core().intrinsics(), cam.X_WC, model=m, num_samples=params.grasp_samples,
-                             robust_samples=params.robust_samples, seed=params.seed,
-                             evaluator_params=params.grasp_params if m != "suction" else None)
-                for m in params.grasp_models]
-    grasp = builder.AddSystem(LazyGraspPlanner(planners, cam.width, cam.height, seed=params.seed))
-    geo = builder.AddSystem(ObjectGeometrySource({
-        o.model_name: (plant.get_body(o.body_index), get_object(o.full_name).trimesh(), get_object(o.full_name).mass,
-                       None) for o in objs}))
-    horizon = params.horizon if params.horizon is not None else 2 * n
-    selector = builder.AddSystem(PolicySelector(params.policy, SelectorParams(horizon=horizon, seed=params.seed),
-                                                target_id=target_id, width=cam.width, height=cam.height))
-    depth, rgb, label = (station.GetOutputPort(f"overhead.{p}") for p in ("depth_image", "rgb_image", "label_image"))
-    builder.Connect(label, seg.GetInputPort("label_image"))
-    builder.Connect(rgb, det.GetInputPort("rgb_image"))
-    builder.Connect(seg.GetOutputPort("masks"), det.GetInputPort("masks"))
-    builder.Connect(station.GetOutputPort("body_poses"), geo.GetInputPort("body_poses"))
-    builder.Connect(depth, grasp.GetInputPort("depth_image"))
-    builder.Connect(seg.GetOutputPort("masks"), grasp.GetInputPort("masks"))
-    builder.Connect(geo.GetOutputPort("objects"), grasp.GetInputPort("objects"))
-    builder.Connect(seg.GetOutputPort("masks"), selector.GetInputPort("masks"))
-    builder.Connect(det.GetOutputPort("target"), selector.GetInputPort("target"))
-    builder.Connect(grasp.GetOutputPort("grasps"), selector.GetInputPort("grasps"))
-    perception = {"segmenter": seg, "detector": det, "grasps": grasp}
-    if params.policy.endswith("_push"):
-        pushes = builder.AddSystem(PushPlanner(cam, ws))
-        builder.Connect(depth, pushes.GetInputPort("depth_image"))
-        builder.Connect(seg.GetOutputPort("masks"), pushes.GetInputPort("masks"))
-        builder.Connect(pushes.GetOutputPort("pushes"), selector.GetInputPort("pushes"))
-        perception["pushes"] = pushes
-    if params.policy == "xray" or meshcat is not None or params.policy == "oracle":
+    sim = SimulationInfo.from_station(station, heap.target_index)
+    shape = None
+    if params.policy in ("xray", "oracle") or meshcat is not None:  # (a recorded search shows the occupancy)
         # The target's own mesh at its true initial pose (Ch. 8.3.1 renders the target itself):
         # rotation bin 0 and a grid node are its true placement (see occupancy.TargetMesh).
         shape = (TargetMesh.from_object(heap.target, heap.objects[heap.target_index].matrix())
                  if heap.target_index >= 0 else TargetBox.from_object(heap.target))
-        occ = builder.AddSystem(OccupancyEstimator("analytic", camera=cam, workspace=ws, target_size=shape))
-        builder.Connect(depth, occ.GetInputPort("depth_image"))
-        builder.Connect(det.GetOutputPort("target"), occ.GetInputPort("target"))
-        if params.policy == "xray":
-            builder.Connect(occ.GetOutputPort("occupancy"), selector.GetInputPort("occupancy"))
-        perception["occupancy"] = occ
-    if params.policy == "oracle":
-        from ms_drake.experiments.adapters import TargetAmodalMask
-        from ms_drake.perception.masks import make_amodal_masks
-
-        amodal = builder.AddSystem(make_amodal_masks(plant, cam))
-        pick = builder.AddSystem(TargetAmodalMask(target_id))
-        builder.Connect(station.GetOutputPort("body_poses"), amodal.get_input_port())
-        builder.Connect(amodal.get_output_port(), pick.get_input_port())
-        builder.Connect(pick.get_output_port(), selector.GetInputPort("target_amodal"))
-    if params.fidelity == "primitive":
-        backend = PrimitiveBackend(bodies, ws, tcp_offset_of(plant), target_id=target_id, seed=params.seed)
-    else:
-        backend = FullBackend(s, bodies, ws, target_id=target_id, seed=params.seed)
-    executor = builder.AddSystem(ActionExecutor(backend, period=params.period))
-    connect_executor(builder, executor, station, selector)
+    controller = builder.AddSystem(MakeBinSearchController(s, controller_params(params, len(heap.objects)),
+                                                           sim=sim, target_shape=shape))
+    connect_controller(builder, controller, station)
     diagram = builder.Build()
-    return SearchSystem(diagram, station, plant, executor, selector, perception, target_id, bodies, s)
+    plant = get_plant(station)
+    bodies = {o.model_name: int(o.body_index) for o in station_objects(plant)}
+    return SearchSystem(diagram, station, plant, controller, sim.target_id, bodies, s)
 
 
 def _set_initial(system: SearchSystem, context, heap):
-    """Heap poses, and the robot at the executor's initial commands (parked / home)."""
-    from ms_drake.scenes.heaps import set_heap_poses
-    from ms_drake.robots import station_robot_spec
-
+    """Heap poses, and the robot at the controller's initial commands (parked / home)."""
     set_heap_poses(system.station, context, heap)
     plant, pc = system.plant, system.plant.GetMyMutableContextFromRoot(context)
     spec = station_robot_spec(system.scenario.robot.name)
-    init = system.executor.backend.initial_commands()
+    init = system.controller.initial_commands()
     q = plant.GetPositions(pc)
     for arm, a in spec.arms.items():
         if f"{arm}.position" in init:
@@ -253,13 +187,11 @@ def _set_initial(system: SearchSystem, context, heap):
 
 
 def _frame(system: SearchSystem, context, step: int) -> Frame:
-    def ev(sys, port):
-        return sys.GetOutputPort(port).Eval(sys.GetMyContextFromRoot(context))
-
-    occ = system.perception.get("occupancy")
-    return Frame(step, np.array(ev(system.station, "overhead.rgb_image").data)[..., :3].copy(),
-                 ev(system.perception["segmenter"], "masks"), ev(system.perception["detector"], "target"),
-                 ev(occ, "occupancy") if occ is not None else None, ev(system.selector, "action"))
+    station_ctx = system.station.GetMyContextFromRoot(context)
+    rgb = np.array(system.station.GetOutputPort("overhead.rgb_image").Eval(station_ctx).data)[..., :3].copy()
+    occ = system.output(context, "occupancy") if system.controller.HasOutputPort("occupancy") else None
+    return Frame(step, rgb, system.output(context, "masks"), system.output(context, "target"), occ,
+                 system.output(context, "action"))
 
 
 def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: float | None = None,
@@ -273,24 +205,25 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
     context = simulator.get_mutable_context()
     _set_initial(system, context, heap)
     simulator.Initialize()
-    ex = system.executor
-    ex_ctx = ex.GetMyContextFromRoot(context)
     pc = system.plant.GetMyMutableContextFromRoot(context)
     seen_visible, empty_at_stop = False, False
-    frames, removed_done, last_steps = [], set(), -1
+    frames, removed_done, last_steps, grasp_plans, step_grasps = [], set(), -1, 0, None
     failure, t, k = "", 0.0, 0
     if meshcat is not None:
         meshcat.StartRecording(set_visualizations_while_recording=False)
     try:
         while True:
-            status = ex.status_port.Eval(ex_ctx)
+            status = system.output(context, "status")
             if status.done:
                 break
             if not status.busy and status.steps != last_steps:  # idle: the next action is chosen now
                 last_steps = status.steps
-                target = system.perception["detector"].GetOutputPort("target").Eval(
-                    system.perception["detector"].GetMyContextFromRoot(context))
-                seen_visible |= bool(target.visible)
+                seen_visible |= bool(system.output(context, "target").visible)
+                # The grasps the selector reads at this step (the same cache entry): the objects
+                # planned for the step are those it looked up.
+                if step_grasps is not None:
+                    grasp_plans += len(step_grasps.planned)
+                step_grasps = system.output(context, "grasps")
                 if keep_frames:
                     frames.append(_frame(system, context, status.steps))
             if t >= max_sim_time:
@@ -303,7 +236,7 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
             k += 1
             t = k * params.period
             simulator.AdvanceTo(t)
-            gone = [r for r in ex.removed_port.Eval(ex_ctx) if r not in removed_done]
+            gone = [r for r in system.output(context, "removed") if r not in removed_done]
             if gone:
                 remove_objects(system.plant, pc, [system.bodies[r] for r in gone if r in system.bodies])
                 removed_done.update(gone)
@@ -318,14 +251,15 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
         if meshcat is not None:
             meshcat.StopRecording()
             meshcat.PublishRecording()
-    status = ex.status_port.Eval(ex_ctx)
-    history = ex.history_port.Eval(ex_ctx)
+    if step_grasps is not None:
+        grasp_plans += len(step_grasps.planned)
+    status = system.output(context, "status")
+    history = system.output(context, "history")
     reason = status.stop_reason if status.done else failure
     success = reason == "success"
     if not failure and not success:
         if reason == "no_action":
-            masks = system.perception["segmenter"].GetOutputPort("masks").Eval(
-                system.perception["segmenter"].GetMyContextFromRoot(context))
+            masks = system.output(context, "masks")
             empty_at_stop = len(masks) == 0
             failure = ("empty_segmentation" if empty_at_stop else
                        "target_never_visible" if not seen_visible else "grasps_below_threshold")
@@ -339,22 +273,21 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
                         sim_seconds=float(context.get_time()),
                         target=heap.target,
                         grasp_successes=sum(1 for o in history if o.action.kind == "grasp" and o.success),
-                        grasp_plans=system.perception["grasps"].planned,
+                        grasp_plans=grasp_plans,
                         error=msg, frames=frames)
     return res
 
 
 def rollout(policy: str, objects: int, seed: int, fidelity: str = "primitive", horizon: int | None = None,
-            heap=None, keep_frames: bool = False, meshcat=None, **kw) -> RolloutResult:
-    """Generate heap `seed` (N objects, BinHeap15's bin) and search it with `policy`."""
-    from ms_drake.scenario import load_scenario
-    from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap
-
+            heap=None, keep_frames: bool = False, meshcat=None, scenario_name: str | None = None,
+            **kw) -> RolloutResult:
+    """Generate heap `seed` (N objects, BinHeap15's bin) and search it with `policy` on the station
+    of `scenario_name` (default: FloatingGripperBin for primitive, YuMiBin for full fidelity)."""
     kw.setdefault("time_step", 0.01 if fidelity == "primitive" else None)
     params = SearchParams(policy=policy, fidelity=fidelity, horizon=horizon, seed=seed, **kw)
     if heap is None:
         heap = generate_heap(load_scenario(None, "BinHeap15"), objects, seed, params=SEARCH_HEAPS)
-    scenario = load_scenario(None, SCENARIOS[fidelity])
+    scenario = load_scenario(None, scenario_name or SCENARIOS[fidelity])
     system = build_search(scenario, heap, params, meshcat=meshcat)
     res = run_search(system, heap, params, keep_frames=keep_frames, meshcat=meshcat)
     res.objects = int(objects)  # the N asked for: what the benchmark's files are keyed by

@@ -9,21 +9,26 @@ green by robust quality) and <out>/<object>_<model>.json, and prints the grasp t
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 from typing import Annotated
 
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
 import typer
+from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 
 from ms_drake.errors import ObjectSetError
 from ms_drake.grasping.evaluator import MODELS, GraspEvaluator
 from ms_drake.grasping.grasp import GraspError
+from ms_drake.grasping.meshes import object_mesh
+from ms_drake.grasping.samplers import sample_antipodal_grasps
+from ms_drake.objects import available_sets, get_object, get_object_set
 
 
 def resolve_object(name: str):
     """An ObjectSpec from '<set>/<name>' or a bare name searched in every available set."""
-    from ms_drake.objects import available_sets, get_object, get_object_set
-
     if "/" in name:
         return get_object(name)
     for s in available_sets():
@@ -37,11 +42,7 @@ def resolve_object(name: str):
 
 def render_grasps(mesh, grasps, qualities, path: Path, title: str = ""):
     """PNG of the mesh with grasp axes (jaw to jaw) coloured by quality (RdYlGn)."""
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 
     fig = plt.figure(figsize=(6, 6), dpi=120)
     ax = fig.add_subplot(111, projection="3d")
@@ -85,14 +86,10 @@ def grasp_command(
     seed: Annotated[int, typer.Option("--seed", help="Seed of sampling and robust trials")] = 0,
 ) -> Path:
     """Sample grasps on an object, score them with a contact model, write a PNG and print the table."""
-    import time
-
-    from ms_drake.grasping.samplers import sample_antipodal_grasps
 
     if samples < 1:
         raise GraspError(f"--samples must be >= 1, got {samples}")
     spec = resolve_object(object)
-    from ms_drake.grasping.meshes import object_mesh
 
     ev = GraspEvaluator(model, friction=friction, closing_force=closing_force)
     mesh = object_mesh(spec.full_name)

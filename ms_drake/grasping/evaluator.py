@@ -24,10 +24,18 @@ from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
+from ms_drake.grasping import wrench_qp
+from ms_drake.grasping.friction_cone import cone_contact
 from ms_drake.grasping.geometry import MeshData, jaw_patches
 from ms_drake.grasping.grasp import GraspError, ParallelJawGrasp
-from ms_drake.grasping import wrench_qp
+from ms_drake.grasping.point_models import (
+    contacts_problem,
+    elliptical_contact,
+    ray_contacts,
+)
+from ms_drake.grasping.reach import reach_contact
 from ms_drake.grasping.wrench_qp import SOLVERS, WrenchProblem, stack
 from ms_drake.grasping.wrench_sets import normalizer
 
@@ -192,8 +200,6 @@ class GraspEvaluator:
 
     # ------------------------------------------------------------------ internals
     def _perturb(self, g: ParallelJawGrasp, mass: float, rng):
-        from scipy.spatial.transform import Rotation
-
         dt = rng.normal(scale=self.sigma_t, size=3)
         R = Rotation.from_rotvec(rng.normal(scale=self.sigma_r, size=3)).as_matrix()
         mu = max(0.05, self.friction + rng.normal(scale=self.sigma_friction))
@@ -207,8 +213,6 @@ class GraspEvaluator:
         t = np.concatenate([g_dir, np.zeros(3)])  # gravity wrench about the COM / (m g)
         blocks: list[WrenchProblem] = []
         if self.model in ("point", "soft_point"):
-            from ms_drake.grasping.point_models import contacts_problem, ray_contacts
-
             contacts, reason = ray_contacts(data, g.center, g.axis, g.width)
             if contacts is None:
                 return None, reason
@@ -227,17 +231,11 @@ class GraspEvaluator:
         try:
             for patch in patches:
                 if self.model == "elliptical":
-                    from ms_drake.grasping.point_models import elliptical_contact
-
                     blocks.extend(elliptical_contact(patch, com, mu, self.closing_force, self.ellipsoid_samples))
                 elif self.model == "reach":
-                    from ms_drake.grasping.reach import reach_contact
-
                     blocks.extend(reach_contact(patch, com, mu, self.closing_force, self.max_triangles,
                                                 self.ellipsoid_samples))
                 else:
-                    from ms_drake.grasping.friction_cone import cone_contact
-
                     rng = np.random.default_rng(rng)  # a seed or a Generator; created only here
                     blocks.append(cone_contact(patch, com, mu, self.closing_force, W, rng, self.k1, self.k2,
                                                self.cone_planes, cone=self.model == "6dfc"))

@@ -27,6 +27,7 @@ import math
 import weakref
 from dataclasses import dataclass
 
+import manifold3d as m3
 import numpy as np
 
 _CACHE: dict[int, tuple[weakref.ref, "MeshData"]] = {}
@@ -207,8 +208,6 @@ class MeshData:
     def manifold(self):
         """The mesh as a manifold3d Manifold (built once; raises ValueError if not a valid solid)."""
         if self._manifold is None:
-            import manifold3d as m3
-
             if getattr(self, "_manifold_error", None):
                 raise ValueError(self._manifold_error)
             m = m3.Manifold(m3.Mesh64(vert_properties=self.vertices, tri_verts=self.faces.astype(np.uint64)))
@@ -380,8 +379,6 @@ def jaw_patches_csg(data: MeshData, center, axis, approach, width, pad_polygon, 
     {"miss", "jaw_collision", "zero_area_patch"}. Jaw 1 starts at center - width/2 * axis and
     closes along +axis; jaw 2 starts at center + width/2 * axis and closes along -axis.
     """
-    import manifold3d as m3
-
     R, origin = jaw_frame(center, axis, approach, width)
     cs = m3.CrossSection([np.asarray(pad_polygon, float)])
     T = np.column_stack([R, origin])

@@ -20,17 +20,21 @@ Three resumable stages, each appending JSON lines to a file (a rerun skips what 
 
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
+from sklearn.metrics import average_precision_score
 
 from ms_drake.grasping.evaluator import MODELS, GraspEvaluator
 from ms_drake.grasping.grasp import ParallelJawGrasp
+from ms_drake.grasping.meshes import object_mesh
 from ms_drake.grasping.physics import PadConfig, label_grasp
 from ms_drake.grasping.samplers import sample_antipodal_grasps
+from ms_drake.objects import available_sets, get_object, get_object_set
 
 THRESHOLDS = np.round(np.arange(0.0, 1.01, 0.1), 2)
 
@@ -58,16 +62,12 @@ def _append(path: Path, row: dict):
 
 def _keys_hash(rows) -> str:
     """Identifies the label set (and its order) a prediction row was computed on."""
-    import hashlib
-
     return hashlib.sha1(json.dumps([[r["object"], r["index"]] for r in rows]).encode()).hexdigest()
 
 
 def default_label_objects(count: int = 24, max_min_extent: float = 0.075) -> list[str]:
     """`count` graspable objects (smallest extent <= max_min_extent), alternating over the
     available sets and, in the procedural set, over boxes, cylinders and packaged objects."""
-    from ms_drake.objects import available_sets, get_object_set
-
     pools = []
     for name in available_sets():
         objs = [o for o in get_object_set(name).objects if min(o.extents) <= max_min_extent]
@@ -86,9 +86,6 @@ def default_label_objects(count: int = 24, max_min_extent: float = 0.075) -> lis
 
 
 def _object(full_name: str):
-    from ms_drake.grasping.meshes import object_mesh
-    from ms_drake.objects import get_object
-
     return get_object(full_name), object_mesh(full_name)
 
 
@@ -185,8 +182,6 @@ def average_recall(y: np.ndarray, q: np.ndarray) -> float:
 
 def loo_table(labels: Path, predictions: Path) -> list[dict]:
     """Leave-one-object-out AP / AR per (model, robust) -- see the module docstring."""
-    from sklearn.metrics import average_precision_score
-
     rows = _read_jsonl(labels)
     preds = [p for p in _read_jsonl(predictions) if p.get("keys_sha1") == _keys_hash(rows)]
     table = []

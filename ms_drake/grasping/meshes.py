@@ -1,6 +1,6 @@
 """Watertight meshes of registry objects for grasp analysis.
 
-Contact models need a closed surface (issue 4: a non-watertight mesh gets quality 0 with reason
+Contact models need a closed surface (a non-watertight mesh gets quality 0 with reason
 "non_watertight_mesh"). Procedural objects are closed; converted mesh sets may ship visual
 meshes split at texture / normal seams or with a few non-manifold edges after decimation, so
 `object_mesh` first repairs the visual mesh (merge the seams, then a manifold3d round trip:
@@ -12,17 +12,18 @@ from __future__ import annotations
 
 import functools
 
+import manifold3d as m3
 import numpy as np
+import trimesh
+
+from ms_drake.errors import ModelNotFoundError
+from ms_drake.objects import get_object
+from ms_drake.paths import PACKAGE_NAME, models_dir
 
 
 @functools.lru_cache(maxsize=256)
 def object_mesh(full_name: str):
     """A watertight trimesh of the object `<set>/<name>` in its own frame (cached)."""
-    import trimesh
-
-    from ms_drake.errors import ModelNotFoundError
-    from ms_drake.objects import get_object
-    from ms_drake.paths import PACKAGE_NAME, models_dir
 
     spec = get_object(full_name)
     mesh = spec.trimesh()
@@ -52,9 +53,6 @@ def object_mesh(full_name: str):
 def _repair(mesh):
     """Merge the texture / normal seams of a visual mesh and let manifold3d resolve its few
     non-manifold edges; the result if it is a closed solid, else None."""
-    import manifold3d as m3
-    import trimesh
-
     m = mesh.copy()
     m.merge_vertices(merge_tex=True, merge_norm=True)
     solid = m3.Manifold(m3.Mesh64(vert_properties=np.asarray(m.vertices, float),

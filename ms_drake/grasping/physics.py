@@ -27,9 +27,45 @@ friction coefficient and the mass. `label_grasp` runs `trials` seeded trials.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
+import trimesh
+from pydrake.common import MemoryFile
+from pydrake.common.value import AbstractValue
+from pydrake.geometry import (
+    AddCompliantHydroelasticProperties,
+    AddContactMaterial,
+    AddRigidHydroelasticProperties,
+    Box,
+    Convex,
+    InMemoryMesh,
+    Mesh,
+    ProximityProperties,
+)
+from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.multibody.math import SpatialForce
+from pydrake.multibody.plant import (
+    AddMultibodyPlant,
+    CoulombFriction,
+    ExternallyAppliedSpatialForce,
+    MultibodyPlantConfig,
+)
+from pydrake.multibody.tree import (
+    FixedOffsetFrame,
+    PdControllerGains,
+    PrismaticJoint,
+    RotationalInertia,
+    SpatialInertia,
+    UnitInertia,
+)
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder, EventStatus, LeafSystem
+from pydrake.systems.primitives import ConstantVectorSource, TrajectorySource
+from pydrake.trajectories import PiecewisePolynomial
+from pydrake.visualization import AddDefaultVisualization
+from scipy.spatial.transform import Rotation
 
 from ms_drake.grasping.grasp import GraspError, ParallelJawGrasp
 
@@ -80,17 +116,12 @@ def _obj_text(vertices: np.ndarray, faces: np.ndarray) -> str:
 def _pad_shape(pad: PadConfig):
     """(shape, X_FP): the pad geometry and its pose in the finger frame (pad face at z = 0,
     body towards -z, i.e. the pad pushes along +z)."""
-    from pydrake.common import MemoryFile
-    from pydrake.geometry import Box, Convex, InMemoryMesh
-    from pydrake.math import RigidTransform
-
     p = np.asarray(pad.polygon, float)
     if pad.is_rectangle():
         lo, hi = p.min(axis=0), p.max(axis=0)
         c = 0.5 * (lo + hi)
         return Box(*(hi - lo), pad.depth), RigidTransform([c[0], c[1], -0.5 * pad.depth])
     verts = np.vstack([np.column_stack([p, np.zeros(len(p))]), np.column_stack([p, np.full(len(p), -pad.depth)])])
-    import trimesh
 
     hull = trimesh.convex.convex_hull(verts)
     mesh = InMemoryMesh()
@@ -99,8 +130,6 @@ def _pad_shape(pad: PadConfig):
 
 
 def _perturb(grasp: ParallelJawGrasp, friction: float, mass: float, rng, sigma_t, sigma_r, sigma_f, sigma_m):
-    from scipy.spatial.transform import Rotation
-
     R = Rotation.from_rotvec(rng.normal(scale=sigma_r, size=3)).as_matrix()
     g = ParallelJawGrasp(grasp.center + rng.normal(scale=sigma_t, size=3), R @ grasp.axis, R @ grasp.approach,
                          grasp.width)
@@ -116,22 +145,6 @@ def simulate_grasp(mesh, X_WO, grasp: ParallelJawGrasp, mass: float, *, pad: Pad
     """Simulate one grasp (world frame). With `seed` set, the grasp pose, friction and mass are
     perturbed from numpy.random.default_rng(seed); seed=None runs the nominal grasp.
     friction: the object-pad Coulomb coefficient (default: the pad's)."""
-    import time
-
-    from pydrake.geometry import (AddCompliantHydroelasticProperties, AddContactMaterial,
-                                  AddRigidHydroelasticProperties, InMemoryMesh, Mesh, ProximityProperties)
-    from pydrake.common import MemoryFile
-    from pydrake.math import RigidTransform, RotationMatrix
-    from pydrake.multibody.plant import (AddMultibodyPlant, CoulombFriction, ExternallyAppliedSpatialForce,
-                                         MultibodyPlantConfig)
-    from pydrake.multibody.math import SpatialForce
-    from pydrake.multibody.tree import (FixedOffsetFrame, PdControllerGains, PrismaticJoint, RotationalInertia,
-                                        SpatialInertia, UnitInertia)
-    from pydrake.systems.analysis import Simulator
-    from pydrake.systems.framework import DiagramBuilder, LeafSystem
-    from pydrake.systems.primitives import ConstantVectorSource, TrajectorySource
-    from pydrake.trajectories import PiecewisePolynomial
-    from pydrake.common.value import AbstractValue
 
     t_wall = time.perf_counter()
     pad = pad or PadConfig()
@@ -237,8 +250,6 @@ def simulate_grasp(mesh, X_WO, grasp: ParallelJawGrasp, mass: float, *, pad: Pad
     wl = builder.AddSystem(Weightless())
     builder.Connect(wl.get_output_port(), plant.get_applied_spatial_force_input_port())
     if meshcat is not None:
-        from pydrake.visualization import AddDefaultVisualization
-
         AddDefaultVisualization(builder, meshcat)
     diagram = builder.Build()
     sim = Simulator(diagram)
@@ -254,8 +265,6 @@ def simulate_grasp(mesh, X_WO, grasp: ParallelJawGrasp, mass: float, *, pad: Pad
     # both pads touch: each finger stopped short of closing fully
     contact = all(q < half - 1e-4 for q in q_f)
     if contact:
-        from pydrake.systems.framework import EventStatus
-
         def dropped(root_context):  # stop early once the object has clearly left the hand
             c = plant.GetMyContextFromRoot(root_context)
             X_HO = plant.EvalBodyPoseInWorld(c, hand).inverse() @ plant.EvalBodyPoseInWorld(c, body)

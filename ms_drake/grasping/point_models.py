@@ -23,7 +23,12 @@ from scipy.special import ellipe
 
 from ms_drake.grasping.geometry import MeshData, Patch, cross
 from ms_drake.grasping.wrench_qp import WrenchProblem
-from ms_drake.grasping.wrench_sets import ellipsoid_generators, hull, sphere_samples, wrench
+from ms_drake.grasping.wrench_sets import (
+    ellipsoid_generators,
+    hull,
+    sphere_samples,
+    wrench,
+)
 
 
 def ray_contacts(data: MeshData, center, axis, width):

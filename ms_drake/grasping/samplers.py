@@ -20,7 +20,9 @@ Every sampler takes a seed; outputs are world-frame `ParallelJawGrasp` / `Suctio
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ms_drake.grasping.geometry import MeshData, cross
 from ms_drake.grasping.grasp import GraspError, ParallelJawGrasp, SuctionGrasp
@@ -156,8 +158,6 @@ def sample_antipodal_grasps_point_cloud(points: np.ndarray, normals: np.ndarray,
                                         dedupe_distance: float = 0.004, dedupe_angle: float = 0.2,
                                         min_width: float = 0.002) -> list[ParallelJawGrasp]:
     """Antipodal pairs among world-frame points with outward unit normals (N, 3)."""
-    from scipy.spatial import cKDTree
-
     points = np.asarray(points, float)
     normals = np.asarray(normals, float)
     if len(points) < 2:
@@ -216,8 +216,6 @@ def depth_normals(points_C: np.ndarray) -> np.ndarray:
 
 def _mask_boundary_normals(mask: np.ndarray):
     """Boundary pixels (rows, cols) of a mask and their 2D outward normals (d_col, d_row)."""
-    import cv2
-
     m = mask.astype(np.uint8)
     eroded = cv2.erode(m, np.ones((3, 3), np.uint8))
     boundary = (m > 0) & (eroded == 0)
@@ -287,9 +285,9 @@ def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.nda
     of footprint-boundary cells whose 2D outward normals are antipodal within the friction cone,
     the grasp axis is horizontal; both contacts must lie on an edge that stays inside the
     footprint +-0.4 finger_width across the axis (2 cells in), which drops corner-to-corner
-    pairs whose smoothed normals look antipodal. (The first version paired image-boundary pixels
-    and deprojected their midpoint: for a tall object off the optical axis the mask spans its top
-    and its side, and the midpoint landed up to 2 cm beside the object.)
+    pairs whose smoothed normals look antipodal. (Pairing image-boundary pixels and deprojecting
+    their midpoint does not work: for a tall object off the optical axis the mask spans its top
+    and its side, and the midpoint lands up to 2 cm beside the object.)
 
     How deep the jaws go (the reference is silent; our choice): z_top is the object's highest
     point along the segment joining the contacts; z_free the highest surface where the fingers land
@@ -305,7 +303,7 @@ def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.nda
     45 mm above it). `clearance` (metres) is kept between the jaw and what the height map shows,
     vertically and around the palm's outline (the map is the visible surface only). Half-way
     down is where a lying cylinder is widest and where a tilted box's side faces are under both
-    jaws; 1 cm under the highest point (the first version) put one jaw above a tilted top face.
+    jaws; 1 cm under the highest point puts one jaw above a tilted top face.
 
     prefer_center: return the candidates sorted by the distance of their centre to the footprint's
     centroid (a proxy for the centre of mass: gravity's torque about the grasp axis is what the
@@ -336,7 +334,6 @@ def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.nda
     obj = P_W[valid[r0:r1, c0:c1] & ok]
     # the neighbours: points off the mask dilated by 2 px (a silhouette's edge pixels can carry
     # the object's own depth without its label)
-    import cv2
 
     near = cv2.dilate(valid[r0:r1, c0:c1].astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
     others = P_W[ok & ~near]
@@ -409,8 +406,6 @@ def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.nda
 
 def _fill_max(H: np.ndarray) -> np.ndarray:
     """Empty cells take the highest neighbour (3x3); the footprint's closing may add such cells."""
-    import cv2
-
     return cv2.dilate(np.where(np.isfinite(H), H, -1e9).astype(np.float32), np.ones((3, 3), np.uint8))
 
 

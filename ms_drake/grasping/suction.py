@@ -28,6 +28,7 @@ from __future__ import annotations
 from collections import Counter
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ms_drake.grasping import wrench_qp
 from ms_drake.grasping.evaluator import GRAVITY, GraspQuality
@@ -83,8 +84,6 @@ class SuctionEvaluator:
             if robust_samples <= 0:
                 ok, reason, res = self._trial(data, p_O, a_O, com_O, g_O, self.friction, mass)
                 return GraspQuality(float(ok), reason, res, 1, {reason: 1})
-            from scipy.spatial.transform import Rotation
-
             outs = []
             for i in range(int(robust_samples)):
                 rng = np.random.default_rng([int(seed), i])

@@ -37,6 +37,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from pydrake.solvers import (
+    ClarabelSolver,
+    MathematicalProgram,
+    OsqpSolver,
+    Solve,
+    SolverOptions,
+)
+from scipy.optimize import nnls
 
 RESIST_TOLERANCE = 1e-3  # residual, as a fraction of the weight, below which gravity is resisted
 ROW_WEIGHT = 10.0
@@ -123,9 +131,6 @@ class WrenchQP:
     """
 
     def __init__(self, n: int, m: int, solver: str = "clarabel"):
-        from pydrake.solvers import (ClarabelSolver, MathematicalProgram, OsqpSolver,
-                                     SolverOptions)
-
         self.n, self.m = n, m
         prog = MathematicalProgram()
         self.x = prog.NewContinuousVariables(n, "x")
@@ -179,8 +184,6 @@ def solve_mp(p: WrenchProblem, solver: str = "clarabel") -> QPResult:
 def solve_mp_naive(p: WrenchProblem) -> QPResult:
     """The slow baseline for benchmarks: build a fresh program and call pydrake's Solve()
     (automatic solver choice) for every grasp, with the dense cost ||G x + t||^2."""
-    from pydrake.solvers import MathematicalProgram, Solve
-
     prog = MathematicalProgram()
     x = prog.NewContinuousVariables(p.G.shape[1], "x")
     prog.AddQuadraticCost(2 * p.G.T @ p.G, 2 * p.G.T @ p.t, float(p.t @ p.t), x, is_convex=True)
@@ -199,8 +202,6 @@ def solve_nnls(p: WrenchProblem) -> QPResult:
 
     Each equality row becomes one weighted row, each one-sided inequality one weighted row with
     its own slack variable >= 0; the wrench rows keep unit weight."""
-    from scipy.optimize import nnls
-
     if not p.is_vertex_form():
         raise ValueError("solve_nnls needs all variables >= 0 with no upper bounds")
     n, m = p.shape
@@ -230,8 +231,6 @@ def solve_nnls(p: WrenchProblem) -> QPResult:
 
 def _min_norm_in_hull(S: np.ndarray, t: np.ndarray) -> np.ndarray:
     """lambda in the simplex minimizing ||S lambda + t|| (S: (6, m) with small m)."""
-    from scipy.optimize import nnls
-
     m = S.shape[1]
     if m == 1:
         return np.ones(1)

@@ -12,7 +12,6 @@ import functools
 import numpy as np
 
 from ms_drake.grasping.geometry import cross
-
 from ms_drake.grasping.wrench_qp import WrenchProblem
 
 

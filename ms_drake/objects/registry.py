@@ -6,7 +6,7 @@ Sets:
   code from the object index (deterministic, no files). Density 400 kg/m^3 (a typical
   household item's average density), masses clipped to [0.02, 1.0] kg.
 - mesh sets: any folder ``models/objects/<set>/`` with an ``index.json`` written by the
-  converter (``python -m ms_drake.objects.convert``). The index format is::
+  converter (``python -m tools.convert_objects``). The index format is::
 
       {"set": "ycb", "source": "...", "license": "...", "density": 500.0,
        "objects": [{"name": "003_cracker_box", "split": "train", "mass": 0.41,
@@ -27,8 +27,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import trimesh
+from scipy.spatial.transform import Rotation
 
-from ms_drake.errors import ObjectSetError, ModelNotFoundError
+from ms_drake.errors import ModelNotFoundError, ObjectSetError
 from ms_drake.objects.sdf import Inertia, Shape, object_sdf
 from ms_drake.paths import PACKAGE_NAME, models_dir
 
@@ -84,12 +86,10 @@ class ObjectSpec:
     def trimesh(self):
         """The object's surface as a trimesh.Trimesh in the object frame (watertight for
         primitives; for mesh sets the converted visual mesh)."""
-        import trimesh
-
         if self.mesh_file:
             if not Path(self.mesh_file).is_file():
                 raise ModelNotFoundError(f"object {self.full_name}: mesh file {self.mesh_file} is missing; "
-                                         "rebuild the set with `python -m ms_drake.objects.convert`")
+                                         "rebuild the set with `python -m tools.convert_objects`")
             return trimesh.load(self.mesh_file, force="mesh", process=True)
         parts = []
         for s in self.collisions:
@@ -101,7 +101,6 @@ class ObjectSpec:
                 m = trimesh.creation.icosphere(subdivisions=3, radius=s.size[0])
             else:
                 raise ValueError(f"cannot mesh shape kind {s.kind}")
-            from scipy.spatial.transform import Rotation
 
             T = np.eye(4)
             T[:3, :3] = Rotation.from_euler("xyz", s.pose[3:]).as_matrix()
@@ -225,7 +224,7 @@ def load_mesh_set(folder: Path) -> ObjectSet:
     """
     folder = Path(folder).resolve()
     index_file = folder / "index.json"
-    rebuild = "rebuild it with `python -m ms_drake.objects.convert --set <set>`"
+    rebuild = "rebuild it with `python -m tools.convert_objects --set <set>`"
     try:
         data = json.loads(index_file.read_text())
         entries = data["objects"]
@@ -283,7 +282,7 @@ def get_object_set(name: str) -> ObjectSet:
     folder = models_dir() / "objects" / name
     if not (folder / "index.json").is_file():
         raise ObjectSetError(f"unknown object set {name!r}; available: {', '.join(available_sets())}. "
-                             "Mesh sets are built with `python -m ms_drake.objects.convert`.")
+                             "Mesh sets are built with `python -m tools.convert_objects`.")
     return _load_mesh_set(folder)
 
 

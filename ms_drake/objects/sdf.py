@@ -7,12 +7,12 @@ a string anywhere.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 import math
+from dataclasses import dataclass
 from xml.sax.saxutils import escape
 
 import numpy as np
-
+from scipy.spatial.transform import Rotation
 
 #: Hydroelastic modulus of objects (Pa): stiff (hard plastic / wood-like contact patches of a
 #: few mm at object weights) yet much softer than rigid, so the contact solver stays well
@@ -120,8 +120,6 @@ def contact_points(shape: Shape, max_radius: float = 0.005) -> list[tuple[tuple[
 
 def _compose(pose, p):
     """A point p of a shape posed at `pose` (x y z r p y), in the object frame."""
-    from scipy.spatial.transform import Rotation
-
     return tuple(np.asarray(pose[:3]) + Rotation.from_euler("xyz", pose[3:]).apply(p))
 
 

@@ -1,16 +1,17 @@
 """Object masks from simulation: modal (visible) masks from the label image and amodal (whole
 object, ignoring occlusion) masks by projecting the object's mesh through the camera.
 
-- `LabelImageToMasks` (LeafSystem): label image -> InstanceMasks, one mask per object whose
-  label (Drake's default render label of a plant body is its BodyIndex) has >= `min_pixels`.
+- `label_image_to_masks`, `object_labels`: label image -> InstanceMasks of the plant's objects
+  (Drake's default render label of a plant body is its BodyIndex); the ground-truth backend of
+  ms_drake.perception.segmentation.Segmenter uses them.
 - `AmodalMasks` (LeafSystem): body poses -> InstanceMasks of every object's full silhouette.
   The silhouette is the union of the object's mesh triangles projected with the pinhole
   model (cv2.fillPoly); it equals rendering the object alone (tests check IoU > 0.97) at a
   fraction of the cost of one render per object.
+- `TargetAmodalMask` (LeafSystem): the target's amodal mask among them (the oracle's view).
 """
 
 from __future__ import annotations
-
 
 import numpy as np
 from pydrake.common.value import AbstractValue
@@ -19,6 +20,8 @@ from pydrake.systems.framework import LeafSystem
 from pydrake.systems.sensors import ImageLabel16I
 
 from ms_drake.geometry import PinholeCamera, silhouette
+from ms_drake.objects import get_object
+from ms_drake.station.station import station_objects
 from ms_drake.types import InstanceMasks
 
 
@@ -34,31 +37,7 @@ def label_image_to_masks(labels: np.ndarray, label_to_id: dict[int, str], min_pi
 
 def object_labels(plant) -> dict[int, str]:
     """Render label -> object model-instance name for the objects of a station plant."""
-    from ms_drake.station.station import station_objects
-
     return {int(o.body_index): o.model_name for o in station_objects(plant)}
-
-
-class LabelImageToMasks(LeafSystem):
-    """Ground-truth instance segmentation from a simulated label image (sim only).
-
-    Input ``label_image`` (ImageLabel16I); output ``masks`` (InstanceMasks) with ids from
-    `label_to_id` (e.g. `object_labels(plant)`), in increasing label order.
-    """
-
-    def __init__(self, label_to_id: dict[int, str], min_pixels: int = 20):
-        super().__init__()
-        # Ports first.
-        self._label = self.DeclareAbstractInputPort("label_image", AbstractValue.Make(ImageLabel16I()))
-        self.DeclareAbstractOutputPort("masks", lambda: AbstractValue.Make(InstanceMasks.empty(1, 1)),
-                                       self._calc)
-        self._label_to_id = dict(label_to_id)
-        self._min_pixels = int(min_pixels)
-
-    def _calc(self, context, output):
-        img = self._label.Eval(context)
-        labels = np.array(img.data)[:, :, 0]
-        output.set_value(label_image_to_masks(labels, self._label_to_id, self._min_pixels))
 
 
 class AmodalMasks(LeafSystem):
@@ -93,8 +72,24 @@ class AmodalMasks(LeafSystem):
 
 def make_amodal_masks(plant, camera: PinholeCamera) -> AmodalMasks:
     """An AmodalMasks system for all objects of a station plant."""
-    from ms_drake.objects import get_object
-    from ms_drake.station.station import station_objects
-
     objs = [(o.model_name, int(o.body_index), get_object(o.full_name).trimesh()) for o in station_objects(plant)]
     return AmodalMasks(camera, objs)
+
+
+class TargetAmodalMask(LeafSystem):
+    """Simulation only (the oracle's view of the true state): input ``masks`` (InstanceMasks of
+    every object's amodal mask, AmodalMasks), output ``target_amodal`` ((H, W) bool: the target's
+    amodal mask, all False when the target is not among the masks, e.g. after it was removed)."""
+
+    def __init__(self, target_id: str):
+        super().__init__()
+        self.masks_port = self.DeclareAbstractInputPort("masks", AbstractValue.Make(InstanceMasks.empty(1, 1)))
+        self.DeclareAbstractOutputPort("target_amodal", lambda: AbstractValue.Make(np.zeros((1, 1), bool)), self._calc)
+        self.target_id = target_id
+
+    def _calc(self, context, output):
+        m = self.masks_port.Eval(context)
+        if self.target_id in m.ids:
+            output.set_value(np.asarray(m.masks[m.ids.index(self.target_id)], bool))
+        else:
+            output.set_value(np.zeros(m.masks.shape[1:], bool))

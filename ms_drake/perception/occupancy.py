@@ -59,13 +59,18 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import trimesh
 from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import LeafSystem
-from pydrake.systems.sensors import ImageDepth32F
+from pydrake.geometry import Box
+from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlantConfig
+from pydrake.multibody.tree import SpatialInertia, UnitInertia
+from pydrake.systems.framework import DiagramBuilder, LeafSystem
+from pydrake.systems.sensors import ApplyCameraConfig, ImageDepth32F
 
-from ms_drake.geometry import PinholeCamera
 from ms_drake.errors import PerceptionError
-from ms_drake.geometry import Workspace, depth_array
+from ms_drake.geometry import PinholeCamera, Workspace, depth_array
+from ms_drake.objects import get_object
 from ms_drake.types import OccupancyMap, TargetEstimate
 
 
@@ -96,14 +101,10 @@ class TargetBox:
     @staticmethod
     def from_object(full_name: str) -> "TargetBox":
         """The bounding box of a registry object lying on its largest face."""
-        from ms_drake.objects import get_object
-
         a, b, c = sorted(get_object(full_name).extents, reverse=True)
         return TargetBox(a, b, c)
 
     def mesh_vertices_faces(self):
-        import trimesh
-
         m = trimesh.creation.box(extents=(self.length, self.width, self.thickness))
         return np.asarray(m.vertices), np.asarray(m.faces)
 
@@ -133,8 +134,6 @@ class TargetMesh:
     @staticmethod
     def from_object(full_name: str, X_WO=None) -> "TargetMesh":
         """The registry object's mesh; X_WO (4x4 or RigidTransform): its pose (default: as modelled)."""
-        from ms_drake.objects import get_object
-
         m = get_object(full_name).trimesh()
         X = np.eye(4) if X_WO is None else (X_WO.GetAsMatrix4() if hasattr(X_WO, "GetAsMatrix4")
                                              else np.asarray(X_WO, float))
@@ -475,13 +474,6 @@ class RenderedOccupancy:
 
     def __init__(self, scenario, target_size, camera_name: str | None = None, grid: OccupancyGrid = OccupancyGrid(),
                  iou_threshold: float = 0.9, height_tolerance: float = 0.003):
-        from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlantConfig
-        from pydrake.multibody.tree import SpatialInertia, UnitInertia
-        from pydrake.geometry import Box
-        from pydrake.systems.framework import DiagramBuilder
-        from pydrake.systems.sensors import ApplyCameraConfig
-        from pydrake.math import RigidTransform
-
         cam_name = camera_name or next(iter(scenario.cameras))
         cfg = copy.copy(scenario.cameras[cam_name])
         cfg.rgb, cfg.label, cfg.depth = False, False, True
@@ -509,8 +501,6 @@ class RenderedOccupancy:
 
     def render(self, center: np.ndarray, theta: float) -> np.ndarray:
         """Target-only depth image (H, W), inf where the target is not seen."""
-        from pydrake.math import RigidTransform, RotationMatrix
-
         self.plant.SetFreeBodyPose(self.plant_context, self.body,
                                    RigidTransform(RotationMatrix.MakeZRotation(theta), center))
         t = time.perf_counter()

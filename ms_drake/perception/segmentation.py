@@ -27,10 +27,15 @@ Parameter defaults were tuned on heaps outside the benchmark seeds (sims/bench_s
 
 from __future__ import annotations
 
+import contextlib
+import io
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from pycocotools import mask as mask_utils
+from pycocotools.coco import COCO
+from pycocotools.cocoeval import COCOeval
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
@@ -241,12 +246,6 @@ class Segmenter(LeafSystem):
 def coco_mask_metrics(ground_truth: list[InstanceMasks], predictions: list[InstanceMasks]) -> dict:
     """COCO mask AP (IoU 0.50:0.95) and AR@100 of `predictions` against `ground_truth`, one pair of
     InstanceMasks per image (pycocotools). Returns {"AP", "AP50", "AR100", "images", "gt", "dt"}."""
-    import contextlib
-    import io
-
-    from pycocotools import mask as mask_utils
-    from pycocotools.coco import COCO
-    from pycocotools.cocoeval import COCOeval
 
     if len(ground_truth) != len(predictions):
         raise PerceptionError("coco_mask_metrics: give one prediction per ground-truth image")

@@ -30,10 +30,14 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.framework import LeafSystem
 from pydrake.systems.sensors import ImageRgba8U
+from scipy.spatial.transform import Rotation
 
 from ms_drake.errors import PerceptionError
+from ms_drake.perception.masks import object_labels
+from ms_drake.station.station import MakeStation, get_plant, station_objects
 from ms_drake.types import InstanceMasks, TargetEstimate
 
 BACKENDS = ("color", "template")
@@ -134,11 +138,6 @@ def render_templates(scenario, object_name: str, k: int = 5, seed: int = 0, red:
     """k views of `object_name` (full registry name) alone in the scenario's bin, each in a random
     orientation (seeded) at a random spot near the bin centre, rendered by the scenario's camera.
     red: draw it in the target colour (as MakeStation(target_index=...) does)."""
-    from pydrake.math import RigidTransform, RotationMatrix
-    from scipy.spatial.transform import Rotation
-
-    from ms_drake.perception.masks import object_labels
-    from ms_drake.station.station import MakeStation, get_plant, station_objects
 
     if k < 1:
         raise PerceptionError(f"render_templates: k={k}; ask for at least one view")

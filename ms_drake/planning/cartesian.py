@@ -17,8 +17,8 @@ import numpy as np
 from pydrake.math import RigidTransform
 
 from ms_drake.planning.ik import ArmIk
-from ms_drake.types import JointLimits
 from ms_drake.planning.trajectories import JointTrajectory, plan_path_motion
+from ms_drake.types import JointLimits
 
 
 @dataclass(frozen=True, eq=False)

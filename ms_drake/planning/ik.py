@@ -24,8 +24,14 @@ from dataclasses import dataclass
 
 import numpy as np
 from pydrake.math import RigidTransform, RotationMatrix
-from pydrake.multibody.inverse_kinematics import InverseKinematics, MinimumDistanceLowerBoundConstraint
+from pydrake.multibody.inverse_kinematics import InverseKinematics
+from pydrake.multibody.plant import AddMultibodyPlantSceneGraph
 from pydrake.solvers import SnoptSolver, Solve
+from pydrake.systems.framework import DiagramBuilder
+
+from ms_drake.paths import make_parser
+from ms_drake.robots import robot_spec
+from ms_drake.station.robots import add_arm_gripper, add_robot
 
 
 @dataclass(frozen=True, eq=False)
@@ -170,12 +176,6 @@ def make_ik_diagram(robot: str, grippers: dict[str, str] | None = None, add_envi
     each arm's default gripper. add_environment(plant, parser) adds static geometry.
     Returns (diagram, plant, robot_instance, {arm: gripper_instance}).
     """
-    from pydrake.multibody.plant import AddMultibodyPlantSceneGraph
-    from pydrake.systems.framework import DiagramBuilder
-
-    from ms_drake.paths import make_parser
-    from ms_drake.robots import robot_spec
-    from ms_drake.station.robots import add_arm_gripper, add_robot
 
     builder = DiagramBuilder()
     plant, _ = AddMultibodyPlantSceneGraph(builder, 0.0)

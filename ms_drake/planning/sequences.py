@@ -18,10 +18,23 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from pydrake.math import RigidTransform
+from pydrake.systems.primitives import TrajectorySource
+from pydrake.trajectories import PiecewisePolynomial
 
-from ms_drake.types import JointLimits
-from ms_drake.planning import ArmIk, approach_pose, ik_pose, make_ik_diagram, plan_cartesian_line, plan_joint_motion
+from ms_drake.planning import (
+    ArmIk,
+    approach_pose,
+    ik_pose,
+    make_ik_diagram,
+    plan_cartesian_line,
+    plan_joint_motion,
+)
 from ms_drake.planning.trajectories import JointTrajectory
+from ms_drake.robots import station_robot_spec
+from ms_drake.scenario import resolve_robot_config
+from ms_drake.station.robots import base_transform
+from ms_drake.station.station import add_environment
+from ms_drake.types import JointLimits
 
 
 # --------------------------------------------------------------------------------- timelines
@@ -83,9 +96,6 @@ class Schedule:
         self.steps.append((float(t), np.atleast_1d(np.asarray(value, float))))
 
     def source(self):
-        from pydrake.systems.primitives import TrajectorySource
-        from pydrake.trajectories import PiecewisePolynomial
-
         steps = sorted(self.steps, key=lambda s: s[0])
         times = [s[0] for s in steps]
         values = np.stack([s[1] for s in steps], 1)
@@ -114,11 +124,6 @@ def arm_ik(scenario, arm: str, frame: str = "tcp", min_distance: float | None = 
     """ArmIk for `arm` of the scenario's robot on a plant with the robot, its grippers (jaws
     open, every arm at home) and the environment (no objects). Returns (ik, limits, q_home,
     keep_alive) -- keep `keep_alive` (the diagram and its context) while using ik."""
-    from ms_drake.scenario import resolve_robot_config
-    from ms_drake.robots import station_robot_spec
-    from ms_drake.station.robots import base_transform
-    from ms_drake.station.station import add_environment
-
     chosen, _ = resolve_robot_config(scenario.robot)
     grippers = {a: g for a, g, _ in chosen}
     spec = station_robot_spec(scenario.robot.name)
@@ -157,8 +162,6 @@ def nearest_equivalent(ik, q, q_ref):
 
 
 def _line(ik, q_start, displacement, limits, speed):
-    from ms_drake.planning import ik_pose
-
     return plan_cartesian_line(ik, ik_pose(ik, q_start), displacement, q_start, limits, max_speed=speed)
 
 
@@ -220,8 +223,6 @@ def plan_push(ik, limits, q_home, X_start: RigidTransform, direction, distance: 
               speed: float = 0.1, blade: float = 0.0, settle: float = 0.3, from_home: bool = True) -> PickPlan:
     """A straight push: down onto X_start (from `approach` above), `distance` along `direction`
     (world), then up by `retreat`. For the bluction the blade is commanded to `blade` (down)."""
-    from ms_drake.planning import ik_pose
-
     above = RigidTransform(X_start.rotation(), X_start.translation() + [0, 0, approach])
     res = ik.solve(above, q_seed=q_home)
     if not res.success:

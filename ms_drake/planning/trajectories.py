@@ -14,8 +14,6 @@ Both return a `JointTrajectory` (value(t), velocity(t), duration) that `Trajecto
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 from ruckig import InputParameter, Result, Ruckig, Trajectory
 

@@ -46,7 +46,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from ms_drake.errors import MsDrakeError
-from ms_drake.types import Action, ActionOutcome, Grasp, InstanceMasks, OccupancyMap, Push, TargetEstimate
+from ms_drake.types import (
+    Action,
+    ActionOutcome,
+    Grasp,
+    InstanceMasks,
+    OccupancyMap,
+    Push,
+    TargetEstimate,
+)
 
 POLICIES = ("random", "preempted_random", "preempted_random_push", "largest", "largest_push", "xray", "oracle")
 PUSHING = ("preempted_random_push", "largest_push")

@@ -26,7 +26,12 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 
-from ms_drake.policies.bin_selectors import PolicyError, SelectorParams, check_policy, select_action
+from ms_drake.policies.bin_selectors import (
+    PolicyError,
+    SelectorParams,
+    check_policy,
+    select_action,
+)
 from ms_drake.types import Action, InstanceMasks, OccupancyMap, TargetEstimate
 
 

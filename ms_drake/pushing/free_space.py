@@ -37,8 +37,7 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt
 
 from ms_drake.errors import MsDrakeError
-from ms_drake.geometry import PinholeCamera
-from ms_drake.geometry import Workspace, depth_array, world_points
+from ms_drake.geometry import PinholeCamera, Workspace, depth_array, world_points
 from ms_drake.types import InstanceMasks, Push
 
 

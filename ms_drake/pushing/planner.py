@@ -15,8 +15,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 from pydrake.systems.sensors import ImageDepth32F
 
-from ms_drake.geometry import PinholeCamera
-from ms_drake.geometry import Workspace
+from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.pushing.free_space import PushError, PushParams, plan_pushes
 from ms_drake.types import InstanceMasks
 

@@ -28,10 +28,30 @@ cylinders stop rolling, and Bullet's sleeping disabled (the settle test decides 
 
 from __future__ import annotations
 
+import contextlib
+import os
+
 import numpy as np
+from pydrake.common.eigen_geometry import Quaternion
 from pydrake.geometry import Box, Capsule, Cylinder, Role, Sphere
 from pydrake.math import RigidTransform, RotationMatrix
-from pydrake.common.eigen_geometry import Quaternion
+
+
+@contextlib.contextmanager
+def _stderr_silenced():
+    """Silence file descriptor 2 (pybullet's C code prints its build time there on import)."""
+    saved, null = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, 2)
+    try:
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(null)
+
+
+with _stderr_silenced():
+    import pybullet as pb
 
 _PARK = np.array([0.0, 0.0, -50.0])
 
@@ -51,8 +71,6 @@ class BulletDropWorld:
 
     def __init__(self, world, time_step: float = 1.0 / 240.0, solver_iterations: int = 50,
                  rolling_friction: float = 1e-3, engine_parameters: dict | None = None):
-        import pybullet as pb
-
         self.pb = pb
         self.cid = pb.connect(pb.DIRECT)
         c = dict(physicsClientId=self.cid)

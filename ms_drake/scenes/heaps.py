@@ -19,9 +19,9 @@ Generation of heap `seed` with N objects:
    the discrete solver's step-to-step chatter, see _mean_speeds), are compared with
    `settle_linear` / `settle_angular` (timeout `max_final_time` after the last drop). An
    object whose origin passes the bin's outer walls has left the bin for good and is taken out
-   of the simulation at once (parked, its joint locked): before, such objects fell off the
-   1.6 x 1.2 m support table and kept falling, which was 3 of the 5 heaps of 200 that "did
-   not settle" (a fourth was the tunnel above, falling for 5 s). An object below the bin
+   of the simulation at once (parked, its joint locked): left in, such objects fall off the
+   1.6 x 1.2 m support table and keep falling, and the heap does not "settle" (3 of 200
+   seeds). An object below the bin
    floor (or the support) has tunnelled: the attempt stops at once;
 5. objects that left the bin are removed from the heap; a heap whose state is not finite,
    that did not settle, or in which an object tunnelled is rejected and the seed is resampled
@@ -41,11 +41,11 @@ objects) they overlap less at load than Drake-dropped ones (median 1.0 vs 3.1 mm
 50) iterations once the residual is below 1e-4. `polish_time` (e.g. 0.5 s) then settles the
 Bullet heap in the compliant Drake drop world: ~1.3 CPU-s per heap, and the heaps fit the
 station better than Drake-dropped ones (largest displacement in 0.5 s, median of 8 heaps: 1.6
-vs 7 mm). engine="drake" is the third-pass Drake drop world below (~3 CPU-s), kept because the
+vs 7 mm). engine="drake" is the Drake drop world below (~3 CPU-s), kept because the
 search benchmarks' tables were run on its heaps (SEARCH_HEAPS).
 
 Drake drop physics (documented choices, tuned for speed without losing validity; measured in
-docs/BENCHMARKS.md, "Heap speed, third pass"): objects are compliant-hydroelastic here (E =
+docs/BENCHMARKS.md, "Heaps with the Drake drop world"): objects are compliant-hydroelastic here (E =
 5 MPa, see ms_drake.objects.sdf) so that resting contacts are pressure patches and the heap
 really comes to rest; discrete step `time_step` = 10 ms with Drake's "similar" convex contact
 approximation (less CPU than "lagged" at equal validity). The free joints carry a small
@@ -64,27 +64,38 @@ keeps its poses bit for bit.
 from __future__ import annotations
 
 import copy
-import functools
 import dataclasses
+import functools
 import json
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from pydrake.common.eigen_geometry import Quaternion
 from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.multibody.math import SpatialVelocity
 from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlantConfig
 from pydrake.multibody.tree import QuaternionFloatingJoint
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
+from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
 from ms_drake.errors import HeapError, ScenarioError
+from ms_drake.geometry import PinholeCamera, silhouette
 from ms_drake.objects import get_object, get_object_set
 from ms_drake.objects.sdf import OBJECT_MODULUS
 from ms_drake.paths import make_parser
 from ms_drake.scenario import Scenario
-from ms_drake.station.station import add_cameras, add_environment, object_model_name, station_objects
+from ms_drake.scenes.bullet import BulletDropWorld
+from ms_drake.station import MakeStation
+from ms_drake.station.station import (
+    add_cameras,
+    add_environment,
+    object_model_name,
+    station_objects,
+)
 from ms_drake.types import Heap, ObjectPose
 
 FAR_AWAY = np.array([0.0, 0.0, -50.0])  # where objects go to be out of view
@@ -152,8 +163,6 @@ class HeapDiagnostics:
 @functools.lru_cache(maxsize=4096)
 def _vertices(full_name: str) -> np.ndarray:
     """Convex-hull vertices of an object's mesh (object frame), for bounding boxes."""
-    from scipy.spatial import ConvexHull
-
     v = _mesh(full_name)[0]
     return v[ConvexHull(v).vertices] if len(v) > 64 else v
 
@@ -234,7 +243,6 @@ class _DropWorld:
             cam.rgb = False
             add_cameras(builder, [cam], plant, sg)
             self.sensor = builder.GetSubsystemByName(f"rgbd_sensor_{cam.name}")
-            from ms_drake.geometry import PinholeCamera
 
             self.camera = PinholeCamera.from_config(cam)
         self.diagram = builder.Build()
@@ -305,8 +313,6 @@ class _DropWorld:
 
 
 def _zero_velocity():
-    from pydrake.multibody.math import SpatialVelocity
-
     return SpatialVelocity(np.zeros(3), np.zeros(3))
 
 
@@ -319,8 +325,6 @@ def _mesh(full_name: str):
 def visible_ratios(world: _DropWorld, names: list[str], present: list[int], camera) -> tuple[np.ndarray, np.ndarray]:
     """(modal, amodal) pixel counts of the objects `present`: modal from the label image,
     amodal from the object's mesh projected through the camera (ms_drake.perception.masks)."""
-    from ms_drake.geometry import silhouette
-
     labels = world.label_image()
     poses = world.poses()
     modal, amodal = [], []
@@ -513,8 +517,6 @@ def generate_heap(scenario: Scenario, num_objects: int, seed: int, object_set: s
         phases = {}
         wall = scenario.environment.wall_thickness
         if params.engine == "bullet":
-            from ms_drake.scenes.bullet import BulletDropWorld
-
             engine = BulletDropWorld(world, params.bullet_time_step, params.bullet_iterations,
                                      params.bullet_rolling_friction, params.bullet_parameters)
         else:
@@ -581,14 +583,10 @@ def heap_from_dict(d: dict) -> Heap:
 
 
 def save_heap(heap: Heap, path) -> None:
-    from pathlib import Path
-
     Path(path).write_text(json.dumps(heap_to_dict(heap)))
 
 
 def load_heap(path) -> Heap:
-    from pathlib import Path
-
     return heap_from_dict(json.loads(Path(path).read_text()))
 
 
@@ -618,9 +616,6 @@ def station_check(scenario: Scenario, heap: Heap, seconds: float = 0.5) -> dict:
     (cameras off), load the heap, and report the deepest penetration between any two geometries
     at load (m), and the largest / median displacement of an object's origin after `seconds` of
     simulation (m)."""
-    from pydrake.systems.analysis import Simulator
-
-    from ms_drake.station import MakeStation
 
     s = scenario_with_heap(scenario, heap)
     s.cameras = {}

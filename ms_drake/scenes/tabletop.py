@@ -11,8 +11,9 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-from pydrake.math import RigidTransform, RotationMatrix, RollPitchYaw
-from shapely.geometry import MultiPoint, box as shapely_box
+from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
+from shapely.geometry import MultiPoint
+from shapely.geometry import box as shapely_box
 
 from ms_drake.errors import HeapError
 from ms_drake.objects import get_object

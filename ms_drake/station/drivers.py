@@ -49,12 +49,36 @@ Choices (the reference is silent):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
+from pydrake.manipulation import (
+    MakeMultibodyStateToWsgStateSystem,
+    SchunkWsgPositionController,
+)
+from pydrake.math import RigidTransform
+from pydrake.multibody.plant import (
+    ExternallyAppliedSpatialForceMultiplexer,
+    MultibodyPlant,
+)
+from pydrake.multibody.tree import PdControllerGains
+from pydrake.systems.controllers import InverseDynamics
 from pydrake.systems.framework import BasicVector, LeafSystem
+from pydrake.systems.primitives import (
+    AffineSystem,
+    ConstantVectorSource,
+    MatrixGain,
+    Multiplexer,
+    SharedPointerSystem,
+)
 
+from ms_drake.errors import ScenarioError
 from ms_drake.geometry import transform_from_rpy_xyz
+from ms_drake.paths import make_parser
+from ms_drake.robots import gripper_spec
+from ms_drake.station import robots
+from ms_drake.station.robots import GripperHandle, RobotHandle
+from ms_drake.station.suction import SuctionCup
 
 CONTROL_PERIOD = 0.005  # [s] command rate of every guard (200 Hz)
 STIFFNESS_ANGLE = 0.05  # [rad] error at which the default stiffness reaches the effort limit
@@ -221,46 +245,6 @@ class CommandGuard(LeafSystem):
         discrete_state.set_value(self._state, x)
 
 
-# --------------------------------------------------------------------------------- handles
-@dataclass
-class ArmHandle:
-    """One arm of a station: its joints (command order) and their limits, PD gains, driver."""
-
-    name: str
-    robot_instance: object
-    joints: tuple[str, ...]
-    driver: object  # ms_drake.scenario.ArmDriver
-    lower: np.ndarray = None
-    upper: np.ndarray = None
-    velocity: np.ndarray = None
-    kp: np.ndarray = None
-    kd: np.ndarray = None
-
-
-@dataclass
-class GripperHandle:
-    """One gripper: its port prefix, registry name and kind, model instance, arm, driver."""
-
-    port: str
-    name: str
-    kind: str
-    instance: object
-    arm: str
-    driver: object
-
-
-@dataclass
-class RobotHandle:
-    """What add_robot_from_scenario built (before Finalize); apply_drivers completes it."""
-
-    robot: str
-    instance: object  # the robot's model instance (the floating base for `floating`)
-    X_WR: object
-    arms: list = field(default_factory=list)
-    grippers: list = field(default_factory=list)
-    hold_joints: tuple = ()  # joints of `instance` outside every arm, held at their defaults
-
-
 # --------------------------------------------------------------------------------- helpers
 def _joint_layout(plant, instance, joints):
     """Global position / velocity indices of `joints` of `instance`."""
@@ -270,8 +254,6 @@ def _joint_layout(plant, instance, joints):
 
 def _selector(plant, idx_q, idx_v, state: bool):
     """A MatrixGain picking [q(idx)] or [q(idx), v(idx)] from the full plant state."""
-    from pydrake.systems.primitives import MatrixGain
-
     nq, nv = plant.num_positions(), plant.num_velocities()
     rows = list(idx_q) + ([nq + i for i in idx_v] if state else [])
     S = np.zeros((len(rows), nq + nv))
@@ -309,11 +291,6 @@ def default_stiffness(joint, actuator) -> float:
 def make_control_plant(plant, handle: RobotHandle):
     """The robot alone with each gripper lumped into one rigid body welded at its mount (for
     gravity compensation). Same joints and actuator order as the robot's model instance."""
-    from pydrake.multibody.plant import MultibodyPlant
-    from pydrake.multibody.tree import SpatialInertia  # noqa: F401 (type of CalcSpatialInertia)
-
-    from ms_drake.paths import make_parser
-    from ms_drake.station import robots
 
     control = MultibodyPlant(0.0)
     parser = make_parser(control)
@@ -333,7 +310,6 @@ def make_control_plant(plant, handle: RobotHandle):
             a = robots.robot_spec(handle.robot).arms[g.arm]
             mount, X_FG = control.GetFrameByName(a.flange, instance), transform_from_rpy_xyz(*a.X_FG_rpy_xyz)
         lumped = control.AddRigidBody(f"{g.port}_lumped", instance, M_GGo_G)
-        from pydrake.math import RigidTransform
 
         control.WeldFrames(mount, lumped.body_frame(), X_FG if X_FG is not None else RigidTransform())
     control.Finalize()
@@ -348,8 +324,16 @@ def sim_period(plant) -> float:
     return dt * max(1, round(CONTROL_PERIOD / dt)) if dt > 0 else CONTROL_PERIOD
 
 
-def apply_drivers(builder, plant, scene_graph, handle: RobotHandle):
-    """Wire every arm and gripper driver of `handle` (after plant.Finalize()) and export ports."""
+def apply_robot_drivers(builder, plant, scene_graph, handle: RobotHandle):
+    """Wire every arm and gripper driver of `handle` (after plant.Finalize()) and export the
+    robot's ports. The drivers use the plant's PD-controlled actuators, so the plant must be
+    discrete with a SAP-family contact approximation (ScenarioError otherwise)."""
+    if plant.time_step() <= 0:
+        raise ScenarioError("plant_config.time_step: the robot drivers use the plant's PD controllers, which "
+                            "need a discrete plant; set time_step > 0 (e.g. 0.002)")
+    if plant.get_discrete_contact_approximation().name == "kTamsi":
+        raise ScenarioError("plant_config.discrete_contact_approximation: the robot drivers need sap, similar or "
+                            "lagged (PD-controlled actuators); tamsi does not support them")
     complete_arm_handles(plant, handle)
     apply_arm_drivers(builder, plant, handle)
     cups = []
@@ -368,10 +352,6 @@ def _export(builder, port, name):
 
 def apply_arm_drivers(builder, plant, handle: RobotHandle):
     """Joint stiffness (plant PD) + gravity compensation for the arms of the robot instance."""
-    from pydrake.multibody.tree import PdControllerGains
-    from pydrake.systems.controllers import InverseDynamics
-    from pydrake.systems.primitives import AffineSystem, MatrixGain, Multiplexer
-
     inst = handle.instance
     actuators = [plant.get_joint_actuator(a) for a in plant.GetJointActuatorIndices(inst)]
     nu = len(actuators)
@@ -431,8 +411,6 @@ def apply_arm_drivers(builder, plant, handle: RobotHandle):
         _export(builder, guard.GetOutputPort("clipped"), f"{arm.name}.command_clipped")
 
     if any(arm.driver.gravity_compensation for arm in handle.arms):
-        from pydrake.systems.primitives import SharedPointerSystem
-
         control, _ = make_control_plant(plant, handle)
         SharedPointerSystem.AddToBuilder(builder, control)  # the diagram owns the control plant
         gc = builder.AddSystem(InverseDynamics(control, InverseDynamics.InverseDynamicsMode.kGravityCompensation))
@@ -449,8 +427,6 @@ def apply_arm_drivers(builder, plant, handle: RobotHandle):
         builder.Connect(gc.get_output_port_generalized_force(), to_u.get_input_port())
         builder.Connect(to_u.get_output_port(), plant.get_actuation_input_port(inst))
     else:
-        from pydrake.systems.primitives import ConstantVectorSource
-
         zero = builder.AddSystem(ConstantVectorSource(np.zeros(nu)))
         builder.Connect(zero.get_output_port(), plant.get_actuation_input_port(inst))
 
@@ -472,8 +448,6 @@ def jaw_guard_fields(max_opening, max_force, default_force):
 
 def apply_jaw_driver(builder, plant, g: GripperHandle):
     """Drake's WSG position controller with a force limit on the two finger joints."""
-    from pydrake.manipulation import MakeMultibodyStateToWsgStateSystem, SchunkWsgPositionController
-
     d = g.driver
     max_opening, max_force = jaw_limits(plant, g.instance)
     guard = builder.AddSystem(CommandGuard(jaw_guard_fields(max_opening, max_force, d.default_force_limit),
@@ -509,10 +483,6 @@ def suction_guard_fields(kind, blade_lower=0.0, blade_upper=math.pi, blade_rate=
 
 def apply_suction_driver(builder, plant, scene_graph, g: GripperHandle):
     """SuctionCup at the gripper's tcp; for the bluction also the blade's joint PD."""
-    from pydrake.multibody.tree import PdControllerGains
-
-    from ms_drake.robots import gripper_spec
-    from ms_drake.station.suction import SuctionCup
 
     d = g.driver
     spec = gripper_spec(g.name)
@@ -534,14 +504,11 @@ def apply_suction_driver(builder, plant, scene_graph, g: GripperHandle):
     _export(builder, guard.GetOutputPort("fault"), f"{g.port}.fault")
     _export(builder, guard.GetOutputPort("clipped"), f"{g.port}.command_clipped")
     if blade is not None:
-        from pydrake.systems.primitives import Multiplexer
-
         act = plant.get_joint_actuator(plant.GetJointActuatorIndices(g.instance)[0])
         ctx = plant.CreateDefaultContext()
         M = plant.CalcMassMatrix(ctx)
         inertia = max(M[blade.velocity_start(), blade.velocity_start()], 1e-6)
         act.set_controller_gains(PdControllerGains(p=d.blade_kp, d=2.0 * np.sqrt(d.blade_kp * inertia)))
-        from pydrake.systems.primitives import MatrixGain
 
         angle = builder.AddSystem(MatrixGain(np.array([[1.0, 0.0]])))
         builder.Connect(plant.get_state_output_port(g.instance), angle.get_input_port())
@@ -559,7 +526,6 @@ def _connect_spatial_forces(builder, plant, cups):
     if len(cups) == 1:
         builder.Connect(cups[0].GetOutputPort("spatial_forces"), plant.get_applied_spatial_force_input_port())
         return
-    from pydrake.multibody.plant import ExternallyAppliedSpatialForceMultiplexer
 
     mux = builder.AddSystem(ExternallyAppliedSpatialForceMultiplexer(len(cups)))
     for i, cup in enumerate(cups):

@@ -83,27 +83,3 @@ def workspace_bounds(type_: str, size) -> tuple[np.ndarray, np.ndarray]:
     if type_ in ("bin", "shelf"):
         return np.array([-x / 2, -y / 2, -0.01]), np.array([x / 2, y / 2, max(z, 0.3) + 0.5])
     return np.array([-x / 2, -y / 2, -0.01]), np.array([x / 2, y / 2, 1.0])
-
-
-def write_default_models(out_dir=None) -> list[str]:
-    """Write models/environments/{bin,shelf,table}.sdf for the default sizes (used from
-    model directives by users who want files); tests check they match the generator."""
-    from pathlib import Path
-
-    from ms_drake.paths import models_dir
-    from ms_drake.scenario import DEFAULT_SIZES
-
-    out = Path(out_dir) if out_dir else models_dir() / "environments"
-    out.mkdir(parents=True, exist_ok=True)
-    written = []
-    for t in ("bin", "shelf", "table"):
-        wall = 0.02 if t == "shelf" else 0.03
-        p = out / f"{t}.sdf"
-        p.write_text(environment_sdf(t, DEFAULT_SIZES[t], wall, model_name=t))
-        written.append(str(p))
-    return written
-
-
-if __name__ == "__main__":
-    for f in write_default_models():
-        print("wrote", f)

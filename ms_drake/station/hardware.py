@@ -2,8 +2,8 @@
 
 `MakeHardwareStation(scenario, lcm=...)` builds a Diagram with exactly the port names of the
 simulated station (drivers.py) whose inputs become LCM commands and whose outputs come from
-LCM status messages. `MakeEmulatedRobot(scenario, lcm=...)` is the far side for tests and
-dry runs: a simulated station that receives those commands and publishes that status.
+LCM status messages. `MakeEmulatedRobot(scenario, lcm=...)` (ms_drake/station/emulator.py) is the far side for tests
+and dry runs: a simulated station that receives those commands and publishes that status.
 `lcm` is any DrakeLcmInterface (tests: DrakeLcm("memq://...")); None -> DrakeLcm(scenario.lcm_url).
 
 Channels and messages (documented here; <P> is the port prefix in upper case):
@@ -36,16 +36,55 @@ do not exist on hardware; Meshcat is not drawn from hardware status.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
+from drake import (
+    lcmt_drake_signal,
+    lcmt_image_array,
+    lcmt_panda_command,
+    lcmt_panda_status,
+    lcmt_robot_state,
+    lcmt_schunk_wsg_command,
+    lcmt_schunk_wsg_status,
+)
 from pydrake.common.value import AbstractValue
+from pydrake.lcm import DrakeLcm
+from pydrake.manipulation import (
+    PandaCommandSender,
+    PandaControlMode,
+    PandaStatusReceiver,
+    SchunkWsgCommandSender,
+    SchunkWsgStatusReceiver,
+)
+from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
+from pydrake.systems.lcm import (
+    LcmInterfaceSystem,
+    LcmSubscriberSystem,
+    PySerializer,
+    _Serializer_,
+)
+from pydrake.systems.primitives import (
+    Demultiplexer,
+    Multiplexer,
+)
+from pydrake.systems.sensors import (
+    LcmImageArrayToImages,
+)
 
 from ms_drake.errors import ScenarioError
-from ms_drake.station.drivers import (CONTROL_PERIOD, CommandField, CommandGuard, jaw_guard_fields,
-                                      suction_guard_fields)
+from ms_drake.paths import make_parser
+from ms_drake.station.drivers import (
+    CONTROL_PERIOD,
+    CommandField,
+    CommandGuard,
+    complete_arm_handles,
+    jaw_guard_fields,
+    jaw_limits,
+    suction_guard_fields,
+)
+from ms_drake.station.robots import add_robot_from_scenario
 
 SUCTION_STATUS = ("holding", "body_index", "gap")
 BLADE_STATUS = ("blade", "blade_rate")
@@ -63,9 +102,7 @@ def camera_channel(camera_name: str) -> str:
     return f"DRAKE_RGBD_CAMERA_IMAGES_{camera_name}"
 
 
-def _cpp_serializer(lcm_type):
-    from pydrake.systems.lcm import _Serializer_
-
+def cpp_serializer(lcm_type):
     return _Serializer_[lcm_type]()
 
 
@@ -100,7 +137,6 @@ class RobotStateSender(LeafSystem):
 
     def __init__(self, joint_names):
         super().__init__()
-        from drake import lcmt_robot_state
 
         self._names = list(joint_names)
         self._in = self.DeclareVectorInputPort("position", len(self._names))
@@ -133,7 +169,6 @@ class RobotStateReceiver(LeafSystem):
 
     def __init__(self, joint_names, period: float = CONTROL_PERIOD, hold_input: bool = False, channel: str = ""):
         super().__init__()
-        from drake import lcmt_robot_state
 
         n = len(joint_names)
         self._msg = self.DeclareAbstractInputPort("message", AbstractValue.Make(lcmt_robot_state()))
@@ -184,7 +219,6 @@ class SignalSender(LeafSystem):
 
     def __init__(self, coords):
         super().__init__()
-        from drake import lcmt_drake_signal
 
         self._coords, self._type = list(coords), lcmt_drake_signal
         self._in = self.DeclareVectorInputPort("value", len(self._coords))
@@ -205,7 +239,6 @@ class SignalReceiver(LeafSystem):
 
     def __init__(self, coords, default):
         super().__init__()
-        from drake import lcmt_drake_signal
 
         self._coords = list(coords)
         self._default = np.asarray(default, float)
@@ -224,11 +257,6 @@ class SignalReceiver(LeafSystem):
 def robot_layout(scenario):
     """The scenario's robot parsed into a bare plant (no simulation): (plant, RobotHandle) with
     arm limits filled in; used to size the hardware ports."""
-    from pydrake.multibody.plant import MultibodyPlant
-
-    from ms_drake.paths import make_parser
-    from ms_drake.station.drivers import complete_arm_handles
-    from ms_drake.station.robots import add_robot_from_scenario
 
     if not scenario.robot.name:
         raise ScenarioError("robot.name: the hardware station needs a robot; set robot.name")
@@ -239,10 +267,9 @@ def robot_layout(scenario):
     return plant, handle
 
 
-def _lcm_for(scenario, lcm):
+def lcm_for(scenario, lcm):
     if lcm is not None:
         return lcm
-    from pydrake.lcm import DrakeLcm
 
     return DrakeLcm(scenario.lcm_url)
 
@@ -253,9 +280,7 @@ def MakeHardwareStation(scenario, meshcat=None, lcm=None, name: str = "hardware_
 
     meshcat is accepted for MakeStation's signature and not drawn into (no plant state here).
     One Simulator per hardware station: the status watchdogs count messages per system."""
-    from pydrake.systems.lcm import LcmInterfaceSystem, LcmSubscriberSystem
-
-    lcm = _lcm_for(scenario, lcm)
+    lcm = lcm_for(scenario, lcm)
     plant, handle = robot_layout(scenario)
     builder = DiagramBuilder()
     builder.AddSystem(LcmInterfaceSystem(lcm)).set_name("lcm")
@@ -267,9 +292,6 @@ def MakeHardwareStation(scenario, meshcat=None, lcm=None, name: str = "hardware_
         else:
             _hardware_suction(builder, lcm, plant, g)
     for cam_name, cam in scenario.cameras.items():
-        from drake import lcmt_image_array
-        from pydrake.systems.sensors import LcmImageArrayToImages
-
         sub = builder.AddSystem(LcmSubscriberSystem.Make(camera_channel(cam.name), lcmt_image_array, lcm,
                                                          use_cpp_serializer=True))
         sub.set_name(f"{cam_name}_subscriber")
@@ -286,9 +308,6 @@ def MakeHardwareStation(scenario, meshcat=None, lcm=None, name: str = "hardware_
 
 
 def _hardware_arm(builder, lcm, robot, arm):
-    from pydrake.systems.lcm import LcmSubscriberSystem, PySerializer
-    from pydrake.systems.primitives import Multiplexer
-
     cmd, st = command_channel(arm.name), status_channel(arm.name)
     guard = builder.AddSystem(CommandGuard(
         [CommandField("position", tuple(arm.lower), tuple(arm.upper), max_rate=tuple(arm.velocity))],
@@ -296,9 +315,6 @@ def _hardware_arm(builder, lcm, robot, arm):
     guard.set_name(f"{arm.name}_guard")
     n = len(arm.joints)
     if robot == "panda":
-        from drake import lcmt_panda_command, lcmt_panda_status
-        from pydrake.manipulation import PandaCommandSender, PandaControlMode, PandaStatusReceiver
-
         sub = builder.AddSystem(LcmSubscriberSystem.Make(st, lcmt_panda_status, lcm, use_cpp_serializer=True))
         rx = builder.AddSystem(PandaStatusReceiver(n))
         builder.Connect(sub.get_output_port(), rx.get_input_port())
@@ -308,10 +324,8 @@ def _hardware_arm(builder, lcm, robot, arm):
         position, state = rx.get_position_measured_output_port(), mux.get_output_port()
         sender = builder.AddSystem(PandaCommandSender(n, PandaControlMode.kPosition))
         builder.Connect(guard.GetOutputPort("position"), sender.get_input_port(0))
-        pub = builder.AddSystem(GatedLcmPublisher(cmd, _cpp_serializer(lcmt_panda_command), lcm, CONTROL_PERIOD))
+        pub = builder.AddSystem(GatedLcmPublisher(cmd, cpp_serializer(lcmt_panda_command), lcm, CONTROL_PERIOD))
     else:
-        from drake import lcmt_robot_state
-
         sub = builder.AddSystem(LcmSubscriberSystem.Make(st, lcmt_robot_state, lcm))
         rx = builder.AddSystem(RobotStateReceiver(arm.joints, CONTROL_PERIOD, channel=st))
         builder.Connect(sub.get_output_port(), rx.GetInputPort("message"))
@@ -334,11 +348,6 @@ def _hardware_arm(builder, lcm, robot, arm):
 
 
 def _hardware_jaw(builder, lcm, plant, g):
-    from drake import lcmt_schunk_wsg_command, lcmt_schunk_wsg_status
-    from pydrake.manipulation import SchunkWsgCommandSender, SchunkWsgStatusReceiver
-    from pydrake.systems.lcm import LcmSubscriberSystem
-
-    from ms_drake.station.drivers import jaw_limits
 
     max_opening, max_force = jaw_limits(plant, g.instance)
     cmd, st = command_channel(g.port), status_channel(g.port)
@@ -349,7 +358,7 @@ def _hardware_jaw(builder, lcm, plant, g):
     sender.set_name(f"{g.port}_command_sender")
     builder.Connect(guard.GetOutputPort("position"), sender.GetInputPort("position"))
     builder.Connect(guard.GetOutputPort("force_limit"), sender.GetInputPort("force_limit"))
-    pub = builder.AddSystem(GatedLcmPublisher(cmd, _cpp_serializer(lcmt_schunk_wsg_command), lcm, CONTROL_PERIOD))
+    pub = builder.AddSystem(GatedLcmPublisher(cmd, cpp_serializer(lcmt_schunk_wsg_command), lcm, CONTROL_PERIOD))
     pub.set_name(f"{g.port}_command_publisher")
     builder.Connect(sender.get_output_port(0), pub.GetInputPort("message"))
     builder.Connect(guard.GetOutputPort("enabled"), pub.GetInputPort("enabled"))
@@ -366,7 +375,7 @@ def _hardware_jaw(builder, lcm, plant, g):
     builder.ExportOutput(guard.GetOutputPort("clipped"), f"{g.port}.command_clipped")
 
 
-def _suction_coords(kind):
+def suction_coords(kind):
     command = ("suction", "blade") if kind == "bluction" else ("suction",)
     status = SUCTION_STATUS + (BLADE_STATUS if kind == "bluction" else ())
     return command, status
@@ -380,12 +389,8 @@ def _blade_limits(plant, g):
 
 
 def _hardware_suction(builder, lcm, plant, g):
-    from drake import lcmt_drake_signal
-    from pydrake.systems.lcm import LcmSubscriberSystem, PySerializer
-    from pydrake.systems.primitives import Demultiplexer, Multiplexer
-
     cmd, st = command_channel(g.port), status_channel(g.port)
-    command_coords, status_coords = _suction_coords(g.kind)
+    command_coords, status_coords = suction_coords(g.kind)
     fields = suction_guard_fields(g.kind, *_blade_limits(plant, g))
     guard = builder.AddSystem(CommandGuard(fields, CONTROL_PERIOD, status=(lcm, st),
                                            status_timeout=g.driver.status_timeout))
@@ -421,180 +426,3 @@ def _hardware_suction(builder, lcm, plant, g):
         builder.ExportOutput(rx.GetOutputPort("value"), f"{g.port}.suction_state")
     builder.ExportOutput(guard.GetOutputPort("fault"), f"{g.port}.fault")
     builder.ExportOutput(guard.GetOutputPort("clipped"), f"{g.port}.command_clipped")
-
-
-# --------------------------------------------------------------------------------- robot side
-def MakeEmulatedRobot(scenario, lcm=None, meshcat=None, status_period: float = CONTROL_PERIOD,
-                      status_until: float = math.inf, name: str = "emulated_robot"):
-    """The far side of the hardware twin: the simulated station of `scenario` that takes its
-    commands from LCM and publishes its status (and camera images) on LCM.
-
-    status_until: the robot stops publishing status at that time (to test lost-status faults).
-    Exports every output port of the simulated station under the same name (so tests can read
-    body_poses, state, ...). Before any command arrives each device holds its position.
-    """
-    from pydrake.systems.lcm import LcmInterfaceSystem
-
-    from ms_drake.station.station import MakeStation
-
-    lcm = _lcm_for(scenario, lcm)
-    sim_scenario = dataclasses.replace(scenario, hardware=False)
-    plant, handle = robot_layout(scenario)
-    builder = DiagramBuilder()
-    station = builder.AddSystem(MakeStation(sim_scenario, meshcat=meshcat, name="simulated_station"))
-    builder.AddSystem(LcmInterfaceSystem(lcm)).set_name("lcm")
-    enabled = None
-    if math.isfinite(status_until):  # 1 until status_until, then 0
-        from pydrake.systems.primitives import TrajectorySource
-        from pydrake.trajectories import PiecewisePolynomial
-
-        t_end = max(status_until, 1e-9)
-        until = builder.AddSystem(TrajectorySource(PiecewisePolynomial.ZeroOrderHold(
-            [0.0, t_end, t_end + 1e6], np.array([[1.0, 0.0, 0.0]]))))
-        until.set_name("status_until")
-        enabled = until.get_output_port()
-    for arm in handle.arms:
-        _emulated_arm(builder, lcm, station, handle.robot, arm, status_period, enabled)
-    for g in handle.grippers:
-        if g.kind == "parallel_jaw":
-            _emulated_jaw(builder, lcm, station, plant, g, status_period, enabled)
-        else:
-            _emulated_suction(builder, lcm, station, plant, g, status_period, enabled)
-    for cam_name, cam in scenario.cameras.items():
-        _emulated_camera(builder, lcm, station, cam_name, cam)
-    for i in range(station.num_output_ports()):
-        builder.ExportOutput(station.get_output_port(i), station.get_output_port(i).get_name())
-    diagram = builder.Build()
-    diagram.set_name(name)
-    return diagram
-
-
-def _publisher(builder, channel, serializer, lcm, period, enabled, source_port, name):
-    pub = builder.AddSystem(GatedLcmPublisher(channel, serializer, lcm, period))
-    pub.set_name(name)
-    builder.Connect(source_port, pub.GetInputPort("message"))
-    if enabled is not None:
-        builder.Connect(enabled, pub.GetInputPort("enabled"))
-    return pub
-
-
-def _emulated_arm(builder, lcm, station, robot, arm, period, enabled):
-    from pydrake.systems.lcm import LcmSubscriberSystem, PySerializer
-    from pydrake.systems.primitives import ConstantVectorSource, Demultiplexer
-
-    n = len(arm.joints)
-    cmd, st = command_channel(arm.name), status_channel(arm.name)
-    measured = station.GetOutputPort(f"{arm.name}.position_measured")
-    if robot == "panda":
-        from drake import lcmt_panda_command, lcmt_panda_status
-        from pydrake.manipulation import PandaCommandReceiver, PandaControlMode, PandaStatusSender
-
-        sub = builder.AddSystem(LcmSubscriberSystem.Make(cmd, lcmt_panda_command, lcm, use_cpp_serializer=True))
-        rx = builder.AddSystem(PandaCommandReceiver(n, PandaControlMode.kPosition))
-        builder.Connect(sub.get_output_port(), rx.get_message_input_port())
-        builder.Connect(measured, rx.get_position_measured_input_port())
-        builder.Connect(rx.get_commanded_position_output_port(), station.GetInputPort(f"{arm.name}.position"))
-        status = builder.AddSystem(PandaStatusSender(n))
-        split = builder.AddSystem(Demultiplexer([n, n]))
-        builder.Connect(station.GetOutputPort(f"{arm.name}.state_estimated"), split.get_input_port())
-        builder.Connect(measured, status.get_position_measured_input_port())
-        builder.Connect(split.get_output_port(1), status.get_velocity_measured_input_port())
-        builder.Connect(rx.get_commanded_position_output_port(), status.get_position_commanded_input_port())
-        zero = builder.AddSystem(ConstantVectorSource(np.zeros(n)))
-        builder.Connect(zero.get_output_port(), status.get_torque_commanded_input_port())
-        _publisher(builder, st, _cpp_serializer(lcmt_panda_status), lcm, period, enabled, status.get_output_port(0),
-                   f"{arm.name}_status_publisher")
-    else:
-        from drake import lcmt_robot_state
-
-        sub = builder.AddSystem(LcmSubscriberSystem.Make(cmd, lcmt_robot_state, lcm))
-        rx = builder.AddSystem(RobotStateReceiver(arm.joints, period, hold_input=True, channel=cmd))
-        builder.Connect(sub.get_output_port(), rx.GetInputPort("message"))
-        builder.Connect(measured, rx.GetInputPort("position_hold"))
-        builder.Connect(rx.GetOutputPort("position"), station.GetInputPort(f"{arm.name}.position"))
-        status = builder.AddSystem(RobotStateSender(arm.joints))
-        builder.Connect(measured, status.GetInputPort("position"))
-        _publisher(builder, st, PySerializer(lcmt_robot_state), lcm, period, enabled, status.GetOutputPort("message"),
-                   f"{arm.name}_status_publisher")
-    sub.set_name(f"{arm.name}_command_subscriber")
-    rx.set_name(f"{arm.name}_command_receiver")
-    status.set_name(f"{arm.name}_status_sender")
-
-
-def _emulated_jaw(builder, lcm, station, plant, g, period, enabled):
-    from drake import lcmt_schunk_wsg_command, lcmt_schunk_wsg_status
-    from pydrake.manipulation import SchunkWsgCommandReceiver, SchunkWsgStatusSender
-    from pydrake.systems.lcm import LcmSubscriberSystem
-
-    from ms_drake.station.drivers import jaw_limits
-
-    max_opening, _ = jaw_limits(plant, g.instance)
-    sub = builder.AddSystem(LcmSubscriberSystem.Make(command_channel(g.port), lcmt_schunk_wsg_command, lcm,
-                                                     use_cpp_serializer=True))
-    sub.set_name(f"{g.port}_command_subscriber")
-    rx = builder.AddSystem(SchunkWsgCommandReceiver(initial_position=max_opening,
-                                                    initial_force=g.driver.default_force_limit))
-    rx.set_name(f"{g.port}_command_receiver")
-    builder.Connect(sub.get_output_port(), rx.GetInputPort("command_message"))
-    builder.Connect(rx.GetOutputPort("position"), station.GetInputPort(f"{g.port}.position"))
-    builder.Connect(rx.GetOutputPort("force_limit"), station.GetInputPort(f"{g.port}.force_limit"))
-    status = builder.AddSystem(SchunkWsgStatusSender())
-    status.set_name(f"{g.port}_status_sender")
-    builder.Connect(station.GetOutputPort(f"{g.port}.state_measured"), status.get_input_port(0))  # state
-    builder.Connect(station.GetOutputPort(f"{g.port}.force_measured"), status.get_input_port(1))  # force
-    _publisher(builder, status_channel(g.port), _cpp_serializer(lcmt_schunk_wsg_status), lcm, period, enabled,
-               status.get_output_port(0), f"{g.port}_status_publisher")
-
-
-def _emulated_suction(builder, lcm, station, plant, g, period, enabled):
-    from drake import lcmt_drake_signal
-    from pydrake.systems.lcm import LcmSubscriberSystem, PySerializer
-    from pydrake.systems.primitives import Demultiplexer, Multiplexer
-
-    command_coords, status_coords = _suction_coords(g.kind)
-    sub = builder.AddSystem(LcmSubscriberSystem.Make(command_channel(g.port), lcmt_drake_signal, lcm))
-    sub.set_name(f"{g.port}_command_subscriber")
-    blade0 = 0.0
-    if g.kind == "bluction":
-        blade0 = plant.GetJointByName("blade_joint", g.instance).get_default_angle()
-    rx = builder.AddSystem(SignalReceiver(command_coords, [0.0] + ([blade0] if g.kind == "bluction" else [])))
-    rx.set_name(f"{g.port}_command_receiver")
-    builder.Connect(sub.get_output_port(), rx.GetInputPort("message"))
-    split = builder.AddSystem(Demultiplexer([1] * len(command_coords)))
-    builder.Connect(rx.GetOutputPort("value"), split.get_input_port())
-    builder.Connect(split.get_output_port(0), station.GetInputPort(f"{g.port}.suction"))
-    status = builder.AddSystem(SignalSender(status_coords))
-    status.set_name(f"{g.port}_status_sender")
-    if g.kind == "bluction":
-        builder.Connect(split.get_output_port(1), station.GetInputPort(f"{g.port}.position"))
-        mux = builder.AddSystem(Multiplexer([3, 2]))
-        builder.Connect(station.GetOutputPort(f"{g.port}.suction_state"), mux.get_input_port(0))
-        builder.Connect(station.GetOutputPort(f"{g.port}.state_measured"), mux.get_input_port(1))
-        builder.Connect(mux.get_output_port(), status.GetInputPort("value"))
-    else:
-        builder.Connect(station.GetOutputPort(f"{g.port}.suction_state"), status.GetInputPort("value"))
-    _publisher(builder, status_channel(g.port), PySerializer(lcmt_drake_signal), lcm, period, enabled,
-               status.GetOutputPort("message"), f"{g.port}_status_publisher")
-
-
-def _emulated_camera(builder, lcm, station, cam_name, cam):
-    add_image_publisher(builder, lcm, cam,
-                        station.GetOutputPort(f"{cam_name}.rgb_image") if cam.rgb else None,
-                        station.GetOutputPort(f"{cam_name}.depth_image") if cam.depth else None)
-
-
-def add_image_publisher(builder, lcm, cam, rgb_port=None, depth_port=None, enabled=None):
-    """Publish the images on `rgb_port` (ImageRgba8U) / `depth_port` (ImageDepth32F) as one
-    lcmt_image_array on DRAKE_RGBD_CAMERA_IMAGES_<cam.name> at cam.fps (the far side of the
-    hardware station's cameras). Returns the publisher."""
-    from drake import lcmt_image_array
-    from pydrake.systems.sensors import ImageToLcmImageArrayT, PixelType
-
-    to_lcm = builder.AddSystem(ImageToLcmImageArrayT(do_compress=True))  # zlib: see the module docstring
-    to_lcm.set_name(f"{cam.name}_to_lcm")
-    if rgb_port is not None:
-        builder.Connect(rgb_port, to_lcm.DeclareImageInputPort[PixelType.kRgba8U]("color"))
-    if depth_port is not None:
-        builder.Connect(depth_port, to_lcm.DeclareImageInputPort[PixelType.kDepth32F]("depth"))
-    return _publisher(builder, camera_channel(cam.name), _cpp_serializer(lcmt_image_array), lcm, 1.0 / cam.fps,
-                      enabled, to_lcm.image_array_t_msg_output_port(), f"{cam.name}_image_publisher")

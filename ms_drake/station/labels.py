@@ -17,9 +17,22 @@ from dataclasses import dataclass
 
 import numpy as np
 from pydrake.common.value import AbstractValue
+from pydrake.geometry import (
+    Box,
+    Capsule,
+    Cylinder,
+    Ellipsoid,
+    HalfSpace,
+    QueryObject,
+    RenderLabel,
+    Role,
+    Sphere,
+)
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import LeafSystem
-from pydrake.systems.sensors import ImageLabel16I
+from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
+
+from ms_drake.station._label_kernel import label_rows, prepare
 
 # --------------------------------------------------------------------------------------------
 # Label image from the rendered depth image (one VTK render per depth + label pair, not two)
@@ -67,8 +80,9 @@ class DepthLabeler:
     Supported shapes: Box, Cylinder, Sphere (every ms_drake object and environment). One
     numba kernel (ms_drake.station._label_kernel.label_rows, compiled on the first call
     and cached in __pycache__) visits each pixel once and tests only the geometries whose
-    screen rectangle holds it; up to session 3 this was one OpenCV pass (cv2.transform,
-    cv2.inRange) per geometry plus a numpy pass over the crowded pixels, 2-4x slower.
+    screen rectangle holds it (one OpenCV pass (cv2.transform, cv2.inRange) per geometry plus
+    a numpy pass over the crowded pixels, the reference in tests/test_depth_labels.py, is 2-4x
+    slower).
 
     `label(...)` returns None when the answer could be inexact, and callers then render:
     a geometry of another shape (mesh, capsule, ...) or with label kDoNotRender in the view
@@ -92,8 +106,6 @@ class DepthLabeler:
 
     def __init__(self, inspector, intrinsics, renderer_name: str, default_label: int | None = None,
                  threads: int | None = None):
-        from pydrake.geometry import Box, Cylinder, RenderLabel, Role, Sphere
-
         self.width, self.height = intrinsics.width(), intrinsics.height()
         self.fx, self.fy = intrinsics.focal_x(), intrinsics.focal_y()
         self.cx, self.cy = intrinsics.center_x(), intrinsics.center_y()
@@ -161,7 +173,6 @@ class DepthLabeler:
         if depth.shape != (self.height, self.width):
             raise ValueError(f"DepthLabeler: depth image is {depth.shape[1]}x{depth.shape[0]}, camera is "
                              f"{self.width}x{self.height}")
-        from ms_drake.station._label_kernel import label_rows, prepare
 
         depth = np.ascontiguousarray(depth, np.float32)
         if depth.flags.writeable:  # one compiled kernel: numba specialises on read-only (Drake's images)
@@ -195,8 +206,6 @@ class DepthLabeler:
 
 def _shape_aabb(shape) -> tuple[np.ndarray, np.ndarray]:
     """(half extents, centre) of a bounding box of any Drake shape in its own frame."""
-    from pydrake.geometry import Capsule, Ellipsoid, HalfSpace
-
     if isinstance(shape, Capsule):
         r = shape.radius()
         return np.array([r, r, shape.length() / 2 + r]), np.zeros(3)
@@ -225,8 +234,6 @@ class DepthLabelImage(LeafSystem):
 
     def __init__(self, labeler: DepthLabeler, parent_frame, X_PC: RigidTransform, z_near: float, z_far: float):
         super().__init__()
-        from pydrake.geometry import QueryObject
-        from pydrake.systems.sensors import ImageDepth32F
 
         w, h = labeler.width, labeler.height
         # Ports first.

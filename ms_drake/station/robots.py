@@ -6,7 +6,7 @@
     robot_spec("yumi").arms["yumi_right"].joints            -> joint names in command order
 Stations (MakeStation calls these):
     add_robot_from_scenario(builder, plant, scene_graph, scenario, parser) -> RobotHandle (before Finalize)
-    apply_drivers(builder, plant, scene_graph, scenario, handle)            (after Finalize; drivers.py)
+    drivers.apply_robot_drivers(builder, plant, scene_graph, handle)        (after Finalize)
     resolve_robot_config(scenario.robot) -> [(arm, gripper, port)], {port prefix: driver}
     station_robot_spec("floating"), station_arm_spec("yumi_left"), arm_joint_limits("fetch")
 Every arm starts at ArmSpec.home (set_home); the floating gripper 0.45 m above its base origin,
@@ -29,23 +29,32 @@ Roots: Panda panda_link0 and YuMi yumi_body are welded to the world at X_WR; the
 
 from __future__ import annotations
 
-import numpy as np
+from dataclasses import dataclass, field
 
-from ms_drake.errors import ScenarioError
-from ms_drake.paths import models_dir
+import numpy as np
+from pydrake.geometry import CollisionFilterDeclaration
+from pydrake.math import RigidTransform, RollPitchYaw
+from scipy.spatial.transform import Rotation
+
+from ms_drake.errors import ModelNotFoundError, ScenarioError
 from ms_drake.geometry import transform_from_rpy_xyz
-from ms_drake.robots import RobotSpec, gripper_spec, robot_spec, station_robot_spec
+from ms_drake.paths import models_dir
+from ms_drake.robots import (
+    GRIPPERS,
+    RobotSpec,
+    gripper_spec,
+    robot_spec,
+    station_robot_spec,
+)
 from ms_drake.scenario import resolve_robot_config
 
 
 def _add_file(parser, path):
     """Parse one model file with auto-renaming on (several grippers of one kind may coexist),
     restoring the parser's previous auto-renaming setting."""
-    from ms_drake.errors import ModelNotFoundError
-
     if not path.is_file():
         raise ModelNotFoundError(f"model file {path} is missing; regenerate it (robots: python -m "
-                                 "ms_drake.station.convert_robots; grippers: python -m ms_drake.station.grippers)")
+                                 "tools.convert_robots; grippers: python -m tools.write_models)")
     old = parser.GetAutoRenaming()
     parser.SetAutoRenaming(True)
     try:
@@ -57,8 +66,6 @@ def _add_file(parser, path):
 
 def add_robot(plant, parser, robot_name: str, X_WR=None, model_name: str | None = None):
     """Add robot `robot_name`, weld its root to the world at X_WR; returns its ModelInstanceIndex."""
-    from pydrake.math import RigidTransform
-
     spec = robot_spec(robot_name)
     instance = _add_file(parser, models_dir() / spec.file)
     if model_name is not None:
@@ -79,7 +86,6 @@ def exclude_close_link_collisions(plant, parser, instance, levels: int = 3):
     sg = parser.scene_graph()
     if sg is None or not plant.geometry_source_is_registered():
         return
-    from pydrake.geometry import CollisionFilterDeclaration
 
     parent = {}
     for j in plant.GetJointIndices(instance):
@@ -101,8 +107,6 @@ def exclude_close_link_collisions(plant, parser, instance, levels: int = 3):
 
 def add_gripper(plant, parser, gripper_name: str, weld_to_frame, X_FG=None, model_name: str | None = None):
     """Add gripper `gripper_name` and weld its `body` to `weld_to_frame` at X_FG."""
-    from pydrake.math import RigidTransform
-
     spec = gripper_spec(gripper_name)
     instance = _add_file(parser, models_dir() / spec.file)
     if model_name is not None:
@@ -131,7 +135,6 @@ def exclude_gripper_wrist_collisions(plant, parser, gripper_instance, flange_bod
     sg = parser.scene_graph()
     if sg is None or not plant.geometry_source_is_registered():
         return
-    from pydrake.geometry import CollisionFilterDeclaration
 
     wrist, body = [], flange_body
     for _ in range(levels):
@@ -152,8 +155,6 @@ def add_floating_gripper(plant, parser, gripper_name: str, X_WB=None, model_name
     Returns (base_instance, gripper_instance). Drive the base through
     plant.get_desired_state_input_port(base_instance) ([q(6), v(6)]) on a discrete SAP plant.
     """
-    from pydrake.math import RigidTransform
-
     base = _add_file(parser, models_dir() / "grippers" / "floating_base.sdf")
     if model_name is not None:
         plant.RenameModelInstance(base, f"{model_name}_base")
@@ -172,8 +173,6 @@ def floating_gripper_positions(X_WG) -> np.ndarray:
     `body` frame at X_WG. The revolute chain is roll about x, then pitch about the rolled y, then
     yaw about the resulting z, so R_WG = Rx(roll) Ry(pitch) Rz(yaw) (intrinsic x-y-z Euler angles,
     not Drake's extrinsic RollPitchYaw)."""
-    from scipy.spatial.transform import Rotation
-
     R = X_WG.rotation().matrix()
     rpy = Rotation.from_matrix(R).as_euler("XYZ")
     return np.concatenate([X_WG.translation(), rpy])
@@ -181,23 +180,57 @@ def floating_gripper_positions(X_WG) -> np.ndarray:
 
 def base_transform(robot_config):
     """X_WR of the robot's root from base_position and base_yaw [deg]."""
-    from pydrake.math import RigidTransform, RollPitchYaw
-
     if len(robot_config.base_position) != 3:
         raise ScenarioError(f"robot.base_position: give [x, y, z] in metres, got {list(robot_config.base_position)}")
     return RigidTransform(RollPitchYaw(0, 0, np.deg2rad(robot_config.base_yaw)), list(robot_config.base_position))
 
 
+@dataclass
+class ArmHandle:
+    """One arm of a station: its joints (command order) and their limits, PD gains, driver."""
+
+    name: str
+    robot_instance: object
+    joints: tuple[str, ...]
+    driver: object  # ms_drake.scenario.ArmDriver
+    lower: np.ndarray = None
+    upper: np.ndarray = None
+    velocity: np.ndarray = None
+    kp: np.ndarray = None
+    kd: np.ndarray = None
+
+
+@dataclass
+class GripperHandle:
+    """One gripper: its port prefix, registry name and kind, model instance, arm, driver."""
+
+    port: str
+    name: str
+    kind: str
+    instance: object
+    arm: str
+    driver: object
+
+
+@dataclass
+class RobotHandle:
+    """What add_robot_from_scenario built (before Finalize); drivers.apply_robot_drivers completes it."""
+
+    robot: str
+    instance: object  # the robot's model instance (the floating base for `floating`)
+    X_WR: object
+    arms: list = field(default_factory=list)
+    grippers: list = field(default_factory=list)
+    hold_joints: tuple = ()  # joints of `instance` outside every arm, held at their defaults
+
+
 def add_robot_from_scenario(builder, plant, scene_graph, scenario, parser):
     """Add the scenario's robot and grippers to `plant` (before Finalize) at their home
-    configuration; returns the RobotHandle that apply_drivers completes after Finalize.
+    configuration; returns the RobotHandle that drivers.apply_robot_drivers completes after Finalize.
 
     Model instance names: the robot keeps its file's model name (panda, yumi, fetch); grippers
     are named by their port prefix (e.g. yumi_right_jaw); the floating gripper's base is
     `<port>_base` (e.g. floating_jaw_base)."""
-    from ms_drake.station.drivers import ArmHandle, GripperHandle, RobotHandle
-    from ms_drake.robots import GRIPPERS
-
     rc = scenario.robot
     chosen, drivers = resolve_robot_config(rc)
     spec = station_robot_spec(rc.name)
@@ -227,19 +260,3 @@ def set_home(plant, instance, spec: RobotSpec):
             q = arm.home[k] if arm.home else 0.0
             lo, hi = joint.position_lower_limits()[0], joint.position_upper_limits()[0]
             joint.set_default_positions([float(np.clip(q, lo, hi))])
-
-
-def apply_drivers(builder, plant, scene_graph, scenario, handle, lcm=None):
-    """Wire the drivers of `handle` (after Finalize) and export the robot's ports.
-
-    The simulated station talks to nothing over LCM (`lcm` is accepted for MakeStation's
-    signature and ignored); hardware.MakeEmulatedRobot puts a simulated station on a bus."""
-    from ms_drake.station import drivers
-
-    if plant.time_step() <= 0:
-        raise ScenarioError("plant_config.time_step: the robot drivers use the plant's PD controllers, which "
-                            "need a discrete plant; set time_step > 0 (e.g. 0.002)")
-    if plant.get_discrete_contact_approximation().name == "kTamsi":
-        raise ScenarioError("plant_config.discrete_contact_approximation: the robot drivers need sap, similar or "
-                            "lagged (PD-controlled actuators); tamsi does not support them")
-    drivers.apply_drivers(builder, plant, scene_graph, handle)

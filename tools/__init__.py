@@ -1,0 +1,1 @@
+"""Dev-time converters and model writers (not installed with the package)."""
