@@ -129,3 +129,43 @@ def transform_from_rpy_xyz(rpy, xyz) -> RigidTransform:
     """RigidTransform from Drake roll-pitch-yaw angles [rad] and a translation [m] (the robot
     tables store weld transforms as these plain tuples)."""
     return RigidTransform(RollPitchYaw(*rpy), np.asarray(xyz, float))
+
+
+#: Largest |R^T R - I| entry accepted in a pose's rotation block (poses read from files or built
+#: from float32 data are rotations only to a few ulps of float32).
+POSE_TOLERANCE = 1e-6
+
+
+def as_matrix4(X, name: str = "pose") -> np.ndarray:
+    """A pose given as a pydrake `RigidTransform` or as a 4x4 homogeneous matrix (any array-like),
+    as a new (4, 4) float array. Raises TypeError when `X` is neither, ValueError when it is not
+    4x4, not finite, or not a rigid transform (rotation block not a proper rotation within
+    POSE_TOLERANCE, bottom row not [0, 0, 0, 1]); the message names the argument `name`."""
+    if isinstance(X, RigidTransform):
+        M = X.GetAsMatrix4()
+    else:
+        if X is None or isinstance(X, (str, bytes, dict)):
+            raise TypeError(f"{name} must be a pydrake RigidTransform or a 4x4 array, got {type(X).__name__}")
+        try:
+            M = np.array(X, dtype=float)
+        except (TypeError, ValueError):
+            raise TypeError(f"{name} must be a pydrake RigidTransform or a 4x4 array, got {type(X).__name__}") from None
+        if M.shape != (4, 4):
+            raise ValueError(f"{name} must be a RigidTransform or a 4x4 homogeneous matrix, got an array of "
+                             f"shape {M.shape}")
+    if not np.all(np.isfinite(M)):
+        raise ValueError(f"{name} has non-finite entries (NaN or inf):\n{M}")
+    R = M[:3, :3]
+    err = float(np.abs(R.T @ R - np.eye(3)).max())
+    if err > POSE_TOLERANCE or np.linalg.det(R) <= 0 or np.abs(M[3] - [0.0, 0.0, 0.0, 1.0]).max() > POSE_TOLERANCE:
+        raise ValueError(f"{name} is not a rigid transform: its rotation block must be a proper rotation "
+                         f"(|R^T R - I| = {err:.2g}, det = {np.linalg.det(R):.3g}) and its last row "
+                         f"[0, 0, 0, 1], got\n{M}")
+    return M
+
+
+def as_rigid_transform(X, name: str = "pose") -> RigidTransform:
+    """A pose given as a pydrake `RigidTransform` or a 4x4 homogeneous matrix, as a RigidTransform
+    (checked as `as_matrix4` does; the same errors, naming `name`)."""
+    M = as_matrix4(X, name)
+    return X if isinstance(X, RigidTransform) else RigidTransform(M)
