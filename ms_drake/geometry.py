@@ -142,7 +142,7 @@ def as_matrix4(X, name: str = "pose") -> np.ndarray:
     4x4, not finite, or not a rigid transform (rotation block not a proper rotation within
     POSE_TOLERANCE, bottom row not [0, 0, 0, 1]); the message names the argument `name`."""
     if isinstance(X, RigidTransform):
-        M = X.GetAsMatrix4()
+        M = np.array(X.GetAsMatrix4(), order="C")  # row-major like any other array: the same sums
     else:
         if X is None or isinstance(X, (str, bytes, dict)):
             raise TypeError(f"{name} must be a pydrake RigidTransform or a 4x4 array, got {type(X).__name__}")

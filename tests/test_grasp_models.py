@@ -105,28 +105,26 @@ def test_robust_quality_is_seeded_mean():
 
 
 # ----------------------------------------------------------------------------- bad input
-def test_bad_input_gives_zero_with_reason_never_raises():
+def test_an_open_or_empty_mesh_gives_zero_and_bad_arguments_raise():
     ev = GraspEvaluator("reach")
     open_box = BOX.copy()
     open_box.update_faces(np.arange(len(open_box.faces)) != 0)
     assert not open_box.is_watertight
-    cases = {
-        "non_watertight_mesh": (open_box, I4, CENTER, 0.3),
-        "invalid_input": (BOX, np.full((4, 4), np.nan), CENTER, 0.3),
-    }
-    for reason, args in cases.items():
-        r = ev.evaluate(*args)
-        assert (r.quality, r.reason) == (0.0, reason)
-    assert ev.evaluate(BOX, I4, CENTER, -1.0).reason == "invalid_input"
-    assert ev.evaluate(BOX, I4, CENTER, float("nan")).reason == "invalid_input"
-    empty = trimesh.Trimesh()
-    assert ev.evaluate(empty, I4, CENTER, 0.3).quality == 0.0
+    for mesh in (open_box, trimesh.Trimesh()):
+        r = ev.evaluate(mesh, I4, CENTER, 0.3)
+        assert (r.quality, r.reason) == (0.0, "non_watertight_mesh")
+    with pytest.raises(ValueError, match="X_WO has non-finite entries"):
+        ev.evaluate(BOX, np.full((4, 4), np.nan), CENTER, 0.3)
+    for mass in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match="mass must be a positive number"):
+            ev.evaluate(BOX, I4, CENTER, mass)
 
 
 @pytest.mark.parametrize("model", MODELS)
 def test_every_model_bad_input_is_zero_with_a_reason(model):
-    """The bad-input list for every model, nominal and robust: quality 0.0 (never NaN,
-    never an exception) and a reason the caller can read."""
+    """Every model, nominal and robust: a physical failure (open or flat mesh, jaws that miss)
+    gives quality 0.0 (never NaN) and a reason the caller can read; a programming error (NaN
+    grasp or pose, mass 0, robust_samples < 0) raises a ValueError naming the argument."""
     from ms_drake.types import Grasp
 
     ev = GraspEvaluator(model)
@@ -139,16 +137,23 @@ def test_every_model_bad_input_is_zero_with_a_reason(model):
         ((open_box, I4, CENTER, 0.3), "non_watertight_mesh"),
         ((flat, I4, CENTER, 0.3), "non_watertight_mesh"),
         ((BOX, I4, far, 0.3), "miss"),
-        ((BOX, I4, nan_grasp, 0.3), "invalid_input"),
-        ((BOX, np.full((4, 4), np.nan), CENTER, 0.3), "invalid_input"),
-        ((BOX, I4, CENTER, 0.0), "invalid_input"),
     ]
     for args, reason in cases:
         for n in (0, 3):
             r = ev.evaluate(*args, robust_samples=n, seed=1)
             assert (r.quality, r.reason) == (0.0, reason), (model, reason, n, r)
             assert ev.quality(*args, robust_samples=n) == 0.0
-    assert ev.evaluate(BOX, I4, CENTER, 0.3, robust_samples=-1).reason == "invalid_input"
+    errors = [
+        ((BOX, I4, nan_grasp, 0.3), "ParallelJawGrasp.center must be a finite 3-vector"),
+        ((BOX, np.full((4, 4), np.nan), CENTER, 0.3), "X_WO has non-finite entries"),
+        ((BOX, I4, CENTER, 0.0), "mass must be a positive number"),
+    ]
+    for args, message in errors:
+        for n in (0, 3):
+            with pytest.raises(ValueError, match=message):
+                ev.evaluate(*args, robust_samples=n, seed=1)
+    with pytest.raises(ValueError, match="robust_samples must be >= 0"):
+        ev.evaluate(BOX, I4, CENTER, 0.3, robust_samples=-1)
 
 
 def test_zero_area_patch():

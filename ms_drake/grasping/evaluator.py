@@ -13,9 +13,11 @@ vector ~ N(0, sigma_r^2 I) about the grasp centre), the friction coefficient
 (mu + N(0, sigma_friction^2), at least 0.05) and the mass (m (1 + N(0, sigma_mass^2)), at least
 0.1 m), trial i drawing from numpy.random.default_rng([seed, i]).
 
-Bad input never raises from `quality`/`evaluate`: it gives quality 0.0 and a `reason`:
+The object pose X_WO is a pydrake RigidTransform or a 4x4 array. Programming errors raise a
+TypeError / ValueError naming the argument (a pose that is not a rigid transform, a NaN grasp,
+mass <= 0, robust_samples < 0); physical outcomes give a quality and the trial's `reason`:
   resisted | slips | miss | jaw_collision | non_watertight_mesh | zero_area_patch |
-  degenerate_fit | solver_failed | invalid_input | error:<text>
+  degenerate_fit | solver_failed
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ms_drake.geometry import as_matrix4
 from ms_drake.grasping import wrench_qp
 from ms_drake.grasping.friction_cone import cone_contact
 from ms_drake.grasping.geometry import MeshData, jaw_patches
@@ -65,6 +68,22 @@ class PadGeometry:
                              f"{self.polygon!r} (signed area {area:.3g} m^2); reverse the point order")
         if not (self.depth > 0):
             raise GraspError(f"PadGeometry.depth (pad thickness, m) must be > 0, got {self.depth!r}")
+
+
+def _check_trial_inputs(mass, robust_samples, com):
+    """(mass, robust_samples, com or None) checked: GraspError (a ValueError) naming the argument."""
+    if not isinstance(mass, (int, float, np.integer, np.floating)) or not (np.isfinite(mass) and mass > 0):
+        raise GraspError(f"mass must be a positive number of kilograms, got {mass!r}")
+    if not isinstance(robust_samples, (int, np.integer)):
+        raise TypeError(f"robust_samples must be an int, got {type(robust_samples).__name__}")
+    m, n = float(mass), int(robust_samples)
+    if n < 0:
+        raise GraspError(f"robust_samples must be >= 0 (0: the nominal grasp only), got {robust_samples!r}")
+    if com is not None:
+        com = np.asarray(com, dtype=float).reshape(-1)
+        if com.shape != (3,) or not np.all(np.isfinite(com)):
+            raise GraspError(f"com must be a finite 3-vector (object frame, m) or None, got {com!r}")
+    return m, n, com
 
 
 @dataclass(frozen=True)
@@ -153,50 +172,41 @@ class GraspEvaluator:
     # ------------------------------------------------------------------ public API
     def quality(self, mesh, X_WO, grasp: ParallelJawGrasp, mass: float, robust_samples: int = 0,
                 seed: int = 0, com=None) -> float:
-        """1.0 / 0.0 (robust_samples = 0) or the mean over robust trials. Never raises, never NaN."""
+        """1.0 / 0.0 (robust_samples = 0) or the mean over robust trials, never NaN (see `evaluate`)."""
         return self.evaluate(mesh, X_WO, grasp, mass, robust_samples, seed, com).quality
 
     def evaluate(self, mesh, X_WO, grasp: ParallelJawGrasp, mass: float, robust_samples: int = 0,
                  seed: int = 0, com=None) -> GraspQuality:
-        """Quality with its reason. mesh: trimesh.Trimesh in the object frame; X_WO: 4x4 object
-        pose; grasp: world frame (ParallelJawGrasp or types.Grasp); mass (kg); com: object-frame
-        centre of mass (default: the mesh's volume centroid)."""
-        try:
-            X = np.asarray(X_WO, dtype=float)
-            if X.shape != (4, 4) or not np.all(np.isfinite(X)):
-                return GraspQuality(0.0, "invalid_input")
-            if not isinstance(grasp, ParallelJawGrasp):
-                grasp = ParallelJawGrasp.from_grasp(grasp)
-            mass = float(mass)
-            if not (np.isfinite(mass) and mass > 0) or int(robust_samples) < 0:
-                return GraspQuality(0.0, "invalid_input")
-            data = MeshData.of(mesh)
-            if not data.watertight:
-                return GraspQuality(0.0, "non_watertight_mesh")
-            com_O = data.centroid if com is None else np.asarray(com, dtype=float).reshape(3)
-            R_OW = X[:3, :3].T
-            X_OW = np.eye(4)
-            X_OW[:3, :3] = R_OW
-            X_OW[:3, 3] = -R_OW @ X[:3, 3]
-            g_O = R_OW @ np.array([0.0, 0.0, -1.0])
-            grasp_O = grasp.transformed(X_OW)
-            n = int(robust_samples)
-            if n == 0:
-                ok, reason, res = self._trial(data, grasp_O, com_O, g_O, self.friction, mass, int(seed))
-                return GraspQuality(1.0 if ok else 0.0, reason, res, 1, {reason: 1})
-            outcomes = []
-            for i in range(n):
-                rng = np.random.default_rng([int(seed), i])
-                g_i, mu_i, m_i = self._perturb(grasp_O, mass, rng)
-                outcomes.append(self._trial(data, g_i, com_O, g_O, mu_i, m_i, rng))
-            counts = Counter(o[1] for o in outcomes)
-            q = float(np.mean([o[0] for o in outcomes]))
-            return GraspQuality(q, counts.most_common(1)[0][0], float(np.median([o[2] for o in outcomes])),
-                                n, dict(counts))
-        except GraspError:
-            return GraspQuality(0.0, "invalid_input")
-        except Exception as e:  # noqa: BLE001 -- the contract: quality never raises
-            return GraspQuality(0.0, f"error:{type(e).__name__}: {e}")
+        """Quality with its reason. mesh: trimesh.Trimesh in the object frame; X_WO: object pose
+        (RigidTransform or 4x4 array); grasp: world frame (ParallelJawGrasp or types.Grasp); mass
+        (kg); com: object-frame centre of mass (default: the mesh's volume centroid). Raises
+        TypeError / ValueError on programming errors (see the module docstring)."""
+        X = as_matrix4(X_WO, "X_WO")
+        if not isinstance(grasp, ParallelJawGrasp):
+            grasp = ParallelJawGrasp.from_grasp(grasp)
+        mass, n, com = _check_trial_inputs(mass, robust_samples, com)
+        data = MeshData.of(mesh)
+        if not data.watertight:
+            return GraspQuality(0.0, "non_watertight_mesh")
+        com_O = data.centroid if com is None else com
+        R_OW = X[:3, :3].T
+        X_OW = np.eye(4)
+        X_OW[:3, :3] = R_OW
+        X_OW[:3, 3] = -R_OW @ X[:3, 3]
+        g_O = R_OW @ np.array([0.0, 0.0, -1.0])
+        grasp_O = grasp.transformed(X_OW)
+        if n == 0:
+            ok, reason, res = self._trial(data, grasp_O, com_O, g_O, self.friction, mass, int(seed))
+            return GraspQuality(1.0 if ok else 0.0, reason, res, 1, {reason: 1})
+        outcomes = []
+        for i in range(n):
+            rng = np.random.default_rng([int(seed), i])
+            g_i, mu_i, m_i = self._perturb(grasp_O, mass, rng)
+            outcomes.append(self._trial(data, g_i, com_O, g_O, mu_i, m_i, rng))
+        counts = Counter(o[1] for o in outcomes)
+        q = float(np.mean([o[0] for o in outcomes]))
+        return GraspQuality(q, counts.most_common(1)[0][0], float(np.median([o[2] for o in outcomes])),
+                            n, dict(counts))
 
     # ------------------------------------------------------------------ internals
     def _perturb(self, g: ParallelJawGrasp, mass: float, rng):

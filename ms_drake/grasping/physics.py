@@ -67,6 +67,7 @@ from pydrake.trajectories import PiecewisePolynomial
 from pydrake.visualization import AddDefaultVisualization
 from scipy.spatial.transform import Rotation
 
+from ms_drake.geometry import as_matrix4
 from ms_drake.grasping.grasp import GraspError, ParallelJawGrasp
 
 
@@ -142,11 +143,13 @@ def simulate_grasp(mesh, X_WO, grasp: ParallelJawGrasp, mass: float, *, pad: Pad
                    time_step: float = 2e-3, seed: int | None = None, sigma_t: float = 0.002,
                    sigma_r: float = 0.03, sigma_friction: float = 0.1, sigma_mass: float = 0.1,
                    meshcat=None) -> GraspOutcome:
-    """Simulate one grasp (world frame). With `seed` set, the grasp pose, friction and mass are
-    perturbed from numpy.random.default_rng(seed); seed=None runs the nominal grasp.
+    """Simulate one grasp (world frame; X_WO: the object's pose, RigidTransform or 4x4 array).
+    With `seed` set, the grasp pose, friction and mass are perturbed from
+    numpy.random.default_rng(seed); seed=None runs the nominal grasp.
     friction: the object-pad Coulomb coefficient (default: the pad's)."""
 
     t_wall = time.perf_counter()
+    X = as_matrix4(X_WO, "X_WO")
     pad = pad or PadConfig()
     mu = pad.friction if friction is None else float(friction)
     if not isinstance(grasp, ParallelJawGrasp):
@@ -166,7 +169,6 @@ def simulate_grasp(mesh, X_WO, grasp: ParallelJawGrasp, mass: float, *, pad: Pad
                              contact_model="hydroelastic_with_fallback"), builder)
 
     # ---------------------------------------------------------------- object
-    X = np.asarray(X_WO, float)
     obj = plant.AddModelInstance("object")
     com_O = np.asarray(mesh.center_mass if com is None else com, float)
     Ic = np.asarray(mesh.moment_inertia, float) * (mass / mesh.volume)  # about the mesh's own COM

@@ -39,7 +39,9 @@ from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import LeafSystem
 from pydrake.systems.sensors import CameraInfo, ImageDepth32F
+from scipy.spatial import QhullError
 
+from ms_drake.geometry import as_matrix4
 from ms_drake.grasping.evaluator import MODELS, GraspEvaluator
 from ms_drake.grasping.grasp import GraspError
 from ms_drake.grasping.samplers import (
@@ -53,10 +55,6 @@ from ms_drake.types import Grasp, InstanceMasks, ObjectGeometry
 
 def intrinsics(camera_info: CameraInfo) -> np.ndarray:
     return np.asarray(camera_info.intrinsic_matrix(), float)
-
-
-def _as_matrix(X) -> np.ndarray:
-    return X.GetAsMatrix4() if isinstance(X, RigidTransform) else np.asarray(X, float)
 
 
 class GraspPlanner(LeafSystem):
@@ -86,7 +84,7 @@ class GraspPlanner(LeafSystem):
         self.model = model
         self.evaluator = SuctionEvaluator(**params) if model == "suction" else GraspEvaluator(model, **params)
         self.K = intrinsics(camera_info)
-        self.X_WC = np.eye(4) if X_WC is None else _as_matrix(X_WC)
+        self.X_WC = np.eye(4) if X_WC is None else as_matrix4(X_WC, "X_WC")
         self.num_samples, self.robust_samples, self.seed = int(num_samples), int(robust_samples), int(seed)
         self.max_width, self.default_mass = float(max_width), float(default_mass)
         if int(candidate_pool) < 1:
@@ -120,14 +118,14 @@ class GraspPlanner(LeafSystem):
         low[:, 2] = min(floor_z, pts[:, 2].min() - 1e-3)
         try:
             return trimesh.convex.convex_hull(np.vstack([pts, low]))
-        except Exception:  # noqa: BLE001 -- qhull refuses degenerate (flat) point sets
+        except QhullError:  # qhull refuses degenerate (flat) point sets
             return None
 
     def jaw_candidates(self, depth: np.ndarray, mask: np.ndarray, X_WC, seed: int, K=None):
         """The jaw candidates scored for one mask (see the module docstring); K: the intrinsics of
         `depth` (default: the constructor's camera; a crop passes its shifted intrinsics)."""
         K = self.K if K is None else np.asarray(K, float)
-        return sample_antipodal_grasps_depth(depth, K, _as_matrix(X_WC), mask,
+        return sample_antipodal_grasps_depth(depth, K, as_matrix4(X_WC, "X_WC"), mask,
                                              self.num_samples * self.candidate_pool, friction=self.friction,
                                              max_width=self.max_width, seed=seed, prefer_center=True,
                                              jaw_margin=self.jaw_margin)
@@ -137,7 +135,7 @@ class GraspPlanner(LeafSystem):
         """The computation behind the output port, callable without a Diagram. K: intrinsics of
         `depth` (default: the camera's; a crop of the image passes its shifted K); seed: the
         sampling seed (default: the constructor's)."""
-        X_WC = self.X_WC if X_WC is None else _as_matrix(X_WC)
+        X_WC = self.X_WC if X_WC is None else as_matrix4(X_WC, "X_WC")
         K = self.K if K is None else np.asarray(K, float)
         base_seed = self.seed if seed is None else int(seed)
         depth = np.asarray(depth, float).reshape(masks.masks.shape[1:]) if len(masks) else np.asarray(depth, float)
@@ -156,7 +154,8 @@ class GraspPlanner(LeafSystem):
                 continue
             geom = geoms.get(oid)
             if geom is not None:
-                mesh, X_WO, mass, com = self._mesh(geom), np.asarray(geom.X_WO, float), geom.mass, geom.com
+                X_WO = as_matrix4(geom.X_WO, f"objects[{oid!r}].X_WO")
+                mesh, mass, com = self._mesh(geom), geom.mass, geom.com
             else:
                 if P_W is None:
                     P_C = depth_to_points(depth, K)

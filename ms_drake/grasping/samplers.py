@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ms_drake.geometry import as_matrix4
 from ms_drake.grasping.geometry import MeshData, cross
 from ms_drake.grasping.grasp import GraspError, ParallelJawGrasp, SuctionGrasp
 
@@ -77,7 +78,8 @@ def sample_antipodal_grasps(mesh, X_WO, count: int, friction: float = 0.5, max_w
                             center_noise: float = 0.0, jaw_margin: float = 0.01,
                             dedupe_distance: float = 0.004, dedupe_angle: float = 0.2,
                             max_attempts: int | None = None, open_width: float | None = None) -> list[ParallelJawGrasp]:
-    """Up to `count` antipodal grasps on a mesh posed at X_WO (world frame).
+    """Up to `count` antipodal grasps on a mesh posed at X_WO (RigidTransform or 4x4 array), in
+    the world frame.
 
     approach: preferred world approach direction (made orthogonal to each axis), None = random.
     Width = contact distance + 2 jaw_margin (capped at max_width), or `open_width` when given
@@ -88,7 +90,7 @@ def sample_antipodal_grasps(mesh, X_WO, count: int, friction: float = 0.5, max_w
                          f"(got {count}, {max_width}, {friction})")
     data = MeshData.of(mesh)
     rng = np.random.default_rng(seed)
-    X = np.asarray(X_WO, float)
+    X = as_matrix4(X_WO, "X_WO")
     R = X[:3, :3]
     pref = None if approach is None else R.T @ np.asarray(approach, float)
     half = np.arctan(friction)
@@ -129,10 +131,11 @@ def sample_antipodal_grasps(mesh, X_WO, count: int, friction: float = 0.5, max_w
 def sample_suction_grasps(mesh, X_WO, count: int, seed: int = 0, max_approach_angle: float = np.pi,
                           dedupe_distance: float = 0.003) -> list[SuctionGrasp]:
     """Suction grasps: surface points (area weighted) approached along minus the normal;
-    max_approach_angle limits the angle between the approach and world -z (pi = any)."""
+    max_approach_angle limits the angle between the approach and world -z (pi = any). X_WO:
+    the mesh's pose (RigidTransform or 4x4 array)."""
     data = MeshData.of(mesh)
     rng = np.random.default_rng(seed)
-    X = np.asarray(X_WO, float)
+    X = as_matrix4(X_WO, "X_WO")
     out, kept = [], []
     tries = 0
     while len(out) < count and tries < 40 * max(count, 1):
@@ -277,7 +280,8 @@ def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.nda
                                   cell: float = 0.002, prefer_center: bool = False,
                                   max_attempts: int | None = None) -> list[ParallelJawGrasp]:
     """Top-down (approach = world -z) antipodal grasps on the object under `mask` (H, W bool) of a
-    depth image. K: 3x3 intrinsics; X_WC: 4x4 camera pose (camera z = optical axis). World frame.
+    depth image. K: 3x3 intrinsics; X_WC: camera pose, RigidTransform or 4x4 array (camera z =
+    optical axis). World frame.
 
     The visible points near the mask are binned into a world-frame height map (`cell` metres; the
     highest point per cell), so the geometry is metric and orthographic whatever the camera's
@@ -309,6 +313,7 @@ def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.nda
     centroid (a proxy for the centre of mass: gravity's torque about the grasp axis is what the
     jaws' torsional friction must resist); otherwise in the order drawn. max_attempts: first
     contacts tried (default 15 per requested grasp)."""
+    X_WC = as_matrix4(X_WC, "X_WC")
     if depth.shape != mask.shape:
         raise GraspError(f"depth image {depth.shape} and mask {mask.shape} must have the same shape")
     if not (cell > 0 and max_width > 0 and friction > 0) or count < 0:
@@ -411,7 +416,9 @@ def _fill_max(H: np.ndarray) -> np.ndarray:
 
 def sample_suction_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.ndarray, mask: np.ndarray,
                                 count: int, seed: int = 0, dedupe_distance: float = 0.003):
-    """Suction grasps at mask pixels: point = deprojected pixel, approach = minus the depth normal."""
+    """Suction grasps at mask pixels: point = deprojected pixel, approach = minus the depth normal.
+    X_WC: camera pose (RigidTransform or 4x4 array)."""
+    X_WC = as_matrix4(X_WC, "X_WC")
     rng = np.random.default_rng(seed)
     valid = mask & np.isfinite(depth) & (depth > 0)
     P = depth_to_points(depth, K)

@@ -30,12 +30,14 @@ from collections import Counter
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ms_drake.geometry import as_matrix4
 from ms_drake.grasping import wrench_qp
-from ms_drake.grasping.evaluator import GRAVITY, GraspQuality
+from ms_drake.grasping.evaluator import GRAVITY, GraspQuality, _check_trial_inputs
 from ms_drake.grasping.geometry import MeshData
 from ms_drake.grasping.grasp import GraspError, SuctionGrasp
 from ms_drake.grasping.wrench_qp import WrenchProblem
 from ms_drake.grasping.wrench_sets import normalizer, tangent_basis
+from ms_drake.types import Grasp
 
 
 class SuctionEvaluator:
@@ -68,35 +70,38 @@ class SuctionEvaluator:
 
     def evaluate(self, mesh, X_WO, grasp: SuctionGrasp, mass: float, robust_samples: int = 0, seed: int = 0,
                  com=None) -> GraspQuality:
-        try:
-            X = np.asarray(X_WO, float)
-            mass = float(mass)
-            if X.shape != (4, 4) or not np.all(np.isfinite(X)) or not (np.isfinite(mass) and mass > 0):
-                return GraspQuality(0.0, "invalid_input")
-            data = MeshData.of(mesh)
-            if not data.watertight:
-                return GraspQuality(0.0, "non_watertight_mesh")
-            com_O = data.centroid if com is None else np.asarray(com, float).reshape(3)
-            R_OW = X[:3, :3].T
-            p_O = R_OW @ (grasp.point - X[:3, 3])
-            a_O = R_OW @ grasp.approach
-            g_O = R_OW @ np.array([0.0, 0.0, -1.0])
-            if robust_samples <= 0:
-                ok, reason, res = self._trial(data, p_O, a_O, com_O, g_O, self.friction, mass)
-                return GraspQuality(float(ok), reason, res, 1, {reason: 1})
-            outs = []
-            for i in range(int(robust_samples)):
-                rng = np.random.default_rng([int(seed), i])
-                p = p_O + rng.normal(scale=self.sigma_t, size=3)
-                a = Rotation.from_rotvec(rng.normal(scale=self.sigma_r, size=3)).as_matrix() @ a_O
-                mu = max(0.05, self.friction + rng.normal(scale=self.sigma_friction))
-                m = mass * max(0.1, 1 + rng.normal(scale=self.sigma_mass))
-                outs.append(self._trial(data, p, a, com_O, g_O, mu, m))
-            counts = Counter(o[1] for o in outs)
-            return GraspQuality(float(np.mean([o[0] for o in outs])), counts.most_common(1)[0][0],
-                                float(np.median([o[2] for o in outs])), len(outs), dict(counts))
-        except Exception as e:  # noqa: BLE001 -- quality never raises
-            return GraspQuality(0.0, f"error:{type(e).__name__}: {e}")
+        """Quality with its reason (miss | no_seal | resisted | slips | solver_failed |
+        non_watertight_mesh). X_WO: object pose (RigidTransform or 4x4 array); grasp: SuctionGrasp or
+        a types.Grasp of kind "suction" (world frame). Programming errors raise TypeError /
+        ValueError naming the argument, as GraspEvaluator.evaluate."""
+        X = as_matrix4(X_WO, "X_WO")
+        if isinstance(grasp, Grasp) and grasp.kind == "suction":
+            grasp = SuctionGrasp(grasp.center, grasp.approach)
+        if not isinstance(grasp, SuctionGrasp):
+            raise TypeError(f"grasp must be a SuctionGrasp or a suction types.Grasp, got {grasp!r}")
+        mass, n, com = _check_trial_inputs(mass, robust_samples, com)
+        data = MeshData.of(mesh)
+        if not data.watertight:
+            return GraspQuality(0.0, "non_watertight_mesh")
+        com_O = data.centroid if com is None else com
+        R_OW = X[:3, :3].T
+        p_O = R_OW @ (grasp.point - X[:3, 3])
+        a_O = R_OW @ grasp.approach
+        g_O = R_OW @ np.array([0.0, 0.0, -1.0])
+        if n == 0:
+            ok, reason, res = self._trial(data, p_O, a_O, com_O, g_O, self.friction, mass)
+            return GraspQuality(float(ok), reason, res, 1, {reason: 1})
+        outs = []
+        for i in range(n):
+            rng = np.random.default_rng([int(seed), i])
+            p = p_O + rng.normal(scale=self.sigma_t, size=3)
+            a = Rotation.from_rotvec(rng.normal(scale=self.sigma_r, size=3)).as_matrix() @ a_O
+            mu = max(0.05, self.friction + rng.normal(scale=self.sigma_friction))
+            m = mass * max(0.1, 1 + rng.normal(scale=self.sigma_mass))
+            outs.append(self._trial(data, p, a, com_O, g_O, mu, m))
+        counts = Counter(o[1] for o in outs)
+        return GraspQuality(float(np.mean([o[0] for o in outs])), counts.most_common(1)[0][0],
+                            float(np.median([o[2] for o in outs])), len(outs), dict(counts))
 
     # ----------------------------------------------------------------------------------
     def seal(self, data: MeshData, point, approach):
