@@ -153,14 +153,15 @@ def as_matrix4(X, name: str = "pose") -> np.ndarray:
         if M.shape != (4, 4):
             raise ValueError(f"{name} must be a RigidTransform or a 4x4 homogeneous matrix, got an array of "
                              f"shape {M.shape}")
-    if not np.all(np.isfinite(M)):
+    if not np.isfinite(M).all():
         raise ValueError(f"{name} has non-finite entries (NaN or inf):\n{M}")
-    R = M[:3, :3]
-    err = float(np.abs(R.T @ R - np.eye(3)).max())
-    if err > POSE_TOLERANCE or np.linalg.det(R) <= 0 or np.abs(M[3] - [0.0, 0.0, 0.0, 1.0]).max() > POSE_TOLERANCE:
+    (a, b, c, _), (d, e, f, _), (g, h, i, _), last = M.tolist()  # plain floats: a few us a pose
+    err = max(abs(a * a + d * d + g * g - 1), abs(b * b + e * e + h * h - 1), abs(c * c + f * f + i * i - 1),
+              abs(a * b + d * e + g * h), abs(a * c + d * f + g * i), abs(b * c + e * f + h * i))  # R^T R - I
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    if err > POSE_TOLERANCE or det <= 0 or last != [0.0, 0.0, 0.0, 1.0]:
         raise ValueError(f"{name} is not a rigid transform: its rotation block must be a proper rotation "
-                         f"(|R^T R - I| = {err:.2g}, det = {np.linalg.det(R):.3g}) and its last row "
-                         f"[0, 0, 0, 1], got\n{M}")
+                         f"(|R^T R - I| = {err:.2g}, det = {det:.3g}) and its last row [0, 0, 0, 1], got\n{M}")
     return M
 
 
