@@ -208,7 +208,7 @@ class FullBackend(_Base):
                                  f"(grippers: {', '.join(g for _, g, _ in chosen)}); a bin search needs one")
         self.lift, self.speed, self.close_time, self.hold_time = lift, speed, close_time, hold_time
         self.ik, self._keep = {}, []
-        for arm in dict.fromkeys(a for a, _ in (self.jaw, self.suction) if a is not None):
+        for arm in dict.fromkeys(tool[0] for tool in (self.jaw, self.suction) if tool is not None):
             ik, limits, q_home, keep = arm_ik(scenario, arm, seed=seed)
             if scenario.robot.name == "floating":  # park beside the bin, tool down, above the walls
                 cx, cy = workspace.center_xy

@@ -5,6 +5,9 @@ Ports (declared first in __init__):
     action         Action (PolicySelector). Read only when the executor is idle.
     body_poses     the station's body_poses (list of RigidTransform): outcome checks (lifted?
                    left the bin?). Optional: unconnected = outcomes from the backend alone.
+    ready          1-vector: no new action is latched while it is < 0.5 (e.g. before the first
+                   camera images arrive from hardware; perception.ready.ImagesReady). Optional:
+                   unconnected = always ready.
   outputs
     <command port> one vector output per station command input the backend drives (e.g.
                    `floating.position` (6), `floating_jaw.position` (1), `floating_jaw.force_limit`
@@ -118,6 +121,7 @@ class ActionExecutor(LeafSystem):
         # Ports first.
         self.action_port = self.DeclareAbstractInputPort("action", AbstractValue.Make(Action("stop")))
         self.poses_port = self.DeclareAbstractInputPort("body_poses", AbstractValue.Make([RigidTransform()]))
+        self.ready_port = self.DeclareVectorInputPort("ready", 1)
         init = _State(hold={k: np.atleast_1d(np.asarray(v, float)) for k, v in backend.initial_commands().items()})
         self._state_index = self.DeclareAbstractState(AbstractValue.Make(init))
         state_ticket = {self.abstract_state_ticket(self._state_index), self.time_ticket()}
@@ -203,6 +207,8 @@ class ActionExecutor(LeafSystem):
                 state.get_mutable_abstract_state(self._state_index).set_value(s)
                 return
         if s.phase == "idle":
+            if self.ready_port.HasValue(context) and self.ready_port.Eval(context)[0] < 0.5:
+                return  # the observation is not there yet: stay idle
             if not self.action_port.HasValue(context):
                 raise ExecutionError("ActionExecutor: connect the action input (PolicySelector.action)")
             action = self.action_port.Eval(context)

@@ -20,7 +20,7 @@ import coal
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ms_drake.geometry import PinholeCamera, silhouette
+from ms_drake.geometry import PinholeCamera, as_matrix4, silhouette
 from ms_drake.objects import get_object
 from ms_drake.perception.masks import label_image_to_masks, object_labels
 from ms_drake.robots import ParallelJawConfig
@@ -74,8 +74,8 @@ def heap_grasp_inputs(scenario, heap, camera: str = "overhead", min_pixels: int 
 def graspable_size(vertices: np.ndarray, X_WO: np.ndarray, max_width: float, jaw_margin: float = 0.01) -> bool:
     """True when a top-down jaw could span the object: the narrower of the two principal extents
     of its world-frame footprint (vertices projected on the horizontal plane) is below
-    max_width - 2 jaw_margin (the depth sampler's limit)."""
-    X = np.asarray(X_WO, float)
+    max_width - 2 jaw_margin (the depth sampler's limit). X_WO: RigidTransform or 4x4 array."""
+    X = as_matrix4(X_WO, "X_WO")
     xy = (np.asarray(vertices, float) @ X[:3, :3].T)[:, :2]
     xy = xy - xy.mean(axis=0)
     _, _, Vt = np.linalg.svd(xy, full_matrices=False)

@@ -18,6 +18,7 @@ from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 
+from ms_drake.geometry import as_rigid_transform
 from ms_drake.objects import get_object
 from ms_drake.planning import TimedTrajectory, TrajectoryStreamer
 from ms_drake.planning.sequences import PickPlan, arm_ik, plan_pick, plan_push
@@ -58,8 +59,9 @@ def pick_scenario(scenario, object_names, cameras: bool = False):
 
 def build_run(scenario, plan: PickPlan, object_poses=(), meshcat=None) -> Run:
     """Station + TrajectoryStreamer + command schedules; objects (in station order) at
-    `object_poses`. Unscheduled command inputs keep the drivers' defaults."""
-
+    `object_poses` (RigidTransforms or 4x4 arrays). Unscheduled command inputs keep the drivers'
+    defaults."""
+    object_poses = [as_rigid_transform(X, f"object_poses[{k}]") for k, X in enumerate(object_poses)]
     builder = DiagramBuilder()
     station = builder.AddSystem(MakeStation(scenario, meshcat=meshcat))
     plant = get_plant(station)

@@ -32,10 +32,10 @@ from ms_drake.policies.bin_search import (
     connect_controller,
 )
 from ms_drake.policies.bin_selectors import check_policy
-from ms_drake.robots import station_robot_spec
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap, scenario_with_heap, set_heap_poses
 from ms_drake.station import MakeStation, get_plant, station_objects
+from ms_drake.station.robots import set_arm_positions
 
 FAILURE_MODES = {
     "target_never_visible": "the target was not seen in any step",
@@ -175,15 +175,8 @@ def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSy
 def _set_initial(system: SearchSystem, context, heap):
     """Heap poses, and the robot at the controller's initial commands (parked / home)."""
     set_heap_poses(system.station, context, heap)
-    plant, pc = system.plant, system.plant.GetMyMutableContextFromRoot(context)
-    spec = station_robot_spec(system.scenario.robot.name)
-    init = system.controller.initial_commands()
-    q = plant.GetPositions(pc)
-    for arm, a in spec.arms.items():
-        if f"{arm}.position" in init:
-            for name, v in zip(a.joints, np.atleast_1d(init[f"{arm}.position"])):
-                q[plant.GetJointByName(name).position_start()] = v
-    plant.SetPositions(pc, q)
+    set_arm_positions(system.plant, system.plant.GetMyMutableContextFromRoot(context), system.scenario.robot.name,
+                      system.controller.initial_commands())
 
 
 def _frame(system: SearchSystem, context, step: int) -> Frame:

@@ -17,9 +17,8 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import LeafSystem
-from pydrake.systems.sensors import ImageLabel16I
 
-from ms_drake.geometry import PinholeCamera, silhouette
+from ms_drake.geometry import PinholeCamera, as_rigid_transform, silhouette
 from ms_drake.objects import get_object
 from ms_drake.station.station import station_objects
 from ms_drake.types import InstanceMasks
@@ -57,12 +56,14 @@ class AmodalMasks(LeafSystem):
         self._objects = [(i, int(b), np.asarray(m.vertices), np.asarray(m.faces)) for i, b, m in objects]
 
     def masks_for(self, poses) -> InstanceMasks:
+        """Silhouettes of the objects at `poses` (the plant's body_poses: indexed by body index;
+        RigidTransforms or 4x4 arrays)."""
         cam = self._camera
         if not self._objects:
             return InstanceMasks.empty(cam.height, cam.width)
         out = []
         for _, b, v, f in self._objects:
-            X = poses[b]
+            X = as_rigid_transform(poses[b], f"poses[{b}]")
             out.append(silhouette(cam, (X.rotation().matrix() @ v.T).T + X.translation(), f))
         return InstanceMasks(np.stack(out), tuple(i for i, *_ in self._objects), np.ones(len(out)))
 

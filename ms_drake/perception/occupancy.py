@@ -69,7 +69,7 @@ from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.sensors import ApplyCameraConfig, ImageDepth32F
 
 from ms_drake.errors import PerceptionError
-from ms_drake.geometry import PinholeCamera, Workspace, depth_array
+from ms_drake.geometry import PinholeCamera, Workspace, as_matrix4, depth_array
 from ms_drake.objects import get_object
 from ms_drake.types import OccupancyMap, TargetEstimate
 
@@ -135,8 +135,7 @@ class TargetMesh:
     def from_object(full_name: str, X_WO=None) -> "TargetMesh":
         """The registry object's mesh; X_WO (4x4 or RigidTransform): its pose (default: as modelled)."""
         m = get_object(full_name).trimesh()
-        X = np.eye(4) if X_WO is None else (X_WO.GetAsMatrix4() if hasattr(X_WO, "GetAsMatrix4")
-                                             else np.asarray(X_WO, float))
+        X = np.eye(4) if X_WO is None else as_matrix4(X_WO, "X_WO")
         return TargetMesh(np.asarray(m.vertices, float), np.asarray(m.faces), X[:3, :3],
                           None if X_WO is None else X[:3, 3].copy())
 

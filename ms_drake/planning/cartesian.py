@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydrake.math import RigidTransform
 
+from ms_drake.geometry import as_rigid_transform
 from ms_drake.planning.ik import ArmIk
 from ms_drake.planning.trajectories import JointTrajectory, plan_path_motion
 from ms_drake.types import JointLimits
@@ -33,7 +34,9 @@ class CartesianPlan:
 def plan_cartesian_line(ik: ArmIk, X_start: RigidTransform, displacement, q_start, limits: JointLimits,
                         step: float = 0.01, max_joint_step: float = 0.3, axis_only: bool = False,
                         max_speed: float = 0.25) -> CartesianPlan:
-    """Move the tool from X_start by `displacement` (world frame, metres) along a straight line."""
+    """Move the tool from X_start (RigidTransform or 4x4 array) by `displacement` (world frame,
+    metres) along a straight line."""
+    X_start = as_rigid_transform(X_start, "X_start")
     d = np.asarray(displacement, float)
     length = float(np.linalg.norm(d))
     n = max(1, int(np.ceil(length / step)))
@@ -54,7 +57,9 @@ def plan_cartesian_line(ik: ArmIk, X_start: RigidTransform, displacement, q_star
 
 
 def approach_pose(X_WT: RigidTransform, distance: float) -> RigidTransform:
-    """The pre-grasp pose `distance` back along the tool's approach axis (its +z)."""
+    """The pre-grasp pose `distance` back along the tool's approach axis (its +z); X_WT:
+    RigidTransform or 4x4 array."""
+    X_WT = as_rigid_transform(X_WT, "X_WT")
     z = X_WT.rotation().matrix()[:, 2]
     return RigidTransform(X_WT.rotation(), X_WT.translation() - distance * z)
 
@@ -62,7 +67,8 @@ def approach_pose(X_WT: RigidTransform, distance: float) -> RigidTransform:
 def plan_approach(ik: ArmIk, X_WT: RigidTransform, limits: JointLimits, distance: float = 0.10,
                   q_seed=None, axis_only: bool = False, **kw) -> tuple[np.ndarray | None, CartesianPlan]:
     """IK at the pre-grasp pose, then a straight line along the approach axis to X_WT.
-    Returns (q_pregrasp or None, plan)."""
+    Returns (q_pregrasp or None, plan). X_WT: RigidTransform or 4x4 array."""
+    X_WT = as_rigid_transform(X_WT, "X_WT")
     pre = approach_pose(X_WT, distance)
     res = ik.solve(pre, q_seed=q_seed, axis_only=axis_only)
     if not res.success:

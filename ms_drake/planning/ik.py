@@ -29,9 +29,10 @@ from pydrake.multibody.plant import AddMultibodyPlantSceneGraph
 from pydrake.solvers import SnoptSolver, Solve
 from pydrake.systems.framework import DiagramBuilder
 
+from ms_drake.geometry import as_rigid_transform
 from ms_drake.paths import make_parser
-from ms_drake.robots import robot_spec
-from ms_drake.station.robots import add_arm_gripper, add_robot
+from ms_drake.robots import station_robot_spec
+from ms_drake.station.robots import add_arm_gripper, add_floating_gripper, add_robot
 
 
 @dataclass(frozen=True, eq=False)
@@ -92,7 +93,9 @@ class ArmIk:
         return pe, ae
 
     def solve(self, X_WT: RigidTransform, q_seed=None, axis_only: bool = False) -> IkResult:
-        """Arm joints that put the frame at X_WT (never raises on failure)."""
+        """Arm joints that put the frame at X_WT (RigidTransform or 4x4 array). A failed solve is
+        a result, never an exception; a pose that is not a rigid transform raises ValueError."""
+        X_WT = as_rigid_transform(X_WT, "X_WT")
         q_now = self.plant.GetPositions(self.context).copy()
         seed = self.arm_positions() if q_seed is None else np.asarray(q_seed, float)
         seeds = [np.clip(seed, self.lower, self.upper)]
@@ -180,11 +183,16 @@ def make_ik_diagram(robot: str, grippers: dict[str, str] | None = None, add_envi
     builder = DiagramBuilder()
     plant, _ = AddMultibodyPlantSceneGraph(builder, 0.0)
     parser = make_parser(plant)
-    r = add_robot(plant, parser, robot, X_WR)
-    spec = robot_spec(robot)
+    spec = station_robot_spec(robot)
     chosen = grippers or {arm: a.default_gripper for arm, a in spec.arms.items()}
-    g = {arm: add_arm_gripper(plant, parser, r, robot, arm, name, model_name=f"{arm}_gripper")
-         for arm, name in chosen.items()}
+    if robot == "floating":  # the gripper on its 6 base joints: arm `floating`
+        (arm, name), = chosen.items()
+        r, gripper = add_floating_gripper(plant, parser, name, X_WR, model_name=f"{arm}_gripper")
+        g = {arm: gripper}
+    else:
+        r = add_robot(plant, parser, robot, X_WR)
+        g = {arm: add_arm_gripper(plant, parser, r, robot, arm, name, model_name=f"{arm}_gripper")
+             for arm, name in chosen.items()}
     if add_environment is not None:
         add_environment(plant, parser)
     plant.Finalize()

@@ -21,6 +21,7 @@ from pydrake.math import RigidTransform
 from pydrake.systems.primitives import TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
 
+from ms_drake.geometry import as_rigid_transform
 from ms_drake.planning import (
     ArmIk,
     approach_pose,
@@ -171,7 +172,8 @@ def plan_pick(ik, limits, q_home, X_grasp: RigidTransform, arm: str, gripper_por
               blade: float | None = None, from_home: bool = True) -> PickPlan:
     """Plan a pick at the tool pose X_grasp (kind: parallel_jaw | suction | bluction).
     from_home False: the timeline starts at the pre-grasp configuration (build_run puts the arm
-    there), skipping the joint motion from home."""
+    there), skipping the joint motion from home. X_grasp: RigidTransform or 4x4 array."""
+    X_grasp = as_rigid_transform(X_grasp, "X_grasp")
     axis_only = kind != "parallel_jaw"
     pre = approach_pose(X_grasp, approach)
     res = ik.solve(pre, q_seed=q_home, axis_only=axis_only)
@@ -222,7 +224,9 @@ def plan_push(ik, limits, q_home, X_start: RigidTransform, direction, distance: 
               gripper_port: str | None = None, approach: float = 0.10, retreat: float = 0.05,
               speed: float = 0.1, blade: float = 0.0, settle: float = 0.3, from_home: bool = True) -> PickPlan:
     """A straight push: down onto X_start (from `approach` above), `distance` along `direction`
-    (world), then up by `retreat`. For the bluction the blade is commanded to `blade` (down)."""
+    (world), then up by `retreat`. For the bluction the blade is commanded to `blade` (down).
+    X_start: RigidTransform or 4x4 array."""
+    X_start = as_rigid_transform(X_start, "X_start")
     above = RigidTransform(X_start.rotation(), X_start.translation() + [0, 0, approach])
     res = ik.solve(above, q_seed=q_home)
     if not res.success:

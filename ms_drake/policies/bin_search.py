@@ -4,6 +4,9 @@
     controller = builder.AddSystem(MakeBinSearchController(scenario, params, sim=SimulationInfo.from_station(station)))
     connect_controller(builder, controller, station)
 
+In simulation, start the robot where the controller expects it (parked out of the camera's view):
+`station.robots.set_arm_positions(plant, plant_context, robot, controller.initial_commands())`.
+
 Inside (DESIGN.md "Data flow"; every planner is a system of the diagram):
   <cam>.label_image -> Segmenter("ground_truth")   (simulation)  |  <cam>.depth_image -> Segmenter(params.segmentation)
   <cam>.rgb_image + masks -> TargetDetector("color") -> target
@@ -12,6 +15,7 @@ Inside (DESIGN.md "Data flow"; every planner is a system of the diagram):
   depth + masks -> PushPlanner -> pushes                                          (*_push selectors)
   body_poses -> AmodalMasks -> TargetAmodalMask -> target_amodal                 (oracle, simulation)
   -> PolicySelector(policy) -> action -> ActionExecutor(backend) -> station commands; history -> selector
+  <cam>.rgb_image + <cam>.depth_image -> ImagesReady -> ActionExecutor.ready (idle until images arrive)
 
 Exported ports, named as the station's so `connect_controller` wires them by name:
   inputs   <cam>.rgb_image, <cam>.depth_image; with `sim`: <cam>.label_image (ground-truth
@@ -39,6 +43,7 @@ from ms_drake.grasping.planner import GraspPlanner, LazyGraspPlanner, ObjectGeom
 from ms_drake.objects import get_object
 from ms_drake.perception.masks import TargetAmodalMask, make_amodal_masks, object_labels
 from ms_drake.perception.occupancy import OccupancyEstimator
+from ms_drake.perception.ready import ImagesReady
 from ms_drake.perception.segmentation import BACKENDS as SEGMENTATION_BACKENDS
 from ms_drake.perception.segmentation import Segmenter
 from ms_drake.perception.target import TargetDetector
@@ -229,6 +234,11 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
     builder.Connect(executor.history_port, selector.GetInputPort("history"))
     if sim is not None:
         pose_inputs.append(executor.poses_port)
+    ready = builder.AddSystem(ImagesReady(camera.width, camera.height))
+    ready.set_name("images_ready")
+    rgb_inputs.append(ready.GetInputPort("rgb_image"))
+    depth_inputs.append(ready.GetInputPort("depth_image"))
+    builder.Connect(ready.GetOutputPort("ready"), executor.ready_port)
 
     export_input(depth_inputs, f"{cam}.depth_image")
     export_input(rgb_inputs, f"{cam}.rgb_image")

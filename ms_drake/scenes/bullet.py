@@ -36,6 +36,8 @@ from pydrake.common.eigen_geometry import Quaternion
 from pydrake.geometry import Box, Capsule, Cylinder, Role, Sphere
 from pydrake.math import RigidTransform, RotationMatrix
 
+from ms_drake.geometry import as_rigid_transform
+
 
 @contextlib.contextmanager
 def _stderr_silenced():
@@ -171,7 +173,9 @@ class BulletDropWorld:
         return self.t
 
     def set_pose(self, i: int, X_WB: RigidTransform) -> None:
-        """Release object i at X_WB with zero velocity (creating its Bullet body)."""
+        """Release object i at X_WB (RigidTransform or 4x4 array) with zero velocity (creating its
+        Bullet body)."""
+        X_WB = as_rigid_transform(X_WB, "X_WB")
         pb, c = self.pb, dict(physicsClientId=self.cid)
         col, X_BC, mass, moments, mu = self._shapes[i]
         X_WC = X_WB @ X_BC

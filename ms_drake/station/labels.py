@@ -32,6 +32,7 @@ from pydrake.math import RigidTransform
 from pydrake.systems.framework import LeafSystem
 from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I
 
+from ms_drake.geometry import as_matrix4, as_rigid_transform
 from ms_drake.station._label_kernel import label_rows, prepare
 
 # --------------------------------------------------------------------------------------------
@@ -168,8 +169,10 @@ class DepthLabeler:
     def label(self, depth: np.ndarray, X_WC: RigidTransform, poses: dict, z_near: float = 0.0,
               z_far: float = np.inf) -> np.ndarray | None:
         """(H, W) int16 label image from a depth image (metres, Drake's kTooFar = inf and
-        kTooClose = 0) taken from X_WC; `poses` maps the `geometry_ids` to X_WG. None when the
-        result could differ from a rendered label image (see the class doc)."""
+        kTooClose = 0) taken from X_WC; `poses` maps the `geometry_ids` to X_WG (poses:
+        RigidTransform or 4x4 array). None when the result could differ from a rendered label
+        image (see the class doc)."""
+        X_WC = as_rigid_transform(X_WC, "X_WC")
         if depth.shape != (self.height, self.width):
             raise ValueError(f"DepthLabeler: depth image is {depth.shape[1]}x{depth.shape[0]}, camera is "
                              f"{self.width}x{self.height}")
@@ -178,7 +181,12 @@ class DepthLabeler:
         if depth.flags.writeable:  # one compiled kernel: numba specialises on read-only (Drake's images)
             depth = depth.view()
             depth.flags.writeable = False
-        X_WG = np.array([poses[g].GetAsMatrix4() for g in self._ids]).reshape(-1, 4, 4)
+        # Drake's own poses (a QueryObject's) as they are: checking 20-odd of them for every image
+        # would add ~10 % to the labeller; arrays are checked, and every pose must be finite.
+        X_WG = np.array([X.GetAsMatrix4() if isinstance(X, RigidTransform) else as_matrix4(X, f"poses[{g}]")
+                         for g, X in ((g, poses[g]) for g in self._ids)]).reshape(-1, 4, 4)
+        if not np.isfinite(X_WG).all():
+            raise ValueError("DepthLabeler.label: poses holds a non-finite pose (NaN or inf)")
         X_CW = np.ascontiguousarray(X_WC.inverse().GetAsMatrix4())
         M, rects = prepare(X_CW, X_WG, self._corners, self.fx, self.fy, self.cx, self.cy, self.height, self.width,
                            float(z_near), float(z_far))
@@ -242,7 +250,7 @@ class DepthLabelImage(LeafSystem):
         self._rendered = self.DeclareAbstractInputPort("rendered_label_image", AbstractValue.Make(ImageLabel16I(w, h)))
         self.DeclareAbstractOutputPort("label_image", lambda: AbstractValue.Make(ImageLabel16I(w, h)), self._calc)
         self.labeler = labeler
-        self._parent, self._X_PC = parent_frame, X_PC
+        self._parent, self._X_PC = parent_frame, as_rigid_transform(X_PC, "X_PC")
         self._z_near, self._z_far = z_near, z_far
         self.renders = 0  # diagnostics: how many images fell back to the rendered label image
 

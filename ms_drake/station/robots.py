@@ -37,7 +37,7 @@ from pydrake.math import RigidTransform, RollPitchYaw
 from scipy.spatial.transform import Rotation
 
 from ms_drake.errors import ModelNotFoundError, ScenarioError
-from ms_drake.geometry import transform_from_rpy_xyz
+from ms_drake.geometry import as_rigid_transform, transform_from_rpy_xyz
 from ms_drake.paths import models_dir
 from ms_drake.robots import (
     GRIPPERS,
@@ -65,13 +65,14 @@ def _add_file(parser, path):
 
 
 def add_robot(plant, parser, robot_name: str, X_WR=None, model_name: str | None = None):
-    """Add robot `robot_name`, weld its root to the world at X_WR; returns its ModelInstanceIndex."""
+    """Add robot `robot_name`, weld its root to the world at X_WR (RigidTransform or 4x4 array;
+    default identity); returns its ModelInstanceIndex."""
+    X_WR = RigidTransform() if X_WR is None else as_rigid_transform(X_WR, "X_WR")
     spec = robot_spec(robot_name)
     instance = _add_file(parser, models_dir() / spec.file)
     if model_name is not None:
         plant.RenameModelInstance(instance, model_name)
-    plant.WeldFrames(plant.world_frame(), plant.GetFrameByName(spec.root, instance),
-                     X_WR if X_WR is not None else RigidTransform())
+    plant.WeldFrames(plant.world_frame(), plant.GetFrameByName(spec.root, instance), X_WR)
     exclude_close_link_collisions(plant, parser, instance)
     return instance
 
@@ -106,13 +107,14 @@ def exclude_close_link_collisions(plant, parser, instance, levels: int = 3):
 
 
 def add_gripper(plant, parser, gripper_name: str, weld_to_frame, X_FG=None, model_name: str | None = None):
-    """Add gripper `gripper_name` and weld its `body` to `weld_to_frame` at X_FG."""
+    """Add gripper `gripper_name` and weld its `body` to `weld_to_frame` at X_FG (RigidTransform or
+    4x4 array; default identity)."""
+    X_FG = RigidTransform() if X_FG is None else as_rigid_transform(X_FG, "X_FG")
     spec = gripper_spec(gripper_name)
     instance = _add_file(parser, models_dir() / spec.file)
     if model_name is not None:
         plant.RenameModelInstance(instance, model_name)
-    plant.WeldFrames(weld_to_frame, plant.GetFrameByName("body", instance),
-                     X_FG if X_FG is not None else RigidTransform())
+    plant.WeldFrames(weld_to_frame, plant.GetFrameByName("body", instance), X_FG)
     return instance
 
 
@@ -154,12 +156,13 @@ def add_floating_gripper(plant, parser, gripper_name: str, X_WB=None, model_name
 
     Returns (base_instance, gripper_instance). Drive the base through
     plant.get_desired_state_input_port(base_instance) ([q(6), v(6)]) on a discrete SAP plant.
+    X_WB: RigidTransform or 4x4 array (default identity).
     """
+    X_WB = RigidTransform() if X_WB is None else as_rigid_transform(X_WB, "X_WB")
     base = _add_file(parser, models_dir() / "grippers" / "floating_base.sdf")
     if model_name is not None:
         plant.RenameModelInstance(base, f"{model_name}_base")
-    plant.WeldFrames(plant.world_frame(), plant.GetFrameByName("floating_origin_link", base),
-                     X_WB if X_WB is not None else RigidTransform())
+    plant.WeldFrames(plant.world_frame(), plant.GetFrameByName("floating_origin_link", base), X_WB)
     gripper = add_gripper(plant, parser, gripper_name, plant.GetFrameByName("floating_yaw_link", base),
                           model_name=model_name)
     return base, gripper
@@ -172,7 +175,8 @@ def floating_gripper_positions(X_WG) -> np.ndarray:
     """Joint positions [x, y, z, roll, pitch, yaw] of the floating base that put the gripper's
     `body` frame at X_WG. The revolute chain is roll about x, then pitch about the rolled y, then
     yaw about the resulting z, so R_WG = Rx(roll) Ry(pitch) Rz(yaw) (intrinsic x-y-z Euler angles,
-    not Drake's extrinsic RollPitchYaw)."""
+    not Drake's extrinsic RollPitchYaw). X_WG: RigidTransform or 4x4 array."""
+    X_WG = as_rigid_transform(X_WG, "X_WG")
     R = X_WG.rotation().matrix()
     rpy = Rotation.from_matrix(R).as_euler("XYZ")
     return np.concatenate([X_WG.translation(), rpy])
@@ -260,3 +264,15 @@ def set_home(plant, instance, spec: RobotSpec):
             q = arm.home[k] if arm.home else 0.0
             lo, hi = joint.position_lower_limits()[0], joint.position_upper_limits()[0]
             joint.set_default_positions([float(np.clip(q, lo, hi))])
+
+
+def set_arm_positions(plant, plant_context, robot_name: str, commands: dict) -> None:
+    """Put every arm of `robot_name` whose `<arm>.position` is in `commands` at that position
+    (e.g. a controller's initial commands, so a simulation starts where the controller expects
+    its robot: parked out of the camera's view)."""
+    q = plant.GetPositions(plant_context)
+    for arm, a in station_robot_spec(robot_name).arms.items():
+        if f"{arm}.position" in commands:
+            for name, v in zip(a.joints, np.atleast_1d(commands[f"{arm}.position"])):
+                q[plant.GetJointByName(name).position_start()] = v
+    plant.SetPositions(plant_context, q)

@@ -26,6 +26,8 @@ from pydrake.multibody.plant import ExternallyAppliedSpatialForce
 from pydrake.multibody.tree import BodyIndex
 from pydrake.systems.framework import BasicVector, LeafSystem
 
+from ms_drake.geometry import as_rigid_transform
+
 # suction_state layout
 HOLDING, BODY_INDEX, GAP = 0, 1, 2
 
@@ -58,7 +60,7 @@ class SuctionCup(LeafSystem):
             raise ValueError("SuctionCup: radius and max_gap must be > 0 and max_force >= 0")
         self._plant = plant
         self._cup = cup_body.index()
-        self._X_BC = X_BC
+        self._X_BC = as_rigid_transform(X_BC, "X_BC")
         self._r = radius
         self._max_gap = max_gap
         self._max_force = max_force

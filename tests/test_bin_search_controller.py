@@ -1,0 +1,162 @@
+"""The bin-search controller Diagram (ms_drake.policies.bin_search): built alone with fixed
+images, wired to a simulated station in three lines, wired to the hardware station over LCM
+(memq://) with an emulated YuMi on the far side, and full fidelity on the Panda and the floating
+gripper. ImagesReady alone."""
+
+import numpy as np
+import pytest
+from pydrake.lcm import DrakeLcm
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.sensors import ImageDepth32F, ImageRgba8U
+
+from ms_drake.experiments.rollout import SearchParams, build_search, run_search
+from ms_drake.perception.ready import ImagesReady
+from ms_drake.policies.bin_search import (
+    BinSearchParams,
+    ControllerError,
+    MakeBinSearchController,
+    SimulationInfo,
+    connect_controller,
+)
+from ms_drake.scenario import load_scenario
+from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap, scenario_with_heap, set_heap_poses
+from ms_drake.station import MakeStation, get_plant, station_objects
+from ms_drake.station.emulator import MakeEmulatedRobot
+from ms_drake.station.robots import set_arm_positions
+
+HARDWARE = BinSearchParams(policy="largest", fidelity="full", segmentation="euclidean", horizon=1)
+YUMI_COMMANDS = ["yumi_right.position", "yumi_left.position", "yumi_right_jaw.position",
+                 "yumi_right_jaw.force_limit", "yumi_left_suction.suction"]
+OUTPUTS = ["action", "history", "outcome", "removed", "status", "masks", "target", "grasps"]
+
+
+@pytest.fixture(scope="module")
+def heap4():
+    return generate_heap(load_scenario(None, "BinHeap15"), 4, seed=3, params=SEARCH_HEAPS)
+
+
+@pytest.fixture(scope="module")
+def yumi_images(heap4):
+    """The overhead rgb and depth images of heap4 in a simulated YuMiBin station."""
+    s = scenario_with_heap(load_scenario(None, "YuMiBin"), heap4)
+    station = MakeStation(s, target_index=heap4.target_index)
+    ctx = station.CreateDefaultContext()
+    set_heap_poses(station, ctx, heap4)
+    return s, (station.GetOutputPort("overhead.rgb_image").Eval(ctx),
+               station.GetOutputPort("overhead.depth_image").Eval(ctx))
+
+
+def _names(system, kind):
+    n = system.num_input_ports() if kind == "in" else system.num_output_ports()
+    port = system.get_input_port if kind == "in" else system.get_output_port
+    return [port(i).get_name() for i in range(n)]
+
+
+def test_images_ready_alone():
+    ready = ImagesReady(64, 48)
+    ctx = ready.CreateDefaultContext()
+    ready.GetInputPort("rgb_image").FixValue(ctx, ImageRgba8U(0, 0))  # hardware before the first message
+    ready.GetInputPort("depth_image").FixValue(ctx, ImageDepth32F(64, 48))
+    assert ready.GetOutputPort("ready").Eval(ctx)[0] == 0.0
+    ready.GetInputPort("rgb_image").FixValue(ctx, ImageRgba8U(64, 48))
+    assert ready.GetOutputPort("ready").Eval(ctx)[0] == 1.0
+
+
+def test_controller_alone_from_fixed_images_grasps_the_largest_segment(yumi_images):
+    s, (rgb, depth) = yumi_images
+    controller = MakeBinSearchController(s, HARDWARE)
+    assert _names(controller, "in") == ["overhead.depth_image", "overhead.rgb_image"]  # hardware ports only
+    assert _names(controller, "out") == YUMI_COMMANDS + OUTPUTS
+    ctx = controller.CreateDefaultContext()
+    controller.GetInputPort("overhead.rgb_image").FixValue(ctx, rgb)
+    controller.GetInputPort("overhead.depth_image").FixValue(ctx, depth)
+    masks = controller.GetOutputPort("masks").Eval(ctx)
+    action = controller.GetOutputPort("action").Eval(ctx)
+    assert masks.ids[0] == "seg_0" and len(masks) >= 2  # depth segments, largest first
+    assert action.kind == "grasp" and action.grasp.object_id == "seg_0" and action.grasp.model == "suction"
+    assert controller.GetOutputPort("status").Eval(ctx).steps == 0
+
+
+def test_controller_rejects_settings_it_cannot_honour(yumi_images):
+    s, _ = yumi_images
+    with pytest.raises(ControllerError, match="ground_truth' reads the simulated label image"):
+        MakeBinSearchController(s, BinSearchParams(fidelity="full"))
+    with pytest.raises(ControllerError, match="primitive' runs in simulation on the floating gripper"):
+        MakeBinSearchController(s, BinSearchParams(fidelity="primitive", segmentation="euclidean"))
+    with pytest.raises(ControllerError, match="needs target_shape"):
+        MakeBinSearchController(s, BinSearchParams(policy="xray", fidelity="full", segmentation="euclidean"))
+    with pytest.raises(ControllerError, match="camera 'front' is not a camera"):
+        MakeBinSearchController(s, BinSearchParams(fidelity="full", segmentation="euclidean", camera="front"))
+    with pytest.raises(ControllerError, match="segmentation 'learned' unknown"):
+        BinSearchParams(segmentation="learned")
+
+
+def test_three_lines_wire_the_controller_to_a_simulated_station(heap4):
+    s = scenario_with_heap(load_scenario(None, "FloatingGripperBin"), heap4)
+    s.plant_config.time_step = 0.01
+    builder = DiagramBuilder()
+    station = builder.AddSystem(MakeStation(s, target_index=heap4.target_index))
+    controller = builder.AddSystem(MakeBinSearchController(
+        s, BinSearchParams(policy="largest", horizon=8, seed=5), sim=SimulationInfo.from_station(station,
+                                                                                        heap4.target_index)))
+    connect_controller(builder, controller, station)
+    diagram = builder.Build()
+    assert _names(controller, "in") == ["overhead.label_image", "overhead.depth_image", "overhead.rgb_image",
+                                        "body_poses"]
+    ctx = diagram.CreateDefaultContext()
+    set_heap_poses(station, ctx, heap4)
+    plant = get_plant(station)  # the gripper parked out of the camera's view, where the controller starts
+    set_arm_positions(plant, plant.GetMyMutableContextFromRoot(ctx), "floating", controller.initial_commands())
+    cc = controller.GetMyContextFromRoot(ctx)
+    action = controller.GetOutputPort("action").Eval(cc)
+    target = station_objects(get_plant(station))[heap4.target_index].model_name
+    assert controller.target_id == target
+    assert action.kind == "grasp" and (action.grasp.object_id, action.grasp.quality) == (target, 0.5)
+
+
+def test_the_controller_drives_the_hardware_station_over_lcm(heap4):
+    """Hardware station + emulated YuMi on a memq:// bus: the controller waits for the first
+    camera images, segments the depth image, and its grasp reaches the robot over LCM."""
+    s = scenario_with_heap(load_scenario(None, "YuMiBin"), heap4)
+    lcm = DrakeLcm("memq://bin_search_controller")
+    builder = DiagramBuilder()
+    hardware = builder.AddSystem(MakeStation(s, hardware=True, lcm=lcm))
+    robot = builder.AddSystem(MakeEmulatedRobot(s, lcm=lcm))
+    controller = builder.AddSystem(MakeBinSearchController(s, HARDWARE))
+    connect_controller(builder, controller, hardware)
+    sim = Simulator(builder.Build())
+    ctx = sim.get_mutable_context()
+    set_heap_poses(robot.GetSubsystemByName("simulated_station"), ctx, heap4)
+    cc, rc = controller.GetMyContextFromRoot(ctx), robot.GetMyContextFromRoot(ctx)
+    ready = controller.GetSubsystemByName("images_ready")
+    home = robot.GetOutputPort("yumi_left.position_measured").Eval(rc).copy()
+    sim.AdvanceTo(0.0)
+    assert ready.GetOutputPort("ready").Eval(ready.GetMyContextFromRoot(ctx))[0] == 0.0  # no image yet
+    assert not controller.GetOutputPort("status").Eval(cc).busy
+    moved = 0.0
+    for t in np.arange(0.1, 6.01, 0.1):
+        sim.AdvanceTo(t)
+        q = robot.GetOutputPort("yumi_left.position_measured").Eval(rc)
+        moved = max(moved, float(np.abs(q - home).max()))
+    history = controller.GetOutputPort("history").Eval(cc)
+    status = controller.GetOutputPort("status").Eval(cc)
+    assert (status.done, status.steps, status.stop_reason) == (True, 1, "horizon")
+    (outcome,) = history
+    assert outcome.action.kind == "grasp" and outcome.action.grasp.model == "suction"
+    assert outcome.action.grasp.object_id == "seg_0"
+    # No body poses on hardware: the lift is not observed, so the outcome says so.
+    assert (outcome.success, outcome.message) == (False, "not_lifted")
+    assert moved > 0.3  # the suction arm travelled to the grasp and back over LCM [rad]
+
+
+@pytest.mark.parametrize("scenario_name", ["PandaBin", "FloatingGripperBin"])
+def test_full_fidelity_runs_on_the_panda_and_the_floating_gripper(heap4, scenario_name):
+    params = SearchParams(policy="largest", fidelity="full", horizon=2, seed=0)
+    system = build_search(load_scenario(None, scenario_name), heap4, params)
+    assert system.controller.GetSubsystemByName("grasp_planner").planners[0].model == "soft_point"
+    assert len(system.controller.GetSubsystemByName("grasp_planner").planners) == 1  # jaw only: no suction
+    res = run_search(system, heap4, params)
+    # a non-target object, then the target: both lifted by the arm through compliant contact
+    assert (res.actions, res.action_kinds, res.grasp_successes) == (2, ["grasp", "grasp"], 2)
+    assert (res.success, res.stop_reason) == (True, "success")
