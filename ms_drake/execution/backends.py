@@ -24,6 +24,7 @@ import numpy as np
 from pydrake.math import RigidTransform, RotationMatrix
 
 from ms_drake.execution.executor import ExecutionError, Motion
+from ms_drake.geometry import as_rigid_transform
 from ms_drake.planning import plan_joint_motion
 from ms_drake.planning.sequences import Schedule, arm_ik, plan_pick, plan_push
 from ms_drake.robots import GRIPPERS
@@ -81,7 +82,8 @@ class _Base:
         self.settle = float(settle)
 
     def left_bin(self, poses, removed=(), exclude=()) -> list[str]:
-        """Ids of objects (not yet removed) outside the bin: beyond a wall or below the floor."""
+        """Ids of objects (not yet removed) outside the bin: beyond a wall or below the floor.
+        poses: the plant's body poses by body index (RigidTransforms or 4x4 arrays), or None."""
         if poses is None:
             return []
         ws = self.workspace
@@ -89,7 +91,7 @@ class _Base:
         for oid, b in self.objects.items():
             if oid in removed or oid in exclude:
                 continue
-            p = poses[b].translation()
+            p = as_rigid_transform(poses[b], f"poses[{b}]").translation()
             if p[2] < ws.floor_z - 0.03 or not ws.inside_xy(p, margin=-0.02):
                 out.append(oid)
         return out
@@ -259,7 +261,8 @@ class FullBackend(_Base):
                              speed=self.speed, close_time=self.close_time, hold_time=self.hold_time)
             if not plan.success:
                 return plan.status
-            z0 = poses[self.objects[g.object_id]].translation()[2] if poses is not None and g.object_id in self.objects \
+            b = self.objects.get(g.object_id)
+            z0 = as_rigid_transform(poses[b], f"poses[{b}]").translation()[2] if poses is not None and b is not None \
                 else None
             release = {f"{port}.position": [0.1]} if g.kind == "parallel_jaw" else {f"{port}.suction": [0.0]}
             return self._finish_motion(plan, arm, release, {"z0": z0, "step": step})
@@ -290,7 +293,8 @@ class FullBackend(_Base):
         if action.kind == "grasp":
             oid = action.grasp.object_id
             z0 = motion.info.get("z0")
-            ok = (poses is not None and z0 is not None and oid in self.objects
-                  and poses[self.objects[oid]].translation()[2] - z0 > 0.5 * self.lift)
+            b = self.objects.get(oid)
+            ok = (poses is not None and z0 is not None and b is not None
+                  and as_rigid_transform(poses[b], f"poses[{b}]").translation()[2] - z0 > 0.5 * self.lift)
             return self._finish(action, ok, oid, poses, removed, "" if ok else "not_lifted")
         return self._finish(action, True, "", poses, removed)
