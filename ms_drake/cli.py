@@ -5,6 +5,8 @@
     ms-drake heaps    many heaps in parallel -> JSON lines (resumable)
     ms-drake diagram  the station's Graphviz diagram (.dot, and .svg/.png when Graphviz is installed)
     ms-drake bench    search / plot: the bin mechanical-search benchmark (resumable JSON lines)
+    ms-drake grasp    grasps on one object scored by a contact model, drawn (Fig. 2.1)
+    ms-drake pick     a full-fidelity pick or push (yumi_jaw, yumi_suction, panda_jaw, fetch_push, fetch_suction)
 
 User errors (bad scenario, unknown object set, impossible counts) print one clear line and
 exit with status 2; they never show a traceback.
@@ -28,14 +30,16 @@ from tqdm import tqdm
 from ms_drake.errors import MsDrakeError
 from ms_drake.execution import FIDELITIES
 from ms_drake.experiments.demo import run_demo
+from ms_drake.experiments.grasp_figure import grasp_figure
 from ms_drake.experiments.harness import format_summary, plot, run_bench
-from ms_drake.grasping.cli import grasp_command
+from ms_drake.experiments.picks import TASKS, run_pick
+from ms_drake.experiments.scene_images import make_scene, write_scene_images
+from ms_drake.grasping.evaluator import MODELS
 from ms_drake.objects import get_object_set
 from ms_drake.parallel import run_jobs
 from ms_drake.policies.bin_selectors import check_policy
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import HeapParams, generate_heap, heap_to_dict
-from ms_drake.experiments.scene_images import make_scene, write_scene_images
 from ms_drake.station import MakeStation
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
@@ -257,7 +261,26 @@ def bench_plot(files: list[Path] = typer.Argument(..., help="Result .jsonl files
         typer.echo(f"wrote {p}")
 
 
-app.command("grasp")(grasp_command)
+@app.command()
+def grasp(object: str = typer.Option(..., "--object", help="Object name, '<set>/<name>' (e.g. procedural/box_000)"),
+          model: str = typer.Option("6dfc", "--model", help=f"Contact model: {' | '.join(MODELS)}"),
+          samples: int = typer.Option(100, "--samples", min=1, help="Number of antipodal grasps to sample"),
+          out: Path = typer.Option(Path("grasp_out"), "--out", help="Output folder for the PNG and JSON"),
+          robust: int = typer.Option(10, "--robust", min=0, help="Robust trials per grasp (0 = binary quality)"),
+          friction: float = typer.Option(0.8, "--friction", help="Friction coefficient"),
+          closing_force: float = typer.Option(10.0, "--closing-force", help="Jaw closing force [N]"),
+          seed: int = typer.Option(0, "--seed", help="Seed of sampling and robust trials")):
+    """Sample grasps on an object, score them with a contact model, write a PNG (Fig. 2.1 style)
+    and a JSON, and print the grasp table."""
+    grasp_figure(object, model, samples, out, robust, friction, closing_force, seed)
+
+
+@app.command()
+def pick(task: str = typer.Argument(..., help=f"Pick task: {', '.join(TASKS)}"),
+         html: Optional[Path] = typer.Option(None, "--html", help="Write a Meshcat recording here"),
+         speed: float = typer.Option(0.15, "--speed", min=0.01, help="Tool speed on straight lines [m/s]")):
+    """A full-fidelity pick or push from the home pose through the station's drivers."""
+    run_pick(task, html=html, speed=speed, log=typer.echo)
 
 
 def main():

@@ -1,9 +1,12 @@
 """Full-fidelity pick 'yumi_jaw' from the home pose; writes a Meshcat recording (sims/out/yumi_jaw.html).
 
-    .venv/bin/python sims/pick_yumi_jaw.py [--html PATH] [--no-meshcat] [--speed M_PER_S]
+    .venv/bin/python sims/pick_yumi_jaw.py [--html PATH] [--speed M_PER_S]    # = ms-drake pick yumi_jaw ...
 """
 
-from ms_drake.experiments.picks import main
+import sys
+
+from ms_drake.cli import main
 
 if __name__ == "__main__":
-    main("yumi_jaw")
+    sys.argv = ["ms-drake", "pick", "yumi_jaw", "--html", "sims/out/yumi_jaw.html", *sys.argv[1:]]
+    main()

@@ -103,6 +103,9 @@ def test_diagram(tmp_path):
     (["heaps", "--count", "1", "--engine", "ode", "--out", "x.jsonl"], "--engine ode: use bullet or drake"),
     (["heaps", "--count", "1", "--engine", "drake", "--polish", "0.5", "--out", "x.jsonl"], "--polish: only with"),
     (["diagram", "--out", "x.gif"], ".svg, .png or .dot"),
+    (["pick", "ur5_jaw"], "unknown pick task 'ur5_jaw'; choose one of yumi_jaw, yumi_suction, panda_jaw"),
+    (["grasp", "--object", "procedural/no_such_box"], "no_such_box"),
+    (["grasp", "--object", "procedural/box_000", "--model", "hertz"], "unknown grasp model"),
 ])
 def test_bad_input_is_a_clear_error_without_traceback(tmp_path, args, needle):
     p = subprocess.run([*CLI, *args], capture_output=True, text=True, cwd=tmp_path, timeout=300)

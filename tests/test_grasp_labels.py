@@ -9,7 +9,7 @@ from sklearn.metrics import average_precision_score
 from ms_drake.errors import ObjectSetError
 from ms_drake.grasping import GraspError
 from ms_drake.grasping import labels as L
-from ms_drake.grasping.cli import grasp_command
+from ms_drake.experiments.grasp_figure import grasp_figure
 
 
 def test_average_recall_definition():
@@ -65,16 +65,16 @@ def test_labels_and_predictions_are_resumable(tmp_path):
 
 
 def test_grasp_cli_writes_png_and_prints_table(tmp_path, capsys):
-    png = grasp_command(object="procedural/box_000", model="soft_point", samples=6, out=tmp_path, robust=2)
+    png = grasp_figure(object="procedural/box_000", model="soft_point", samples=6, out=tmp_path, robust=2)
     assert png.is_file() and png.stat().st_size > 10_000
     data = json.loads((tmp_path / "procedural_box_000_soft_point.json").read_text())
     assert len(data["grasps"]) == 6 and all(0 <= g["quality"] <= 1 for g in data["grasps"])
     out = capsys.readouterr().out
     assert "quality" in out and "wrote" in out
     with pytest.raises(ObjectSetError, match="no object"):
-        grasp_command(object="no_such_thing", out=tmp_path)
+        grasp_figure(object="no_such_thing", out=tmp_path)
     with pytest.raises(GraspError, match="unknown grasp model"):
-        grasp_command(object="procedural/box_000", model="hertz", out=tmp_path)
+        grasp_figure(object="procedural/box_000", model="hertz", out=tmp_path)
 
 
 def test_object_mesh_is_watertight_for_every_set():

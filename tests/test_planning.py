@@ -14,7 +14,7 @@ from pydrake.systems.primitives import Multiplexer
 from ms_drake.paths import make_parser
 from ms_drake.robots import arm_joint_limits
 from ms_drake.types import JointLimits
-from ms_drake.planning import ArmIk, TimedTrajectory, TrajectoryStreamer, ik_pose, make_ik_diagram, plan_approach, plan_cartesian_line, plan_joint_motion, plan_lift, plan_path_motion, plan_push
+from ms_drake.planning import ArmIk, TimedTrajectory, TrajectoryStreamer, approach_pose, ik_pose, make_ik_diagram, plan_cartesian_line, plan_joint_motion, plan_path_motion
 from ms_drake.robots import ROBOTS
 from ms_drake.station.robots import add_robot
 
@@ -122,7 +122,7 @@ def test_cartesian_lift_is_a_straight_line(panda):
     _, _, ik = panda
     limits = arm_joint_limits("panda")
     X0 = ik_pose(ik, Q_PANDA)
-    plan = plan_lift(ik, Q_PANDA, limits, height=0.1)
+    plan = plan_cartesian_line(ik, X0, [0, 0, 0.1], Q_PANDA, limits)
     assert plan.success and plan.fraction == 1.0
     t, q = _sampled(plan.trajectory, 60)
     p = np.array([ik_pose(ik, qq).translation() for qq in q])
@@ -139,12 +139,16 @@ def test_approach_then_push(panda, axis_only):
     _, _, ik = panda
     limits = arm_joint_limits("panda")
     X_grasp = RigidTransform(RollPitchYaw(np.pi, 0, 0.4), [0.45, -0.1, 0.04])
-    q_pre, plan = plan_approach(ik, X_grasp, limits, distance=0.1, q_seed=Q_PANDA, axis_only=axis_only)
-    assert q_pre is not None and plan.success
+    pre = ik.solve(approach_pose(X_grasp, 0.1), q_seed=Q_PANDA, axis_only=axis_only)
+    assert pre.success
+    q_pre = pre.q
+    X_pre = ik_pose(ik, q_pre) if axis_only else approach_pose(X_grasp, 0.1)
+    plan = plan_cartesian_line(ik, X_pre, 0.1 * X_grasp.rotation().matrix()[:, 2], q_pre, limits, axis_only=axis_only)
+    assert plan.success
     X_end = ik_pose(ik, plan.trajectory.final())
     assert np.linalg.norm(X_end.translation() - X_grasp.translation()) < 2e-3
     assert ik_pose(ik, q_pre).translation()[2] == pytest.approx(0.14, abs=2e-3)  # 10 cm above
-    push = plan_push(ik, plan.trajectory.final(), [1, 0, 0], 0.1, limits)
+    push = plan_cartesian_line(ik, ik_pose(ik, plan.trajectory.final()), [0.1, 0, 0], plan.trajectory.final(), limits)
     assert push.success
     p = ik_pose(ik, push.trajectory.final()).translation()
     np.testing.assert_allclose(p, X_end.translation() + [0.1, 0, 0], atol=2e-3)
@@ -194,3 +198,19 @@ def test_streamer_drives_a_panda_in_a_diagram():
     assert np.abs(mid - traj.value(0.5 * traj.duration)).max() < 0.02
     sim.AdvanceTo(0.2 + traj.duration + 0.3)
     assert np.abs(plant.GetPositions(pc, r) - q_end).max() < 5e-3
+
+
+def test_schedule_holds_each_value_until_the_next_step_and_matches_its_source():
+
+    from ms_drake.planning.sequences import Schedule
+
+    s = Schedule()
+    s.set(0.5, [2.0])
+    s.set(0.0, [1.0])
+    s.set(1.0, [3.0])
+    assert [float(s(t)[0]) for t in (-1.0, 0.0, 0.49, 0.5, 0.99, 1.0, 5.0)] == [1.0, 1.0, 1.0, 2.0, 2.0, 3.0, 3.0]
+    src = s.source()
+    ctx = src.CreateDefaultContext()
+    for t in (0.25, 0.75, 2.0):
+        ctx.SetTime(t)
+        assert src.get_output_port().Eval(ctx)[0] == s(t)[0]

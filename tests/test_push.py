@@ -12,7 +12,7 @@ from ms_drake.geometry import PinholeCamera
 from ms_drake.perception.masks import object_labels
 from ms_drake.geometry import Workspace, world_points
 from ms_drake.perception.segmentation import Segmenter
-from ms_drake.pushing import PushError, PushParams, PushPlanner, obstacle_map, plan_push, plan_pushes
+from ms_drake.pushing import PushError, PushParams, PushPlanner, obstacle_map, plan_free_space_push, plan_pushes
 from ms_drake.scenes.heaps import scenario_with_heap, set_heap_poses
 from ms_drake.station import MakeStation, get_plant
 from ms_drake.types import InstanceMasks, Push
@@ -61,7 +61,7 @@ def test_push_goes_through_the_centre_toward_the_most_free_point():
     omap = obstacle_map(Pw, BIN)
     free = omap.most_free_point()
     assert free[0] > 0.0  # the most free point is on the empty side
-    push = plan_push(omap, Pw[masks.masks[0]], P, "o0")
+    push = plan_free_space_push(omap, Pw[masks.masks[0]], P, "o0")
     c = Pw[masks.masks[0]][:, :2].mean(axis=0)
     direction = check_push(push, omap, c)
     want = (free - c) / np.linalg.norm(free - c)
@@ -75,7 +75,7 @@ def test_push_turns_away_when_the_straight_start_is_blocked():
     # An object against the -x wall: behind it (toward -x) the gripper would hit the wall.
     d, Pw, masks = scene(box(-0.25, -0.17, -0.04, 0.04, 0.04))
     omap = obstacle_map(Pw, BIN)
-    push = plan_push(omap, Pw[masks.masks[0]], P)
+    push = plan_free_space_push(omap, Pw[masks.masks[0]], P)
     c = Pw[masks.masks[0]][:, :2].mean(axis=0)
     direction = check_push(push, omap, c)
     want = (omap.most_free_point() - c)

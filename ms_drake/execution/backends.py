@@ -57,20 +57,6 @@ class _Path:
         return _smooth(self.points[k], self.points[k + 1], (t - self.t[k]) / dt if dt > 0 else 1.0)
 
 
-class _Steps:
-    """Zero-order hold over (time, value) steps (immutable)."""
-
-    def __init__(self, steps):
-        self.steps = sorted((float(t), np.atleast_1d(np.asarray(v, float))) for t, v in steps)
-
-    def __call__(self, t):
-        v = self.steps[0][1]
-        for ts, vs in self.steps:
-            if ts <= t + 1e-12:
-                v = vs
-        return v
-
-
 class _Base:
     """objects: {id: body index}; workspace: the bin (perception.segmentation.Workspace)."""
 
@@ -242,7 +228,7 @@ class FullBackend(_Base):
         commands = {f"{arm}.position": tl.value}
         for port, schedule in plan.commands.items():
             steps = list(schedule.steps) + [(check + 0.05, v) for p, v in release.items() if p == port]
-            commands[port] = _Steps(steps)
+            commands[port] = Schedule(steps)
         return Motion(commands, check_time=check, duration=tl.duration + self.settle, info=info,
                       settle_from=tl.duration)
 

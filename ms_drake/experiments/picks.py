@@ -6,7 +6,6 @@ and what happened to the object measured (`run_task`, the `ms-drake pick` comman
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import time
 from dataclasses import dataclass
@@ -18,6 +17,7 @@ from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 
+from ms_drake.errors import MsDrakeError
 from ms_drake.geometry import as_rigid_transform
 from ms_drake.objects import get_object
 from ms_drake.planning import TimedTrajectory, TrajectoryStreamer
@@ -256,22 +256,20 @@ def run_task(task: PickTask, from_home: bool = True, speed: float = 0.15, meshca
     return out
 
 
-def main(task_name: str, argv=None):
-    """Command line of the sims/pick_*.py scripts: run one task from home and write its Meshcat
-    recording (default sims/out/<task>.html)."""
-    parser = argparse.ArgumentParser(description=f"Full-fidelity pick: {task_name}")
-    parser.add_argument("--html", default=f"sims/out/{task_name}.html", help="Meshcat recording to write")
-    parser.add_argument("--no-meshcat", action="store_true", help="simulate only (no recording)")
-    parser.add_argument("--speed", type=float, default=0.15, help="tool speed on straight lines [m/s]")
-    args = parser.parse_args(argv)
-    meshcat = None
-    if not args.no_meshcat:
-        meshcat = StartMeshcat()
-    out = run_task(TASKS[task_name], from_home=True, speed=args.speed, meshcat=meshcat,
-                   html_path=None if args.no_meshcat else args.html)
-    print(f"{out.task}: success={out.success} status={out.status} lifted={out.lifted:.3f} m slip={out.slip:.4f} m "
-          f"moved={out.moved:.3f} m sim={out.sim_seconds:.2f} s wall={out.wall_seconds:.1f} s "
-          f"cpu={out.cpu_seconds:.1f} s RTF(wall)={out.real_time_factor:.2f} RTF(cpu)={out.cpu_real_time_factor:.2f}")
-    if meshcat is not None and not args.no_meshcat:
-        print(f"recording: {args.html}")
+def run_pick(task_name: str, html: Path | None = None, speed: float = 0.15, log=print) -> PickOutcome:
+    """One task of TASKS from the home pose (the `ms-drake pick` command); with `html` the Meshcat
+    recording is written there."""
+    if task_name not in TASKS:
+        raise PickError(f"unknown pick task {task_name!r}; choose one of {', '.join(TASKS)}")
+    meshcat = StartMeshcat() if html is not None else None
+    out = run_task(TASKS[task_name], from_home=True, speed=speed, meshcat=meshcat, html_path=html)
+    log(f"{out.task}: success={out.success} status={out.status} lifted={out.lifted:.3f} m slip={out.slip:.4f} m "
+        f"moved={out.moved:.3f} m sim={out.sim_seconds:.2f} s wall={out.wall_seconds:.1f} s "
+        f"cpu={out.cpu_seconds:.1f} s RTF(wall)={out.real_time_factor:.2f} RTF(cpu)={out.cpu_real_time_factor:.2f}")
+    if html is not None:
+        log(f"recording: {html}")
     return out
+
+
+class PickError(MsDrakeError, ValueError):
+    """An unknown pick task or impossible pick settings."""

@@ -24,14 +24,27 @@ from ms_drake.station.station import station_objects
 from ms_drake.types import InstanceMasks
 
 
-def label_image_to_masks(labels: np.ndarray, label_to_id: dict[int, str], min_pixels: int = 1) -> InstanceMasks:
-    """InstanceMasks of the labels in `label_to_id` present with >= min_pixels pixels."""
-    present, counts = np.unique(labels, return_counts=True)
-    keep = [(int(lbl), n) for lbl, n in zip(present, counts) if int(lbl) in label_to_id and n >= min_pixels]
+def label_image_to_masks(labels: np.ndarray, label_to_id: dict[int, str] | None = None, min_pixels: int = 1,
+                         max_pixels: float = np.inf) -> InstanceMasks:
+    """InstanceMasks of a label image, one per label with min_pixels <= area <= max_pixels.
+
+    label_to_id given (ground truth): the labels it names, in label order, with its ids.
+    None (a segmenter's clusters): every label >= 0, largest first, named seg_0, seg_1, ..."""
+    labels = np.asarray(labels)
+    if label_to_id is None:
+        present, counts = np.unique(labels[labels >= 0], return_counts=True)
+    else:
+        present, counts = np.unique(labels, return_counts=True)
+    keep = [(int(lbl), int(n)) for lbl, n in zip(present, counts)
+            if (label_to_id is None or int(lbl) in label_to_id) and min_pixels <= n <= max_pixels]
+    if label_to_id is None:
+        keep.sort(key=lambda t: -t[1])  # stable: equal areas stay in label order
     if not keep:
         return InstanceMasks.empty(*labels.shape)
     masks = np.stack([labels == lbl for lbl, _ in keep])
-    return InstanceMasks(masks, tuple(label_to_id[lbl] for lbl, _ in keep), np.ones(len(keep)))
+    ids = tuple(f"seg_{k}" for k in range(len(keep))) if label_to_id is None else \
+        tuple(label_to_id[lbl] for lbl, _ in keep)
+    return InstanceMasks(masks, ids, np.ones(len(keep)))
 
 
 def object_labels(plant) -> dict[int, str]:

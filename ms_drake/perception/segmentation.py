@@ -54,18 +54,6 @@ BACKENDS = ("ground_truth", "euclidean", "region_growing")
 
 
 
-def _masks_from_labels(labels: np.ndarray, min_pixels: int, max_pixels: int) -> InstanceMasks:
-    """InstanceMasks from an int label image (-1 = none), size-filtered, sorted by area."""
-    h, w = labels.shape
-    ids, counts = np.unique(labels[labels >= 0], return_counts=True)
-    keep = [(c, i) for i, c in zip(ids, counts) if min_pixels <= c <= max_pixels]
-    keep.sort(key=lambda t: -t[0])
-    if not keep:
-        return InstanceMasks.empty(h, w)
-    masks = np.stack([labels == i for _, i in keep])
-    return InstanceMasks(masks, tuple(f"seg_{k}" for k in range(len(keep))), np.ones(len(keep)))
-
-
 @dataclass(frozen=True)
 class EuclideanParams:
     tolerance: float = 0.005  # m: cluster tolerance (PCL's ClusterTolerance)
@@ -96,7 +84,7 @@ def euclidean_clustering(P_W: np.ndarray, workspace: Workspace, params: Euclidea
     dist, near = tree.query(P_W.reshape(-1, 3)[full], k=1, distance_upper_bound=params.tolerance)
     ok = np.isfinite(dist)
     labels[full[ok]] = comp[near[ok]]
-    return _masks_from_labels(labels.reshape(h, w), params.min_pixels, params.max_pixels)
+    return label_image_to_masks(labels.reshape(h, w), None, params.min_pixels, params.max_pixels)
 
 
 @dataclass(frozen=True)
@@ -177,7 +165,7 @@ def region_growing(P_W: np.ndarray, workspace: Workspace, params: RegionGrowingP
             dst_t, src_t = dst[take], src[take]
             _, first = np.unique(dst_t, return_index=True)
             lab_flat[dst_t[first]] = labels[src_t[first]]
-    return _masks_from_labels(lab_flat.reshape(h, w), params.min_pixels, params.max_pixels)
+    return label_image_to_masks(lab_flat.reshape(h, w), None, params.min_pixels, params.max_pixels)
 
 
 class Segmenter(LeafSystem):

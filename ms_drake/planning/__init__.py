@@ -4,10 +4,7 @@ from ms_drake.planning.cartesian import (  # noqa: F401
     CartesianPlan,
     approach_pose,
     ik_pose,
-    plan_approach,
     plan_cartesian_line,
-    plan_lift,
-    plan_push,
 )
 from ms_drake.planning.ik import ArmIk, IkResult, make_ik_diagram  # noqa: F401
 from ms_drake.planning.streamer import DrakeTrajectoryAdapter, TimedTrajectory, TrajectoryStreamer  # noqa: F401

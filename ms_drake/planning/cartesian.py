@@ -1,4 +1,5 @@
-"""Cartesian straight-line motions (approach, lift, push) as a sequence of IK solves.
+"""Cartesian straight-line motions (approach, lift, push lines of ms_drake.planning.sequences) as a
+sequence of IK solves.
 
 The tool frame moves along a straight line with a fixed orientation; every `step` metres the arm
 IK is solved seeded with the previous solution and no random restarts, so the joint path stays
@@ -62,32 +63,6 @@ def approach_pose(X_WT: RigidTransform, distance: float) -> RigidTransform:
     X_WT = as_rigid_transform(X_WT, "X_WT")
     z = X_WT.rotation().matrix()[:, 2]
     return RigidTransform(X_WT.rotation(), X_WT.translation() - distance * z)
-
-
-def plan_approach(ik: ArmIk, X_WT: RigidTransform, limits: JointLimits, distance: float = 0.10,
-                  q_seed=None, axis_only: bool = False, **kw) -> tuple[np.ndarray | None, CartesianPlan]:
-    """IK at the pre-grasp pose, then a straight line along the approach axis to X_WT.
-    Returns (q_pregrasp or None, plan). X_WT: RigidTransform or 4x4 array."""
-    X_WT = as_rigid_transform(X_WT, "X_WT")
-    pre = approach_pose(X_WT, distance)
-    res = ik.solve(pre, q_seed=q_seed, axis_only=axis_only)
-    if not res.success:
-        return None, CartesianPlan(False, res.status, np.zeros((0, len(ik.idx))))
-    z = X_WT.rotation().matrix()[:, 2]
-    X_pre = ik_pose(ik, res.q) if axis_only else pre
-    return res.q, plan_cartesian_line(ik, X_pre, distance * z, res.q, limits, axis_only=axis_only, **kw)
-
-
-def plan_lift(ik: ArmIk, q_grasp, limits: JointLimits, height: float = 0.10, **kw) -> CartesianPlan:
-    """Straight up (world +z) by `height` from the tool pose at q_grasp."""
-    return plan_cartesian_line(ik, ik_pose(ik, q_grasp), [0, 0, height], q_grasp, limits, **kw)
-
-
-def plan_push(ik: ArmIk, q_start, direction, distance: float, limits: JointLimits, **kw) -> CartesianPlan:
-    """Straight push from the tool pose at q_start along `direction` (world) by `distance`."""
-    u = np.asarray(direction, float)
-    u = u / np.linalg.norm(u)
-    return plan_cartesian_line(ik, ik_pose(ik, q_start), u * distance, q_start, limits, **kw)
 
 
 def ik_pose(ik: ArmIk, q_arm) -> RigidTransform:

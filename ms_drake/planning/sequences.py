@@ -96,6 +96,16 @@ class Schedule:
     def set(self, t, value):
         self.steps.append((float(t), np.atleast_1d(np.asarray(value, float))))
 
+    def __call__(self, t: float) -> np.ndarray:
+        """The command at time t: the value of the last step at or before t (the first step's
+        value before it)."""
+        steps = sorted(self.steps, key=lambda s: s[0])
+        v = steps[0][1]
+        for ts, vs in steps:
+            if ts <= t + 1e-12:
+                v = vs
+        return v
+
     def source(self):
         steps = sorted(self.steps, key=lambda s: s[0])
         times = [s[0] for s in steps]

@@ -1,11 +1,11 @@
-"""Pushing: the free-space linear push of Ch. 7.3.2 (`plan_push`) and the PushPlanner system."""
+"""Pushing: the free-space linear push of Ch. 7.3.2 (`plan_free_space_push`) and the PushPlanner system."""
 
 from ms_drake.pushing.free_space import (  # noqa: F401
     ObstacleMap,
     PushError,
     PushParams,
     obstacle_map,
-    plan_push,
+    plan_free_space_push,
     plan_pushes,
 )
 from ms_drake.pushing.planner import PushPlanner  # noqa: F401
@@ -15,7 +15,7 @@ __all__ = [
     "PushError",
     "PushParams",
     "obstacle_map",
-    "plan_push",
+    "plan_free_space_push",
     "plan_pushes",
     "PushPlanner",
 ]

@@ -129,7 +129,7 @@ def _rot(v: np.ndarray, a: float) -> np.ndarray:
     return np.array([c * v[0] - s * v[1], s * v[0] + c * v[1]])
 
 
-def plan_push(omap: ObstacleMap, object_points: np.ndarray, params: PushParams = PushParams(),
+def plan_free_space_push(omap: ObstacleMap, object_points: np.ndarray, params: PushParams = PushParams(),
               object_id: str = "") -> Push | None:
     """The push of one object (its world points (N, 3) from its mask), or None if none is valid."""
     if len(object_points) < 3:
@@ -196,7 +196,7 @@ def plan_pushes(depth, masks: InstanceMasks, camera: PinholeCamera, workspace: W
     for k in range(len(masks)):
         pts = P_W[masks.masks[k]]
         pts = pts[np.all(np.isfinite(pts), axis=1)]
-        push = plan_push(omap, pts, params, masks.ids[k])
+        push = plan_free_space_push(omap, pts, params, masks.ids[k])
         if push is not None:
             out.append(push)
     return tuple(out)

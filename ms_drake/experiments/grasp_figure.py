@@ -1,4 +1,4 @@
-"""`ms-drake grasp`: sample grasps on one object, score them, draw them like Fig. 2.1 (bottom).
+"""Grasps on one object, scored and drawn like Fig. 2.1 (bottom): the `ms-drake grasp` command.
 
     ms-drake grasp --object procedural/box_000 --model 6dfc --samples 100 --out grasp_out
 
@@ -11,16 +11,14 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import Annotated
 
 import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
-import typer
 from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 
 from ms_drake.errors import ObjectSetError
-from ms_drake.grasping.evaluator import MODELS, GraspEvaluator
+from ms_drake.grasping.evaluator import GraspEvaluator
 from ms_drake.grasping.grasp import GraspError
 from ms_drake.grasping.meshes import object_mesh
 from ms_drake.grasping.samplers import sample_antipodal_grasps
@@ -75,16 +73,8 @@ def render_grasps(mesh, grasps, qualities, path: Path, title: str = ""):
     return path
 
 
-def grasp_command(
-    object: Annotated[str, typer.Option("--object", help="Object name, '<set>/<name>' (e.g. procedural/box_000)")],
-    model: Annotated[str, typer.Option("--model", help=f"Contact model: {' | '.join(MODELS)}")] = "6dfc",
-    samples: Annotated[int, typer.Option("--samples", help="Number of antipodal grasps to sample")] = 100,
-    out: Annotated[Path, typer.Option("--out", help="Output folder for the PNG and JSON")] = Path("grasp_out"),
-    robust: Annotated[int, typer.Option("--robust", help="Robust trials per grasp (0 = binary quality)")] = 10,
-    friction: Annotated[float, typer.Option("--friction", help="Friction coefficient")] = 0.8,
-    closing_force: Annotated[float, typer.Option("--closing-force", help="Jaw closing force [N]")] = 10.0,
-    seed: Annotated[int, typer.Option("--seed", help="Seed of sampling and robust trials")] = 0,
-) -> Path:
+def grasp_figure(object: str, model: str = "6dfc", samples: int = 100, out: Path = Path("grasp_out"),
+                 robust: int = 10, friction: float = 0.8, closing_force: float = 10.0, seed: int = 0) -> Path:
     """Sample grasps on an object, score them with a contact model, write a PNG and print the table."""
 
     if samples < 1:
@@ -117,11 +107,3 @@ def grasp_command(
     print(f"low (<0.3): {hist[0]}   medium: {hist[1]}   high (>=0.7): {hist[2]}   mean {q.mean() if len(q) else 0:.2f}")
     print(f"wrote {png}")
     return png
-
-
-def main():  # pragma: no cover - `python -m ms_drake.grasping.cli`
-    typer.run(grasp_command)
-
-
-if __name__ == "__main__":  # pragma: no cover
-    main()
