@@ -288,3 +288,16 @@ def test_camera_images_arrive_through_lcmt_image_array():
     np.testing.assert_array_equal(got.data[5, :, 0], np.arange(cam.width, dtype=np.uint8))
     got_depth = hw.GetOutputPort("overhead.depth_image").Eval(hc)
     np.testing.assert_allclose(got_depth.data[:, 7, 0], depth.data[:, 7, 0])
+
+
+def test_the_scenarios_hardware_key_selects_the_hardware_station():
+    from ms_drake.scenario import load_scenario
+    from ms_drake.station import MakeStation
+
+    scenario = load_scenario(None, "PandaTable")
+    scenario.hardware = True
+    scenario.lcm_url = "memq://scenario_hardware_key"
+    station = MakeStation(scenario)
+    assert station.get_name() == "hardware_station" and not station.HasOutputPort("body_poses")
+    assert station.HasInputPort("panda.position") and station.HasOutputPort("front.depth_image")
+    assert MakeStation(scenario, hardware=False).HasOutputPort("body_poses")  # the argument overrides it

@@ -146,3 +146,15 @@ def test_lazy_planner_wired_in_the_search_diagram(scene):
     target = masks.ids[1]
     assert action.kind == "grasp" and (action.grasp.object_id, action.grasp.quality) == (target, 0.5)
     assert grasps.planned == (target,)
+
+
+def test_the_scenarios_simulator_config_is_applied(heap4):
+    from ms_drake.experiments.rollout import SearchParams, build_search, run_search
+    from ms_drake.scenario import load_scenario
+
+    scenario = load_scenario(None, "FloatingGripperBin")
+    scenario.simulator_config.integration_scheme = "no_such_integrator"
+    params = SearchParams(policy="largest", seed=5, time_step=0.01, horizon=1)
+    system = build_search(scenario, heap4, params)
+    with pytest.raises(Exception, match="no_such_integrator"):
+        run_search(system, heap4, params)

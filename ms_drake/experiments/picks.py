@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from pydrake.geometry import StartMeshcat
 from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
-from pydrake.systems.analysis import Simulator
+from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
 from pydrake.systems.framework import DiagramBuilder
 
 from ms_drake.errors import MsDrakeError
@@ -77,6 +77,7 @@ def build_run(scenario, plan: PickPlan, object_poses=(), meshcat=None) -> Run:
         builder.Connect(src.get_output_port(), station.GetInputPort(port))
     diagram = builder.Build()
     simulator = Simulator(diagram)
+    ApplySimulatorConfig(scenario.simulator_config, simulator)  # the scenario's integrator and rates
     pc = plant.GetMyMutableContextFromRoot(simulator.get_mutable_context())
 
     instance = plant.GetModelInstanceByName(scenario.robot.name) if scenario.robot.name != "floating" else None

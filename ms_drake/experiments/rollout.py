@@ -18,7 +18,7 @@ import time
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-from pydrake.systems.analysis import Simulator
+from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
 from pydrake.systems.framework import DiagramBuilder
 
 from ms_drake.errors import MsDrakeError
@@ -195,6 +195,7 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
     max_sim_time = max_sim_time or 30.0 + 12.0 * horizon
     t_wall, t_cpu = time.perf_counter(), time.process_time()
     simulator = Simulator(system.diagram)
+    ApplySimulatorConfig(system.scenario.simulator_config, simulator)  # the scenario's integrator and rates
     context = simulator.get_mutable_context()
     _set_initial(system, context, heap)
     simulator.Initialize()

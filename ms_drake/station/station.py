@@ -156,15 +156,16 @@ def _label_image_port(builder, sensor, scene_graph, cam, label_images: str):
 LABEL_IMAGES = ("render", "depth")
 
 
-def MakeStation(scenario: Scenario, meshcat=None, hardware: bool = False, lcm=None,
+def MakeStation(scenario: Scenario, meshcat=None, hardware: bool | None = None, lcm=None,
                 target_index: int = -1, name: str = "station", label_images: str = "depth"):
     """Build the station Diagram for `scenario`.
 
     meshcat: a pydrake Meshcat to visualize into (None: no visualization).
-    hardware: True swaps the plant for LCM drivers with the same ports (robots issue).
+    hardware: True swaps the plant for LCM drivers with the same ports (ms_drake.station.hardware;
+      `lcm`: the bus, default DrakeLcm(scenario.lcm_url)); None (default): the scenario's `hardware`.
     target_index: index of the object drawn in the target colour (red), -1 for none.
     label_images: how ``<cam>.label_image`` is made (sim only). "depth" (default): computed
-      from the depth image and the geometry poses (ms_drake.perception.masks.DepthLabelImage, a
+      from the depth image and the geometry poses (ms_drake.station.labels.DepthLabelImage, a
       numba kernel: ~1.8 ms per 640x480 image instead of a ~16 ms second render; 99.99 % of the
       pixels equal to the render's; it renders the label image itself whenever it cannot be
       exact, e.g. a mesh geometry in view). "render": a second VTK render (RgbdSensor's label
@@ -173,7 +174,7 @@ def MakeStation(scenario: Scenario, meshcat=None, hardware: bool = False, lcm=No
     """
     if label_images not in LABEL_IMAGES:
         raise ScenarioError(f"MakeStation(label_images={label_images!r}): choose one of {', '.join(LABEL_IMAGES)}")
-    if hardware:
+    if scenario.hardware if hardware is None else hardware:
         return hw.MakeHardwareStation(scenario, meshcat=meshcat, lcm=lcm)
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlant(scenario.plant_config, builder)
