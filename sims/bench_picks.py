@@ -2,7 +2,7 @@
 
     .venv/bin/python sims/bench_picks.py [--repeats 3] [--tasks yumi_jaw ...] [--out docs/bench_picks.json]
 
-For every task (ms_drake.station.picks.TASKS) the pick is planned (IK + ruckig, not timed) and
+For every task (ms_drake.experiments.picks.TASKS) the pick is planned (IK + ruckig, not timed) and
 simulated without visualization; reported per run: simulated seconds, wall seconds, CPU seconds of
 this process, RTF = simulated / wall and RTF(cpu) = simulated / CPU. On a shared machine the CPU
 figure is the one-core cost (the wall figure also counts time the process waited for a core).

@@ -1,4 +1,5 @@
-"""Action execution: the ActionExecutor system and its two fidelities (primitive, full)."""
+"""Action execution: the ActionExecutor system and its two fidelities (primitive: the floating
+gripper's evaluated grasp primitive; full: IK + ruckig through the station's drivers on any robot)."""
 
 from ms_drake.execution.backends import (  # noqa: F401
     FIDELITIES,

@@ -1,1 +1,2 @@
-"""Perception: masks, point clouds, (later) segmentation, target detection, occupancy."""
+"""Perception: masks, point clouds, segmentation, target detection, target occupancy, and
+whether a camera's images have arrived (ImagesReady)."""

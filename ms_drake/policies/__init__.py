@@ -1,4 +1,5 @@
-"""Policies: bin selectors of Ch. 7.4, X-Ray (Ch. 8.4), an oracle, and the PolicySelector system."""
+"""Policies: bin selectors of Ch. 7.4, X-Ray (Ch. 8.4), an oracle, the PolicySelector system, and the
+controller Diagram builders (bin_search.MakeBinSearchController)."""
 
 from ms_drake.policies.bin_selectors import (  # noqa: F401
     POLICIES,

@@ -3,7 +3,7 @@
 Every selector is a pure function of small inputs: the visible masks, the target estimate, the
 occupancy distribution (X-Ray), the grasp candidates with their qualities (Grasp.object_id =
 the mask id; several per mask allowed, e.g. one parallel-jaw and one suction: the best counts;
-or a Mapping object id -> best Grasp, e.g. experiments.adapters.LazyGrasps, which plans an
+or a Mapping object id -> best Grasp, e.g. grasping.planner.LazyGrasps, which plans an
 object only when the selector looks it up -- the walk below stops at the first qualifying grasp),
 the push candidates (Push.object_id = the mask id; present = quality 1), and the history of
 ActionOutcome. Randomness comes from `SelectorParams.seed` and the step number, so a step is

@@ -7,7 +7,7 @@ Ports (declared first in __init__):
     occupancy      OccupancyMap (OccupancyEstimator; required by xray)
     grasps         tuple[Grasp] (GraspPlanner(s); optional). Several planners (jaw, suction) can be
                    merged into one tuple upstream; the selector takes the best per mask. Or a
-                   Mapping object id -> best Grasp (experiments.adapters.LazyGraspPlanner's
+                   Mapping object id -> best Grasp (grasping.planner.LazyGraspPlanner's
                    LazyGrasps), looked up only for the masks the selector reaches.
     pushes         tuple[Push] (PushPlanner; optional)
     history        tuple[ActionOutcome] (the executor's record; optional: unconnected = first step)

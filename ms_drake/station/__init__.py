@@ -1,4 +1,5 @@
-"""Stations: MakeStation(scenario) for simulation and hardware, environments, model loading."""
+"""Stations: MakeStation(scenario) for simulation and hardware (the LCM twin and its emulator),
+robots and grippers in the plant, drivers, environments, the label-from-depth sensor."""
 
 from ms_drake.station.station import (  # noqa: F401
     MakeStation,
