@@ -5,8 +5,8 @@
     .venv/bin/python sims/bench_heaps.py scaling --heaps 60 --rounds 3  # 1 vs 2 workers, same seeds
     .venv/bin/python sims/bench_heaps.py summary FILE.jsonl  # validity and time of an `ms-drake heaps` run
     .venv/bin/python sims/bench_heaps.py reload FILE.jsonl [--count K]  # heaps reloaded into BinHeap15
-    .venv/bin/python sims/bench_heaps.py compare --seeds 0:10 base edges8 ...  # drop-world variants, paired
-    .venv/bin/python sims/bench_heaps.py station --seeds 0:6 base v2 ...      # their heaps in BinHeap15, paired
+    .venv/bin/python sims/bench_heaps.py compare --seeds 0:8 bullet polish drake  # heap engines, paired
+    .venv/bin/python sims/bench_heaps.py station --seeds 0:8 bullet polish drake  # their heaps in BinHeap15, paired
 
 Prints a table; the figures go to docs/BENCHMARKS.md by hand with the command.
 """
@@ -15,11 +15,35 @@ from __future__ import annotations
 
 import json
 import statistics
+import subprocess
 import sys
 import time
+import types
 from pathlib import Path
 
 import numpy as np
+
+from ms_drake.cli import HEAP_TASKS_PER_CHILD, heap_job
+from ms_drake.parallel import run_jobs
+from ms_drake.scenario import load_scenario
+from ms_drake.scenes.heaps import (
+    SEARCH_HEAPS,
+    HeapParams,
+    generate_heap,
+    heap_from_dict,
+    scenario_with_heap,
+    set_heap_poses,
+    station_check,
+)
+from ms_drake.station import MakeStation, get_scene_graph
+from ms_drake.station.labels import DepthLabeler
+
+#: The heap configurations of docs/BENCHMARKS.md ("Heaps with Bullet"), by name.
+CONFIGS = {
+    "bullet": HeapParams(),  # the default: the drop in Bullet
+    "polish": HeapParams(polish_time=0.5),  # Bullet, then at most 0.5 s in the Drake drop world (--polish 0.5)
+    "drake": SEARCH_HEAPS,  # the Drake drop world (--engine drake), the search benchmarks' heaps
+}
 
 
 def bench_render(n: int = 40, rounds: int = 5, heaps_file: str | None = None, count: int = 8,
@@ -34,10 +58,6 @@ def bench_render(n: int = 40, rounds: int = 5, heaps_file: str | None = None, co
     at that commit, e.g. 9855c8e for the OpenCV labeller), interleaved, 5 x 200 calls.
     With `heaps_file` (an `ms-drake heaps` JSONL) also the pixel agreement of the two label
     images on its first `count` heaps."""
-    from ms_drake.scenario import load_scenario
-    from ms_drake.scenes.heaps import generate_heap, scenario_with_heap, set_heap_poses
-    from ms_drake.station import MakeStation
-
     s = load_scenario(None, "BinHeap15")
     heap = generate_heap(s, 15, seed=0)
     rigs = {}
@@ -71,8 +91,6 @@ def bench_render(n: int = 40, rounds: int = 5, heaps_file: str | None = None, co
               f"{pair[0]:.1f} / {pair[1]:.1f} | {1e3 / pair[1]:.0f} ({2e3 / pair[1]:.0f}) |")
     _bench_labeler(*rigs["depth"][:2], labeler_ref)
     if heaps_file:
-        from ms_drake.scenes.heaps import heap_from_dict
-
         recs = [json.loads(x) for x in Path(heaps_file).read_text().splitlines() if x.strip()][:count]
         for r in recs:
             h = heap_from_dict(r)
@@ -89,12 +107,6 @@ def bench_render(n: int = 40, rounds: int = 5, heaps_file: str | None = None, co
 
 def _bench_labeler(station, ctx, labeler_ref: str | None, calls: int = 200, rounds: int = 5) -> None:
     """DepthLabeler.label alone (see bench_render)."""
-    import subprocess
-    import types
-
-    from ms_drake.station.labels import DepthLabeler
-    from ms_drake.station import get_scene_graph
-
     system = station.GetSubsystemByName("depth_label_overhead")
     sensor = station.GetSubsystemByName("rgbd_sensor_overhead")
     sg = get_scene_graph(station)
@@ -134,11 +146,6 @@ def _bench_labeler(station, ctx, labeler_ref: str | None, calls: int = 200, roun
 
 
 def bench_scaling(heaps: int = 8, objects: int = 15, seed_start: int = 1000, rounds: int = 1) -> None:
-    import tempfile
-
-    from ms_drake.cli import HEAP_TASKS_PER_CHILD, heap_job
-    from ms_drake.parallel import run_jobs
-
     jobs = [(None, "BinHeap15", objects, k, None) for k in range(seed_start, seed_start + heaps)]
     res = {1: [], 2: []}
     for workers in (1, 2) * rounds:  # interleaved rounds: start-up and cache effects vary by seconds
@@ -150,7 +157,6 @@ def bench_scaling(heaps: int = 8, objects: int = 15, seed_start: int = 1000, rou
               f"peak RSS per worker {rss:.0f} MB |", flush=True)
     m = {w: statistics.median(v) for w, v in res.items()}
     print(f"| speed-up 2 workers vs 1 (medians of {rounds} rounds) | {m[1] / m[2]:.2f}x |")
-    del tempfile
 
 
 def summary(path: str) -> None:
@@ -173,11 +179,8 @@ def summary(path: str) -> None:
 
 def reload_check(path: str, count: int = 20) -> None:
     """Reload the first `count` heaps of an `ms-drake heaps` file into the BinHeap15 station (its
-    own rigid, point-contact physics), measure the deepest penetration at load and how far the
+    own physics: compliant-hydroelastic objects), measure the deepest penetration at load and how far the
     objects move in 0.5 s of simulation (ms_drake.scenes.heaps.station_check)."""
-    from ms_drake.scenario import load_scenario
-    from ms_drake.scenes.heaps import heap_from_dict, station_check
-
     s = load_scenario(None, "BinHeap15")
     recs = [json.loads(x) for x in Path(path).read_text().splitlines() if x.strip()][:count]
     pen, mv, med = [], [], []
@@ -186,7 +189,7 @@ def reload_check(path: str, count: int = 20) -> None:
         pen.append(c["max_penetration"])
         mv.append(c["max_displacement"])
         med.append(c["median_displacement"])
-    mm = lambda xs: 1e3 * np.asarray(xs)  # noqa: E731
+    mm = lambda xs: 1e3 * np.asarray(xs)
     print(f"| heaps reloaded into BinHeap15 | {len(recs)} |")
     print(f"| max penetration at load, mm (median, p90, max) | {np.median(mm(pen)):.1f}, "
           f"{np.percentile(mm(pen), 90):.1f}, {mm(pen).max():.1f} |")
@@ -196,91 +199,12 @@ def reload_check(path: str, count: int = 20) -> None:
     print(f"| heaps whose objects all move <= 5 mm | {sum(m <= 0.005 for m in mv)}/{len(mv)} |")
 
 
-#: The lagged Drake drop world (12 waves of <= 0.12 s, lagged, the scenario's 5 s/m), base of the variants below.
-V2 = {"engine": "drake", "contact_approximation": "lagged", "dissipation": None, "wave_time": 0.12, "min_wave_time": 0.06,
-      "landed_speed": None}
-#: Drop-world variants measured in docs/BENCHMARKS.md (HeapParams overrides; the Drake ones spelled
-#: out from the lagged drop world V2, so that they do not follow the defaults).
-VARIANTS = {
-    "base": {},  # the defaults (Bullet, = bullet_res)
-    # the drop simulated in Bullet (ms_drake.scenes.bullet), same plan, waves and settle tests
-    "drake": {"engine": "drake"},  # the Drake drop world's defaults (compliant hydroelastic; SEARCH_HEAPS)
-    "bullet_v0": {"engine": "bullet", "bullet_parameters": {}},  # Bullet, 50 solver iterations always
-    "bullet": {"engine": "bullet", "bullet_rolling_friction": 1e-4, "bullet_parameters": {}},
-    "bullet120": {"engine": "bullet", "bullet_time_step": 1 / 120, "bullet_rolling_friction": 1e-4, "bullet_parameters": {}},
-    "bullet_it20": {"engine": "bullet", "bullet_iterations": 20, "bullet_rolling_friction": 1e-4, "bullet_parameters": {}},
-    "bullet120_it20": {"engine": "bullet", "bullet_time_step": 1 / 120, "bullet_iterations": 20,
-                       "bullet_rolling_friction": 1e-4, "bullet_parameters": {}},
-    "bullet_cone": {"engine": "bullet", "bullet_parameters": {"enableConeFriction": 1}, "bullet_rolling_friction": 1e-4},
-    "bullet_cone_r0": {"engine": "bullet", "bullet_parameters": {"enableConeFriction": 1}, "bullet_rolling_friction": 0.0},
-    "bullet480": {"engine": "bullet", "bullet_time_step": 1 / 480, "bullet_rolling_friction": 1e-4, "bullet_parameters": {}},
-    "bullet_r3": {"engine": "bullet", "bullet_rolling_friction": 1e-3, "bullet_parameters": {}},
-    "bullet_r2": {"engine": "bullet", "bullet_rolling_friction": 3e-4, "bullet_parameters": {}},
-    "bullet_it30": {"engine": "bullet", "bullet_iterations": 30, "bullet_parameters": {}},
-    "bullet_it20_r3": {"engine": "bullet", "bullet_iterations": 20, "bullet_parameters": {}},
-    "bullet_res": {"engine": "bullet", "bullet_parameters": {"solverResidualThreshold": 1e-4}},
-    "polish02": {"engine": "bullet", "polish_time": 0.2},
-    "polish05": {"engine": "bullet", "polish_time": 0.5},
-    # the lagged drop world: 12 waves of <= 0.12 s, lagged, the scenario's dissipation (5 s/m)
-    "v2": V2,
-    "edges8": {**V2, "resolution_edges": 8},
-    "edges8_soft": {**V2, "resolution_edges": 8, "modulus": 2e6},
-    "point2ms": {**V2, "object_contact": "point", "time_step": 0.002},
-    "step20": {**V2, "time_step": 0.02},
-    "step30": {**V2, "time_step": 0.03},
-    "step20_e8": {**V2, "time_step": 0.02, "resolution_edges": 8},
-    # "similar" approximation and Hunt-Crossley dissipation (s/m) of the drop world's objects
-    "d20": {**V2, "dissipation": 20.0},
-    "d50": {**V2, "dissipation": 50.0},
-    "similar": {**V2, "contact_approximation": "similar"},
-    "sim_d20": {**V2, "contact_approximation": "similar", "dissipation": 20.0},
-    "sim_d50": {**V2, "contact_approximation": "similar", "dissipation": 50.0},
-    "sim_d100": {**V2, "contact_approximation": "similar", "dissipation": 100.0},
-    "sim_d200": {**V2, "contact_approximation": "similar", "dissipation": 200.0},
-    "sim_d50_nr": {**V2, "contact_approximation": "similar", "dissipation": 50.0, "near_rigid_threshold": 0.0},
-    "sim_d50_mu8": {**V2, "contact_approximation": "similar", "dissipation": 50.0, "friction": 0.8},
-    "v15": {**V2, "terminal_speed": 1.5},
-    "sim_d50_v15": {**V2, "contact_approximation": "similar", "dissipation": 50.0, "terminal_speed": 1.5},
-    "sim_d100_v15": {**V2, "contact_approximation": "similar", "dissipation": 100.0, "terminal_speed": 1.5},
-    "sim_d200_v15": {**V2, "contact_approximation": "similar", "dissipation": 200.0, "terminal_speed": 1.5},
-    "sim_d50_v1": {**V2, "contact_approximation": "similar", "dissipation": 50.0, "terminal_speed": 1.0},
-    "sim_d50_w08": {**V2, "contact_approximation": "similar", "dissipation": 50.0, "wave_time": 0.08,
-                "min_wave_time": 0.04},
-    "sim_d100_w08": {**V2, "contact_approximation": "similar", "dissipation": 100.0, "wave_time": 0.08,
-                 "min_wave_time": 0.04},
-    "sim_d200_w08": {**V2, "contact_approximation": "similar", "dissipation": 200.0, "wave_time": 0.08,
-                 "min_wave_time": 0.04},
-    "sim_d100_w06": {**V2, "contact_approximation": "similar", "dissipation": 100.0, "wave_time": 0.06,
-                     "min_wave_time": 0.03},
-    "sim_d100_w08_c2": {**V2, "contact_approximation": "similar", "dissipation": 100.0, "wave_time": 0.08,
-                        "min_wave_time": 0.04, "check_every": 0.02},
-    "land_d100_w06": {**V2, "contact_approximation": "similar", "dissipation": 100.0, "wave_time": 0.06,
-                      "min_wave_time": 0.03, "landed_speed": 0.2, "max_wait": 0.3},
-    "land_d200_w06": {**V2, "contact_approximation": "similar", "dissipation": 200.0, "wave_time": 0.06,
-                      "min_wave_time": 0.03, "landed_speed": 0.2, "max_wait": 0.3},
-    "land_d100_w03": {**V2, "contact_approximation": "similar", "dissipation": 100.0, "wave_time": 0.03,
-                      "min_wave_time": 0.03, "landed_speed": 0.2, "max_wait": 0.3},
-    "land5_d100_w03": {**V2, "contact_approximation": "similar", "dissipation": 100.0, "wave_time": 0.03,
-                       "min_wave_time": 0.03, "landed_speed": 0.5, "max_wait": 0.2},
-    "land10_d100_w03": {**V2, "contact_approximation": "similar", "dissipation": 100.0, "wave_time": 0.03,
-                        "min_wave_time": 0.03, "landed_speed": 1.0, "max_wait": 0.2},
-    "land5_d5": {**V2, "contact_approximation": "similar", "dissipation": None, "wave_time": 0.03,
-                 "min_wave_time": 0.03, "landed_speed": 0.5, "max_wait": 0.2},
-    "land5_d20": {**V2, "contact_approximation": "similar", "dissipation": 20.0, "wave_time": 0.03,
-                  "min_wave_time": 0.03, "landed_speed": 0.5, "max_wait": 0.2},
-    "land5_d50": {**V2, "contact_approximation": "similar", "dissipation": 50.0, "wave_time": 0.03,
-                  "min_wave_time": 0.03, "landed_speed": 0.5, "max_wait": 0.2},
-}
-
-
 def compare(names: list[str], seeds: range) -> None:
-    """Paired comparison of drop-world variants: for each seed every variant in turn, in one
-    process (CPU seconds drift with the machine's load; pairing keeps the comparison fair)."""
-    from ms_drake.scenario import load_scenario
-    from ms_drake.scenes.heaps import HeapParams, generate_heap
-
+    """Paired comparison of heap configurations (CONFIGS): for each seed every configuration in
+    turn, in one process (CPU seconds drift with the machine's load; pairing keeps the
+    comparison fair)."""
     s = load_scenario(None, "BinHeap15")
-    params = {n: HeapParams(**VARIANTS[n]) for n in names}
+    params = {n: CONFIGS[n] for n in names}
     for p in params.values():
         generate_heap(s, 3, 999, params=p)  # warm caches
     res = {n: [] for n in names}
@@ -293,7 +217,7 @@ def compare(names: list[str], seeds: range) -> None:
                            ph.get("waves_sim", 0), ph.get("final_cpu", 0), ph.get("final_sim", 0)))
             print(n, seed, " ".join(f"{x:.2f}" for x in res[n][-1]), f"drop {ph.get('max_drop', 0):.2f}",
                   d.rejected_reasons, flush=True)
-    print("| variant | CPU s | settle s | first attempt | waves CPU s / sim s | final settle CPU s / sim s |")
+    print("| heaps | CPU s | settle s | first attempt | waves CPU s / sim s | final settle CPU s / sim s |")
     for n, v in res.items():
         med = [statistics.median(x[i] for x in v) for i in range(7)]
         print(f"| {n} | {med[0]:.2f} | {med[1]:.2f} | {sum(x[2] == 1 for x in v)}/{len(v)} | "
@@ -301,21 +225,19 @@ def compare(names: list[str], seeds: range) -> None:
 
 
 def station_compare(names: list[str], seeds: range, seconds: float = 0.5) -> None:
-    """Paired station check of drop-world variants: each seed's heap from every variant, reloaded
-    into BinHeap15 (ms_drake.scenes.heaps.station_check, `seconds` of the station's physics)."""
-    from ms_drake.scenario import load_scenario
-    from ms_drake.scenes.heaps import HeapParams, generate_heap, station_check
-
+    """Paired station check of heap configurations (CONFIGS): each seed's heap from every
+    configuration, reloaded into BinHeap15 (ms_drake.scenes.heaps.station_check, `seconds` of the
+    station's physics)."""
     s = load_scenario(None, "BinHeap15")
     res = {n: [] for n in names}
     for seed in seeds:
         for n in names:
-            h = generate_heap(s, 15, seed, params=HeapParams(**VARIANTS[n]))
+            h = generate_heap(s, 15, seed, params=CONFIGS[n])
             c = station_check(s, h, seconds)
             res[n].append((c["max_penetration"], c["max_displacement"], c["median_displacement"]))
             print(n, seed, " ".join(f"{1e3 * x:.1f}" for x in res[n][-1]), flush=True)
-    print("| variant | penetration at load mm (median, max) | largest displacement mm (median, p90, max) | "
-          f"median object mm | heaps with all <= 5 mm |")
+    print("| heaps | penetration at load mm (median, max) | largest displacement mm (median, p90, max) | "
+          "median object mm | heaps with all <= 5 mm |")
     for n, v in res.items():
         a = 1e3 * np.array(v)
         print(f"| {n} | {np.median(a[:, 0]):.1f}, {a[:, 0].max():.1f} | {np.median(a[:, 1]):.1f}, "
@@ -335,10 +257,10 @@ if __name__ == "__main__":
         summary(sys.argv[2])
     elif cmd == "compare":
         lo, hi = (sys.argv[sys.argv.index("--seeds") + 1] if "--seeds" in sys.argv else "0:10").split(":")
-        compare([a for a in sys.argv[2:] if a in VARIANTS], range(int(lo), int(hi)))
+        compare([a for a in sys.argv[2:] if a in CONFIGS], range(int(lo), int(hi)))
     elif cmd == "station":
         lo, hi = (sys.argv[sys.argv.index("--seeds") + 1] if "--seeds" in sys.argv else "0:6").split(":")
-        station_compare([a for a in sys.argv[2:] if a in VARIANTS], range(int(lo), int(hi)))
+        station_compare([a for a in sys.argv[2:] if a in CONFIGS], range(int(lo), int(hi)))
     elif cmd == "reload":
         reload_check(sys.argv[2], int(sys.argv[sys.argv.index("--count") + 1]) if "--count" in sys.argv else 20)
     else:

@@ -137,7 +137,7 @@ def test_station_check_sees_penetration_and_motion(bin_scenario, small_heap):
     assert c["max_penetration"] > 0.01 and c["max_displacement"] > ok["max_displacement"], (ok, c)
 
 
-def test_drop_world_tessellation_option_only_changes_round_shapes():
+def test_hydroelastic_tessellation_option_only_changes_round_shapes():
     from ms_drake.objects.sdf import Shape, hydroelastic_xml
 
     cyl, box = Shape("cylinder", (0.04, 0.1)), Shape("box", (0.1, 0.1, 0.1))
@@ -173,29 +173,48 @@ def test_object_compliance_is_validated(tmp_path):
         load_scenario(f, "S")
 
 
-def test_drop_world_dissipation_goes_into_its_objects_only(bin_scenario):
-    """HeapParams.dissipation is written into the drop world's object SDFs; the station keeps the
-    scenario's default (5 s/m), and the bin keeps its own."""
+def _contact_properties(plant, inspector, bodies) -> list:
+    """Per body, per collision geometry: shape type and every proximity property Python can read."""
+    out = []
+    for body in bodies:
+        for gid in plant.GetCollisionGeometriesForBody(body):
+            props, row = inspector.GetProximityProperties(gid), {}
+            for group in props.GetGroupNames():
+                for name, value in props.GetPropertiesInGroup(group).items():
+                    try:
+                        v = value.get_value()
+                    except RuntimeError:  # HydroelasticType has no Python binding
+                        continue
+                    if hasattr(v, "static_friction"):  # CoulombFriction
+                        v = (v.static_friction(), v.dynamic_friction())
+                    row[group, name] = v
+            out.append((type(inspector.GetShape(gid)).__name__, row))
+    return out
+
+
+def test_drake_drop_world_objects_are_the_bin_station_objects(bin_scenario):
+    """engine="drake": the drop world's objects carry exactly the bin station's contact properties
+    (compliant hydroelastic with the same modulus and tessellation, the scenario's friction, the
+    default Hunt-Crossley dissipation), so a heap settled there is at rest in the station; the
+    drop world's plant uses the "similar" contact approximation."""
+    import copy
+
     from ms_drake.scenes.heaps import _DropWorld
 
-    names = ["procedural/box_003", "procedural/cylinder_001"]
-    params = HeapParams(engine="drake", dissipation=100.0, contact_approximation="similar", render=False)
-    world = _DropWorld(bin_scenario, names, params)
-    sg = world.diagram.GetSubsystemByName("scene_graph")
-    inspector = sg.model_inspector()
-    plant = world.plant
-    for body in world.bodies:
-        for gid in plant.GetCollisionGeometriesForBody(body):
-            props = inspector.GetProximityProperties(gid)
-            assert props.GetProperty("material", "hunt_crossley_dissipation") == 100.0
-    assert plant.get_discrete_contact_approximation().name == "kSimilar"
-    station = MakeStation(scenario_with_heap(bin_scenario, generate_heap(bin_scenario, 2, seed=0)))
-    splant = get_plant(station)
-    sinsp = station.GetSubsystemByName("scene_graph").model_inspector()
-    for o in station_objects(splant):
-        for gid in splant.GetCollisionGeometriesForBody(splant.get_body(o.body_index)):
-            assert sinsp.GetProximityProperties(gid).GetPropertyOrDefault(
-                "material", "hunt_crossley_dissipation", 5.0) == 5.0
+    names = ["procedural/box_003", "procedural/cylinder_001", "procedural/packaged_002"]
+    world = _DropWorld(bin_scenario, names, HeapParams(engine="drake", render=False))
+    assert world.plant.get_discrete_contact_approximation().name == "kSimilar"
+    drop = _contact_properties(world.plant, world.scene_graph.model_inspector(), world.bodies)
+    s = copy.deepcopy(bin_scenario)
+    s.objects.names, s.objects.count, s.cameras = names, len(names), {}
+    station = MakeStation(s)
+    plant = get_plant(station)
+    ref = _contact_properties(plant, station.GetSubsystemByName("scene_graph").model_inspector(),
+                              [plant.get_body(o.body_index) for o in station_objects(plant)])
+    assert drop == ref
+    assert len(drop) == 4 and all(row["hydroelastic", "hydroelastic_modulus"] > 0 for _, row in drop)
+    assert {row["material", "coulomb_friction"] for _, row in drop} == {(bin_scenario.objects.friction,) * 2}
+    assert not any(("material", "hunt_crossley_dissipation") in row for _, row in drop)
 
 
 def test_objects_that_leave_the_bin_are_taken_out_and_tunnelling_is_seen(bin_scenario):

@@ -11,9 +11,9 @@ Generation of heap `seed` with N objects:
    wave every `wave_time` (30 ms); an object also waits while something under its footprint
    still moves faster than `landed_speed` (0.5 m/s: still falling), for at most `max_wait`
    (0.2 s). The release height is taken over objects that may still be in the air: with waves
-   this frequent and no wait, the highest release of a heap grew to 1.0-1.8 m above the floor
-   (impacts at 4-6 m/s; at 0.12 s waves 0.6-1.2 m, and a 2 cm cylinder falling 2.7 cm per
-   10 ms step went through the 3 cm bin floor); with the wait it is 0.4-0.6 m (seeds 0-9);
+   this frequent and no wait, the highest release of a heap reaches 1.0-1.8 m above the floor
+   (impacts at 4-6 m/s; a 2 cm cylinder falling 2.7 cm per 10 ms step passes through the 3 cm
+   bin floor); with the wait it is 0.4-0.6 m (seeds 0-9);
 4. simulated until settled: every `check_every` (30 ms) of simulated time the largest linear
    and angular speed of an object, averaged over those 30 ms (pose change / time: robust to
    the discrete solver's step-to-step chatter, see _mean_speeds), are compared with
@@ -37,7 +37,7 @@ and stores the heap): ~0.5 CPU-s per 15-object heap instead of ~3 (docs/BENCHMAR
 with Bullet"). Bullet heaps are rigid-contact heaps: reloaded into a bin station (compliant
 objects) they overlap less at load than Drake-dropped ones (median 1.0 vs 3.1 mm) but relax by
 1-2 mm (median object) in its first 0.5 s. Cylinders get a rolling friction of 1 mm (with
-0.1 mm, 3 of 200 heaps kept a cylinder rolling for 5 s); the Bullet solver stops its (at most
+0.1 mm, 3 of 200 heaps keep a cylinder rolling for 5 s); the Bullet solver stops its (at most
 50) iterations once the residual is below 1e-4. `polish_time` (e.g. 0.5 s) then settles the
 Bullet heap in the compliant Drake drop world: ~1.3 CPU-s per heap, and the heaps fit the
 station better than Drake-dropped ones (largest displacement in 0.5 s, median of 8 heaps: 1.6
@@ -50,15 +50,12 @@ docs/BENCHMARKS.md, "Heaps with the Drake drop world"): objects are compliant-hy
 really comes to rest; discrete step `time_step` = 10 ms with Drake's "similar" convex contact
 approximation (less CPU than "lagged" at equal validity). The free joints carry a small
 angular damping (`angular_damping`) as rolling resistance, without which a cylinder rolls
-across the bin for seconds (Drake has no rolling friction). Hunt-Crossley dissipation stays
-the scenario's (5 s/m); `dissipation` can raise it for the drop world's objects only (written
-into their SDFs). A high value (50-100 s/m: fully inelastic impacts, physically fine for
-cardboard and plastic landing on a heap) looked 25-35 % cheaper, but it is not adopted: it
-makes contacts viscous, so an object that is not yet supported sinks or tips at a few mm/s,
-under the settle thresholds, and the "settled" heap is not at rest -- reloaded into the
-station (dissipation 5 s/m) it moved more (median object 1.1-3.6 mm vs 0.2-0.3 mm in 0.5 s)
-and overlapped ~3x deeper at load. Loaded into a bin station (compliant objects, the same E) a heap
-keeps its poses bit for bit.
+across the bin for seconds (Drake has no rolling friction). The objects are the bin stations'
+objects (the scenario's friction, E and Hunt-Crossley dissipation, 5 s/m): a higher dissipation
+(50-100 s/m) costs 25-35 % less CPU but makes contacts viscous, so an object not yet supported
+sinks or tips at a few mm/s, under the settle thresholds, and the "settled" heap moves in the
+station (docs/BENCHMARKS.md, "Drop-world variants that do not help"). Loaded into a bin station
+(compliant objects, the same E) a heap keeps its poses bit for bit.
 """
 
 from __future__ import annotations
@@ -85,7 +82,6 @@ from scipy.spatial.transform import Rotation
 from ms_drake.errors import HeapError, ScenarioError
 from ms_drake.geometry import PinholeCamera, silhouette
 from ms_drake.objects import get_object, get_object_set
-from ms_drake.objects.sdf import OBJECT_MODULUS
 from ms_drake.paths import make_parser
 from ms_drake.scenario import Scenario
 from ms_drake.scenes.bullet import BulletDropWorld
@@ -106,25 +102,16 @@ TUNNELLED = "an object tunnelled through the bin floor or the support"
 class HeapParams:
     """Knobs of heap generation (defaults as the module docstring states)."""
 
-    time_step: float = 0.01
-    contact_approximation: str = "similar"
-    near_rigid_threshold: float = 1.0  # MultibodyPlantConfig.sap_near_rigid_threshold
-    dissipation: float | None = None  # s/m, Hunt-Crossley dissipation of the drop world's objects (None: scenario's)
-    friction: float | None = None  # objects' Coulomb friction in the drop world (None: scenario's objects.friction)
-    object_contact: str = "hydroelastic"  # or "point" (rigid objects with contact spheres)
-    modulus: float = OBJECT_MODULUS  # Pa, compliant objects of the drop world (ms_drake.objects.sdf)
-    resolution_edges: int = 12  # edges around a hydroelastic cylinder / sphere in the drop world
+    time_step: float = 0.01  # s, discrete step of the Drake drop world
+    contact_approximation: str = "similar"  # Drake drop world (MultibodyPlantConfig.discrete_contact_approximation)
     angular_damping: float = 1e-4  # N m s: stops a small cylinder rolling in ~0.2 s, negligible for tumbling
-    terminal_speed: float | None = None  # m/s: linear drag m g / v on each free joint (None: no drag;
-    # it stops tunnelling but slows every fall and topple: heaps settled later, not adopted)
     settle_linear: float = 0.05  # m/s (a 1-cm cylinder rolling at 5 cm/s turns at 5 rad/s)
     settle_angular: float = 5.0  # rad/s
     check_every: float = 0.03  # s of simulated time
     drop_gap: float = 0.01  # release height above what lies under the object
-    wave_time: float = 0.03  # at most this long between two waves of drops
-    landed_speed: float | None = 0.5  # m/s: an object waits while something under it moves faster (None: no wait)
+    wave_time: float = 0.03  # s between two waves of drops
+    landed_speed: float = 0.5  # m/s: an object waits while something under it moves faster
     max_wait: float = 0.2  # s: ... but at most this long
-    min_wave_time: float = 0.03
     min_final_time: float = 0.1
     max_final_time: float = 5.0
     center_sigma: float = 0.03
@@ -204,36 +191,27 @@ class _DropWorld:
 
     def __init__(self, scenario: Scenario, names: list[str], params: HeapParams):
         builder = DiagramBuilder()
-        hydro = params.object_contact == "hydroelastic" and params.engine == "drake"
-        # With engine="bullet" this plant only mirrors shapes and renders: rigid objects without
+        # engine="drake": compliant-hydroelastic objects, as in the bin stations. With
+        # engine="bullet" this plant only mirrors shapes and renders: rigid objects without
         # contact spheres and no hydroelastic meshes (cheaper to build).
-        spheres = params.object_contact != "hydroelastic" and params.engine == "drake"
+        hydro = params.engine == "drake"
         cfg = MultibodyPlantConfig(time_step=params.time_step,
                                    contact_model="hydroelastic_with_fallback" if hydro else "point",
-                                   discrete_contact_approximation=params.contact_approximation,
-                                   sap_near_rigid_threshold=params.near_rigid_threshold)
+                                   discrete_contact_approximation=params.contact_approximation)
         plant, sg = AddMultibodyPlant(cfg, builder)
         sg.set_config(scenario.scene_graph_config)
         parser = make_parser(plant)
         add_environment(plant, scenario, parser)
-        friction = scenario.objects.friction if params.friction is None else params.friction
         instances = []
         for k, full in enumerate(names):
-            sdf = get_object(full).sdf(object_model_name(k, full), friction=friction,
-                                       compliance="compliant" if hydro else "rigid", contact_spheres=spheres,
-                                       resolution_edges=params.resolution_edges, modulus=params.modulus)
-            if params.dissipation is not None:  # the drop world's objects only (not the station's)
-                tag = "<drake:proximity_properties>"
-                sdf = sdf.replace(tag, f"{tag}<drake:hunt_crossley_dissipation>{params.dissipation:.6g}"
-                                       "</drake:hunt_crossley_dissipation>")
+            sdf = get_object(full).sdf(object_model_name(k, full), friction=scenario.objects.friction,
+                                       compliance="compliant" if hydro else "rigid", contact_spheres=False)
             instances += parser.AddModelsFromString(sdf, "sdf")
         self.joints = []
-        for k, mi in enumerate(instances):  # free joints with a little rolling resistance (and drag)
+        for k, mi in enumerate(instances):  # free joints with a little rolling resistance
             body = plant.GetBodyByName("body", mi)
-            drag = 0.0 if params.terminal_speed is None else body.default_mass() * 9.81 / params.terminal_speed
             self.joints.append(plant.AddJoint(QuaternionFloatingJoint(
-                f"free_{k}", plant.world_frame(), body.body_frame(), angular_damping=params.angular_damping,
-                translational_damping=drag)))
+                f"free_{k}", plant.world_frame(), body.body_frame(), angular_damping=params.angular_damping)))
         self.left: list[int] = []  # objects taken out of the simulation because they left the bin
         plant.Finalize()
         self.sensor = None
@@ -414,7 +392,7 @@ def _drop_in_waves(world: _DropWorld, names: list[str], plan: list[DropItem], or
             X = world.pose(j)
             v = _vertices(names[j]) @ X.rotation().matrix().T + (X.translation() - origin)
             boxes.append((v.min(axis=0), v.max(axis=0)))
-            moving.append(params.landed_speed is not None and bool(np.abs(vel[j, 3:]).max() > params.landed_speed))
+            moving.append(bool(np.abs(vel[j, 3:]).max() > params.landed_speed))
         wave = []
         for pos, k in enumerate(waiting):
             it = plan[k]
@@ -443,9 +421,6 @@ def _drop_in_waves(world: _DropWorld, names: list[str], plan: list[DropItem], or
                 return False, t, "the simulation blew up (non-finite state)"
             if _take_out_leavers(world, placed, origin, size, wall):
                 return False, t, TUNNELLED
-            lin, ang = world.max_speeds(placed)
-            if t - t_wave >= params.min_wave_time and lin < params.settle_linear and ang < params.settle_angular:
-                break
     t_waves = t
     phases.update(waves_cpu=time.process_time() - cpu0, waves_sim=t_waves)
     ok, t, reason = _settle(world, names, placed, origin, size, wall, params, params.max_final_time,
