@@ -1,6 +1,6 @@
 """Physics labels and the AP / AR table of the grasp contact models (Table 2.1 / 3.1 analogue).
 
-  python sims/grasp_labels.py labels   [--objects 24] [--grasps 45] [--trials 2]
+  python sims/grasp_labels.py labels   [--objects 24] [--grasps 45] [--trials 2] [--pad JSON]
   python sims/grasp_labels.py predict  [--param-sets 8] [--robust 10]
   python sims/grasp_labels.py table
 
@@ -13,6 +13,7 @@ import json
 from pathlib import Path
 
 from ms_drake.grasping import labels as L
+from ms_drake.robots import PadConfig
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -27,6 +28,8 @@ def main():
     ap.add_argument("--grasps", type=int, default=45)
     ap.add_argument("--trials", type=int, default=2)
     ap.add_argument("--closing-force", type=float, default=10.0)
+    ap.add_argument("--pad", type=json.loads, default=None,
+                    help="the jaw pad as ms_drake.robots.PadConfig keywords in JSON (default: the station's pad)")
     ap.add_argument("--param-sets", type=int, default=8)
     ap.add_argument("--robust", type=int, default=10)
     ap.add_argument("--models", nargs="*", default=list(L.MODELS))
@@ -37,7 +40,7 @@ def main():
         names = args.object_names or L.default_label_objects(args.objects)
         print("objects:", " ".join(names), flush=True)
         L.generate_labels(names, args.labels, args.grasps, args.trials, args.seed, args.closing_force,
-                          log=lambda s: print(s, flush=True))
+                          pad=PadConfig(**args.pad) if args.pad else None, log=lambda s: print(s, flush=True))
     if args.stage in ("predict", "all"):
         L.predict(args.labels, args.predictions, args.models, args.param_sets, args.robust, args.closing_force,
                   args.seed, log=lambda s: print(s, flush=True))

@@ -5,7 +5,9 @@ import pytest
 import trimesh
 
 from ms_drake.grasping import GraspError, ParallelJawGrasp
-from ms_drake.grasping.physics import PadConfig, label_grasp, simulate_grasp
+from ms_drake.errors import ScenarioError
+from ms_drake.grasping.physics import label_grasp, simulate_grasp
+from ms_drake.robots import PadConfig
 
 BOX = trimesh.creation.box(extents=(0.04, 0.06, 0.03))
 X = np.eye(4)
@@ -14,7 +16,8 @@ CENTER = ParallelJawGrasp([0, 0, 0.1], [1, 0, 0], [0, 0, -1], 0.07)
 
 
 def test_friction_limit_decides_the_lift():
-    """Two pads squeezing with f_C and mu hold at most 2 mu f_C / g = 1.63 kg."""
+    """Two pads squeezing with f_C and the station pad's mu (1.0 static) hold at most
+    2 mu f_C / g = 2.04 kg."""
     light = simulate_grasp(BOX, X, CENTER, 0.8, closing_force=10.0)
     heavy = simulate_grasp(BOX, X, CENTER, 2.5, closing_force=10.0)
     assert light.success and light.contact and light.lifted > 0.07 and light.slip < 1e-3
@@ -35,9 +38,19 @@ def test_polygon_pad_and_bad_input():
     hexagon = tuple((0.01 * np.cos(t), 0.01 * np.sin(t)) for t in np.linspace(0, 2 * np.pi, 7)[:-1])
     out = simulate_grasp(BOX, X, CENTER, 0.3, pad=PadConfig(polygon=hexagon, hydroelastic_modulus=3e5))
     assert out.success
-    with pytest.raises(GraspError, match="PadConfig.depth"):
-        PadConfig(depth=0.0)
+    with pytest.raises(ScenarioError, match="PadConfig.thickness"):
+        PadConfig(thickness=0.0)
     open_box = BOX.copy()
     open_box.update_faces(np.arange(12) != 0)
     with pytest.raises(GraspError, match="watertight"):
         simulate_grasp(open_box, X, CENTER, 0.3)
+
+
+def test_the_physics_pad_is_the_station_jaws_pad():
+    from ms_drake.grasping.physics import _pad_shape
+    from ms_drake.robots import ParallelJawConfig
+
+    pad = ParallelJawConfig().pads
+    shape, X_FP = _pad_shape(pad)  # the default rectangle: a box, `length` along the approach
+    assert (shape.width(), shape.depth(), shape.height()) == (pad.length, pad.width, pad.thickness)
+    np.testing.assert_allclose(X_FP.translation(), [0, 0, -0.5 * pad.thickness])

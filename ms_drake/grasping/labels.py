@@ -32,9 +32,10 @@ from sklearn.metrics import average_precision_score
 from ms_drake.grasping.evaluator import MODELS, GraspEvaluator
 from ms_drake.grasping.grasp import ParallelJawGrasp
 from ms_drake.grasping.meshes import object_mesh
-from ms_drake.grasping.physics import PadConfig, label_grasp
+from ms_drake.grasping.physics import label_grasp
 from ms_drake.grasping.samplers import sample_antipodal_grasps
 from ms_drake.objects import available_sets, get_object, get_object_set
+from ms_drake.robots import PadConfig
 
 THRESHOLDS = np.round(np.arange(0.0, 1.01, 0.1), 2)
 

@@ -4,9 +4,9 @@
 a free-floating parallel-jaw gripper at the grasp pose and the object as a free rigid body:
 
 - hand: a body on a prismatic joint along world z ("lift"), PD-driven (SAP implicit PD);
-- two fingers on prismatic joints along the grasp axis, each carrying a compliant
-  hydroelastic pad (PadConfig: polygon, thickness, hydroelastic modulus, relaxation time under
-  SAP, friction); each finger runs a velocity servo (SAP implicit PD with kp = 0) towards
+- two fingers on prismatic joints along the grasp axis, each carrying the station jaw's
+  compliant hydroelastic pad (ms_drake.robots.PadConfig: outline, thickness, hydroelastic
+  modulus, relaxation time under SAP, friction); each finger runs a velocity servo (SAP implicit PD with kp = 0) towards
   `close_speed`, its effort clamped at the closing force (the force limit), so a blocked finger
   squeezes with exactly f_C; a coupler constraint keeps the two fingers symmetric (a parallel
   gripper's linkage), so the first finger to touch pushes the object towards the centre;
@@ -69,34 +69,17 @@ from scipy.spatial.transform import Rotation
 
 from ms_drake.geometry import as_matrix4
 from ms_drake.grasping.grasp import GraspError, ParallelJawGrasp
+from ms_drake.robots import PadConfig
 
 
-@dataclass(frozen=True)
-class PadConfig:
-    """A compliant jaw pad: polygon (m, jaw frame: x along the approach, y lateral, origin on
-    the grasp axis) extruded `depth` along the closing direction."""
-
-    polygon: tuple[tuple[float, float], ...] = ((-0.01, -0.01), (0.01, -0.01), (0.01, 0.01), (-0.01, 0.01))
-    depth: float = 0.006
-    hydroelastic_modulus: float = 1e5  # Pa (soft rubber; Drake guide: 1e5-1e6 for pads)
-    relaxation_time: float = 0.05  # s (SAP dissipation)
-    friction: float = 0.8
-    resolution_hint: float = 0.003  # m, for non-rectangular (convex) pads
-
-    def __post_init__(self):
-        poly = np.asarray(self.polygon, float)
-        if poly.ndim != 2 or poly.shape[1] != 2 or len(poly) < 3:
-            raise GraspError(f"PadConfig.polygon needs >= 3 (x, y) points, got {self.polygon!r}")
-        for name in ("depth", "hydroelastic_modulus", "relaxation_time", "friction", "resolution_hint"):
-            if not getattr(self, name) > 0:
-                raise GraspError(f"PadConfig.{name} must be > 0, got {getattr(self, name)!r}")
-
-    def is_rectangle(self) -> bool:
-        p = np.asarray(self.polygon, float)
-        if len(p) != 4:
-            return False
-        xs, ys = np.unique(np.round(p[:, 0], 12)), np.unique(np.round(p[:, 1], 12))
-        return len(xs) == 2 and len(ys) == 2
+def _pad_polygon(pad: PadConfig) -> np.ndarray:
+    """The pad's outline in the finger frame used here (x along the approach, y lateral): the
+    station pad's (u lateral, v along the approach) swapped; the default rectangle is width (u)
+    x length (v)."""
+    if pad.polygon is None:
+        u, v = 0.5 * pad.width, 0.5 * pad.length
+        return np.array([[-v, -u], [v, -u], [v, u], [-v, u]], float)
+    return np.asarray(pad.polygon, float)[:, ::-1].copy()
 
 
 @dataclass(frozen=True)
@@ -116,13 +99,15 @@ def _obj_text(vertices: np.ndarray, faces: np.ndarray) -> str:
 
 def _pad_shape(pad: PadConfig):
     """(shape, X_FP): the pad geometry and its pose in the finger frame (pad face at z = 0,
-    body towards -z, i.e. the pad pushes along +z)."""
-    p = np.asarray(pad.polygon, float)
-    if pad.is_rectangle():
+    body towards -z, i.e. the pad pushes along +z): a box for the default rectangle, else the
+    convex prism of the polygon (as the station's gripper model)."""
+    p = _pad_polygon(pad)
+    if pad.polygon is None:
         lo, hi = p.min(axis=0), p.max(axis=0)
         c = 0.5 * (lo + hi)
-        return Box(*(hi - lo), pad.depth), RigidTransform([c[0], c[1], -0.5 * pad.depth])
-    verts = np.vstack([np.column_stack([p, np.zeros(len(p))]), np.column_stack([p, np.full(len(p), -pad.depth)])])
+        return Box(*(hi - lo), pad.thickness), RigidTransform([c[0], c[1], -0.5 * pad.thickness])
+    verts = np.vstack([np.column_stack([p, np.zeros(len(p))]),
+                       np.column_stack([p, np.full(len(p), -pad.thickness)])])
 
     hull = trimesh.convex.convex_hull(verts)
     mesh = InMemoryMesh()
@@ -146,12 +131,15 @@ def simulate_grasp(mesh, X_WO, grasp: ParallelJawGrasp, mass: float, *, pad: Pad
     """Simulate one grasp (world frame; X_WO: the object's pose, RigidTransform or 4x4 array).
     With `seed` set, the grasp pose, friction and mass are perturbed from
     numpy.random.default_rng(seed); seed=None runs the nominal grasp.
-    friction: the object-pad Coulomb coefficient (default: the pad's)."""
+    pad: the station's jaw pad (ms_drake.robots.PadConfig, default: the one the station's parallel
+    jaw carries); friction: the object-pad Coulomb coefficient, static and dynamic (default: the
+    pad's mu_static / mu_dynamic)."""
 
     t_wall = time.perf_counter()
     X = as_matrix4(X_WO, "X_WO")
     pad = pad or PadConfig()
-    mu = pad.friction if friction is None else float(friction)
+    mu_s, mu_d = (pad.mu_static, pad.mu_dynamic) if friction is None else (float(friction), float(friction))
+    mu = mu_s
     if not isinstance(grasp, ParallelJawGrasp):
         grasp = ParallelJawGrasp.from_grasp(grasp)
     if not (mass > 0 and closing_force > 0 and mu > 0):
@@ -162,6 +150,8 @@ def simulate_grasp(mesh, X_WO, grasp: ParallelJawGrasp, mass: float, *, pad: Pad
     if seed is not None:
         grasp, mu, mass = _perturb(grasp, mu, mass, np.random.default_rng(seed), sigma_t, sigma_r,
                                    sigma_friction, sigma_mass)
+        mu_d = min(mu_d * mu / mu_s, mu)  # the perturbation scales both coefficients
+        mu_s = mu
 
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlant(
@@ -178,7 +168,7 @@ def simulate_grasp(mesh, X_WO, grasp: ParallelJawGrasp, mass: float, *, pad: Pad
     mem.mesh_file = MemoryFile(_obj_text(np.asarray(mesh.vertices), np.asarray(mesh.faces)), ".obj", "object.obj")
     props = ProximityProperties()
     AddRigidHydroelasticProperties(0.005, props)
-    AddContactMaterial(friction=CoulombFriction(mu, mu), properties=props)
+    AddContactMaterial(friction=CoulombFriction(mu_s, mu_d), properties=props)
     plant.RegisterCollisionGeometry(body, RigidTransform(), Mesh(mem), "object", props)
 
     # ---------------------------------------------------------------- gripper
@@ -196,7 +186,7 @@ def simulate_grasp(mesh, X_WO, grasp: ParallelJawGrasp, mass: float, *, pad: Pad
     shape, X_FP = _pad_shape(pad)
     pad_props = ProximityProperties()
     AddCompliantHydroelasticProperties(pad.resolution_hint, pad.hydroelastic_modulus, pad_props)
-    AddContactMaterial(friction=CoulombFriction(pad.friction, pad.friction), properties=pad_props)
+    AddContactMaterial(friction=CoulombFriction(mu_s, mu_d), properties=pad_props)
     pad_props.AddProperty("material", "relaxation_time", pad.relaxation_time)
     # velocity servo clamped at the force limit: u = clamp(kd (v_close - v), f_C); the free finger
     # closes at ~close_speed, a blocked one squeezes with f_C (kd v_close = 10 f_C)
