@@ -1,0 +1,322 @@
+"""Shelf search in FOSS (Table 9.1) and shelf datasets.
+
+- `build_shelf_search(foss, scene, policy)`: the wired Diagram FossSystem -> ShelfOccupancyEstimator
+  ("ground_truth") -> ShelfPolicySelector -> back to FossSystem, stepping once per period.
+- `shelf_rollout(policy, occluders, seed)`: one search of the scene generate_shelf_scene(seed,
+  occluders) (the same scene for every policy) with horizon H = 2n; a JSON-able record: seed,
+  occluders, policy, success, steps, push / suction counts, refused actions, the failure
+  ("horizon": budget spent; "no_action": the policy had nothing to do), timings (scene generation,
+  perception, decision and FOSS step, ms).
+- `run_shelf_bench(...)`: the missing rollouts of (occluders x seeds) through ms_drake.parallel,
+  one JSON line each, flushed and fsync'ed (resumable: the same command skips the seeds already in
+  the file and retries the lines of dead workers), then per-density summaries
+  (ms_drake.experiments.harness.summarize: success rate with a bootstrap 95 % interval; steps are
+  also stored as `actions` and occluders as `objects` for it).
+- `shelf_table`, `plot_shelf`: Table 9.1 (success %, median steps (IQR) of the successful
+  searches) and a figure.
+- `write_shelf_dataset(...)`: `ms-drake data shelf`: shards of generated scenes with both
+  ground-truth distributions and (optionally) the Drake depth image, resumable shard by shard.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import time
+from pathlib import Path
+
+import matplotlib
+import matplotlib.pyplot as plt
+import numpy as np
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+
+from ms_drake.errors import MsDrakeError
+from ms_drake.experiments.harness import final_records, read_records, summarize
+from ms_drake.foss import Foss, FossSystem
+from ms_drake.parallel import run_jobs
+from ms_drake.perception.shelf_occupancy import ShelfOccupancyEstimator
+from ms_drake.policies.shelf import SHELF_POLICIES, ShelfPolicyParams, ShelfPolicySelector, check_shelf_policy
+from ms_drake.scenario import load_scenario
+from ms_drake.scenes.shelf import DEFAULT_TARGET, TARGET_SIZES, generate_shelf_scene, scene_to_dict
+from ms_drake.scenes.shelf_render import render_shelf_scene
+from ms_drake.shelf_geometry import ShelfGeometry
+from ms_drake.types import ShelfScene
+
+SCENARIO = "FetchShelf"
+FIDELITY = "foss"
+REFERENCE = {  # Table 9.1, "All" row: success rate (%)
+    "oracle_p": 98, "oracle_ps": 100, "dar": 54, "der3": 60, "bluction_dar": 86}
+POLICY_NAMES = {"oracle_p": "Oracle-P", "oracle_ps": "Oracle-P+S", "dar": "DAR", "der3": "DER-3",
+                "bluction_dar": "Bluction-DAR", "random": "Random"}
+
+
+@functools.lru_cache(maxsize=4)
+def shelf_geometry(scenario_name: str = SCENARIO, camera: str = "front") -> ShelfGeometry:
+    return ShelfGeometry.from_scenario(load_scenario(None, scenario_name), camera)
+
+
+def build_shelf_search(foss: Foss, scene: ShelfScene, policy: str, params: ShelfPolicyParams | None = None,
+                       target_size=None, period: float = 1.0):
+    """The search Diagram; exported outputs: action, visible_fraction, scene, history, occupancy,
+    occupancy_history."""
+    builder = DiagramBuilder()
+    sim = builder.AddNamedSystem("foss", FossSystem(foss, scene, period))
+    est = builder.AddNamedSystem("occupancy", ShelfOccupancyEstimator(foss.geometry, target_size))
+    sel = builder.AddNamedSystem("policy", ShelfPolicySelector(policy, foss, params, period))
+    builder.Connect(sim.GetOutputPort("scene"), est.GetInputPort("scene"))
+    builder.Connect(sim.GetOutputPort("scene"), sel.GetInputPort("scene"))
+    builder.Connect(sim.GetOutputPort("history"), sel.GetInputPort("history"))
+    builder.Connect(est.GetOutputPort("occupancy"), sel.GetInputPort("occupancy"))
+    builder.Connect(sel.GetOutputPort("action"), sim.GetInputPort("action"))
+    for system, port in ((sel, "action"), (sim, "visible_fraction"), (sim, "scene"), (sim, "history"),
+                         (est, "occupancy"), (sel, "occupancy_history")):
+        builder.ExportOutput(system.GetOutputPort(port), port)
+    diagram = builder.Build()
+    diagram.set_name(f"shelf_search_{policy}")
+    return diagram
+
+
+def shelf_rollout(policy: str, occluders: int, seed: int, params: ShelfPolicyParams | None = None,
+                  target_size=DEFAULT_TARGET, scenario_name: str = SCENARIO) -> dict:
+    """One search in FOSS (module docstring); the record of it."""
+    check_shelf_policy(policy)
+    params = params or ShelfPolicyParams(seed=seed)
+    t_start, cpu_start = time.perf_counter(), time.process_time()
+    geometry = shelf_geometry(scenario_name)
+    foss = Foss(geometry)
+    t = time.process_time()
+    sample = generate_shelf_scene(geometry, seed, occluders, target_size)
+    scene_ms = 1e3 * (time.process_time() - t)
+    diagram = build_shelf_search(foss, sample.scene, policy, params)
+    simulator = Simulator(diagram)
+    context = simulator.get_mutable_context()
+    horizon = params.horizon if params.horizon is not None else 2 * occluders
+    ports = {name: diagram.GetOutputPort(name) for name in ("action", "visible_fraction", "scene", "history",
+                                                             "occupancy")}
+    perception, decisions, steps_ms = [], [], []
+    failure, reason, steps = "", "", 0
+    while True:
+        visible = float(ports["visible_fraction"].Eval(context)[0])
+        if visible >= foss.params.visibility_threshold:
+            break
+        if steps >= horizon:
+            failure = "horizon"
+            break
+        t = time.process_time()
+        ports["occupancy"].Eval(context)
+        t1 = time.process_time()
+        action = ports["action"].Eval(context)
+        t2 = time.process_time()
+        perception.append(t1 - t)
+        decisions.append(t2 - t1)
+        if action.kind != "shelf":
+            failure, reason = "no_action", action.reason
+            break
+        scene = ports["scene"].Eval(context)
+        t = time.process_time()
+        foss.step(scene, action)  # timed alone; the simulator applies it below
+        steps_ms.append(time.process_time() - t)
+        steps += 1
+        simulator.AdvanceTo(steps * simulator_period(diagram))
+    history = ports["history"].Eval(context)
+    done = [o for o in history if o.success]
+    kinds = [o.action.shelf.kind for o in done]
+
+    def ms(x, f):
+        return float(1e3 * f(x)) if x else float("nan")
+
+    return dict(seed=int(seed), occluders=int(occluders), objects=int(occluders), policy=policy, fidelity=FIDELITY,
+                success=not failure, steps=steps, actions=steps, pushes=kinds.count("push"),
+                suctions=kinds.count("suction"), refused=len(history) - len(done),
+                cost=kinds.count("push") + params.psi * kinds.count("suction"), failure=failure, stop_reason=reason,
+                visible_fraction=float(ports["visible_fraction"].Eval(context)[0]),
+                target_size=list(map(float, target_size)), scene_ms=scene_ms,
+                perception_ms=ms(perception, np.median), decision_ms=ms(decisions, np.median),
+                decision_ms_max=ms(decisions, np.max), foss_ms=ms(steps_ms, np.median),
+                seconds=time.perf_counter() - t_start, cpu_seconds=time.process_time() - cpu_start, pid=os.getpid())
+
+
+def simulator_period(diagram) -> float:
+    return diagram.GetSubsystemByName("foss").period
+
+
+def shelf_rollout_job(job: tuple) -> dict:
+    """(policy, occluders, seed[, horizon]) -> record; module-level for the worker pool."""
+    policy, occluders, seed, *rest = job
+    horizon = rest[0] if rest else None
+    return shelf_rollout(policy, occluders, seed, ShelfPolicyParams(seed=seed, horizon=horizon))
+
+
+def _matches(r: dict, policy: str) -> bool:
+    return r.get("policy") == policy and r.get("fidelity") == FIDELITY
+
+
+def run_shelf_bench(policy: str, occluders: list[int], scenes: int, seed_start: int, out, workers: int = 1,
+                    use_ray: bool = False, ray_address: str | None = None, horizon: int | None = None,
+                    progress=None) -> dict:
+    """Run the missing rollouts of seeds S..S+K-1 for every occluder count, append them to `out`
+    (JSON lines); returns {occluders or "all": summary} over the requested seeds."""
+    check_shelf_policy(policy)
+    bad = [n for n in occluders if not 2 <= n <= 12]
+    if bad:
+        raise MsDrakeError(f"--occluders {' '.join(map(str, bad))}: shelf scenes have 2 to 12 occluders")
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    done = {(int(r["objects"]), int(r["seed"])) for r in final_records(read_records(out))
+            if _matches(r, policy) and r.get("failure") != "worker_died"}
+    seeds = range(seed_start, seed_start + scenes)
+    jobs = [(policy, n, s, horizon) for n in occluders for s in seeds if (n, s) not in done]
+    with open(out, "a") as f:
+        for r in run_jobs(shelf_rollout_job, jobs, workers=workers, use_ray=use_ray, ray_address=ray_address):
+            if r.ok:
+                rec = r.value
+            else:
+                err = (r.error or "").strip().splitlines()
+                rec = dict(seed=r.job[2], occluders=r.job[1], objects=r.job[1], policy=policy, fidelity=FIDELITY,
+                           success=False, steps=0, actions=0, failure="worker_died", error=err[-1] if err else "")
+            f.write(json.dumps(rec) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+            if progress is not None:
+                progress(rec)
+    recs = [r for r in final_records(read_records(out)) if _matches(r, policy) and int(r["seed"]) in seeds
+            and int(r["objects"]) in occluders]
+    summary = {n: summarize([r for r in recs if int(r["objects"]) == n]) for n in occluders}
+    summary["all"] = summarize(recs)
+    summary["resumed"] = sum(1 for n in occluders for s in seeds if (n, s) in done)
+    return summary
+
+
+def shelf_records(files) -> list[dict]:
+    out = []
+    for f in files:
+        out += [r for r in final_records(read_records(Path(f))) if r.get("fidelity") == FIDELITY]
+    return out
+
+
+def _cell(recs: list[dict]) -> tuple[str, str]:
+    if not recs:
+        return "-", "-"
+    s = summarize(recs)
+    q = s["success_quartiles"]
+    rate = f"{100 * s['success_rate']:.0f} % [{100 * s['success_ci'][0]:.0f}, {100 * s['success_ci'][1]:.0f}]"
+    steps = f"{q[1]:.1f} ({q[0]:.1f} - {q[2]:.1f})" if np.isfinite(q[1]) else "-"
+    return rate, steps
+
+
+def shelf_table(recs: list[dict], policies=SHELF_POLICIES) -> str:
+    """Table 9.1 as markdown: per density and overall, success % [bootstrap 95 % CI] and the median
+    steps (IQR) of the successful searches, one column per policy present."""
+    present = [p for p in policies if any(r["policy"] == p for r in recs)]
+    densities = sorted({int(r["objects"]) for r in recs})
+    head = "| occluders | metric | " + " | ".join(POLICY_NAMES.get(p, p) for p in present) + " |"
+    lines = [head, "|" + "---|" * (2 + len(present))]
+    for n in densities + ["All"]:
+        cells = [_cell([r for r in recs if r["policy"] == p and (n == "All" or int(r["objects"]) == n)])
+                 for p in present]
+        count = max((sum(1 for r in recs if r["policy"] == p and (n == "All" or int(r["objects"]) == n))
+                     for p in present), default=0)
+        lines.append(f"| {n} ({count}) | success | " + " | ".join(c[0] for c in cells) + " |")
+        lines.append(f"| {n} | median steps (IQR) | " + " | ".join(c[1] for c in cells) + " |")
+    return "\n".join(lines)
+
+
+def plot_shelf(recs: list[dict], out_dir) -> Path:
+    """Success rate (with bootstrap 95 % intervals) and median steps against the occluder count."""
+    matplotlib.use("Agg")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
+    for p in SHELF_POLICIES:
+        mine = [r for r in recs if r["policy"] == p]
+        if not mine:
+            continue
+        ns = sorted({int(r["objects"]) for r in mine})
+        ss = [summarize([r for r in mine if int(r["objects"]) == n]) for n in ns]
+        rate = np.array([100 * s["success_rate"] for s in ss])
+        ci = np.array([[100 * s["success_ci"][0], 100 * s["success_ci"][1]] for s in ss])
+        a1.errorbar(ns, rate, yerr=[rate - ci[:, 0], ci[:, 1] - rate], marker="o", capsize=3,
+                    label=POLICY_NAMES.get(p, p))
+        q = np.array([s["success_quartiles"] for s in ss])
+        a2.errorbar(ns, q[:, 1], yerr=[q[:, 1] - q[:, 0], q[:, 2] - q[:, 1]], marker="o", capsize=3,
+                    label=POLICY_NAMES.get(p, p))
+    a1.set_xlabel("occluders")
+    a1.set_ylabel("success rate (%)")
+    a1.set_title("Shelf search in FOSS (cf. Table 9.1)")
+    a2.set_xlabel("occluders")
+    a2.set_ylabel("steps of successful searches (median, IQR)")
+    a1.legend(fontsize=7)
+    fig.tight_layout()
+    path = out_dir / "shelf_table91.png"
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+# -- datasets -----------------------------------------------------------------------------------------
+
+
+def dataset_shard_job(job: tuple) -> dict:
+    """(out_dir, shard index, first seed, count, depth) -> {shard, path, scenes, seconds}: writes
+    out_dir/shard_<index>.npz atomically. Scene `seed` has a drawn occluder count and the target of
+    TARGET_SIZES in turn (seed mod 3), so every head of a multi-height network gets data."""
+    out_dir, index, first, count, depth = job
+    sizes = list(TARGET_SIZES.values())
+    t0 = time.perf_counter()
+    geometry = shelf_geometry(SCENARIO)
+    scenario = load_scenario(None, SCENARIO) if depth else None
+    scenes, floors, image_x, depths, heights = [], [], [], [], []
+    for seed in range(first, first + count):
+        size = sizes[seed % len(sizes)]
+        sample = generate_shelf_scene(geometry, seed, None, size)
+        scenes.append(scene_to_dict(sample.scene))
+        floors.append(sample.occupancy.floor.astype(np.float32))
+        image_x.append(sample.occupancy.image_x.astype(np.float32))
+        heights.append(size[2])
+        if depth:
+            depths.append(render_shelf_scene(scenario, sample.scene).depth.astype(np.float32))
+    occ = sample.occupancy
+    arrays = dict(floor=np.stack(floors), image_x=np.stack(image_x), target_height=np.array(heights, np.float32),
+                  seeds=np.arange(first, first + count), floor_origin=np.array([occ.x0, occ.y0, occ.step]),
+                  scenes=np.array(json.dumps(scenes)))
+    if depth:
+        arrays["depth"] = np.stack(depths)
+    path = Path(out_dir) / f"shard_{index:05d}.npz"
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    os.replace(tmp, path)
+    return dict(shard=index, path=str(path), scenes=count, seconds=time.perf_counter() - t0)
+
+
+def write_shelf_dataset(out_dir, count: int, seed_start: int = 0, shard_size: int = 100, depth: bool = True,
+                        workers: int = 1, use_ray: bool = False, ray_address: str | None = None,
+                        progress=None) -> dict:
+    """Shards of `shard_size` scenes for seeds S..S+count-1 into out_dir (existing shards are kept:
+    resumable); returns {written, skipped, failed}."""
+    if count < 1 or shard_size < 1:
+        raise MsDrakeError(f"--count {count} / shard size {shard_size}: both must be >= 1")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "index.json").write_text(json.dumps(dict(
+        scenario=SCENARIO, seed_start=seed_start, count=count, shard_size=shard_size, depth=depth,
+        target_sizes=TARGET_SIZES, generator="ms_drake.scenes.shelf.generate_shelf_scene",
+        arrays="floor (K, ny, nx), image_x (K, W), target_height (K,), seeds (K,), floor_origin (x0, y0, step), "
+               "scenes (JSON), depth (K, H, W) metres"), indent=1))
+    jobs, skipped = [], 0
+    for index, first in enumerate(range(seed_start, seed_start + count, shard_size)):
+        n = min(shard_size, seed_start + count - first)
+        if (out / f"shard_{index:05d}.npz").exists():
+            skipped += 1
+            continue
+        jobs.append((str(out), index, first, n, depth))
+    written, failed = 0, []
+    for r in run_jobs(dataset_shard_job, jobs, workers=workers, use_ray=use_ray, ray_address=ray_address):
+        if r.ok:
+            written += 1
+        else:
+            failed.append((r.job[1], (r.error or "").strip().splitlines()[-1:]))
+        if progress is not None:
+            progress(r)
+    return dict(written=written, skipped=skipped, failed=failed)

@@ -1,0 +1,430 @@
+"""Shelf search policies (Ch. 9.4.3-9.4.4) and the ShelfPolicySelector LeafSystem.
+
+Every policy acts on a ShelfScene through FOSS's actions (ms_drake.foss). The distribution policies
+see the target occupancy and the occluders the camera sees (`segment`: FOSS's idealised
+segmentation, i.e. the footprint and height of every occluder with a visible point, and its mask as
+the visible points of its surface), never the target nor fully hidden occluders; their action
+candidates are FOSS's feasible actions for those occluders alone (so a push may stop early at a
+hidden object, and FOSS refuses a sweep through one). Actions refused since the last executed one
+are not proposed again. An object's mask moves with it: its points are moved by the action and
+projected again (the reference's "deprojecting into the camera frame, applying the action and
+projecting back"), occlusions unchanged.
+
+- random: a uniformly random feasible action, pushes and suction (seeded by (seed, step)).
+- dar (Distribution Area Reduction, LAX-RAY): the push maximising the support reduction
+  dr(O) = r_t(O) - r_{t+1}(O), r(O) = sum of P'_t over the image columns of O's projection before
+  and after the action (Ch. 9.4.3).
+- der3 (Distribution Entropy Reduction over 3 steps, LAX-RAY): the first push of the 3-push sequence
+  whose predicted distribution has the least entropy. Prediction (LAX-RAY's 1D model): after a push,
+  the columns that no object's projection covers any more cannot hide the target and lose their
+  mass; the rest is renormalised. A sequence ending early (no push left) is scored where it ends.
+- bluction_dar: dar over pushes and suction actions, suction reductions divided by psi (1.3);
+  the first of the sorted list (every candidate is kinematically feasible in FOSS).
+All three keep the history P'_t = min(P_t, P'_{t-1}) (P'_0 = P_0), renormalised.
+- oracle_p / oracle_ps: full state. The visibility triangle (overhead: from the camera's floor
+  point to the target's front face) must be cleared of occluders; A* over action sequences of at
+  most the remaining budget (cost n_p + psi * n_s; heuristic: occluders still in the triangle,
+  admissible as each needs an action of cost >= 1) returns the cheapest, or the first state popped
+  where FOSS already sees the target (the search's goal is the triangle, the rollout's is
+  visibility v). oracle_p branches on every feasible push; oracle_ps also on suction actions of the
+  occluders, each taken to grid placements outside the triangle (per side of the target, the
+  ones farthest from it, in distinct grid rows): up to `oracle_placements` for the occluders in the
+  triangle and those in the way of their sweeps to the front, 2 for the others (which may have to
+  make room), instead of all 400: the reference's exhaustive trees are out of reach in Python. The search stops after `oracle_max_nodes`
+  expansions (then: no plan, the oracle stops). Plans are cached by scene content, so executing one
+  re-plans nothing.
+"""
+
+from __future__ import annotations
+
+import heapq
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import LeafSystem
+
+from ms_drake.foss import Foss, shelf_action
+from ms_drake.policies.bin_selectors import PolicyError
+from ms_drake.shelf_geometry import Prisms, ShelfGeometry, overlap, visible_surface
+from ms_drake.types import Action, ShelfAction, ShelfOccupancy, ShelfScene
+
+SHELF_POLICIES = ("random", "dar", "der3", "bluction_dar", "oracle_p", "oracle_ps")
+PSI = 1.3
+
+
+@dataclass(frozen=True)
+class ShelfPolicyParams:
+    psi: float = PSI  # suction / push action cost ratio
+    seed: int = 0  # random policy
+    lookahead: int = 3  # der<n>
+    horizon: int | None = None  # action budget H (None: 2n); the oracles plan within what is left
+    oracle_max_nodes: int = 1500
+    oracle_placements: int = 4
+
+
+def check_shelf_policy(name: str) -> str:
+    if name not in SHELF_POLICIES:
+        raise PolicyError(f"unknown shelf policy {name!r}; choose one of {', '.join(SHELF_POLICIES)}")
+    return name
+
+
+# -- segmentation and image-column supports ----------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class Segmentation:
+    """What the distribution policies observe: the occluders the camera sees (FOSS's idealised
+    segmentation: the full footprint and height of every object with a visible pixel, as a scene
+    without target) and, per object, the visible points of its surface (its segmentation mask)."""
+
+    known: ShelfScene
+    points: dict  # object id -> (V, 3) visible surface points (shelf frame)
+
+
+def segment(geometry: ShelfGeometry, scene: ShelfScene, samples: int = 6) -> Segmentation:
+    bodies = list(scene.objects) + ([scene.target] if scene.target is not None else [])
+    pts, seen = visible_surface(geometry, Prisms.of(bodies), samples)
+    points = {o.id: pts[k][seen[k]] for k, o in enumerate(scene.objects) if seen[k].any()}
+    known = ShelfScene(tuple(o for o in scene.objects if o.id in points), None, scene.seed)
+    return Segmentation(known, points)
+
+
+def _columns(spans: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray]:
+    lo = np.clip(np.floor(spans[..., 0] + 0.5).astype(int), 0, width)
+    hi = np.clip(np.floor(spans[..., 1] + 0.5).astype(int) + 1, 0, width)
+    return lo, np.maximum(hi, lo)
+
+
+def _extent(geometry: ShelfGeometry, points: np.ndarray) -> np.ndarray:
+    """(..., 2) image column extent (u_min, u_max) of point sets (..., V, 3)."""
+    u, _, _ = geometry.project(points)
+    return np.stack([u.min(axis=-1), u.max(axis=-1)], axis=-1)
+
+
+def mask_extents(geometry: ShelfGeometry, seg: Segmentation) -> np.ndarray:
+    """(n, 2) column extents of the known objects' masks, in seg.known's order."""
+    return np.array([_extent(geometry, seg.points[o.id]) for o in seg.known.objects]).reshape(-1, 2)
+
+
+def moved_extents(geometry: ShelfGeometry, seg: Segmentation, actions: list[ShelfAction]) -> tuple[np.ndarray, np.ndarray]:
+    """(object index in seg.known (m,), column extent (m, 2) of its mask after each action): the
+    mask's points moved with the object and projected again (Ch. 9.4.3)."""
+    index = {o.id: k for k, o in enumerate(seg.known.objects)}
+    ks = np.array([index[a.object_id] for a in actions], int)
+    out = np.zeros((len(actions), 2))
+    hy = geometry.half[1]
+    for k in np.unique(ks):
+        o = seg.known.objects[k]
+        rows = np.nonzero(ks == k)[0]
+        shift = np.zeros((len(rows), 1, 3))
+        shift[:, 0, 0] = [actions[i].dx for i in rows]
+        shift[:, 0, 1] = [(-hy + actions[i].dy + o.depth / 2 - o.y) if actions[i].kind == "suction" else 0.0
+                          for i in rows]
+        out[rows] = _extent(geometry, seg.points[o.id][None] + shift)
+    return ks, out
+
+
+def support_reduction(geometry: ShelfGeometry, seg: Segmentation, dist: np.ndarray,
+                      actions: list[ShelfAction]) -> np.ndarray:
+    """dr (m,) of each action: the distribution summed over the moved object's mask columns before
+    minus after (Ch. 9.4.3)."""
+    if not actions:
+        return np.zeros(0)
+    width = len(dist)
+    C = np.concatenate([[0.0], np.cumsum(dist)])
+    ks, after = moved_extents(geometry, seg, actions)
+    lo0, hi0 = _columns(mask_extents(geometry, seg)[ks], width)
+    lo1, hi1 = _columns(after, width)
+    return (C[hi0] - C[lo0]) - (C[hi1] - C[lo1])
+
+
+def _covered(spans: np.ndarray, width: int) -> np.ndarray:
+    """(m, width) bool: columns covered by any of the spans (m, n, 2)."""
+    m = spans.shape[0]
+    lo, hi = _columns(spans, width)
+    diff = np.zeros((m, width + 1))
+    rows = np.repeat(np.arange(m), spans.shape[1])
+    np.add.at(diff, (rows, lo.ravel()), 1.0)
+    np.add.at(diff, (rows, hi.ravel()), -1.0)
+    return np.cumsum(diff[:, :width], axis=1) > 0.5
+
+
+def _entropy(p: np.ndarray) -> np.ndarray:
+    """Entropy of each row's renormalised distribution (0 for an empty row)."""
+    s = p.sum(axis=-1, keepdims=True)
+    q = np.where(s > 0, p / np.where(s > 0, s, 1.0), 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return -np.where(q > 0, q * np.log(q), 0.0).sum(axis=-1)
+
+
+def der_scores(foss: Foss, seg: Segmentation, dist: np.ndarray, depth: int, first: list[ShelfAction]) -> np.ndarray:
+    """Least predicted entropy after `depth` pushes, for each first push in `first` (module docstring).
+    Masks move with their objects (as in support_reduction); pushes are re-planned in each state."""
+    geometry = foss.geometry
+    width = len(dist)
+
+    def children(s, spans, p, actions):
+        ks, new = moved_extents(geometry, s, actions)
+        all_spans = np.repeat(spans[None], len(actions), axis=0)
+        all_spans[np.arange(len(actions)), ks] = new
+        return all_spans, p[None] * _covered(all_spans, width)
+
+    def moved(s, a):
+        points = dict(s.points)
+        points[a.object_id] = s.points[a.object_id] + [a.dx, 0.0, 0.0]
+        return Segmentation(foss.moved(s.known, a), points)
+
+    def value(s, spans, p, d):
+        actions = foss.push_actions(s.known) if d > 0 else []
+        if not actions:
+            return float(_entropy(p))
+        child_spans, child_p = children(s, spans, p, actions)
+        if d == 1:
+            return float(_entropy(child_p).min())
+        return min(value(moved(s, a), child_spans[i], child_p[i], d - 1) for i, a in enumerate(actions))
+
+    child_spans, child_p = children(seg, mask_extents(geometry, seg), dist, first)
+    return np.array([value(moved(seg, a), child_spans[i], child_p[i], depth - 1) for i, a in enumerate(first)])
+
+
+# -- the oracles --------------------------------------------------------------------------------------
+
+
+def visibility_triangle(geometry: ShelfGeometry, target) -> shapely.Polygon:
+    """Overhead: the triangle from the camera's floor point to the target's front face."""
+    hx, hy = target.width / 2, target.depth / 2
+    pts = [tuple(geometry.eye[:2]), (target.x - hx, target.y - hy), (target.x + hx, target.y - hy)]
+    return shapely.Polygon(pts)
+
+
+def _in_triangle(tri, scene: ShelfScene) -> np.ndarray:
+    """Bool (n,): the occluders whose footprints overlap the triangle."""
+    feet = Prisms.of(scene.objects).footprints()
+    return shapely.area(shapely.intersection(tri, feet)) > 1e-7
+
+
+def _movers(scene: ShelfScene, inside: np.ndarray) -> np.ndarray:
+    """Bool (n,): the occluders in the triangle and those in the way of their sweeps to the front."""
+    P = Prisms.of(scene.objects)
+    out = inside.copy()
+    front = -1e3
+    for k in np.nonzero(inside)[0]:
+        c = np.array([P.center[k, 0], (P.center[k, 1] + front) / 2])
+        h = np.array([P.extent[k, 0], (P.center[k, 1] - front) / 2])
+        out |= overlap(c, h, 0.0, P.center, P.half, P.radius)
+    return out
+
+
+def _oracle_suction(foss: Foss, scene: ShelfScene, tri, movers: np.ndarray, per_object: int) -> list[ShelfAction]:
+    """Suction actions to grid placements outside the triangle, per side of the target the ones
+    farthest from it in distinct grid rows: up to `per_object` for the movers, 2 for the others
+    (which may need to make room)."""
+    hy = foss.geometry.half[1]
+    out = []
+    tx = scene.target.x
+    for o, mover in zip(scene.objects, movers):
+        xy = foss.suction_placements(scene, o.id)
+        if len(xy) == 0:
+            continue
+        moved = Prisms.of([o.moved(x, y) for x, y in xy]).footprints()
+        xy = xy[~shapely.intersects(tri, moved)]
+        dist = shapely.distance(tri, shapely.points(xy))
+        per_side = max(1, (per_object if mover else 2) // 2)
+        for side in (xy[:, 0] < tx, xy[:, 0] >= tx):
+            rows = set()
+            for i in np.argsort(-dist[side], kind="stable"):
+                x, y = xy[side][i]
+                if round(y, 6) in rows:
+                    continue
+                rows.add(round(y, 6))
+                out.append(ShelfAction("suction", o.id, float(x - o.x), float(y - o.depth / 2 + hy)))
+                if len(rows) >= per_side:
+                    break
+    return out
+
+
+def _key(scene: ShelfScene) -> tuple:
+    return tuple((round(o.x, 6), round(o.y, 6)) for o in scene.objects)
+
+
+def oracle_plan(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: float = PSI,
+                max_nodes: int = 1500, placements: int = 4) -> tuple[ShelfAction, ...] | None:
+    """The cheapest action sequence (<= budget actions) clearing the visibility triangle (or one
+    found on the way that already reveals the target in FOSS), or None (module docstring)."""
+    if scene.target is None:
+        raise PolicyError("the oracles need the full state: connect a scene with its target")
+    tri = visibility_triangle(foss.geometry, scene.target)
+    inside = _in_triangle(tri, scene)
+    heap = [(float(inside.sum()), int(inside.sum()), 0, 0.0, scene, (), inside)]
+    best = {_key(scene): 0.0}
+    counter, expanded = 1, 0
+    while heap and expanded < max_nodes:
+        f, h, _, g, sc, plan, inside = heapq.heappop(heap)
+        if h == 0 or foss.revealed(sc):
+            return plan
+        if len(plan) >= budget or g > best.get(_key(sc), np.inf) + 1e-9:
+            continue
+        expanded += 1
+        actions = [(a, 1.0) for a in foss.push_actions(sc)]
+        if suction:
+            actions += [(a, psi) for a in _oracle_suction(foss, sc, tri, _movers(sc, inside), placements)]
+        for a, cost in actions:
+            nxt = foss.moved(sc, a)
+            key, g2 = _key(nxt), g + cost
+            if best.get(key, np.inf) <= g2 + 1e-9:
+                continue
+            best[key] = g2
+            ins = _in_triangle(tri, nxt)
+            h2 = int(ins.sum())
+            heapq.heappush(heap, (g2 + h2, h2, counter, g2, nxt, plan + (a,), ins))
+            counter += 1
+    return None
+
+
+# -- selection ----------------------------------------------------------------------------------------
+
+
+def _rejected(history) -> set:
+    """Shelf actions refused since the last executed one."""
+    out = set()
+    for outcome in reversed(tuple(history)):
+        if outcome.success:
+            break
+        a = shelf_action(outcome.action)
+        if a is not None:
+            out.add(a)
+    return out
+
+
+class ShelfPolicies:
+    """The decision rules (module docstring), with the oracles' plan cache (keyed by scene content)."""
+
+    CACHE = 4096
+
+    def __init__(self, policy: str, foss: Foss, params: ShelfPolicyParams | None = None):
+        self.policy = check_shelf_policy(policy)
+        self.foss = foss
+        self.params = params or ShelfPolicyParams()
+        if self.params.psi <= 0 or self.params.lookahead < 1:
+            raise PolicyError(f"ShelfPolicyParams: psi={self.params.psi} must be > 0 and lookahead="
+                              f"{self.params.lookahead} >= 1")
+        self._plans: OrderedDict = OrderedDict()
+
+    def budget(self, scene: ShelfScene, steps: int) -> int:
+        horizon = self.params.horizon if self.params.horizon is not None else 2 * len(scene.objects)
+        return max(0, horizon - steps)
+
+    def select(self, scene: ShelfScene, dist: np.ndarray, history=()) -> Action:
+        """The next action for `scene` (full state; non-oracles drop the target), P'_t `dist`."""
+        rejected = _rejected(history)
+        if self.policy in ("oracle_p", "oracle_ps"):
+            return self._oracle(scene, len(tuple(history)), rejected)
+        seg = segment(self.foss.geometry, scene)
+        suction = self.policy in ("random", "bluction_dar")
+        actions = [a for a in self.foss.actions(seg.known, suction=suction) if a not in rejected]
+        if not actions:
+            return Action("stop", reason=f"{self.policy}: no feasible action")
+        if self.policy == "random":
+            rng = np.random.default_rng([int(self.params.seed), len(tuple(history)), 0x5A17])
+            return Action("shelf", shelf=actions[int(rng.integers(len(actions)))], reason="random")
+        if self.policy == "der3":
+            scores = -der_scores(self.foss, seg, dist, self.params.lookahead, actions)
+        else:
+            scores = support_reduction(self.foss.geometry, seg, dist, actions)
+            scores = np.where([a.kind == "suction" for a in actions], scores / self.params.psi, scores)
+        best = int(np.argmax(scores))  # the first of equals: pushes before suction, object order
+        return Action("shelf", shelf=actions[best], reason=f"{self.policy}: score {scores[best]:.4g}")
+
+    def _oracle(self, scene: ShelfScene, steps: int, rejected: set) -> Action:
+        suction = self.policy == "oracle_ps"
+        key = (suction, _key(scene))
+        plan = self._plans.get(key)
+        if plan is None or (plan and plan[0] in rejected):
+            plan = oracle_plan(self.foss, scene, suction, self.budget(scene, steps), self.params.psi,
+                               self.params.oracle_max_nodes, self.params.oracle_placements)
+            if plan is None:
+                return Action("stop", reason=f"{self.policy}: no plan clears the view within the budget")
+            sc = scene
+            for k in range(len(plan)):  # every state along the plan knows the rest of it
+                self._remember((suction, _key(sc)), plan[k:])
+                sc = self.foss.moved(sc, plan[k])
+        if not plan:
+            return Action("stop", reason=f"{self.policy}: the view is clear")
+        return Action("shelf", shelf=plan[0], reason=f"{self.policy}: {len(plan)} actions to go")
+
+    def _remember(self, key, plan):
+        self._plans[key] = plan
+        self._plans.move_to_end(key)
+        while len(self._plans) > self.CACHE:
+            self._plans.popitem(last=False)
+
+
+def history_min(current: ShelfOccupancy, previous: ShelfOccupancy | None) -> ShelfOccupancy:
+    """P'_t = min(P_t, P'_{t-1}), renormalised (P_t itself when the minimum is empty or no P'_{t-1})."""
+    if previous is None or previous.image_x.shape != current.image_x.shape:
+        return current
+
+    def mix(a, b):
+        if a.shape != b.shape:
+            return a
+        m = np.minimum(a, b)
+        s = m.sum()
+        return m / s if s > 0 else a
+
+    return ShelfOccupancy(mix(current.floor, previous.floor), mix(current.image_x, previous.image_x),
+                          current.x0, current.y0, current.step)
+
+
+class ShelfPolicySelector(LeafSystem):
+    """One LeafSystem for every shelf policy.
+
+    Ports (declared first):
+      inputs  scene              ShelfScene (FossSystem's; the distribution policies use only its occluders)
+              occupancy          ShelfOccupancy P_t (ShelfOccupancyEstimator)
+              history            tuple[ActionOutcome] (FossSystem's; optional: unconnected = first step)
+      outputs action             Action (kind "shelf" or "stop")
+              occupancy_history  ShelfOccupancy P'_t = min(P_t, P'_{t-1})
+    State: P'_{t-1} (abstract; None before the first step), set to P'_t by a periodic update every
+    `period` s (first at t = period), in step with FossSystem applying the action.
+    """
+
+    def __init__(self, policy: str, foss: Foss, params: ShelfPolicyParams | None = None, period: float = 1.0):
+        super().__init__()
+        self.rules = ShelfPolicies(policy, foss, params)
+        width = foss.geometry.camera.width
+        empty = ShelfOccupancy(np.zeros((1, 1)), np.zeros(width))
+        # Ports first.
+        self.scene_port = self.DeclareAbstractInputPort("scene", AbstractValue.Make(ShelfScene(())))
+        self.occupancy_port = self.DeclareAbstractInputPort("occupancy", AbstractValue.Make(empty))
+        self.history_port = self.DeclareAbstractInputPort("history", AbstractValue.Make(()))
+        self._previous = self.DeclareAbstractState(AbstractValue.Make(None))
+        self.DeclareAbstractOutputPort("action", lambda: AbstractValue.Make(Action("stop")), self._calc_action,
+                                       prerequisites_of_calc={self.all_sources_ticket()})
+        self.DeclareAbstractOutputPort("occupancy_history", lambda: AbstractValue.Make(empty), self._calc_history,
+                                       prerequisites_of_calc={self.all_sources_ticket()})
+        self.DeclarePeriodicUnrestrictedUpdateEvent(period, period, self._update)
+        self.policy = policy
+
+    def _current(self, context) -> ShelfOccupancy:
+        if not self.occupancy_port.HasValue(context):
+            raise PolicyError(f"ShelfPolicySelector({self.policy!r}): connect the occupancy input "
+                              "(ShelfOccupancyEstimator)")
+        return history_min(self.occupancy_port.Eval(context), context.get_abstract_state(self._previous).get_value())
+
+    def _calc_history(self, context, output):
+        output.set_value(self._current(context))
+
+    def _calc_action(self, context, output):
+        if not self.scene_port.HasValue(context):
+            raise PolicyError(f"ShelfPolicySelector({self.policy!r}): connect the scene input (FossSystem)")
+        scene = self.scene_port.Eval(context)
+        history = self.history_port.Eval(context) if self.history_port.HasValue(context) else ()
+        dist = None if self.rules.policy.startswith("oracle") else self._current(context).image_x
+        output.set_value(self.rules.select(scene, dist, history))
+
+    def _update(self, context, state):
+        if self.occupancy_port.HasValue(context):
+            state.get_mutable_abstract_state(self._previous).set_value(self._current(context))
