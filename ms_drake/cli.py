@@ -283,6 +283,111 @@ def pick(task: str = typer.Argument(..., help=f"Pick task: {', '.join(TASKS)}"),
     run_pick(task, html=html, speed=speed, log=typer.echo)
 
 
+# -- Shelf search (Ch. 9): ms-drake bench shelf / shelf-table, ms-drake data shelf -----------------------
+
+from ms_drake.experiments.shelf import (  # noqa: E402
+    plot_shelf,
+    run_shelf_bench,
+    shelf_records,
+    shelf_table,
+    write_shelf_dataset,
+)
+from ms_drake.policies.shelf import SHELF_POLICIES, check_shelf_policy  # noqa: E402
+
+data_app = typer.Typer(add_completion=False, no_args_is_help=True, help="Datasets made by the simulator.")
+app.add_typer(data_app, name="data")
+
+
+def _occluder_counts(first: list[int], extra: list[str]) -> list[int]:
+    """--occluders 4 6 8 10: click gives the first value to the option and the rest as extra args."""
+    out = list(first)
+    for a in extra:
+        try:
+            out.append(int(a))
+        except ValueError:
+            _fail(f"unexpected argument {a!r}; occluder counts are integers, e.g. --occluders 4 6 8 10")
+    return sorted(set(out))
+
+
+@bench_app.command("shelf", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+def bench_shelf(ctx: typer.Context,
+                policy: str = typer.Option(..., "--policy", help=f"Shelf policy: {', '.join(SHELF_POLICIES)}"),
+                occluders: list[int] = typer.Option([4, 6, 8, 10], "--occluders",
+                                                    help="Occluder counts (2-12), e.g. --occluders 4 6 8 10"),
+                scenes: int = typer.Option(100, "--scenes", min=1, help="Scenes per occluder count (K)"),
+                seed_start: int = typer.Option(0, "--seed-start", min=0, help="First scene seed (S)"),
+                out: Path = typer.Option(..., "--out", help="Output .jsonl (appended to; resumes)"),
+                workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers (W)"),
+                horizon: Optional[int] = typer.Option(None, "--horizon", min=1, help="Action budget (default 2n)"),
+                ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
+                ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address")):
+    """Shelf search in FOSS (Table 9.1): scenes S..S+K-1 for each occluder count, ground-truth
+    occupancy; one JSON line per search (resumable), then success rates and median steps."""
+    check_shelf_policy(policy)
+    counts = _occluder_counts(occluders, ctx.args)
+    if out.suffix != ".jsonl":
+        _fail(f"--out {out}: give a .jsonl file")
+    bar = tqdm(total=len(counts) * scenes, desc=policy, unit="scene")
+
+    def progress(rec):
+        bar.update(1)
+        if rec.get("failure") == "worker_died":
+            tqdm.write(f"occluders {rec['occluders']} seed {rec['seed']}: {rec.get('error', '')} (rerun to retry)")
+
+    s = run_shelf_bench(policy, counts, scenes, seed_start, out, workers=workers, use_ray=ray or ray_address is not None,
+                        ray_address=ray_address, horizon=horizon, progress=progress)
+    bar.close()
+    if s["resumed"]:
+        typer.echo(f"resuming: {s['resumed']} of {len(counts) * scenes} searches were already in {out}")
+    for n in counts + ["all"]:
+        q = s[n]["success_quartiles"]
+        typer.echo(f"{policy} occluders {n}: {s[n]['rollouts']} scenes, success {100 * s[n]['success_rate']:.1f} % "
+                   f"[{100 * s[n]['success_ci'][0]:.1f}, {100 * s[n]['success_ci'][1]:.1f}], median steps "
+                   f"{q[1]:g} (IQR {q[0]:g} - {q[2]:g})")
+    typer.echo(f"results in {out}")
+
+
+@bench_app.command("shelf-table")
+def bench_shelf_table(files: list[Path] = typer.Argument(..., help="Result .jsonl files (ms-drake bench shelf)"),
+                      plot_dir: Optional[Path] = typer.Option(None, "--plot", help="Also write the figure here")):
+    """Table 9.1 (markdown) from shelf result files, and optionally its figure."""
+    missing = [str(f) for f in files if not f.exists()]
+    if missing:
+        _fail(f"no such result file: {', '.join(missing)}; run `ms-drake bench shelf ... --out FILE.jsonl` first")
+    recs = shelf_records(files)
+    typer.echo(shelf_table(recs))
+    if plot_dir is not None:
+        typer.echo(f"wrote {plot_shelf(recs, plot_dir)}")
+
+
+@data_app.command("shelf")
+def data_shelf(count: int = typer.Option(..., "--count", min=1, help="Scenes (N)"),
+               out: Path = typer.Option(..., "--out", help="Output folder (shard_<k>.npz; resumes)"),
+               seed_start: int = typer.Option(0, "--seed-start", min=0, help="First scene seed"),
+               shard_size: int = typer.Option(100, "--shard-size", min=1, help="Scenes per shard"),
+               depth: bool = typer.Option(True, "--depth/--no-depth", help="Render the Drake depth image of each scene"),
+               workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers"),
+               ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
+               ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address")):
+    """Shelf scenes with their ground-truth target distributions (floor 2D, image-x 1D) and depth
+    images, sharded; shards already written are kept."""
+    t0 = time.perf_counter()
+    bar = tqdm(total=(count + shard_size - 1) // shard_size, desc="shards", unit="shard")
+
+    def progress(r):
+        bar.update(1)
+        if not r.ok:
+            tqdm.write(f"shard {r.job[1]}: {r.error.strip().splitlines()[-1]} (rerun to retry)")
+
+    res = write_shelf_dataset(out, count, seed_start, shard_size, depth, workers, ray or ray_address is not None,
+                              ray_address, progress)
+    bar.close()
+    typer.echo(f"{res['written']} shards written, {res['skipped']} already there, {len(res['failed'])} failed, "
+               f"in {out} ({time.perf_counter() - t0:.1f} s)")
+    if res["failed"]:
+        raise typer.Exit(1)
+
+
 def main():
     try:
         app()
