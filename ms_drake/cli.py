@@ -59,7 +59,7 @@ def _scenario(file: Optional[Path], name: str):
 
 @app.command()
 def demo(out: Path = typer.Option(Path("out/demo"), help="Output folder"),
-         seed: int = typer.Option(1002, help="Heap seed (1002: a heap X-Ray solves in 7 actions)"),
+         seed: int = typer.Option(1002, help="Heap seed"),
          objects: int = typer.Option(15, min=1, max=60, help="Objects in the heap"),
          policy: str = typer.Option("xray", help="Selector (default: X-Ray)"),
          horizon: int = typer.Option(10, min=1, help="Action budget H"),
