@@ -40,7 +40,8 @@ class PinholeCamera:
         intr = color.core().intrinsics()
         X_PB = cfg.X_PB.GetDeterministicValue()
         X_BC = cfg.X_BC.GetDeterministicValue()
-        X_WC = (X_WP or RigidTransform()) @ X_PB @ X_BC
+        X_WP = RigidTransform() if X_WP is None else as_rigid_transform(X_WP, "X_WP")
+        X_WC = X_WP @ X_PB @ X_BC
         return PinholeCamera(intr.width(), intr.height(), intr.focal_x(), intr.focal_y(),
                              intr.center_x(), intr.center_y(), X_WC)
 

@@ -321,3 +321,16 @@ def test_the_pose_check():
         as_matrix4(bottom, "X_AB")
     with pytest.raises(TypeError, match="X_AB must be a pydrake RigidTransform or a 4x4 array, got NoneType"):
         as_matrix4(None, "X_AB")
+
+
+def test_pinhole_camera_from_config_takes_the_parent_pose_as_either_type():
+    from ms_drake.geometry import PinholeCamera
+    from ms_drake.scenario import load_scenario
+
+    cfg = load_scenario(None, "BinHeap15").cameras["overhead"]
+    X_WP = RigidTransform([0.1, -0.2, 0.3])
+    a = PinholeCamera.from_config(cfg, X_WP)
+    b = PinholeCamera.from_config(cfg, X_WP.GetAsMatrix4())
+    np.testing.assert_allclose(a.X_WC.GetAsMatrix4(), b.X_WC.GetAsMatrix4())
+    with pytest.raises(ValueError, match="X_WP"):
+        PinholeCamera.from_config(cfg, np.eye(3))
