@@ -477,13 +477,20 @@ def hidden_placements(geometry: ShelfGeometry, occluders: Prisms, size, step: fl
     cand = (np.abs(X) <= room[0] + 1e-9) & (np.abs(Y) <= room[1] + 1e-9)
     if len(occluders) == 0 or not cand.any():
         return HiddenPlacements((w, d, h), grid, np.zeros_like(cand), 0)
-    # Step 2 for the objects: the target's footprint grown by the clearance overlaps one (closed form).
+    # Step 2 for the objects: the target's footprint grown by the clearance overlaps one (closed
+    # form, on the block of the grid around each object).
+    grown = half + clearance
+    for k in range(len(occluders)):
+        lo = occluders.center[k] - occluders.extent[k] - grown
+        hi = occluders.center[k] + occluders.extent[k] + grown
+        j0, j1 = np.searchsorted(xs, [lo[0], hi[0]])
+        i0, i1 = np.searchsorted(ys, [lo[1], hi[1]])
+        if i0 >= i1 or j0 >= j1:
+            continue
+        block = np.stack(np.meshgrid(xs[j0:j1], ys[i0:i1]), axis=-1)
+        hit = overlap(block, grown, 0.0, occluders.center[k], occluders.half[k], occluders.radius[k], tol=0.0)
+        cand[i0:i1, j0:j1] &= ~hit
     ci, cj = np.nonzero(cand)
-    c = np.stack([xs[cj], ys[ci]], axis=1)
-    hit = overlap(c[:, None], half + clearance, 0.0, occluders.center[None], occluders.half[None],
-                  occluders.radius[None], tol=0.0).any(axis=1)
-    cand[ci[hit], cj[hit]] = False
-    ci, cj = ci[~hit], cj[~hit]
     # Steps 1-2: outside the visibility polygon's Minkowski sum with the footprint. Circumscribed
     # circles: this step may keep too many candidates for the ray casts, never too few.
     vis = visibility_polygon(geometry, occluders.footprints(circumscribed=True))

@@ -92,6 +92,7 @@ def shelf_rollout(policy: str, occluders: int, seed: int, params: ShelfPolicyPar
     diagram = build_shelf_search(foss, sample.scene, policy, params)
     simulator = Simulator(diagram)
     context = simulator.get_mutable_context()
+    period = diagram.GetSubsystemByName("foss").period
     horizon = params.horizon if params.horizon is not None else 2 * occluders
     ports = {name: diagram.GetOutputPort(name) for name in ("action", "visible_fraction", "scene", "history",
                                                              "occupancy")}
@@ -119,7 +120,7 @@ def shelf_rollout(policy: str, occluders: int, seed: int, params: ShelfPolicyPar
         foss.step(scene, action)  # timed alone; the simulator applies it below
         steps_ms.append(time.process_time() - t)
         steps += 1
-        simulator.AdvanceTo(steps * simulator_period(diagram))
+        simulator.AdvanceTo((steps + 0.5) * period)  # past the update at steps * period
     history = ports["history"].Eval(context)
     done = [o for o in history if o.success]
     kinds = [o.action.shelf.kind for o in done]
@@ -136,10 +137,6 @@ def shelf_rollout(policy: str, occluders: int, seed: int, params: ShelfPolicyPar
                 perception_ms=ms(perception, np.median), decision_ms=ms(decisions, np.median),
                 decision_ms_max=ms(decisions, np.max), foss_ms=ms(steps_ms, np.median),
                 seconds=time.perf_counter() - t_start, cpu_seconds=time.process_time() - cpu_start, pid=os.getpid())
-
-
-def simulator_period(diagram) -> float:
-    return diagram.GetSubsystemByName("foss").period
 
 
 def shelf_rollout_job(job: tuple) -> dict:

@@ -7,7 +7,8 @@ Ports (declared first in __init__):
           visible_fraction   BasicVector(1): the fraction of the target's image area the camera sees
           history            tuple[ActionOutcome], one per applied shelf action, oldest first
 State: the scene and the history (abstract state). A periodic unrestricted update every `period`
-seconds (first at t = period) applies the action on the input, so action k is applied at t = k * period.
+seconds (first at t = period) applies the action on the input, so action k is applied at t = k * period
+(Drake's Simulator performs an update at t when it steps on from t: advance past k * period to see it).
 """
 
 from __future__ import annotations
