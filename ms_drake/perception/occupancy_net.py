@@ -1,0 +1,229 @@
+"""Learned target occupancy distribution (Ch. 8.3.2): a small fully-convolutional encoder-decoder
+predicting rho from one depth image and the target's modal mask; `OccupancyEstimator("learned")`.
+
+Working resolution. The network sees the central 512 x 384 pixels of the 640 x 480 overhead
+image (the 0.5 x 0.4 m bin spans ~428 x 342 px at 0.8 m, so the crop holds the bin with a
+~40 px margin for the camera jitter of the training data; the reference's own images are
+512 x 384), averaged over 4 x 4 blocks: 128 x 96 pixels. At that size the 3 mm target-height
+threshold of the ground truth is still a depth step of several pixels' width for every target
+(the thinnest, 9.5 x 0.95 cm, is ~2 working pixels wide), a forward pass takes a few ms on one
+core and an epoch of 5,000 images a minute or two on two shared cores, which is what lets
+training fit in the hour this machine gives it. Outputs are upsampled back to the full image
+(outside the crop: 0).
+
+Inputs (the reference's "augmented depth image", line 1456): [modal target mask, depth, depth],
+the mask as the fraction of each 4 x 4 block, the depth in units of 5 cm relative to the median
+depth of the crop (invalid pixels take the largest valid depth), so the camera height does not
+matter. Outputs: one channel per aspect ratio of `TARGET_RATIOS` (line 1461: one network per
+ratio in the reference), each a sigmoid map of the ground truth scaled to a maximum of 1 (the
+normalization under which line 1466's thresholds 0.1 / 0.2 are stated).
+
+Input scaling (line 1468): for a target whose size differs from the training box of its ratio
+by a factor s, the working image is zoomed by 1 / s about its centre (so the target looks like
+the training box), predicted, and the prediction zoomed back by s.
+
+torch is imported inside functions only (an optional heavy dependency: the rest of ms_drake,
+and the analytic backend, work without it).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ms_drake.errors import PerceptionError
+from ms_drake.paths import models_dir
+
+#: Aspect ratios (length : width) of the ten equal-area training boxes, 3 x 3 cm ... 9.5 x 0.95 cm.
+TARGET_RATIOS = tuple(range(1, 11))
+TARGET_AREA = 0.03 * 0.03  # m^2, every training box's footprint
+TARGET_THICKNESS = 0.005  # m
+FULL_SHAPE = (480, 640)
+CROP = (48, 64, 384, 512)  # top, left, height, width in the full image
+BLOCK = 4
+WORK_SHAPE = (CROP[2] // BLOCK, CROP[3] // BLOCK)  # (96, 128)
+DEPTH_UNIT = 0.05  # m
+
+
+def default_weights() -> Path:
+    return models_dir() / "weights" / "occupancy.pt"
+
+
+def target_box_size(ratio: float) -> tuple[float, float, float]:
+    """(length, width, thickness) of the training box of aspect ratio `ratio`."""
+    s = np.sqrt(TARGET_AREA)
+    return float(s * np.sqrt(ratio)), float(s / np.sqrt(ratio)), TARGET_THICKNESS
+
+
+def nearest_ratio(length: float, width: float) -> tuple[int, float]:
+    """(channel index of the closest trained aspect ratio, scale s = sqrt(area / training area))."""
+    r = max(length, width) / max(min(length, width), 1e-6)
+    k = int(np.argmin([abs(np.log(r / q)) for q in TARGET_RATIOS]))
+    return k, float(np.sqrt(length * width / TARGET_AREA))
+
+
+def _crop(a: np.ndarray) -> np.ndarray:
+    t, l, h, w = CROP
+    if a.shape[:2] != FULL_SHAPE:
+        raise PerceptionError(f"image is {a.shape[1]}x{a.shape[0]}; the learned occupancy works on "
+                              f"{FULL_SHAPE[1]}x{FULL_SHAPE[0]} overhead images")
+    return a[t:t + h, l:l + w]
+
+
+def block_mean(a: np.ndarray) -> np.ndarray:
+    h, w = a.shape
+    return a.reshape(h // BLOCK, BLOCK, w // BLOCK, BLOCK).mean(axis=(1, 3))
+
+
+def working_inputs(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(3, 96, 128) float32 network input from a full depth image (m) and modal mask."""
+    d = _crop(np.asarray(depth, np.float32)).copy()
+    ok = np.isfinite(d) & (d > 0)
+    fill = float(d[ok].max()) if ok.any() else 1.0
+    d[~ok] = fill
+    d = block_mean(d)
+    d = (d - np.median(d)) / DEPTH_UNIT
+    m = block_mean(_crop(np.asarray(mask, np.float32)))
+    return np.stack([m, d, d]).astype(np.float32)
+
+
+def working_target(rho: np.ndarray) -> np.ndarray:
+    """A full-resolution distribution -> (96, 128) working map scaled to a maximum of 1."""
+    r = block_mean(_crop(np.asarray(rho, np.float64)))
+    mx = r.max()
+    return (r / mx if mx > 0 else r).astype(np.float32)
+
+
+def full_resolution(work: np.ndarray) -> np.ndarray:
+    """(96, 128) working map -> (480, 640) distribution summing to 1 (or all 0)."""
+    t, l, h, w = CROP
+    out = np.zeros(FULL_SHAPE)
+    out[t:t + h, l:l + w] = cv2.resize(np.asarray(work, np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
+    out = np.maximum(out, 0.0)
+    s = out.sum()
+    return out / s if s > 0 else out
+
+
+def zoom(a: np.ndarray, factor: float, fill: float = 0.0) -> np.ndarray:
+    """Channels (C, H, W) zoomed by `factor` about the image centre (same size; `fill` outside)."""
+    if abs(factor - 1.0) < 1e-6:
+        return a
+    h, w = a.shape[-2:]
+    M = cv2.getRotationMatrix2D(((w - 1) / 2.0, (h - 1) / 2.0), 0.0, float(factor))
+    return np.stack([cv2.warpAffine(c, M, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                                    borderValue=fill) for c in np.asarray(a, np.float32)])
+
+
+@dataclass(frozen=True)
+class NetConfig:
+    base: int = 16  # channels of the first level (x2 per level)
+    levels: int = 4
+    outputs: int = len(TARGET_RATIOS)
+
+
+def make_net(config: NetConfig = NetConfig()):
+    """The U-Net-style encoder-decoder (pure torch)."""
+    import torch  # optional heavy dependency: only the learned backend needs it
+    from torch import nn
+
+    def block(cin, cout):
+        return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True),
+                             nn.Conv2d(cout, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+
+    class OccupancyUNet(nn.Module):
+        def __init__(self, cfg: NetConfig):
+            super().__init__()
+            ch = [cfg.base * 2 ** i for i in range(cfg.levels)]
+            self.enc = nn.ModuleList([block(3 if i == 0 else ch[i - 1], ch[i]) for i in range(cfg.levels)])
+            self.pool = nn.MaxPool2d(2)
+            self.up = nn.ModuleList([nn.ConvTranspose2d(ch[i], ch[i - 1], 2, stride=2) for i in range(cfg.levels - 1, 0, -1)])
+            self.dec = nn.ModuleList([block(2 * ch[i - 1], ch[i - 1]) for i in range(cfg.levels - 1, 0, -1)])
+            self.head = nn.Conv2d(ch[0], cfg.outputs, 1)
+
+        def forward(self, x):
+            skips = []
+            for i, e in enumerate(self.enc):
+                x = e(x if i == 0 else self.pool(x))
+                skips.append(x)
+            for up, dec, skip in zip(self.up, self.dec, reversed(skips[:-1])):
+                x = dec(torch.cat([up(x), skip], dim=1))
+            return torch.sigmoid(self.head(x))
+
+    return OccupancyUNet(config)
+
+
+def ratio_loss(pred, target, ratio_index):
+    """Pixelwise MSE on the channel of each sample's aspect ratio (line 1462)."""
+    import torch  # optional heavy dependency: only the learned backend needs it
+
+    sel = pred[torch.arange(pred.shape[0]), ratio_index]
+    return ((sel - target) ** 2).mean()
+
+
+def load_model(path: Path | str | None = None):
+    """(model in eval mode, checkpoint dict) from a weights file written by `ms-drake train occupancy`."""
+    import torch  # optional heavy dependency: only the learned backend needs it
+
+    p = Path(path) if path is not None else default_weights()
+    if not p.is_file():
+        raise PerceptionError(f"occupancy weights {p} not found; make them with `ms-drake data occupancy --count "
+                              f"5000 --out DATA` then `ms-drake train occupancy --data DATA --out {p}`")
+    ck = torch.load(p, map_location="cpu", weights_only=False)
+    if "model" not in ck or "config" not in ck:
+        raise PerceptionError(f"{p} is not an occupancy checkpoint (no 'model'/'config'); retrain it with "
+                              "`ms-drake train occupancy`")
+    net = make_net(NetConfig(**ck["config"]))
+    net.load_state_dict(ck["model"])
+    net.eval()
+    return net, ck
+
+
+class LearnedOccupancy:
+    """Backend ``estimate(depth, target_mask) -> (H, W)`` of OccupancyEstimator("learned").
+
+    target_size: the target's (length, width, thickness) [m] (a TargetBox works too): picks the
+    output channel of the closest trained aspect ratio, and with `input_scaling` the zoom s."""
+
+    name = "learned"
+
+    def __init__(self, target_size, weights: Path | str | None = None, input_scaling: bool = True,
+                 ratio_index: int | None = None):
+        import torch  # optional heavy dependency: only the learned backend needs it
+
+        if hasattr(target_size, "length"):
+            length, width = float(target_size.length), float(target_size.width)
+        else:
+            vals = sorted([float(v) for v in target_size][:2], reverse=True)
+            length, width = vals
+        k, s = nearest_ratio(length, width)
+        self.ratio_index = k if ratio_index is None else int(ratio_index)
+        self.scale = s if input_scaling else 1.0
+        self.net, self.checkpoint = load_model(weights)
+        self.weights = Path(weights) if weights is not None else default_weights()
+        self._torch = torch
+        self.last_seconds = 0.0
+
+    def predict_working(self, x: np.ndarray) -> np.ndarray:
+        """(3, 96, 128) inputs -> (96, 128) prediction of this target's channel (zoom applied)."""
+        torch = self._torch
+        t = time.perf_counter()
+        xin = zoom(x, 1.0 / self.scale)
+        with torch.inference_mode():
+            y = self.net(torch.from_numpy(np.ascontiguousarray(xin))[None])[0, self.ratio_index].numpy()
+        y = zoom(y[None], self.scale)[0]
+        self.last_seconds = time.perf_counter() - t
+        return y
+
+    def estimate(self, depth, target_mask: np.ndarray) -> np.ndarray:
+        d = np.asarray(depth.data if hasattr(depth, "data") else depth, np.float32)
+        d = d[..., 0] if d.ndim == 3 else d
+        return full_resolution(self.predict_working(working_inputs(d, target_mask)))
+
+
+def file_digest(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
