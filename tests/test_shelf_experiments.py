@@ -1,0 +1,82 @@
+"""Shelf search in FOSS: rollouts, the resumable bench, Table 9.1, `ms-drake bench shelf` and `data shelf`."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+
+from ms_drake.experiments.harness import read_records
+from ms_drake.experiments.shelf import plot_shelf, run_shelf_bench, shelf_records, shelf_rollout, shelf_table
+from ms_drake.policies.shelf import ShelfPolicyParams
+from ms_drake.scenes.shelf import scene_from_dict
+
+CLI = [sys.executable, "-m", "ms_drake.cli"]
+TIMINGS = {"scene_ms", "perception_ms", "decision_ms", "decision_ms_max", "foss_ms", "seconds", "cpu_seconds", "pid"}
+
+
+def run(*args, check=True):
+    p = subprocess.run([*CLI, *map(str, args)], capture_output=True, text=True, timeout=600, check=False)
+    if check and p.returncode != 0:
+        raise AssertionError(f"exit {p.returncode}\n{p.stdout}\n{p.stderr}")
+    return p
+
+
+def test_rollout_record_is_reproducible():
+    a = shelf_rollout("bluction_dar", 6, 3)
+    b = shelf_rollout("bluction_dar", 6, 3)
+    assert {k: v for k, v in a.items() if k not in TIMINGS} == {k: v for k, v in b.items() if k not in TIMINGS}
+    assert {"seed", "occluders", "policy", "success", "steps"} <= set(a)
+    assert a["success"] and a["visible_fraction"] >= 0.8 and a["failure"] == ""
+    assert a["steps"] == a["pushes"] + a["suctions"] + a["refused"] <= 12
+    assert a["cost"] == a["pushes"] + 1.3 * a["suctions"]
+
+
+def test_horizon_ends_a_search():
+    full = shelf_rollout("bluction_dar", 6, 3)
+    assert full["steps"] >= 2
+    cut = shelf_rollout("bluction_dar", 6, 3, params=ShelfPolicyParams(horizon=1))
+    assert (cut["success"], cut["steps"], cut["failure"]) == (False, 1, "horizon")
+
+
+def test_bench_resumes_and_summarizes(tmp_path):
+    out = tmp_path / "dar.jsonl"
+    s = run_shelf_bench("dar", [4, 6], 2, 10, out)
+    recs = read_records(out)
+    assert sorted((r["occluders"], r["seed"]) for r in recs) == [(4, 10), (4, 11), (6, 10), (6, 11)]
+    assert s["all"]["rollouts"] == 4 and s["resumed"] == 0
+    s = run_shelf_bench("dar", [4, 6], 3, 10, out)
+    assert len(read_records(out)) == 6 and s["resumed"] == 4 and s[4]["rollouts"] == 3
+    table = shelf_table(shelf_records([out]))
+    assert "| DAR |" in table and "| 4 (3) | success |" in table and "All (6)" in table
+    assert plot_shelf(shelf_records([out]), tmp_path).exists()
+
+
+def test_cli_bench_shelf_and_table(tmp_path):
+    out = tmp_path / "r.jsonl"
+    p = run("bench", "shelf", "--policy", "oracle_p", "--occluders", 4, 6, "--scenes", 1, "--seed-start", 3,
+            "--out", out)
+    assert sorted(r["occluders"] for r in read_records(out)) == [4, 6]
+    assert "oracle_p occluders all" in p.stdout
+    p = run("bench", "shelf", "--policy", "dar", "--occluders", 4, "x", "--out", out, check=False)
+    assert p.returncode == 2 and "unexpected argument 'x'" in p.stderr
+    p = run("bench", "shelf", "--policy", "xray", "--out", out, check=False)
+    assert p.returncode == 2 and "bluction_dar" in p.stderr
+    p = run("bench", "shelf-table", out)
+    assert "Oracle-P" in p.stdout
+
+
+def test_cli_data_shelf_writes_resumable_shards(tmp_path):
+    out = tmp_path / "data"
+    run("data", "shelf", "--count", 3, "--shard-size", 2, "--out", out)
+    shards = sorted(out.glob("shard_*.npz"))
+    assert [s.name for s in shards] == ["shard_00000.npz", "shard_00001.npz"]
+    d = np.load(shards[0])
+    assert d["depth"].shape == (2, 480, 640) and np.isfinite(d["depth"]).any()
+    assert d["image_x"].shape == (2, 640) and np.allclose(d["image_x"].sum(axis=1), 1.0)
+    assert np.allclose(d["floor"].sum(axis=(1, 2)), 1.0)
+    scenes = [scene_from_dict(s) for s in json.loads(str(d["scenes"]))]
+    assert [s.seed for s in scenes] == [0, 1] and list(d["target_height"]) == [0.06, 0.03]
+    before = shards[1].stat().st_mtime_ns
+    p = run("data", "shelf", "--count", 3, "--shard-size", 2, "--out", out, "--no-depth")
+    assert "0 shards written, 2 already there" in p.stdout and shards[1].stat().st_mtime_ns == before

@@ -1,0 +1,187 @@
+"""Shelf policies (Ch. 9.4.3-9.4.4) and the ShelfPolicySelector system."""
+
+import numpy as np
+import pytest
+from pydrake.systems.analysis import Simulator
+
+from ms_drake.experiments.shelf import build_shelf_search
+from ms_drake.foss import Foss
+from ms_drake.policies.bin_selectors import PolicyError
+from ms_drake.policies.shelf import (
+    SHELF_POLICIES,
+    ShelfPolicies,
+    ShelfPolicyParams,
+    ShelfPolicySelector,
+    history_min,
+    mask_extents,
+    oracle_plan,
+    segment,
+    support_reduction,
+)
+from ms_drake.scenario import load_scenario
+from ms_drake.scenes.shelf import generate_shelf_scene
+from ms_drake.shelf_geometry import ShelfGeometry
+from ms_drake.types import Action, ActionOutcome, ShelfAction, ShelfObject, ShelfOccupancy, ShelfScene
+
+W = 640
+
+
+@pytest.fixture(scope="module")
+def foss():
+    return Foss(ShelfGeometry.from_scenario(load_scenario(None, "FetchShelf")))
+
+
+def box(i, x, y, w=0.1, d=0.1, h=0.15):
+    return ShelfObject(i, "box", x, y, w, d, h)
+
+
+def under(foss, scene, object_id):
+    """A distribution spread evenly over an object's mask columns."""
+    seg = segment(foss.geometry, scene)
+    k = [o.id for o in seg.known.objects].index(object_id)
+    lo, hi = np.round(mask_extents(foss.geometry, seg)[k]).astype(int)
+    p = np.zeros(W)
+    p[lo:hi + 1] = 1.0
+    return p / p.sum()
+
+
+# A blocker in the middle, neighbours left and right: pushes move it a little, suction all the way.
+SQUEEZED = ShelfScene((box("a", 0.0, -0.2, w=0.12), box("l", -0.2, -0.2), box("r", 0.2, -0.2)),
+                      box("target", -0.22, 0.22, 0.06, 0.06, 0.06), 0)
+
+
+def test_unknown_policy_names_the_choices(foss):
+    with pytest.raises(PolicyError, match="random, dar, der3, bluction_dar, oracle_p, oracle_ps"):
+        ShelfPolicySelector("xray", foss)
+    with pytest.raises(PolicyError, match="psi"):
+        ShelfPolicies("dar", foss, ShelfPolicyParams(psi=0.0))
+
+
+def test_support_reduction_rewards_uncovering_the_mass(foss):
+    dist = under(foss, SQUEEZED, "a")
+    seg = segment(foss.geometry, SQUEEZED)
+    pushes = [a for a in foss.push_actions(seg.known)]
+    dr = dict(zip([(a.object_id, np.sign(a.dx)) for a in pushes], support_reduction(foss.geometry, seg, dist, pushes)))
+    assert dr[("a", 1.0)] > 0.1 and dr[("a", -1.0)] > 0.1
+    assert dr[("l", -1.0)] == pytest.approx(0.0, abs=1e-9)  # l's mask holds none of it
+    suction = [a for a in foss.suction_actions(seg.known) if a.object_id == "a"]
+    assert support_reduction(foss.geometry, seg, dist, suction).max() == pytest.approx(1.0)
+
+
+def test_bluction_dar_weighs_suction_by_psi(foss):
+    dist = under(foss, SQUEEZED, "a")
+    cheap = ShelfPolicies("bluction_dar", foss, ShelfPolicyParams(psi=1.0)).select(SQUEEZED, dist)
+    dear = ShelfPolicies("bluction_dar", foss, ShelfPolicyParams(psi=100.0)).select(SQUEEZED, dist)
+    assert (cheap.shelf.kind, cheap.shelf.object_id) == ("suction", "a")
+    assert (dear.shelf.kind, dear.shelf.object_id) == ("push", "a")
+    dar = ShelfPolicies("dar", foss).select(SQUEEZED, dist)
+    assert (dar.shelf.kind, dar.shelf.object_id) == ("push", "a")
+    assert ShelfPolicies("der3", foss).select(SQUEEZED, dist).shelf.kind == "push"
+
+
+def test_refused_actions_are_not_proposed_again(foss):
+    dist = under(foss, SQUEEZED, "a")
+    rules = ShelfPolicies("dar", foss)
+    first = rules.select(SQUEEZED, dist)
+    refused = ActionOutcome(first, False, message="collision")
+    second = rules.select(SQUEEZED, dist, (refused,))
+    assert second.kind == "shelf" and second.shelf != first.shelf
+    # After an executed action the refusals are forgotten.
+    assert rules.select(SQUEEZED, dist, (refused, ActionOutcome(second, True))).shelf == first.shelf
+
+
+def test_random_is_seeded(foss):
+    dist = under(foss, SQUEEZED, "a")
+    a = [ShelfPolicies("random", foss, ShelfPolicyParams(seed=s)).select(SQUEEZED, dist).shelf for s in range(6)]
+    assert a[0] == ShelfPolicies("random", foss, ShelfPolicyParams(seed=0)).select(SQUEEZED, dist).shelf
+    assert len(set(a)) > 1
+
+
+def test_distribution_policies_do_not_see_hidden_objects(foss):
+    hidden = box("hidden", 0.0, 0.03, w=0.06, d=0.06, h=0.06)
+    wall = box("wall", 0.0, -0.05, w=0.3, d=0.05, h=0.2)
+    seg = segment(foss.geometry, ShelfScene((wall, hidden), box("target", 0.2, 0.22, 0.06, 0.06, 0.06)))
+    assert [o.id for o in seg.known.objects] == ["wall"]
+
+
+def test_history_min():
+    a = ShelfOccupancy(np.ones((2, 2)) / 4, np.array([0.5, 0.5, 0.0, 0.0]))
+    b = ShelfOccupancy(np.array([[0.5, 0.5], [0.0, 0.0]]), np.array([0.0, 0.5, 0.5, 0.0]))
+    assert history_min(a, None) is a
+    m = history_min(a, b)
+    assert np.allclose(m.image_x, [0.0, 1.0, 0.0, 0.0]) and np.allclose(m.floor, [[0.5, 0.5], [0.0, 0.0]])
+    empty = history_min(ShelfOccupancy(a.floor, np.array([1.0, 0, 0, 0])), b)
+    assert np.allclose(empty.image_x, [1.0, 0, 0, 0])  # an empty minimum keeps P_t
+
+
+def test_oracles_on_hand_made_scenes(foss):
+    target = box("target", 0.0, 0.12, 0.06, 0.06, 0.06)
+    # One blocker with room on its right: a single push clears the view.
+    easy = ShelfScene((box("b", -0.02, 0.0, w=0.14, h=0.2),), target, 0)
+    assert not foss.revealed(easy)
+    plan = oracle_plan(foss, easy, suction=False, budget=2)
+    assert len(plan) == 1 and plan[0].kind == "push"
+    # The blocker squeezed between two boxes (no room for the blade): only suction clears the view.
+    squeezed = ShelfScene((box("b", 0.0, 0.0, w=0.2, h=0.2), box("l", -0.155, 0.0), box("r", 0.155, 0.0)),
+                          target, 0)
+    assert not foss.revealed(squeezed)
+    assert oracle_plan(foss, squeezed, suction=False, budget=6) is None
+    plan = oracle_plan(foss, squeezed, suction=True, budget=6)
+    assert [(a.kind, a.object_id) for a in plan] == [("suction", "b")]
+    stop = ShelfPolicies("oracle_p", foss).select(squeezed, None)
+    assert stop.kind == "stop" and "no plan" in stop.reason
+
+
+def test_oracle_follows_its_cached_plan(foss):
+    scene = generate_shelf_scene(foss.geometry, 1, num_objects=8).scene
+    rules = ShelfPolicies("oracle_ps", foss)
+    first = rules.select(scene, None)
+    assert first.kind == "shelf"
+    plan_len = int(first.reason.split(": ")[1].split()[0])
+    s, history = scene, ()
+    for _ in range(plan_len):
+        action = rules.select(s, None, history)
+        s, outcome = foss.step(s, action)
+        assert outcome.success
+        history += (outcome,)
+    assert foss.revealed(s) or rules.select(s, None, history).kind == "stop"
+
+
+def test_selector_alone_keeps_the_history_minimum(foss):
+    dist = under(foss, SQUEEZED, "a")
+    sel = ShelfPolicySelector("bluction_dar", foss, period=1.0)
+    context = sel.CreateDefaultContext()
+    occ = ShelfOccupancy(np.zeros((2, 2)), dist)
+    sel.GetInputPort("scene").FixValue(context, SQUEEZED)
+    sel.GetInputPort("occupancy").FixValue(context, occ)
+    action = sel.GetOutputPort("action").Eval(context)
+    assert isinstance(action, Action) and action.kind == "shelf" and action.shelf.object_id == "a"
+    assert np.array_equal(sel.GetOutputPort("occupancy_history").Eval(context).image_x, dist)
+    Simulator(sel, context).AdvanceTo(1.5)  # stores P'_1 = P_1
+    shifted = np.roll(dist, 10)
+    sel.GetInputPort("occupancy").FixValue(context, ShelfOccupancy(np.zeros((2, 2)), shifted))
+    expect = np.minimum(dist, shifted)
+    got = sel.GetOutputPort("occupancy_history").Eval(context).image_x
+    assert np.allclose(got, expect / expect.sum())
+    lonely = ShelfPolicySelector("dar", foss)
+    c = lonely.CreateDefaultContext()
+    lonely.GetInputPort("scene").FixValue(c, SQUEEZED)
+    with pytest.raises(PolicyError, match="occupancy"):
+        lonely.GetOutputPort("action").Eval(c)
+
+
+@pytest.mark.parametrize("policy", SHELF_POLICIES)
+def test_selector_wired_in_the_search_diagram(foss, policy):
+    scene = generate_shelf_scene(foss.geometry, 2, num_objects=4).scene
+    diagram = build_shelf_search(foss, scene, policy)
+    sim = Simulator(diagram)
+    ctx = sim.get_context()
+    for step in range(8):
+        if diagram.GetOutputPort("visible_fraction").Eval(ctx)[0] >= 0.8:
+            break
+        assert diagram.GetOutputPort("action").Eval(ctx).kind == "shelf"
+        sim.AdvanceTo(step + 1.5)
+    history = diagram.GetOutputPort("history").Eval(ctx)
+    assert len(history) == step
+    if policy != "random":
+        assert diagram.GetOutputPort("visible_fraction").Eval(ctx)[0] >= 0.8
