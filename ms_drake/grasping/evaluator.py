@@ -87,6 +87,30 @@ def _check_trial_inputs(mass, robust_samples, com):
 
 
 @dataclass(frozen=True)
+class TrialSetup:
+    """What every evaluator starts from: the checked object pose X (4x4), mass, robust trial count
+    n, the mesh data, the object-frame centre of mass and the world-to-object rotation R_OW."""
+
+    X: np.ndarray
+    mass: float
+    n: int
+    data: MeshData
+    com_O: np.ndarray
+    R_OW: np.ndarray
+
+
+def prepare_trials(mesh, X_WO, mass, robust_samples, com) -> TrialSetup | None:
+    """The checks every evaluator starts with: programming errors raise naming the argument
+    (as_matrix4, _check_trial_inputs); a mesh that is not watertight is a physical outcome, None."""
+    X = as_matrix4(X_WO, "X_WO")
+    mass, n, com = _check_trial_inputs(mass, robust_samples, com)
+    data = MeshData.of(mesh)
+    if not data.watertight:
+        return None
+    return TrialSetup(X, mass, n, data, data.centroid if com is None else com, X[:3, :3].T)
+
+
+@dataclass(frozen=True)
 class GraspQuality:
     """Result of GraspEvaluator.evaluate. quality in [0, 1]; reason: the nominal trial's outcome
     (or the most common one over robust trials); reasons: outcome counts over the trials."""
@@ -181,15 +205,12 @@ class GraspEvaluator:
         (RigidTransform or 4x4 array); grasp: world frame (ParallelJawGrasp or types.Grasp); mass
         (kg); com: object-frame centre of mass (default: the mesh's volume centroid). Raises
         TypeError / ValueError on programming errors (see the module docstring)."""
-        X = as_matrix4(X_WO, "X_WO")
         if not isinstance(grasp, ParallelJawGrasp):
             grasp = ParallelJawGrasp.from_grasp(grasp)
-        mass, n, com = _check_trial_inputs(mass, robust_samples, com)
-        data = MeshData.of(mesh)
-        if not data.watertight:
+        setup = prepare_trials(mesh, X_WO, mass, robust_samples, com)
+        if setup is None:
             return GraspQuality(0.0, "non_watertight_mesh")
-        com_O = data.centroid if com is None else com
-        R_OW = X[:3, :3].T
+        X, mass, n, data, com_O, R_OW = (setup.X, setup.mass, setup.n, setup.data, setup.com_O, setup.R_OW)
         X_OW = np.eye(4)
         X_OW[:3, :3] = R_OW
         X_OW[:3, 3] = -R_OW @ X[:3, 3]

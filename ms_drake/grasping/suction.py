@@ -30,9 +30,8 @@ from collections import Counter
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ms_drake.geometry import as_matrix4
 from ms_drake.grasping import wrench_qp
-from ms_drake.grasping.evaluator import GRAVITY, GraspQuality, _check_trial_inputs
+from ms_drake.grasping.evaluator import GRAVITY, GraspQuality, prepare_trials
 from ms_drake.grasping.geometry import MeshData
 from ms_drake.grasping.grasp import GraspError, SuctionGrasp
 from ms_drake.grasping.wrench_qp import WrenchProblem
@@ -74,17 +73,14 @@ class SuctionEvaluator:
         non_watertight_mesh). X_WO: object pose (RigidTransform or 4x4 array); grasp: SuctionGrasp or
         a types.Grasp of kind "suction" (world frame). Programming errors raise TypeError /
         ValueError naming the argument, as GraspEvaluator.evaluate."""
-        X = as_matrix4(X_WO, "X_WO")
         if isinstance(grasp, Grasp) and grasp.kind == "suction":
             grasp = SuctionGrasp(grasp.center, grasp.approach)
         if not isinstance(grasp, SuctionGrasp):
             raise TypeError(f"grasp must be a SuctionGrasp or a suction types.Grasp, got {grasp!r}")
-        mass, n, com = _check_trial_inputs(mass, robust_samples, com)
-        data = MeshData.of(mesh)
-        if not data.watertight:
+        setup = prepare_trials(mesh, X_WO, mass, robust_samples, com)
+        if setup is None:
             return GraspQuality(0.0, "non_watertight_mesh")
-        com_O = data.centroid if com is None else com
-        R_OW = X[:3, :3].T
+        X, mass, n, data, com_O, R_OW = (setup.X, setup.mass, setup.n, setup.data, setup.com_O, setup.R_OW)
         p_O = R_OW @ (grasp.point - X[:3, 3])
         a_O = R_OW @ grasp.approach
         g_O = R_OW @ np.array([0.0, 0.0, -1.0])
