@@ -176,6 +176,16 @@ def _line(ik, q_start, displacement, limits, speed):
     return plan_cartesian_line(ik, ik_pose(ik, q_start), displacement, q_start, limits, max_speed=speed)
 
 
+def _start(q_home, q_first, from_home: bool, limits) -> Timeline:
+    """A timeline that rests 0.2 s, then (from_home) moves from q_home to q_first, where the
+    sequence's first straight line begins (without from_home it starts there)."""
+    tl = Timeline(q_home if from_home else q_first)
+    tl.hold(0.2)
+    if from_home:
+        tl.play(plan_joint_motion([q_home, q_first], limits))
+    return tl
+
+
 def plan_pick(ik, limits, q_home, X_grasp: RigidTransform, arm: str, gripper_port: str, kind: str,
               approach: float = 0.10, lift: float = 0.20, force_limit: float = 30.0, max_opening: float = 0.10,
               close_time: float = 0.8, hold_time: float = 0.5, speed: float = 0.15,
@@ -199,10 +209,7 @@ def plan_pick(ik, limits, q_home, X_grasp: RigidTransform, arm: str, gripper_por
     lift_plan = _line(ik, q_grasp, [0, 0, lift], limits, speed)
     if not lift_plan.success:
         return PickPlan(False, lift_plan.status, arm, X_target=X_grasp)
-    tl = Timeline(q_home if from_home else q_pre)
-    tl.hold(0.2)
-    if from_home:
-        tl.play(plan_joint_motion([q_home, q_pre], limits))
+    tl = _start(q_home, q_pre, from_home, limits)
     tl.mark("approach")
     tl.play(approach_plan.trajectory)
     tl.mark("contact")
@@ -254,10 +261,7 @@ def plan_push(ik, limits, q_home, X_start: RigidTransform, direction, distance: 
     up = _line(ik, push.trajectory.final(), [0, 0, retreat], limits, speed)
     if not up.success:
         return PickPlan(False, up.status, arm, X_target=X_start)
-    tl = Timeline(q_home if from_home else q_above)
-    tl.hold(0.2)
-    if from_home:
-        tl.play(plan_joint_motion([q_home, q_above], limits))
+    tl = _start(q_home, q_above, from_home, limits)
     tl.play(down.trajectory)
     tl.mark("push")
     tl.play(push.trajectory)
