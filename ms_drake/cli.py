@@ -34,6 +34,7 @@ from ms_drake.experiments.grasp_figure import grasp_figure
 from ms_drake.experiments.harness import format_summary, plot, run_bench
 from ms_drake.experiments.picks import TASKS, run_pick
 from ms_drake.experiments.scene_images import make_scene, write_scene_images
+from ms_drake.experiments.xray import PROTOCOLS, XRAY_HORIZON, XRAY_OBJECTS
 from ms_drake.grasping.evaluator import MODELS
 from ms_drake.objects import get_object_set
 from ms_drake.parallel import run_jobs
@@ -218,7 +219,8 @@ app.add_typer(bench_app, name="bench")
 @bench_app.command("search")
 def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: random, preempted_random, "
                                             "preempted_random_push, largest, largest_push, xray, oracle"),
-                 objects: int = typer.Option(15, "--objects", min=1, max=60, help="Objects per heap (N)"),
+                 objects: Optional[int] = typer.Option(None, "--objects", min=1, max=60,
+                                                       help="Objects per heap (N; default 15, xray: 14 besides the target)"),
                  heaps_: int = typer.Option(10, "--heaps", min=1, help="Number of heaps (K)"),
                  seed_start: int = typer.Option(0, "--seed-start", min=0, help="First heap seed (S)"),
                  workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers (W)"),
@@ -229,9 +231,18 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
                  ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address"),
                  heap_dir: Optional[Path] = typer.Option(
                      None, "--heap-dir", help="Folder of cached heaps (heap_N<N>_s<seed>.json), shared by "
-                     "runs of several policies so they search the same heaps; made on first use")):
+                     "runs of several policies so they search the same heaps; made on first use"),
+                 protocol: str = typer.Option("ch7", "--protocol", help="Heaps: ch7 (N objects of the scenario's "
+                                              "set) | xray (Table 8.2: the target dropped first under N = 14 mesh "
+                                              "objects unseen in training; H = 10)")):
     """Search heaps S..S+K-1 with a policy; one JSON line per rollout (resumable), then a summary."""
     check_policy(policy)
+    if protocol not in PROTOCOLS:
+        _fail(f"--protocol {protocol!r}: choose one of {', '.join(PROTOCOLS)}")
+    if objects is None:
+        objects = XRAY_OBJECTS if protocol == "xray" else 15
+    if protocol == "xray" and horizon is None:
+        horizon = XRAY_HORIZON
     if fidelity not in FIDELITIES:
         _fail(f"--fidelity {fidelity!r}: choose one of {', '.join(FIDELITIES)}")
     if out.suffix != ".jsonl":
@@ -243,7 +254,7 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
 
     s = run_bench(policy, objects, heaps_, seed_start, out, workers=workers, fidelity=fidelity, horizon=horizon,
                   use_ray=ray or ray_address is not None, ray_address=ray_address, progress=progress,
-                  heap_dir=str(heap_dir) if heap_dir is not None else None)
+                  heap_dir=str(heap_dir) if heap_dir is not None else None, protocol=protocol)
     if s["resumed"]:
         typer.echo(f"resuming: {s['resumed']} of {heaps_} rollouts already in {out}")
     typer.echo(format_summary(policy, s))

@@ -26,6 +26,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from ms_drake.experiments.rollout import rollout
+from ms_drake.experiments.xray import PROTOCOLS, xray_heap
 from ms_drake.parallel import run_jobs
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap, load_heap, save_heap
@@ -33,14 +34,20 @@ from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap, load_heap, save_h
 BOOTSTRAP = 2000
 
 
-def cached_heap(objects: int, seed: int, heap_dir: str | None):
+def cached_heap(objects: int, seed: int, heap_dir: str | None, protocol: str = "ch7"):
     """Heap `seed` of N objects (BinHeap15's bin), read from / saved to `heap_dir` when given, so
     several policies search the very same heaps without regenerating them (a heap is a pure
-    function of (N, seed); the file is written atomically)."""
-    path = Path(heap_dir) / f"heap_N{objects}_s{seed}.json" if heap_dir else None
+    function of (protocol, N, seed); the file is written atomically). protocol "ch7": N objects of
+    the scenario's set (heap_N<N>_s<seed>.json); "xray": the target dropped first under N unseen
+    mesh objects (ms_drake.experiments.xray; heap_xray_N<N>_s<seed>.json)."""
+    if protocol not in PROTOCOLS:
+        raise ValueError(f"protocol {protocol!r} unknown; choose one of {', '.join(PROTOCOLS)}")
+    stem = f"heap_N{objects}_s{seed}" if protocol == "ch7" else f"heap_{protocol}_N{objects}_s{seed}"
+    path = Path(heap_dir) / f"{stem}.json" if heap_dir else None
     if path is not None and path.exists():
         return load_heap(path)
-    heap = generate_heap(load_scenario(None, "BinHeap15"), objects, seed, params=SEARCH_HEAPS)
+    heap = (xray_heap(seed, objects) if protocol == "xray" else
+            generate_heap(load_scenario(None, "BinHeap15"), objects, seed, params=SEARCH_HEAPS))
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(f".{os.getpid()}.tmp")
@@ -50,11 +57,13 @@ def cached_heap(objects: int, seed: int, heap_dir: str | None):
 
 
 def rollout_job(job: tuple) -> dict:
-    """(policy, objects, seed, fidelity, horizon[, heap_dir]) -> record; module-level for pickling."""
+    """(policy, objects, seed, fidelity, horizon[, heap_dir[, protocol]]) -> record; module-level for pickling."""
     policy, objects, seed, fidelity, horizon, *rest = job
-
-    heap = cached_heap(objects, seed, rest[0] if rest else None)
+    protocol = rest[1] if len(rest) > 1 else "ch7"
+    heap = cached_heap(objects, seed, rest[0] if rest else None, protocol)
     rec = rollout(policy, objects, seed, fidelity, horizon, heap=heap).record()
+    if protocol != "ch7":
+        rec["protocol"] = protocol
     rec["pid"] = os.getpid()
     return rec
 
@@ -101,7 +110,8 @@ def _done_seeds(path: Path, policy: str, objects: int, fidelity: str) -> set[int
 
 def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, workers: int = 1,
               fidelity: str = "primitive", horizon: int | None = None, use_ray: bool = False,
-              ray_address: str | None = None, progress=None, heap_dir: str | None = None) -> dict:
+              ray_address: str | None = None, progress=None, heap_dir: str | None = None,
+              protocol: str = "ch7") -> dict:
     """The missing rollouts of every run (policy, N, result file) on seeds S..S+K-1, all through
     ONE pool of `workers` processes; each record is appended (flushed, fsync'ed) to its run's file
     as it completes, so a killed run loses only the rollouts in flight and the same command
@@ -113,7 +123,7 @@ def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, wo
         out = Path(out)
         out.parent.mkdir(parents=True, exist_ok=True)
         done[(policy, objects)] = _done_seeds(out, policy, objects, fidelity)
-        jobs += [(policy, objects, k, fidelity, horizon, heap_dir) for k in range(seed_start, seed_start + heaps)
+        jobs += [(policy, objects, k, fidelity, horizon, heap_dir, protocol) for k in range(seed_start, seed_start + heaps)
                  if k not in done[(policy, objects)]]
     files = {(policy, objects): Path(out) for policy, objects, out in runs}
     t0 = time.perf_counter()
@@ -154,11 +164,12 @@ def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, wo
 
 def run_bench(policy: str, objects: int, heaps: int, seed_start: int, out: Path, workers: int = 1,
               fidelity: str = "primitive", horizon: int | None = None, use_ray: bool = False,
-              ray_address: str | None = None, progress=None, heap_dir: str | None = None) -> dict:
+              ray_address: str | None = None, progress=None, heap_dir: str | None = None,
+              protocol: str = "ch7") -> dict:
     """Run the missing rollouts of seeds S..S+K-1, append them to `out`; returns the summary."""
     return run_suite([(policy, objects, Path(out))], heaps, seed_start, workers=workers, fidelity=fidelity,
                      horizon=horizon, use_ray=use_ray, ray_address=ray_address, progress=progress,
-                     heap_dir=heap_dir)[(policy, objects)]
+                     heap_dir=heap_dir, protocol=protocol)[(policy, objects)]
 
 
 def truncate_record(rec: dict, horizon: int) -> dict:

@@ -65,6 +65,10 @@ class SearchParams:
     robust_samples: int = 4
     grasp_params: dict | None = None  # GraspEvaluator keywords, e.g. {"closing_force": 40.0}
     period: float = 0.05
+    # OccupancyEstimator backend of X-Ray: "learned" (from the target's size and the images only)
+    # or "analytic" (the ground-truth generator). The oracle always uses "analytic" with the
+    # target's true pose: it is the labelled upper bound that reads privileged state.
+    occupancy: str = "learned"
     # Plant step [s]; None keeps the scenario's (2 ms). The primitive mode only needs the heap to
     # settle and the closed jaw to push, so it runs at 10 ms like the heap generator (our choice).
     time_step: float | None = None
@@ -144,7 +148,8 @@ def controller_params(params: SearchParams, num_objects: int) -> BinSearchParams
     return BinSearchParams(policy=params.policy, fidelity=params.fidelity, horizon=horizon, seed=params.seed,
                            grasp_models=tuple(params.grasp_models), grasp_samples=params.grasp_samples,
                            robust_samples=params.robust_samples, grasp_params=params.grasp_params,
-                           period=params.period)
+                           period=params.period,
+                           occupancy="analytic" if params.policy == "oracle" else params.occupancy)
 
 
 def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSystem:
@@ -158,11 +163,14 @@ def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSy
     station = builder.AddSystem(MakeStation(s, meshcat=meshcat, target_index=heap.target_index))
     sim = SimulationInfo.from_station(station, heap.target_index)
     shape = None
-    if params.policy in ("xray", "oracle") or meshcat is not None:  # (a recorded search shows the occupancy)
-        # The target's own mesh at its true initial pose (Ch. 8.3.1 renders the target itself):
-        # rotation bin 0 and a grid node are its true placement (see occupancy.TargetMesh).
+    if params.policy == "oracle" or (params.occupancy == "analytic" and (params.policy == "xray" or meshcat is not None)):
+        # Privileged: the target's own mesh at its true initial pose (Ch. 8.3.1 renders the target
+        # itself): rotation bin 0 and a grid node are its true placement (see occupancy.TargetMesh).
         shape = (TargetMesh.from_object(heap.target, heap.objects[heap.target_index].matrix())
                  if heap.target_index >= 0 else TargetBox.from_object(heap.target))
+    elif params.policy == "xray" or meshcat is not None:  # (a recorded search shows the occupancy)
+        # The learned estimator knows the target's model (its size), never its pose.
+        shape = TargetBox.from_object(heap.target)
     controller = builder.AddSystem(MakeBinSearchController(s, controller_params(params, len(heap.objects)),
                                                            sim=sim, target_shape=shape))
     connect_controller(builder, controller, station)

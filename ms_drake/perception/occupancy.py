@@ -71,6 +71,7 @@ from pydrake.systems.sensors import ApplyCameraConfig, ImageDepth32F
 from ms_drake.errors import PerceptionError
 from ms_drake.geometry import PinholeCamera, Workspace, as_matrix4, depth_array
 from ms_drake.objects import get_object
+from ms_drake.perception.occupancy_net import LearnedOccupancy
 from ms_drake.types import OccupancyMap, TargetEstimate
 
 
@@ -531,7 +532,7 @@ class RenderedOccupancy:
         return normalize_occupancy(acc, M)
 
 
-BACKENDS = ("analytic",)
+BACKENDS = ("analytic", "learned")
 
 
 class OccupancyEstimator(LeafSystem):
@@ -541,8 +542,9 @@ class OccupancyEstimator(LeafSystem):
     observed modal mask; all False when not visible); output ``occupancy`` (OccupancyMap).
 
     backend: an object with ``estimate(depth (H, W), target_mask (H, W) bool) -> (H, W)`` (e.g.
-    AnalyticOccupancy, RenderedOccupancy, or a learned model later), or the name "analytic"
-    with camera, workspace and target_size given.
+    AnalyticOccupancy, RenderedOccupancy, LearnedOccupancy), or a name: "analytic" with camera,
+    workspace and target_size given; "learned" (ms_drake.perception.occupancy_net) with
+    target_size (the target's size only, never its pose; keywords weights=, input_scaling=).
     """
 
     def __init__(self, backend="analytic", camera: PinholeCamera | None = None, workspace: Workspace | None = None,
@@ -552,10 +554,16 @@ class OccupancyEstimator(LeafSystem):
             if backend not in BACKENDS:
                 raise PerceptionError(f"OccupancyEstimator backend {backend!r} unknown; choose one of "
                                       f"{', '.join(BACKENDS)} or pass an object with estimate(depth, mask)")
-            if camera is None or workspace is None or target_size is None:
+            if backend == "learned":
+                if target_size is None:
+                    raise PerceptionError("OccupancyEstimator('learned') needs target_size=(length, width, thickness) "
+                                          "or a TargetBox / TargetMesh")
+                backend = LearnedOccupancy(target_size, **kwargs)
+            elif camera is None or workspace is None or target_size is None:
                 raise PerceptionError("OccupancyEstimator('analytic') needs camera= (PinholeCamera.from_config), "
                                       "workspace= (Workspace.from_scenario) and target_size=(length, width, thickness)")
-            backend = AnalyticOccupancy(camera, workspace, target_size, **kwargs)
+            else:
+                backend = AnalyticOccupancy(camera, workspace, target_size, **kwargs)
         elif not hasattr(backend, "estimate"):
             raise PerceptionError("OccupancyEstimator backend must have estimate(depth, target_mask)")
         cam = camera or getattr(backend, "camera", None)

@@ -37,12 +37,9 @@ import cv2
 import numpy as np
 
 from ms_drake.errors import PerceptionError
+from ms_drake.objects.registry import TARGET_AREA, TARGET_RATIOS, target_box_size  # noqa: F401 (re-exported)
 from ms_drake.paths import models_dir
 
-#: Aspect ratios (length : width) of the ten equal-area training boxes, 3 x 3 cm ... 9.5 x 0.95 cm.
-TARGET_RATIOS = tuple(range(1, 11))
-TARGET_AREA = 0.03 * 0.03  # m^2, every training box's footprint
-TARGET_THICKNESS = 0.005  # m
 FULL_SHAPE = (480, 640)
 CROP = (48, 64, 384, 512)  # top, left, height, width in the full image
 BLOCK = 4
@@ -52,12 +49,6 @@ DEPTH_UNIT = 0.05  # m
 
 def default_weights() -> Path:
     return models_dir() / "weights" / "occupancy.pt"
-
-
-def target_box_size(ratio: float) -> tuple[float, float, float]:
-    """(length, width, thickness) of the training box of aspect ratio `ratio`."""
-    s = np.sqrt(TARGET_AREA)
-    return float(s * np.sqrt(ratio)), float(s / np.sqrt(ratio)), TARGET_THICKNESS
 
 
 def nearest_ratio(length: float, width: float) -> tuple[int, float]:
@@ -121,7 +112,7 @@ def zoom(a: np.ndarray, factor: float, fill: float = 0.0) -> np.ndarray:
 
 @dataclass(frozen=True)
 class NetConfig:
-    base: int = 16  # channels of the first level (x2 per level)
+    base: int = 8  # channels of the first level (x2 per level)
     levels: int = 4
     outputs: int = len(TARGET_RATIOS)
 
@@ -131,9 +122,11 @@ def make_net(config: NetConfig = NetConfig()):
     import torch  # optional heavy dependency: only the learned backend needs it
     from torch import nn
 
-    def block(cin, cout):
-        return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True),
-                             nn.Conv2d(cout, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+    def conv(cin, cout):
+        return [nn.Conv2d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True)]
+
+    def block(cin, cout):  # encoder level: two 3x3 convolutions
+        return nn.Sequential(*conv(cin, cout), *conv(cout, cout))
 
     class OccupancyUNet(nn.Module):
         def __init__(self, cfg: NetConfig):
@@ -142,7 +135,8 @@ def make_net(config: NetConfig = NetConfig()):
             self.enc = nn.ModuleList([block(3 if i == 0 else ch[i - 1], ch[i]) for i in range(cfg.levels)])
             self.pool = nn.MaxPool2d(2)
             self.up = nn.ModuleList([nn.ConvTranspose2d(ch[i], ch[i - 1], 2, stride=2) for i in range(cfg.levels - 1, 0, -1)])
-            self.dec = nn.ModuleList([block(2 * ch[i - 1], ch[i - 1]) for i in range(cfg.levels - 1, 0, -1)])
+            # decoder levels: one 3x3 convolution over [upsampled, skip]
+            self.dec = nn.ModuleList([nn.Sequential(*conv(2 * ch[i - 1], ch[i - 1])) for i in range(cfg.levels - 1, 0, -1)])
             self.head = nn.Conv2d(ch[0], cfg.outputs, 1)
 
         def forward(self, x):
@@ -186,7 +180,7 @@ def load_model(path: Path | str | None = None):
 class LearnedOccupancy:
     """Backend ``estimate(depth, target_mask) -> (H, W)`` of OccupancyEstimator("learned").
 
-    target_size: the target's (length, width, thickness) [m] (a TargetBox works too): picks the
+    target_size: the target's (length, width, thickness) [m] (a TargetBox or TargetMesh works too): picks the
     output channel of the closest trained aspect ratio, and with `input_scaling` the zoom s."""
 
     name = "learned"
@@ -197,6 +191,9 @@ class LearnedOccupancy:
 
         if hasattr(target_size, "length"):
             length, width = float(target_size.length), float(target_size.width)
+        elif hasattr(target_size, "vertices"):  # a TargetMesh: its resting footprint's bounding box
+            V = np.asarray(target_size.vertices, float) @ np.asarray(target_size.R_WO, float).T
+            length, width = sorted(np.ptp(V[:, :2], axis=0), reverse=True)
         else:
             vals = sorted([float(v) for v in target_size][:2], reverse=True)
             length, width = vals

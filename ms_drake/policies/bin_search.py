@@ -10,7 +10,7 @@ In simulation, start the robot where the controller expects it (parked out of th
 Inside (DESIGN.md "Data flow"; every planner is a system of the diagram):
   <cam>.label_image -> Segmenter("ground_truth")   (simulation)  |  <cam>.depth_image -> Segmenter(params.segmentation)
   <cam>.rgb_image + masks -> TargetDetector("color") -> target
-  <cam>.depth_image + target -> OccupancyEstimator("analytic") -> occupancy     (given target_shape; xray reads it)
+  <cam>.depth_image + target -> OccupancyEstimator(params.occupancy) -> occupancy (given target_shape; xray reads it)
   depth + masks (+ body_poses: exact meshes in simulation) -> LazyGraspPlanner -> grasps
   depth + masks -> PushPlanner -> pushes                                          (*_push selectors)
   body_poses -> AmodalMasks -> TargetAmodalMask -> target_amodal                 (oracle, simulation)
@@ -42,6 +42,7 @@ from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.grasping.planner import GraspPlanner, LazyGraspPlanner, ObjectGeometrySource
 from ms_drake.objects import get_object
 from ms_drake.perception.masks import TargetAmodalMask, make_amodal_masks, object_labels
+from ms_drake.perception.occupancy import BACKENDS as OCCUPANCY_BACKENDS
 from ms_drake.perception.occupancy import OccupancyEstimator
 from ms_drake.perception.ready import ImagesReady
 from ms_drake.perception.segmentation import BACKENDS as SEGMENTATION_BACKENDS
@@ -68,7 +69,10 @@ class BinSearchParams:
     jaw with a contact model, and "suction"), as in Ch. 7; grasp_params: GraspEvaluator keywords
     of the jaw models, e.g. {"closing_force": 40.0}.
     segmentation: "ground_truth" (label image; needs `sim`), "euclidean" or "region_growing"
-    (depth only, run on hardware). period: the executor's update period [s].
+    (depth only, run on hardware). occupancy: the OccupancyEstimator backend, "learned" (the
+    network of ms_drake.perception.occupancy_net, from the target's size) or "analytic" (the
+    ground-truth generator; given a TargetMesh with its pose it reads privileged state).
+    period: the executor's update period [s].
     """
 
     policy: str = "largest"
@@ -80,6 +84,7 @@ class BinSearchParams:
     robust_samples: int = 4
     grasp_params: dict | None = None
     segmentation: str = "ground_truth"
+    occupancy: str = "learned"  # OccupancyEstimator backend: "learned" (target size only) or "analytic"
     camera: str = "overhead"
     period: float = 0.05
 
@@ -92,6 +97,8 @@ class BinSearchParams:
                                   f"{', '.join(SEGMENTATION_BACKENDS)}")
         if int(self.horizon) < 1:
             raise ControllerError(f"horizon must be >= 1 action, got {self.horizon!r}")
+        if self.occupancy not in OCCUPANCY_BACKENDS:
+            raise ControllerError(f"occupancy {self.occupancy!r} unknown; choose one of {', '.join(OCCUPANCY_BACKENDS)}")
 
 
 @dataclass(frozen=True)
@@ -213,7 +220,7 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
         builder.Connect(pushes.GetOutputPort("pushes"), selector.GetInputPort("pushes"))
         outputs["pushes"] = pushes.GetOutputPort("pushes")
     if needs_occupancy:
-        occ = builder.AddSystem(OccupancyEstimator("analytic", camera=camera, workspace=workspace,
+        occ = builder.AddSystem(OccupancyEstimator(params.occupancy, camera=camera, workspace=workspace,
                                                    target_size=target_shape))
         occ.set_name("occupancy_estimator")
         depth_inputs.append(occ.GetInputPort("depth_image"))

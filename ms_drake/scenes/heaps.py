@@ -166,14 +166,17 @@ class DropItem:
 
 
 def sample_drop_plan(names: list[str], scenario: Scenario, rng: np.random.Generator,
-                     params: HeapParams) -> list[DropItem]:
-    """Orientation and planar position of every object (step 2)."""
+                     params: HeapParams, flat_first: bool = False) -> list[DropItem]:
+    """Orientation and planar position of every object (step 2); flat_first: the first object
+    lies as modelled (its thinnest extent along z for a flat target), turned by a random yaw."""
     size = scenario.environment.resolved_size()
     c = np.clip(rng.normal(0.0, params.center_sigma, 2), -params.center_max, params.center_max)
     plan = []
-    for name in names:
+    for k, name in enumerate(names):
         q = Rotation.random(random_state=rng).as_quat()  # x, y, z, w
         R = RotationMatrix(Quaternion(q[3], q[0], q[1], q[2]))
+        if flat_first and k == 0:
+            R = RotationMatrix.MakeZRotation(float(rng.uniform(0.0, 2.0 * np.pi)))
         v = _vertices(name) @ R.matrix().T
         lo, hi = v.min(axis=0), v.max(axis=0)
         half = np.maximum(0.5 * size[:2] - 0.5 * (hi - lo)[:2], 0.0)
@@ -460,8 +463,12 @@ def _settle(world, names: list[str], placed: list[int], origin: np.ndarray, size
 
 
 def generate_heap(scenario: Scenario, num_objects: int, seed: int, object_set: str | None = None,
-                  params: HeapParams | None = None, return_diagnostics: bool = False):
-    """Generate heap `seed` of `num_objects` objects into the scenario's bin (see module doc)."""
+                  params: HeapParams | None = None, return_diagnostics: bool = False, names_fn=None,
+                  target_first: bool = False):
+    """Generate heap `seed` of `num_objects` objects into the scenario's bin (see module doc).
+    names_fn(rng) -> full names: draws the objects instead of step 1 (in drop order);
+    target_first: the first object dropped is the target (instead of step 6's choice), lying flat
+    as modelled with a random yaw, and an attempt in which it leaves the bin is rejected."""
     params = params or HeapParams()
     if params.engine not in ("drake", "bullet"):
         raise HeapError(f"HeapParams.engine={params.engine!r}: use 'drake' or 'bullet'")
@@ -485,10 +492,11 @@ def generate_heap(scenario: Scenario, num_objects: int, seed: int, object_set: s
     origin = np.asarray(scenario.environment.position, float)
     for attempt in range(params.max_attempts):
         rng = np.random.default_rng([seed, attempt])
-        names = [o.full_name for o in oset.sample(num_objects, rng, params.split)]
+        names = (list(names_fn(rng)) if names_fn is not None else
+                 [o.full_name for o in oset.sample(num_objects, rng, params.split)])
         polish = params.engine == "bullet" and params.polish_time > 0
         world = _DropWorld(scenario, names, dataclasses.replace(params, engine="drake") if polish else params)
-        plan = sample_drop_plan(names, scenario, rng, params)
+        plan = sample_drop_plan(names, scenario, rng, params, flat_first=target_first)
         phases = {}
         wall = scenario.environment.wall_thickness
         if params.engine == "bullet":
@@ -524,12 +532,17 @@ def generate_heap(scenario: Scenario, num_objects: int, seed: int, object_set: s
         if not present:
             reasons.append(f"attempt {attempt}: every object left the bin")
             continue
+        if target_first and 0 not in present:
+            reasons.append(f"attempt {attempt}: the target ({names[0]}, dropped first) left the bin")
+            continue
         ratios = np.ones(len(present))
         target_k = -1
         if world.sensor is not None:
             modal, amodal = visible_ratios(world, names, present, world.camera)
             ratios = np.where(amodal > 0, np.minimum(modal / np.maximum(amodal, 1), 1.0), 1.0)
             target_k = int(np.argmin(ratios))
+        if target_first:
+            target_k = present.index(0)
         objects = tuple(ObjectPose(names[i], world.free_body_q(i)) for i in present)
         heap = Heap(seed=seed, environment="bin", objects=objects,
                     target=objects[target_k].name if target_k >= 0 else "", target_index=target_k,

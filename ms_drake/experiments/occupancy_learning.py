@@ -1,0 +1,192 @@
+"""Training and evaluation of the learned occupancy network (Ch. 8.3.2-8.3.3).
+
+`train_occupancy` (``ms-drake train occupancy --data DIR --out FILE.pt``): AdamW (lr 1e-3,
+weight decay 5e-4, cosine decay to 0), batches of 32, random horizontal and vertical flips of
+input and ground truth together (a mirrored heap is a heap), pixelwise MSE on the channel of each
+sample's aspect ratio (occupancy_net.ratio_loss). Our choices where the reference's (ResNet-50
+FCN, SGD with momentum 0.99, lr 1e-5, 40 epochs on a V100) does not fit two shared CPU cores.
+Deterministic from `seed` (torch and numpy generators; the batch order of epoch e comes from
+(seed, e)). After every epoch the model, optimizer and scheduler go to ``FILE.ckpt`` (written
+atomically), so a killed run resumes with the same command; the shipped ``FILE`` holds the
+weights, the network configuration and a `meta` dict (data, command, epochs, seconds).
+
+`occupancy_metrics`: line 1466's definitions, on maps scaled to a maximum of 1. A ground-truth
+pixel is positive when its value exceeds 0.1; a prediction is right when it lies within 0.2 of
+the ground truth. Balanced accuracy = mean of the true-positive rate (right among positives) and
+the true-negative rate (right among negatives); IoU = |gt > 0.1 and pred > 0.1| / |gt > 0.1 or
+pred > 0.1|. Both are computed per image and averaged over images (images without a positive
+pixel count for the negatives' rate only).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from ms_drake.experiments.occupancy_data import DatasetError, load_dataset
+from ms_drake.perception.occupancy_net import TARGET_RATIOS, NetConfig, make_net, ratio_loss, zoom
+
+POSITIVE = 0.1
+TOLERANCE = 0.2
+
+
+def occupancy_metrics(pred: np.ndarray, gt: np.ndarray) -> dict:
+    """Per-image balanced accuracy and IoU, (n, H, W) maps scaled to max 1 -> arrays (n,)."""
+    pred, gt = np.asarray(pred, np.float32), np.asarray(gt, np.float32)
+    pos = gt > POSITIVE
+    right = np.abs(pred - gt) <= TOLERANCE
+    npos, nneg = pos.sum(axis=(1, 2)), (~pos).sum(axis=(1, 2))
+    tpr = np.where(npos > 0, (pos & right).sum(axis=(1, 2)) / np.maximum(npos, 1), np.nan)
+    tnr = (~pos & right).sum(axis=(1, 2)) / np.maximum(nneg, 1)
+    bal = np.where(npos > 0, 0.5 * (tpr + tnr), tnr)
+    pp = pred > POSITIVE
+    union = (pos | pp).sum(axis=(1, 2))
+    iou = np.where(union > 0, (pos & pp).sum(axis=(1, 2)) / np.maximum(union, 1), 1.0)
+    return dict(balanced_accuracy=bal, iou=iou, mse=((pred - gt) ** 2).mean(axis=(1, 2)))
+
+
+def _torch_setup(seed: int, threads: int):
+    import torch  # optional heavy dependency: only the learned occupancy needs it
+
+    torch.manual_seed(seed)
+    torch.set_num_threads(max(1, int(threads)))
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    return torch
+
+
+def _flip(x: np.ndarray, y: np.ndarray, rng: np.random.Generator):
+    if rng.random() < 0.5:
+        x, y = x[..., ::-1], y[..., ::-1]
+    if rng.random() < 0.5:
+        x, y = x[..., ::-1, :], y[..., ::-1, :]
+    return np.ascontiguousarray(x), np.ascontiguousarray(y)
+
+
+def train_steps(net, opt, x, y, ratio, steps: int = 1) -> list[float]:
+    """`steps` optimizer steps on one fixed batch (numpy arrays); the losses before each step."""
+    import torch  # optional heavy dependency: only the learned occupancy needs it
+
+    net.train()
+    xt, yt, rt = torch.from_numpy(np.asarray(x, np.float32)), torch.from_numpy(np.asarray(y, np.float32)), \
+        torch.from_numpy(np.asarray(ratio, np.int64))
+    losses = []
+    for _ in range(steps):
+        opt.zero_grad()
+        loss = ratio_loss(net(xt), yt, rt)
+        loss.backward()
+        opt.step()
+        losses.append(float(loss))
+    return losses
+
+
+def make_optimizer(net, lr: float = 1e-3, weight_decay: float = 5e-4):
+    import torch  # optional heavy dependency: only the learned occupancy needs it
+
+    return torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=weight_decay)
+
+
+def train_occupancy(data, out, epochs: int = 12, batch: int = 32, seed: int = 0, threads: int = 2,
+                    config: NetConfig = NetConfig(), max_minutes: float = 60.0, progress=None,
+                    command: str = "") -> dict:
+    """Train on the train shards of `data`; write `out` (weights + meta) and `out`.ckpt (resume).
+    Stops early (after a whole epoch) when `max_minutes` of wall time would be exceeded."""
+    torch = _torch_setup(seed, threads)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    ckpt = out.with_suffix(".ckpt")
+    d = load_dataset(data, "train")
+    n = len(d["x"])
+    if n < batch:
+        raise DatasetError(f"{data}: {n} training images, fewer than a batch ({batch}); make more with "
+                           "`ms-drake data occupancy --count ...`")
+    net = make_net(config)
+    opt = make_optimizer(net)
+    steps_per_epoch = n // batch
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs * steps_per_epoch)
+    start, history, seconds = 0, [], 0.0
+    if ckpt.exists():
+        ck = torch.load(ckpt, map_location="cpu", weights_only=False)
+        if ck.get("config") != asdict(config) or ck.get("epochs") != epochs or ck.get("n") != n:
+            raise DatasetError(f"{ckpt} was made with other settings (config/epochs/data size); delete it to start "
+                               "over, or rerun with the settings it was made with")
+        net.load_state_dict(ck["model"])
+        opt.load_state_dict(ck["optimizer"])
+        sched.load_state_dict(ck["scheduler"])
+        start, history, seconds = ck["epoch"], ck["history"], ck["seconds"]
+    t0 = time.perf_counter() - seconds
+    for epoch in range(start, epochs):
+        te = time.perf_counter()
+        if epoch > start and (te - t0) / epoch * (epoch + 1) > 60.0 * max_minutes:
+            break
+        rng = np.random.default_rng([seed, epoch])
+        order = rng.permutation(n)
+        net.train()
+        total = 0.0
+        for b in range(steps_per_epoch):
+            idx = np.sort(order[b * batch:(b + 1) * batch])
+            x, y = _flip(d["x"][idx].astype(np.float32), d["y"][idx].astype(np.float32), rng)
+            opt.zero_grad()
+            loss = ratio_loss(net(torch.from_numpy(x)), torch.from_numpy(y), torch.from_numpy(d["ratio"][idx]))
+            loss.backward()
+            opt.step()
+            sched.step()
+            total += float(loss)
+            if progress is not None:
+                progress(epoch, b, steps_per_epoch, float(loss))
+        history.append(dict(epoch=epoch + 1, loss=total / steps_per_epoch, seconds=time.perf_counter() - te))
+        state = dict(model=net.state_dict(), optimizer=opt.state_dict(), scheduler=sched.state_dict(),
+                     epoch=epoch + 1, history=history, seconds=time.perf_counter() - t0, config=asdict(config),
+                     epochs=epochs, n=n)
+        tmp = ckpt.with_suffix(f".{os.getpid()}.tmp")
+        torch.save(state, tmp)
+        os.replace(tmp, ckpt)
+    meta = dict(data=str(data), train_images=n, epochs_done=len(history), epochs=epochs, batch=batch, seed=seed,
+                seconds=time.perf_counter() - t0, history=history, command=command,
+                ratios=list(TARGET_RATIOS), torch=torch.__version__)
+    tmp = out.with_suffix(f".{os.getpid()}.tmp")
+    torch.save(dict(model=net.state_dict(), config=asdict(config), meta=meta), tmp)
+    os.replace(tmp, out)
+    return meta
+
+
+def predict(net, x: np.ndarray, ratio: np.ndarray, scales: np.ndarray | None = None, batch: int = 64) -> np.ndarray:
+    """(n, 96, 128) predictions of each sample's ratio channel; `scales` (n,): input scaling per sample."""
+    import torch  # optional heavy dependency: only the learned occupancy needs it
+
+    net.eval()
+    out = np.zeros((len(x), *x.shape[2:]), np.float32)
+    with torch.inference_mode():
+        for i in range(0, len(x), batch):
+            xb = np.asarray(x[i:i + batch], np.float32)
+            if scales is not None:
+                xb = np.stack([zoom(xi, 1.0 / s) for xi, s in zip(xb, scales[i:i + batch])])
+            y = net(torch.from_numpy(xb)).numpy()
+            y = y[np.arange(len(xb)), ratio[i:i + batch]]
+            if scales is not None:
+                y = np.stack([zoom(yi[None], s)[0] for yi, s in zip(y, scales[i:i + batch])])
+            out[i:i + len(xb)] = y
+    return out
+
+
+def metrics_table(d: dict, pred: np.ndarray, ratios=(1, 2, 5, 10)) -> list[dict]:
+    """Rows per aspect ratio (and all): images, balanced accuracy, IoU (means), MSE."""
+    m = occupancy_metrics(pred, d["y"].astype(np.float32))
+    rows = []
+    for r in list(ratios) + ["all"]:
+        sel = np.ones(len(pred), bool) if r == "all" else d["ratio"] == TARGET_RATIOS.index(r)
+        if not sel.any():
+            continue
+        rows.append(dict(ratio=r, images=int(sel.sum()), balanced_accuracy=float(np.mean(m["balanced_accuracy"][sel])),
+                         iou=float(np.mean(m["iou"][sel])), mse=float(np.mean(m["mse"][sel])),
+                         hidden=int((d["visible"][sel] == 0).sum())))
+    return rows
+
+
+def write_json(path, obj) -> None:
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(json.dumps(obj, indent=1))

@@ -1,0 +1,51 @@
+"""The heap protocol of Table 8.2 (Ch. 8.4.1, lines 1499-1512): `ms-drake bench search --protocol xray`.
+
+A heap: the target (`XRAY_TARGET`, the "lid": the 1:1 box target of the occupancy training set
+at twice its size, 6 x 6 x 0.5 cm, so the learned estimator uses input scaling; the training
+boxes themselves are too narrow for the 3 cm suction cup and too flat for the jaw: with the 2:1
+box, 4.2 x 2.1 cm, Largest and Random stopped on seed 5000 with the target in full view and no
+grasp on it) is dropped first, then N = 14 objects drawn uniformly (with
+replacement) from the *test* splits of the mesh sets (YCB and random_urdfs): occluders the
+occupancy network never saw in training (ms_drake.experiments.occupancy_data draws training heaps
+from the train splits). The target lies flat (random yaw) and the heap is an attempt's only if it
+stays in the bin. Dropped with Bullet, as the reference, then settled for up to 0.5 s in the
+compliant Drake drop world (`XRAY_HEAPS`): in the Drake drop world alone (SEARCH_HEAPS) the 5 mm
+target tunnels through the floor under the heap in every attempt (seeds 5000-5001), while the
+polished Bullet heaps stay put in the station (largest displacement in 0.5 s: 7-11 mm, the
+target's < 1 mm; seeds 5000-5002). Horizon H = 10; ground-truth segmentation and target masks,
+as the reference.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+from ms_drake.objects import get_object_set
+from ms_drake.scenario import load_scenario
+from ms_drake.scenes.heaps import HeapParams, generate_heap
+
+XRAY_TARGET = "targets/lid"
+XRAY_OBJECTS = 14
+XRAY_HORIZON = 10
+XRAY_OCCLUDER_SETS = ("ycb", "random_urdfs")
+PROTOCOLS = ("ch7", "xray")
+XRAY_HEAPS = HeapParams(engine="bullet", polish_time=0.5)
+
+
+@functools.cache
+def xray_occluders() -> tuple[str, ...]:
+    """Full names of the protocol's occluders (test splits of the mesh sets)."""
+    return tuple(o.full_name for s in XRAY_OCCLUDER_SETS for o in get_object_set(s).split("test"))
+
+
+def _names(rng: np.random.Generator, occluders: int) -> list[str]:
+    pool = xray_occluders()
+    return [XRAY_TARGET] + [pool[i] for i in rng.integers(0, len(pool), size=occluders)]
+
+
+def xray_heap(seed: int, occluders: int = XRAY_OBJECTS):
+    """Heap `seed` of the protocol: the target dropped first, then `occluders` unseen mesh objects."""
+    return generate_heap(load_scenario(None, "BinHeap15"), occluders + 1, seed, params=XRAY_HEAPS,
+                         names_fn=functools.partial(_names, occluders=occluders), target_first=True)
