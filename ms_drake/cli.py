@@ -297,6 +297,7 @@ def pick(task: str = typer.Argument(..., help=f"Pick task: {', '.join(TASKS)}"),
 # -- Shelf search (Ch. 9): ms-drake bench shelf / shelf-table, ms-drake data shelf -----------------------
 
 from ms_drake.experiments.shelf import (  # noqa: E402
+    bench_shelf_scenes,
     plot_shelf,
     run_shelf_bench,
     shelf_records,
@@ -371,6 +372,16 @@ def bench_shelf_table(files: list[Path] = typer.Argument(..., help="Result .json
         typer.echo(f"wrote {plot_shelf(recs, plot_dir)}")
 
 
+@bench_app.command("shelf-scenes")
+def bench_shelf_scenes_cmd(count: int = typer.Option(1000, "--count", min=1, help="Scenes"),
+                           seed_start: int = typer.Option(0, "--seed-start", min=0, help="First scene seed")):
+    """CPU time per generated shelf scene (one core): median, p90, max, per occluder count."""
+    r = bench_shelf_scenes(count, seed_start)
+    typer.echo(f"{r['scenes']} scenes: median {r['median_ms']:.2f} ms, p90 {r['p90_ms']:.2f} ms, max "
+               f"{r['max_ms']:.1f} ms CPU per scene; {r['mean_tries']:.2f} scenes drawn per scene")
+    typer.echo("median by occluders: " + ", ".join(f"{n}: {v:.1f}" for n, v in r["median_ms_by_occluders"].items()))
+
+
 @data_app.command("shelf")
 def data_shelf(count: int = typer.Option(..., "--count", min=1, help="Scenes (N)"),
                out: Path = typer.Option(..., "--out", help="Output folder (shard_<k>.npz; resumes)"),
@@ -403,6 +414,7 @@ def data_shelf(count: int = typer.Option(..., "--count", min=1, help="Scenes (N)
 # Learned occupancy (Ch. 8.3): dataset, training, Table 8.1
 
 from ms_drake.experiments.occupancy_data import write_occupancy_dataset  # noqa: E402
+from ms_drake.experiments.occupancy_learning import bench_occupancy, train_occupancy, write_json  # noqa: E402
 
 
 @data_app.command("occupancy")
@@ -432,6 +444,64 @@ def data_occupancy(count: int = typer.Option(..., "--count", min=1, help="Images
                f"in {out} ({time.perf_counter() - t0:.1f} s)")
     if res["failed"]:
         raise typer.Exit(1)
+
+
+train_app = typer.Typer(add_completion=False, no_args_is_help=True, help="Training of the learned models.")
+app.add_typer(train_app, name="train")
+
+
+@train_app.command("occupancy")
+def train_occupancy_cmd(data: Path = typer.Option(..., "--data", help="Dataset folder (ms-drake data occupancy)"),
+                        out: Path = typer.Option(Path("models/weights/occupancy.pt"), "--out", help="Weights file"),
+                        epochs: int = typer.Option(12, "--epochs", min=1, help="Epochs (cosine schedule over all)"),
+                        batch: int = typer.Option(32, "--batch", min=1, help="Batch size"),
+                        seed: int = typer.Option(0, "--seed", min=0, help="Seed"),
+                        threads: int = typer.Option(2, "--threads", min=1, help="torch threads"),
+                        max_minutes: float = typer.Option(60.0, "--max-minutes", help="Stop after the epoch that "
+                                                          "would end past this wall time")):
+    """Train the occupancy network; resumes from OUT.ckpt; writes OUT (weights + meta)."""
+    bar = tqdm(desc="training", unit="batch")
+
+    def progress(epoch, b, n, loss):
+        bar.total = n
+        if b == 0:
+            bar.reset(total=n)
+            bar.set_description(f"epoch {epoch + 1}/{epochs}")
+        bar.update(1)
+        bar.set_postfix(loss=f"{loss:.4f}")
+
+    cmd = " ".join(["ms-drake", "train", "occupancy", "--data", str(data), "--out", str(out), "--epochs", str(epochs),
+                    "--batch", str(batch), "--seed", str(seed), "--threads", str(threads)])
+    meta = train_occupancy(data, out, epochs=epochs, batch=batch, seed=seed, threads=threads,
+                           max_minutes=max_minutes, progress=progress, command=cmd)
+    bar.close()
+    for h in meta["history"]:
+        typer.echo(f"epoch {h['epoch']}: loss {h['loss']:.5f} ({h['seconds']:.0f} s)")
+    typer.echo(f"wrote {out} ({meta['epochs_done']} of {epochs} epochs, {meta['seconds'] / 60:.1f} min)")
+
+
+@bench_app.command("occupancy")
+def bench_occupancy_cmd(data: Path = typer.Option(..., "--data", help="Dataset folder (its test shards)"),
+                        weights: Optional[Path] = typer.Option(None, "--weights", help="Weights (default: shipped)"),
+                        out: Optional[Path] = typer.Option(None, "--out", help="Also write the rows as JSON here"),
+                        scaling: bool = typer.Option(False, "--scaling/--no-scaling",
+                                                     help="Input scaling by the target's size over its ratio's box")):
+    """Table 8.1: balanced accuracy and IoU per aspect ratio on the held-out test shards, and the
+    inference time per image on one core."""
+    res = bench_occupancy(data, weights, scaling)
+    typer.echo("| ratio | images | hidden | bal. acc. % | IoU | MSE |")
+    typer.echo("|---|---|---|---|---|---|")
+    for r in res["rows"]:
+        typer.echo(f"| {r['ratio']}{':1' if r['ratio'] != 'all' else ''} | {r['images']} | {r['hidden']} | "
+                   f"{100 * r['balanced_accuracy']:.1f} | {r['iou']:.2f} | {r['mse']:.4f} |")
+    for name, r in res["baselines"].items():
+        typer.echo(f"baseline {name}: bal. acc. {100 * r['balanced_accuracy']:.1f} %, IoU {r['iou']:.2f}, "
+                   f"MSE {r['mse']:.4f}")
+    typer.echo(f"inference: {res['ms_per_image']:.1f} ms per image (median of {res['timed']}, one torch thread, "
+               "preprocessing and upsampling included)")
+    if out is not None:
+        write_json(out, res)
+        typer.echo(f"wrote {out}")
 
 
 def main():

@@ -252,6 +252,23 @@ def plot_shelf(recs: list[dict], out_dir) -> Path:
     return path
 
 
+def bench_shelf_scenes(count: int, seed_start: int = 0, target_size=DEFAULT_TARGET) -> dict:
+    """CPU time of generate_shelf_scene on seeds S..S+count-1 (occluder counts drawn from the seed):
+    median / p90 / max ms, and the median per occluder count."""
+    geometry = shelf_geometry(SCENARIO)
+    ms, counts, tries = [], [], []
+    for seed in range(seed_start, seed_start + count):
+        t = time.process_time()
+        sample = generate_shelf_scene(geometry, seed, None, target_size)
+        ms.append(1e3 * (time.process_time() - t))
+        counts.append(len(sample.scene.objects))
+        tries.append(sample.tries)
+    ms, counts = np.array(ms), np.array(counts)
+    return dict(scenes=count, median_ms=float(np.median(ms)), p90_ms=float(np.percentile(ms, 90)),
+                max_ms=float(ms.max()), mean_tries=float(np.mean(tries)),
+                median_ms_by_occluders={int(n): float(np.median(ms[counts == n])) for n in np.unique(counts)})
+
+
 # -- datasets -----------------------------------------------------------------------------------------
 
 

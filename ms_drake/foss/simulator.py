@@ -4,11 +4,12 @@ Deterministic and quasi-static: objects are extruded footprints on the shelf flo
 axis-aligned with the shelf, upright cylinders; ms_drake.shelf_geometry's rounded rectangles),
 actions move one object, and nothing else ever moves. The bluction tool's two actions:
 
-- push (object O, signed d_x): the blade (BLADE_THICKNESS along x, BLADE_WIDTH along y, centred on
-  O's y) is inserted from the open front beside O's trailing side and pushes O along x. The blade's
-  corridor from the front to its place must be free (no reaching behind other objects) and the
-  blade must fit beside O; O and the blade then travel |d_x|, stopping where either would touch
-  another object or O the wall (no multi-object pushes). Pushes shorter than MIN_PUSH are refused.
+- push (object O, signed d_x): the blade (BLADE_THICKNESS along x, BLADE_WIDTH along y, from O's
+  front face back) is inserted from the open front beside O's trailing side and pushes O along x.
+  The blade's corridor from the front to its place must be free (no reaching behind other objects)
+  and the blade must fit beside O; O and the blade then travel |d_x|, stopping where either would
+  touch another object or O the wall (no multi-object pushes). Pushes shorter than MIN_PUSH are
+  refused.
   `push_actions` proposes, for every object and both directions, the push up to its nearest
   neighbour (less CONTACT_GAP).
 - suction (O, d_x, d_y): the blade turned up, the tool's shaft (radius SHAFT_RADIUS) reaches
@@ -115,9 +116,10 @@ class Foss:
         ext = P.extent[ks]
         c = P.center[ks]
         bx = c[:, 0] - dirs * (ext[:, 0] + p.blade_thickness / 2)
-        blade_c = np.stack([bx, c[:, 1]], axis=1)
+        by = c[:, 1] - ext[:, 1] + p.blade_width / 2  # the blade along the object's front part
+        blade_c = np.stack([bx, by], axis=1)
         blade_h = np.broadcast_to([p.blade_thickness / 2, p.blade_width / 2], blade_c.shape)
-        y0, y1 = -hy - OUTSIDE - p.blade_width, c[:, 1] + p.blade_width / 2
+        y0, y1 = -hy - OUTSIDE - p.blade_width, by + p.blade_width / 2
         corr_c = np.stack([bx, (y0 + y1) / 2], axis=1)
         corr_h = np.stack([np.full(len(ks), p.blade_thickness / 2), (y1 - y0) / 2], axis=1)
         others = np.arange(n)[None, :] != ks[:, None]  # (m, n)
