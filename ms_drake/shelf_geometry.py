@@ -45,8 +45,6 @@ from ms_drake.types import ShelfObject, ShelfOccupancy
 #: Sides of the polygon standing in for a cylinder's circle in shapely computations (inscribed:
 #: its shadows are slightly smaller than the cylinder's, so "hidden" stays conservative).
 CIRCLE_SIDES = 32
-#: Points around a rounded rectangle's corner arcs when projecting prisms into the image.
-ARC_POINTS = 8
 
 
 @dataclass(frozen=True, eq=False)
@@ -109,10 +107,6 @@ class ShelfGeometry:
         x = e[0] + s * (p[..., 0] - e[0])
         zc = e[2] + s * (p[..., 2] - e[2])
         return ok & (np.abs(x) <= 0.5 * self.size[0]) & (zc >= 0) & (zc <= self.size[2])
-
-    def inside(self, center: np.ndarray, extent: np.ndarray, tol: float = 1e-9) -> np.ndarray:
-        """Bool (...): footprints with these centres (..., 2) and half-extents (..., 2) lie on the floor."""
-        return np.all(np.abs(center) + extent <= self.half + tol, axis=-1)
 
 
 @dataclass(frozen=True, eq=False)
@@ -340,20 +334,6 @@ def visible_fraction(geometry: ShelfGeometry, target: ShelfObject, occluders: Pr
     w = np.concatenate(weights)
     seen = geometry.in_view(p) & ~occluded(eye, p, occluders)
     return float(np.dot(w, seen) / w.sum()) if w.sum() > 0 else 0.0
-
-
-def column_spans(geometry: ShelfGeometry, center: np.ndarray, half: np.ndarray, radius: np.ndarray,
-                 height: np.ndarray) -> np.ndarray:
-    """(..., 2) image columns (u_min, u_max) covered by prisms (broadcast arrays: centres (..., 2),
-    half-extents (..., 2), radii (...), heights (...)), from points on their bottom and top outlines."""
-    a = np.linspace(0, 2 * np.pi, 4 * ARC_POINTS, endpoint=False)
-    d = np.stack([np.cos(a), np.sin(a)], axis=1)
-    corner = np.sign(d + 1e-12)
-    xy = center[..., None, :] + corner * half[..., None, :] + d * radius[..., None, None]  # (..., K, 2)
-    z = np.zeros(xy.shape[:-1] + (1,))
-    p = np.concatenate([np.concatenate([xy, z], -1), np.concatenate([xy, z + height[..., None, None]], -1)], -2)
-    u, _, _ = geometry.project(p)
-    return np.stack([u.min(axis=-1), u.max(axis=-1)], axis=-1)
 
 
 def coverage(spans: np.ndarray, width: int, weights: np.ndarray | None = None) -> np.ndarray:
