@@ -12,12 +12,12 @@ projecting back"), occlusions unchanged.
 
 - random: a uniformly random feasible action, pushes and suction (seeded by (seed, step)).
 - dar (Distribution Area Reduction, LAX-RAY): the push maximising the support reduction
-  dr(O) = r_t(O) - r_{t+1}(O), r(O) = sum of P'_t over the image columns of O's projection before
+  dr(O) = r_t(O) - r_{t+1}(O), r(O) = sum of P'_t over the image columns spanned by O's mask, before
   and after the action (Ch. 9.4.3).
 - der3 (Distribution Entropy Reduction over 3 steps, LAX-RAY): the first push of the 3-push sequence
   whose predicted distribution has the least entropy. Prediction (LAX-RAY's 1D model): after a push,
-  the columns that no object's projection covers any more cannot hide the target and lose their
-  mass; the rest is renormalised. A sequence ending early (no push left) is scored where it ends.
+  the columns that no object's mask spans any more cannot hide the target and lose their mass; the
+  rest is renormalised. A sequence ending early (no push left) is scored where it ends.
 - bluction_dar: dar over pushes and suction actions, suction reductions divided by psi (1.3);
   the first of the sorted list (every candidate is kinematically feasible in FOSS).
 All three keep the history P'_t = min(P_t, P'_{t-1}) (P'_0 = P_0), renormalised.
@@ -30,9 +30,9 @@ All three keep the history P'_t = min(P_t, P'_{t-1}) (P'_0 = P_0), renormalised.
   occluders, each taken to grid placements outside the triangle (per side of the target, the
   ones farthest from it, in distinct grid rows): up to `oracle_placements` for the occluders in the
   triangle and those in the way of their sweeps to the front, 2 for the others (which may have to
-  make room), instead of all 400: the reference's exhaustive trees are out of reach in Python. The search stops after `oracle_max_nodes`
-  expansions (then: no plan, the oracle stops). Plans are cached by scene content, so executing one
-  re-plans nothing.
+  make room), instead of all 400: the reference's exhaustive trees are out of reach in Python. The
+  search stops after `oracle_max_nodes` expansions (then: no plan, the oracle stops). Plans are
+  cached by scene content, so executing one re-plans nothing.
 """
 
 from __future__ import annotations
