@@ -456,7 +456,8 @@ def train_occupancy_cmd(data: Path = typer.Option(..., "--data", help="Dataset f
                         epochs: int = typer.Option(12, "--epochs", min=1, help="Epochs (cosine schedule over all)"),
                         batch: int = typer.Option(32, "--batch", min=1, help="Batch size"),
                         seed: int = typer.Option(0, "--seed", min=0, help="Seed"),
-                        threads: int = typer.Option(2, "--threads", min=1, help="torch threads"),
+                        threads: int = typer.Option(1, "--threads", min=1, help="torch threads (1: on a shared "
+                                                    "machine 2 threads were 5x slower, their OpenMP workers spinning)"),
                         max_minutes: float = typer.Option(60.0, "--max-minutes", help="Stop after the epoch that "
                                                           "would end past this wall time")):
     """Train the occupancy network; resumes from OUT.ckpt; writes OUT (weights + meta)."""

@@ -221,6 +221,7 @@ def shard_job(job: tuple) -> dict:
         samples += make_samples(scenario, heap, views, rng, box_sizes=targets)
         for s in samples[-views:]:
             s["set"] = oset
+            s["objects"] = ",".join(heap.object_names())
     if not samples:
         raise DatasetError(f"shard {k}: every heap failed")
     tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
@@ -229,7 +230,8 @@ def shard_job(job: tuple) -> dict:
                         visible=np.array([s["visible"] for s in samples], np.int64),
                         heap_seed=np.array([s["heap_seed"] for s in samples], np.int64),
                         size=np.stack([s["size"] for s in samples]),
-                        set=np.array([s["set"] for s in samples]), split=np.array(split))
+                        set=np.array([s["set"] for s in samples]),
+                        objects=np.array([s["objects"] for s in samples]), split=np.array(split))
     os.replace(tmp, path)
     return dict(shard=k, samples=len(samples), skipped=False, cpu=time.process_time() - t0, failed_heaps=failed)
 
@@ -259,14 +261,17 @@ def write_occupancy_dataset(out, count: int, seed: int = 0, views: int = 8, heap
 
 
 def load_dataset(folder, split: str) -> dict:
-    """All shards of `split` ("train" / "test") in `folder`, concatenated (x float16 (n, 3, 96, 128), ...)."""
+    """All shards of `split` ("train" / "test") in `folder`, concatenated: x float16 (n, 3, 96, 128)
+    inputs, y float16 (n, 96, 128) ground truth (max 1), ratio (channel index), visible (target
+    pixels seen, full resolution), heap_seed, size (target box, m), set, objects (the heap's
+    objects, comma-separated)."""
     files = sorted(Path(folder).glob(f"shard_*_{split}.npz"))
     if not files:
         raise DatasetError(f"{folder}: no {split} shards (shard_*_{split}.npz); make them with "
                            f"`ms-drake data occupancy --count 5000 --out {folder}`")
     parts = [dict(np.load(f)) for f in files]
-    keys = ("x", "y", "ratio", "visible", "heap_seed", "size", "set")
-    data = {k: np.concatenate([p[k] for p in parts]) for k in keys}
+    keys = ("x", "y", "ratio", "visible", "heap_seed", "size", "set", "objects")
+    data = {k: np.concatenate([p[k] for p in parts]) for k in keys if all(k in p for p in parts)}
     if data["x"].shape[1:] != (3, *WORK_SHAPE):
         raise DatasetError(f"{folder}: inputs are {data['x'].shape[1:]}, expected {(3, *WORK_SHAPE)}; regenerate it")
     data["files"] = [str(f) for f in files]

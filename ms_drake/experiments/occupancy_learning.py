@@ -29,7 +29,17 @@ from pathlib import Path
 import numpy as np
 
 from ms_drake.experiments.occupancy_data import DatasetError, load_dataset
-from ms_drake.perception.occupancy_net import TARGET_RATIOS, NetConfig, make_net, ratio_loss, zoom
+from ms_drake.perception.occupancy_net import (
+    FULL_SHAPE,
+    TARGET_AREA,
+    TARGET_RATIOS,
+    LearnedOccupancy,
+    NetConfig,
+    load_model,
+    make_net,
+    ratio_loss,
+    zoom,
+)
 
 POSITIVE = 0.1
 TOLERANCE = 0.2
@@ -80,7 +90,7 @@ def train_steps(net, opt, x, y, ratio, steps: int = 1) -> list[float]:
         loss = ratio_loss(net(xt), yt, rt)
         loss.backward()
         opt.step()
-        losses.append(float(loss))
+        losses.append(loss.item())
     return losses
 
 
@@ -90,7 +100,7 @@ def make_optimizer(net, lr: float = 1e-3, weight_decay: float = 5e-4):
     return torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=weight_decay)
 
 
-def train_occupancy(data, out, epochs: int = 12, batch: int = 32, seed: int = 0, threads: int = 2,
+def train_occupancy(data, out, epochs: int = 12, batch: int = 32, seed: int = 0, threads: int = 1,
                     config: NetConfig = NetConfig(), max_minutes: float = 60.0, progress=None,
                     command: str = "") -> dict:
     """Train on the train shards of `data`; write `out` (weights + meta) and `out`.ckpt (resume).
@@ -135,9 +145,9 @@ def train_occupancy(data, out, epochs: int = 12, batch: int = 32, seed: int = 0,
             loss.backward()
             opt.step()
             sched.step()
-            total += float(loss)
+            total += loss.item()
             if progress is not None:
-                progress(epoch, b, steps_per_epoch, float(loss))
+                progress(epoch, b, steps_per_epoch, loss.item())
         history.append(dict(epoch=epoch + 1, loss=total / steps_per_epoch, seconds=time.perf_counter() - te))
         state = dict(model=net.state_dict(), optimizer=opt.state_dict(), scheduler=sched.state_dict(),
                      epoch=epoch + 1, history=history, seconds=time.perf_counter() - t0, config=asdict(config),
@@ -190,3 +200,41 @@ def metrics_table(d: dict, pred: np.ndarray, ratios=(1, 2, 5, 10)) -> list[dict]
 def write_json(path, obj) -> None:
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     Path(path).write_text(json.dumps(obj, indent=1))
+
+
+def bench_occupancy(data, weights=None, scaling: bool = False, timed: int = 50, seed: int = 0) -> dict:
+    """Table 8.1 rows on the test shards of `data`, two baselines, and the inference time.
+
+    Baselines: "uniform" predicts one value over the bin's pixels (the uniform distribution scaled
+    to a maximum of 1); "modal" predicts the observed modal mask (nothing when hidden).
+    Timing: `LearnedOccupancy.estimate` on full 640 x 480 inputs (preprocessing, forward pass,
+    upsampling; the cost does not depend on the content), one torch thread, median of `timed` calls."""
+    torch = _torch_setup(seed, 1)
+    d = load_dataset(data, "test")
+    net, ck = load_model(weights)
+    d["y"] = d["y"].astype(np.float32)
+    scales = None
+    if scaling:
+        area = d["size"][:, 0] * d["size"][:, 1]
+        scales = np.sqrt(area / TARGET_AREA)
+    pred = predict(net, d["x"], d["ratio"], scales)
+    rows = metrics_table(d, pred)
+    # the bin's pixels: the working crop minus its border (the bin spans ~107 x 85 of 128 x 96)
+    uni = np.zeros_like(d["y"])
+    uni[:, 6:-6, 10:-10] = 1.0
+    modal = (d["x"][:, 0].astype(np.float32) > 0.25).astype(np.float32)
+    base = {}
+    for name, p in (("uniform", uni), ("modal", modal)):
+        m = occupancy_metrics(p, d["y"])
+        base[name] = {k: float(np.mean(v)) for k, v in m.items()}
+    est = LearnedOccupancy((0.03, 0.03, 0.005), weights=weights, input_scaling=False)
+    depth, mask = np.full(FULL_SHAPE, 0.8, np.float32), np.zeros(FULL_SHAPE, bool)
+    est.estimate(depth, mask)  # warm-up
+    times = []
+    for _ in range(timed):
+        t = time.perf_counter()
+        est.estimate(depth, mask)
+        times.append(time.perf_counter() - t)
+    return dict(rows=rows, baselines=base, ms_per_image=1000 * float(np.median(times)), timed=timed,
+                scaling=scaling, weights=str(weights or "shipped"), test_images=len(pred),
+                files=len(d["files"]), torch_threads=torch.get_num_threads())

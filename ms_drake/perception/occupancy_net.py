@@ -181,14 +181,19 @@ class LearnedOccupancy:
     """Backend ``estimate(depth, target_mask) -> (H, W)`` of OccupancyEstimator("learned").
 
     target_size: the target's (length, width, thickness) [m] (a TargetBox or TargetMesh works too): picks the
-    output channel of the closest trained aspect ratio, and with `input_scaling` the zoom s."""
+    output channel of the closest trained aspect ratio, and with `input_scaling` the zoom s.
+    threads: torch's intra-op threads for this process (default 1: the harness runs one process
+    per core, and on a loaded machine two threads per process were 5x slower than one, their
+    OpenMP workers spinning while they wait; None leaves torch's setting)."""
 
     name = "learned"
 
     def __init__(self, target_size, weights: Path | str | None = None, input_scaling: bool = True,
-                 ratio_index: int | None = None):
+                 ratio_index: int | None = None, threads: int | None = 1):
         import torch  # optional heavy dependency: only the learned backend needs it
 
+        if threads is not None:
+            torch.set_num_threads(int(threads))
         if hasattr(target_size, "length"):
             length, width = float(target_size.length), float(target_size.width)
         elif hasattr(target_size, "vertices"):  # a TargetMesh: its resting footprint's bounding box

@@ -168,7 +168,8 @@ class DropItem:
 def sample_drop_plan(names: list[str], scenario: Scenario, rng: np.random.Generator,
                      params: HeapParams, flat_first: bool = False) -> list[DropItem]:
     """Orientation and planar position of every object (step 2); flat_first: the first object
-    lies as modelled (its thinnest extent along z for a flat target), turned by a random yaw."""
+    lies as modelled (its thinnest extent along z for a flat target), turned by a random yaw, at
+    the heap's centre (the others scatter around it)."""
     size = scenario.environment.resolved_size()
     c = np.clip(rng.normal(0.0, params.center_sigma, 2), -params.center_max, params.center_max)
     plan = []
@@ -180,7 +181,10 @@ def sample_drop_plan(names: list[str], scenario: Scenario, rng: np.random.Genera
         v = _vertices(name) @ R.matrix().T
         lo, hi = v.min(axis=0), v.max(axis=0)
         half = np.maximum(0.5 * size[:2] - 0.5 * (hi - lo)[:2], 0.0)
-        xy = np.clip(c + rng.normal(0.0, params.offset_sigma, 2), -half, half) - 0.5 * (hi + lo)[:2]
+        offset = rng.normal(0.0, params.offset_sigma, 2)
+        if flat_first and k == 0:
+            offset = np.zeros(2)
+        xy = np.clip(c + offset, -half, half) - 0.5 * (hi + lo)[:2]
         plan.append(DropItem(R, xy, lo, hi))
     return plan
 
@@ -468,7 +472,8 @@ def generate_heap(scenario: Scenario, num_objects: int, seed: int, object_set: s
     """Generate heap `seed` of `num_objects` objects into the scenario's bin (see module doc).
     names_fn(rng) -> full names: draws the objects instead of step 1 (in drop order);
     target_first: the first object dropped is the target (instead of step 6's choice), lying flat
-    as modelled with a random yaw, and an attempt in which it leaves the bin is rejected."""
+    as modelled with a random yaw at the heap's centre, and an attempt in which it leaves the bin
+    is rejected."""
     params = params or HeapParams()
     if params.engine not in ("drake", "bullet"):
         raise HeapError(f"HeapParams.engine={params.engine!r}: use 'drake' or 'bullet'")

@@ -1,0 +1,120 @@
+"""The learned occupancy (Ch. 8.3): the dataset writer on a tiny count, a training step, the
+shipped weights against a uniform baseline, OccupancyEstimator("learned") alone and wired into
+the bin-search controller."""
+
+import numpy as np
+import pytest
+from pydrake.systems.sensors import ImageDepth32F
+
+from ms_drake.errors import PerceptionError
+from ms_drake.experiments.occupancy_data import load_dataset, shard_split, write_occupancy_dataset
+from ms_drake.experiments.occupancy_learning import make_optimizer, occupancy_metrics, predict, train_steps
+from ms_drake.experiments.rollout import SearchParams, build_search
+from ms_drake.experiments.xray import XRAY_TARGET, xray_heap
+from ms_drake.objects import get_object
+from ms_drake.perception.occupancy import OccupancyEstimator, TargetBox
+from ms_drake.perception.occupancy_net import (
+    FULL_SHAPE,
+    WORK_SHAPE,
+    LearnedOccupancy,
+    default_weights,
+    load_model,
+    make_net,
+    nearest_ratio,
+)
+from ms_drake.scenario import load_scenario
+from ms_drake.scenes.heaps import set_heap_poses
+from ms_drake.station.robots import set_arm_positions
+from ms_drake.types import OccupancyMap, TargetEstimate
+
+torch = pytest.importorskip("torch")
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """Five shards of one heap and two views each: shards 0-3 train, shard 4 test."""
+    out = tmp_path_factory.mktemp("occ")
+    res = write_occupancy_dataset(out, count=10, seed=3, views=2, heaps_per_shard=1, sets=("procedural", "ycb"))
+    assert res == dict(shards=5, skipped=0, written=5, failed=[])
+    return out
+
+
+def test_dataset_writer_splits_by_object_and_reloads(tiny):
+    assert [shard_split(k) for k in range(5)] == ["train"] * 4 + ["test"]
+    train, test = load_dataset(tiny, "train"), load_dataset(tiny, "test")
+    assert train["x"].shape == (8, 3, *WORK_SHAPE) and test["y"].shape == (2, *WORK_SHAPE)
+    for d, split in ((train, "train"), (test, "test")):
+        names = {n for s in d["objects"] for n in str(s).split(",")}
+        assert names and all(get_object(n).split == split for n in names), split
+        y = d["y"].astype(np.float32)
+        assert np.all(y >= 0) and np.allclose(y.max(axis=(1, 2)), 1.0, atol=1e-3)  # max-normalized, never empty
+        assert np.all(d["ratio"] >= 0) and np.all(d["ratio"] < 10)
+    # resuming keeps every shard
+    res = write_occupancy_dataset(tiny, count=10, seed=3, views=2, heaps_per_shard=1, sets=("procedural", "ycb"))
+    assert res["skipped"] == 5 and res["written"] == 0
+
+
+def test_a_training_step_lowers_the_loss_on_a_fixed_batch(tiny):
+    torch.manual_seed(0)
+    d = load_dataset(tiny, "train")
+    net = make_net()
+    opt = make_optimizer(net, lr=3e-3)
+    losses = train_steps(net, opt, d["x"][:4].astype(np.float32), d["y"][:4].astype(np.float32), d["ratio"][:4], 8)
+    assert losses[-1] < 0.8 * losses[0]
+
+
+def test_shipped_weights_load_and_beat_a_uniform_distribution(tiny):
+    net, ck = load_model()
+    assert default_weights().stat().st_size < 20e6 and ck["meta"]["epochs_done"] >= 1
+    d = load_dataset(tiny, "test")
+    y = d["y"].astype(np.float32)
+    pred = predict(net, d["x"], d["ratio"])
+    uniform = np.zeros_like(y)
+    uniform[:, 6:-6, 10:-10] = 1.0
+    m, u = occupancy_metrics(pred, y), occupancy_metrics(uniform, y)
+    assert m["mse"].mean() < u["mse"].mean()
+    assert m["balanced_accuracy"].mean() > u["balanced_accuracy"].mean()
+
+
+def test_missing_weights_name_the_command(tmp_path):
+    with pytest.raises(PerceptionError, match="ms-drake train occupancy"):
+        LearnedOccupancy((0.03, 0.03, 0.005), weights=tmp_path / "none.pt")
+
+
+def test_nearest_ratio_and_scale():
+    assert nearest_ratio(0.06, 0.06) == (0, pytest.approx(2.0))
+    assert nearest_ratio(0.0949, 0.00949)[0] == 9
+
+
+def test_learned_estimator_alone():
+    est = OccupancyEstimator("learned", target_size=TargetBox.from_object(XRAY_TARGET))
+    ctx = est.CreateDefaultContext()
+    h, w = FULL_SHAPE
+    depth = ImageDepth32F(w, h)
+    depth.mutable_data[:] = 0.8
+    depth.mutable_data[200:260, 300:380] = 0.7  # an object on the floor
+    est.GetInputPort("depth_image").FixValue(ctx, depth)
+    est.GetInputPort("target").FixValue(ctx, TargetEstimate(False, np.zeros((h, w), bool)))
+    occ = est.GetOutputPort("occupancy").Eval(ctx)
+    rho = occ.distribution
+    assert isinstance(occ, OccupancyMap) and rho.shape == (h, w)
+    assert np.all(rho >= 0) and rho.sum() == pytest.approx(1.0)
+    # a hidden target is more likely under the object than on the open floor around it
+    assert rho[200:260, 300:380].mean() > rho[100:140, 120:200].mean()
+
+
+def test_learned_estimator_in_the_xray_controller_without_privileged_state():
+    heap = xray_heap(5000, occluders=4)
+    assert heap.target == XRAY_TARGET and heap.target_index == 0
+    system = build_search(load_scenario(None, "FloatingGripperBin"), heap, SearchParams(policy="xray", horizon=2,
+                                                                                        time_step=0.01))
+    est = system.controller.GetSubsystemByName("occupancy_estimator")
+    assert isinstance(est.backend, LearnedOccupancy)  # from the target's size: no pose anywhere
+    assert [est.get_input_port(i).get_name() for i in range(est.num_input_ports())] == ["depth_image", "target"]
+    ctx = system.diagram.CreateDefaultContext()
+    set_heap_poses(system.station, ctx, heap)
+    set_arm_positions(system.plant, system.plant.GetMyMutableContextFromRoot(ctx), "floating",
+                      system.controller.initial_commands())
+    rho = system.output(ctx, "occupancy").distribution
+    assert rho.shape == FULL_SHAPE and rho.sum() == pytest.approx(1.0)
+    assert system.output(ctx, "action").kind == "grasp"
