@@ -6,12 +6,13 @@ import trimesh
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.sensors import CameraInfo, ImageDepth32F
+from test_grasp_samplers import _render_depth, overhead_camera, pose_xyz_yaw
 
 from ms_drake.grasping import GraspEvaluator, ParallelJawGrasp, SuctionGrasp
-from ms_drake.grasping.suction import SuctionEvaluator
 from ms_drake.grasping.planner import GraspPlanner, ObjectGeometrySource
+from ms_drake.grasping.suction import SuctionEvaluator
+from ms_drake.perception.segmentation import Segmenter
 from ms_drake.types import InstanceMasks, ObjectGeometry
-from test_grasp_samplers import _render_depth, overhead_camera, pose_xyz_yaw
 
 BOX = trimesh.creation.box(extents=(0.04, 0.06, 0.03))
 CYL = trimesh.creation.cylinder(radius=0.02, height=0.05, sections=24)
@@ -75,14 +76,20 @@ def test_planner_alone(model):
 
 
 def test_planner_in_diagram_with_rendered_depth():
-    from pydrake.geometry import (ClippingRange, ColorRenderCamera, DepthRange, DepthRenderCamera,
-                                  MakeRenderEngineVtk, RenderCameraCore, RenderEngineVtkParams)
+    from pydrake.geometry import (
+        Box,
+        ClippingRange,
+        ColorRenderCamera,
+        Cylinder,
+        DepthRange,
+        DepthRenderCamera,
+        MakeRenderEngineVtk,
+        RenderCameraCore,
+        RenderEngineVtkParams,
+    )
     from pydrake.multibody.plant import AddMultibodyPlantSceneGraph
     from pydrake.multibody.tree import SpatialInertia
-    from pydrake.geometry import Box, Cylinder
-    from pydrake.systems.framework import LeafSystem
-    from pydrake.common.value import AbstractValue
-    from pydrake.systems.sensors import ImageLabel16I, RgbdSensor
+    from pydrake.systems.sensors import RgbdSensor
 
     b = DiagramBuilder()
     plant, sg = AddMultibodyPlantSceneGraph(b, 0.0)
@@ -100,28 +107,13 @@ def test_planner_in_diagram_with_rendered_depth():
     b.Connect(sg.get_query_output_port(), cam.query_object_input_port())
     labels = {int(box.index()): "box", int(cyl.index()): "cyl"}
 
-    class LabelsToMasks(LeafSystem):
-        """Ground-truth instance masks from the label image (render label = body index)."""
-
-        def __init__(self):
-            super().__init__()
-            self.DeclareAbstractInputPort("label_image", AbstractValue.Make(ImageLabel16I(128, 96)))
-            self.DeclareAbstractOutputPort("masks", lambda: AbstractValue.Make(InstanceMasks.empty(96, 128)),
-                                           self._calc)
-
-        def _calc(self, context, out):
-            lab = self.get_input_port(0).Eval(context).data[:, :, 0]
-            ids = [k for k in labels if np.any(lab == k)]
-            out.set_value(InstanceMasks(np.stack([lab == k for k in ids]), tuple(labels[k] for k in ids),
-                                        np.ones(len(ids))))
-
-    to_masks = b.AddSystem(LabelsToMasks())
-    b.Connect(cam.label_image_output_port(), to_masks.get_input_port(0))
+    to_masks = b.AddSystem(Segmenter("ground_truth", label_to_id=labels, min_pixels=1))
+    b.Connect(cam.label_image_output_port(), to_masks.GetInputPort("label_image"))
     geo = b.AddSystem(ObjectGeometrySource({"box": (box, BOX, 0.2, None), "cyl": (cyl, CYL, 0.1, None)}))
     b.Connect(plant.get_body_poses_output_port(), geo.get_input_port(0))
     planner = b.AddSystem(GraspPlanner(info, X_WC, model="6dfc", num_samples=6, evaluator_params={"friction": 0.8}))
     b.Connect(cam.depth_image_32F_output_port(), planner.GetInputPort("depth_image"))
-    b.Connect(to_masks.get_output_port(0), planner.GetInputPort("masks"))
+    b.Connect(to_masks.GetOutputPort("masks"), planner.GetInputPort("masks"))
     b.Connect(geo.get_output_port(0), planner.GetInputPort("objects"))
     diagram = b.Build()
     ctx = diagram.CreateDefaultContext()
