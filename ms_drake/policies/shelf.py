@@ -21,18 +21,20 @@ projecting back"), occlusions unchanged.
 - bluction_dar: dar over pushes and suction actions, suction reductions divided by psi (1.3);
   the first of the sorted list (every candidate is kinematically feasible in FOSS).
 All three keep the history P'_t = min(P_t, P'_{t-1}) (P'_0 = P_0), renormalised.
-- oracle_p / oracle_ps: full state. The visibility triangle (overhead: from the camera's floor
-  point to the target's front face) must be cleared of occluders; A* over action sequences of at
-  most the remaining budget (cost n_p + psi * n_s; heuristic: occluders still in the triangle,
-  admissible as each needs an action of cost >= 1) returns the cheapest, or the first state popped
-  where FOSS already sees the target (the search's goal is the triangle, the rollout's is
-  visibility v). oracle_p branches on every feasible push; oracle_ps also on suction actions of the
+- oracle_p / oracle_ps: full state. A* over action sequences of at most the remaining budget (cost
+  n_p + psi * n_s) to a state where FOSS sees the target (visibility v). Its heuristic is the
+  reference's visibility triangle (overhead: from the camera's floor point to the target's front
+  face): the number of occluders still in it, each needing an action of cost >= 1 (1 once it is
+  clear while the target is still not seen: objects beside it may hide the target's top).
+  oracle_p branches on every feasible push; oracle_ps also on suction actions of the
   occluders, each taken to grid placements outside the triangle (per side of the target, the
   ones farthest from it, in distinct grid rows): up to `oracle_placements` for the occluders in the
   triangle and those in the way of their sweeps to the front, 2 for the others (which may have to
-  make room), instead of all 400: the reference's exhaustive trees are out of reach in Python. The
-  search stops after `oracle_max_nodes` expansions (then: no plan, the oracle stops). Plans are
-  cached by scene content, so executing one re-plans nothing.
+  make room), instead of all 400: the reference's exhaustive trees are out of reach in Python. After
+  `oracle_max_nodes` expansions without a plan, A* gives way to a greedy best-first search (fewest
+  occluders in the triangle first, 3 * oracle_max_nodes expansions), which finds a plan, not the
+  cheapest, in most of the rest; then the oracle stops. Plans are cached by scene content, so
+  executing one re-plans nothing.
 """
 
 from __future__ import annotations
@@ -61,7 +63,7 @@ class ShelfPolicyParams:
     seed: int = 0  # random policy
     lookahead: int = 3  # der<n>
     horizon: int | None = None  # action budget H (None: 2n); the oracles plan within what is left
-    oracle_max_nodes: int = 1500
+    oracle_max_nodes: int = 500  # A*'s expansions; the greedy fallback gets three times as many
     oracle_placements: int = 4
 
 
@@ -251,21 +253,36 @@ def _key(scene: ShelfScene) -> tuple:
 
 
 def oracle_plan(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: float = PSI,
-                max_nodes: int = 1500, placements: int = 4) -> tuple[ShelfAction, ...] | None:
-    """The cheapest action sequence (<= budget actions) clearing the visibility triangle (or one
-    found on the way that already reveals the target in FOSS), or None (module docstring)."""
+                max_nodes: int = 500, placements: int = 4) -> tuple[ShelfAction, ...] | None:
+    """The cheapest action sequence (<= budget actions) after which FOSS sees the target (A*); if
+    A* expands max_nodes states without one, any such sequence (greedy best-first, 3 * max_nodes
+    expansions); None if neither finds one (module docstring)."""
+    plan = _search(foss, scene, suction, budget, psi, max_nodes, placements, greedy=False)
+    if plan is None:
+        plan = _search(foss, scene, suction, budget, psi, 3 * max_nodes, placements, greedy=True)
+    return plan
+
+
+def _search(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: float, max_nodes: int,
+            placements: int, greedy: bool) -> tuple[ShelfAction, ...] | None:
     if scene.target is None:
         raise PolicyError("the oracles need the full state: connect a scene with its target")
     tri = visibility_triangle(foss.geometry, scene.target)
+
+    def estimate(sc, inside):
+        blockers = int(inside.sum())
+        return blockers if blockers else (0 if foss.revealed(sc) else 1)
+
     inside = _in_triangle(tri, scene)
-    heap = [(float(inside.sum()), int(inside.sum()), 0, 0.0, scene, (), inside)]
+    h0 = estimate(scene, inside)
+    heap = [(float(h0), h0, 0, 0.0, scene, (), inside)]  # (priority, h, tie, g, scene, plan, in triangle)
     best = {_key(scene): 0.0}
     counter, expanded = 1, 0
     while heap and expanded < max_nodes:
         f, h, _, g, sc, plan, inside = heapq.heappop(heap)
         if h == 0 or foss.revealed(sc):
             return plan
-        if len(plan) >= budget or g > best.get(_key(sc), np.inf) + 1e-9:
+        if len(plan) >= budget or (not greedy and g > best.get(_key(sc), np.inf) + 1e-9):
             continue
         expanded += 1
         actions = [(a, 1.0) for a in foss.push_actions(sc)]
@@ -278,8 +295,8 @@ def oracle_plan(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: 
                 continue
             best[key] = g2
             ins = _in_triangle(tri, nxt)
-            h2 = int(ins.sum())
-            heapq.heappush(heap, (g2 + h2, h2, counter, g2, nxt, plan + (a,), ins))
+            h2 = estimate(nxt, ins)
+            heapq.heappush(heap, (h2 if greedy else g2 + h2, h2, counter, g2, nxt, plan + (a,), ins))
             counter += 1
     return None
 
@@ -352,7 +369,7 @@ class ShelfPolicies:
                 self._remember((suction, _key(sc)), plan[k:])
                 sc = self.foss.moved(sc, plan[k])
         if not plan:
-            return Action("stop", reason=f"{self.policy}: the view is clear")
+            return Action("stop", reason=f"{self.policy}: the target is already seen")
         return Action("shelf", shelf=plan[0], reason=f"{self.policy}: {len(plan)} actions to go")
 
     def _remember(self, key, plan):
