@@ -157,7 +157,8 @@ LABEL_IMAGES = ("render", "depth")
 
 
 def MakeStation(scenario: Scenario, meshcat=None, hardware: bool | None = None, lcm=None,
-                target_index: int = -1, name: str = "station", label_images: str = "depth"):
+                target_index: int = -1, name: str = "station", label_images: str = "depth",
+                extra_objects=()):
     """Build the station Diagram for `scenario`.
 
     meshcat: a pydrake Meshcat to visualize into (None: no visualization).
@@ -171,6 +172,9 @@ def MakeStation(scenario: Scenario, meshcat=None, hardware: bool | None = None, 
       exact, e.g. a mesh geometry in view). "render": a second VTK render (RgbdSensor's label
       port). Cameras without a depth image always render. The kernel compiles on its first use
       in a fresh install (~7 s, cached on disk afterwards).
+    extra_objects: (full name '<set>/<name>', sdf(model_name) -> SDF text) pairs of objects that
+      are not in the registry (e.g. a shelf scene's drawn boxes and cylinders); they follow the
+      scenario's objects as free bodies named like them (`station_objects` lists them too).
     """
     if label_images not in LABEL_IMAGES:
         raise ScenarioError(f"MakeStation(label_images={label_images!r}): choose one of {', '.join(LABEL_IMAGES)}")
@@ -186,6 +190,8 @@ def MakeStation(scenario: Scenario, meshcat=None, hardware: bool | None = None, 
     overrides = {target_index: TARGET_RGBA} if 0 <= target_index < len(names) else None
     instances = add_objects(plant, names, scenario.objects.friction, parser, overrides,
                             **object_contact(scenario.objects.compliance))
+    for k, (full, sdf) in enumerate(extra_objects, start=len(names)):
+        instances += parser.AddModelsFromString(sdf(object_model_name(k, full)), "sdf")
     robot_handle = None
     if scenario.robot.name:
         robot_handle = robots.add_robot_from_scenario(builder, plant, scene_graph, scenario, parser)
