@@ -406,9 +406,14 @@ class ShelfPolicySelector(LeafSystem):
               occupancy_history  ShelfOccupancy P'_t = min(P_t, P'_{t-1})
     State: P'_{t-1} (abstract; None before the first step), set to P'_t by a periodic update every
     `period` s (first at t = period), in step with FossSystem applying the action.
+    per_action=True (a controller whose actions last many periods, e.g. the physics controller of
+    ms_drake.policies.shelf_search): the state is (history length n, P'_n) instead and advances only
+    when the history input has grown, so each executed action adds one observation; P'_t is the
+    stored P'_n while the history still has n outcomes.
     """
 
-    def __init__(self, policy: str, foss: Foss, params: ShelfPolicyParams | None = None, period: float = 1.0):
+    def __init__(self, policy: str, foss: Foss, params: ShelfPolicyParams | None = None, period: float = 1.0,
+                 per_action: bool = False):
         super().__init__()
         self.rules = ShelfPolicies(policy, foss, params)
         width = foss.geometry.camera.width
@@ -424,12 +429,21 @@ class ShelfPolicySelector(LeafSystem):
                                        prerequisites_of_calc={self.all_sources_ticket()})
         self.DeclarePeriodicUnrestrictedUpdateEvent(period, period, self._update)
         self.policy = policy
+        self.per_action = bool(per_action)
+        self._count = self.DeclareAbstractState(AbstractValue.Make(-1))  # per_action: n of the stored P'_n
+
+    def _steps(self, context) -> int:
+        return len(tuple(self.history_port.Eval(context))) if self.history_port.HasValue(context) else 0
 
     def _current(self, context) -> ShelfOccupancy:
         if not self.occupancy_port.HasValue(context):
             raise PolicyError(f"ShelfPolicySelector({self.policy!r}): connect the occupancy input "
                               "(ShelfOccupancyEstimator)")
-        return history_min(self.occupancy_port.Eval(context), context.get_abstract_state(self._previous).get_value())
+        previous = context.get_abstract_state(self._previous).get_value()
+        if self.per_action and previous is not None and \
+                context.get_abstract_state(self._count).get_value() == self._steps(context):
+            return previous
+        return history_min(self.occupancy_port.Eval(context), previous)
 
     def _calc_history(self, context, output):
         output.set_value(self._current(context))
@@ -443,5 +457,11 @@ class ShelfPolicySelector(LeafSystem):
         output.set_value(self.rules.select(scene, dist, history))
 
     def _update(self, context, state):
-        if self.occupancy_port.HasValue(context):
-            state.get_mutable_abstract_state(self._previous).set_value(self._current(context))
+        if not self.occupancy_port.HasValue(context):
+            return
+        if self.per_action:
+            n = self._steps(context)
+            if context.get_abstract_state(self._count).get_value() == n:
+                return
+            state.get_mutable_abstract_state(self._count).set_value(n)
+        state.get_mutable_abstract_state(self._previous).set_value(self._current(context))
