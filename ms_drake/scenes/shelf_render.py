@@ -1,34 +1,33 @@
 """Drake renders of a shelf scene (kept apart from the fast geometric generator: a render costs
 tens of milliseconds, a scene a few).
 
-`render_shelf_scene(scenario, scene)` builds the shelf station's world for one ShelfScene -- the
-scenario's plant config, its shelf (ms_drake.station.station.add_environment) and its cameras
-(add_cameras), no robot (the reference's Fetch parks the bluction tool out of view before it looks)
--- with every occluder and the target as a box or cylinder welded at its pose (SDF from
-ms_drake.objects.sdf, the target in the target colour), and renders one camera: depth (metres),
-label image and colour. MakeStation itself takes objects by registry name; shelf scene objects
-have drawn dimensions, hence this builder.
+`render_shelf_scene(scenario, scene)` builds the scenario's station with MakeStation -- its plant
+config, shelf and cameras; no robot (the reference's Fetch parks the bluction tool out of view
+before it looks) and no registry objects -- with every occluder and the target added as a box or
+cylinder (`MakeStation(extra_objects=...)`, SDF from ms_drake.objects.sdf, the target in the target
+colour), poses them on the shelf floor and renders one camera: depth (metres), label image (VTK's
+own render by default) and colour.
 """
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 from pydrake.math import RigidTransform
-from pydrake.multibody.plant import AddMultibodyPlant
-from pydrake.systems.framework import DiagramBuilder
 
 from ms_drake.errors import SceneError
 from ms_drake.objects import TARGET_RGBA
 from ms_drake.objects.sdf import Inertia, Shape, object_sdf
-from ms_drake.paths import make_parser
 from ms_drake.scenario import Scenario
-from ms_drake.station.station import add_cameras, add_environment
+from ms_drake.station import MakeStation, get_plant, station_objects
 from ms_drake.types import ShelfObject, ShelfScene
 
 OCCLUDER_RGBA = (0.35, 0.55, 0.80, 1.0)
 DENSITY = 400.0  # kg/m^3, as the procedural object set
+SET = "shelf"  # the objects' set name in the station ('shelf/<object id>')
 
 
 @dataclass(frozen=True, eq=False)
@@ -44,54 +43,57 @@ class ShelfRender:
         return self.label == self.labels[object_id]
 
 
-def _object_sdf(o: ShelfObject, rgba) -> str:
+def object_sdf_text(o: ShelfObject, rgba, model_name: str) -> str:
+    """SDF of a shelf object (a solid box or cylinder of DENSITY) with the model name given."""
     if o.kind == "box":
         shape = Shape("box", (o.width, o.depth, o.height))
-        volume = o.width * o.depth * o.height
+        m = DENSITY * o.width * o.depth * o.height
+        ixx, iyy, izz = (m * (o.depth ** 2 + o.height ** 2) / 12, m * (o.width ** 2 + o.height ** 2) / 12,
+                         m * (o.width ** 2 + o.depth ** 2) / 12)
     else:
-        shape = Shape("cylinder", (o.width / 2, o.height))
-        volume = np.pi * (o.width / 2) ** 2 * o.height
-    m = DENSITY * volume
-    inertia = Inertia(m, (0.0, 0.0, 0.0), m * 1e-2, m * 1e-2, m * 1e-2)  # welded: never simulated
-    return object_sdf(f"shelf_{o.id}", inertia, [(shape, rgba)], [shape], contact_spheres=False)
+        r = o.width / 2
+        shape = Shape("cylinder", (r, o.height))
+        m = DENSITY * np.pi * r * r * o.height
+        ixx = iyy = m * (3 * r * r + o.height ** 2) / 12
+        izz = m * r * r / 2
+    return object_sdf(model_name, Inertia(m, (0.0, 0.0, 0.0), ixx, iyy, izz), [(shape, rgba)], [shape],
+                      contact_spheres=False)
 
 
-def build_shelf_world(scenario: Scenario, scene: ShelfScene, camera: str = "front"):
-    """(diagram, {object id: body index}) for `scene` in the scenario's shelf, seen by `camera`."""
+def shelf_station(scenario: Scenario, scene: ShelfScene, label_images: str = "render"):
+    """(station, context, {object id: label}) for `scene` in the scenario's shelf, objects posed."""
     if scenario.environment.type != "shelf":
         raise SceneError(f"environment.type is {scenario.environment.type!r}: render shelf scenes in a shelf "
                          "scenario (e.g. FetchShelf)")
+    s = copy.deepcopy(scenario)
+    s.robot.name, s.robot.grippers = "", []
+    s.objects.names, s.objects.count = [], 0
+    s.hardware = False
+    objects = list(scene.objects) + ([scene.target] if scene.target is not None else [])
+    extra = [(f"{SET}/{o.id}", partial(object_sdf_text, o, TARGET_RGBA if o is scene.target else OCCLUDER_RGBA))
+             for o in objects]
+    station = MakeStation(s, label_images=label_images, extra_objects=extra)
+    context = station.CreateDefaultContext()
+    plant = get_plant(station)
+    plant_context = plant.GetMyMutableContextFromRoot(context)
+    origin = np.asarray(scenario.environment.position, float)
+    by_id = {o.id: o for o in objects}
+    labels = {}
+    for so in station_objects(plant):
+        o = by_id[so.full_name.split("/", 1)[1]]
+        plant.SetFreeBodyPose(plant_context, plant.get_body(so.body_index),
+                              RigidTransform(origin + [o.x, o.y, o.height / 2]))
+        labels[o.id] = int(so.body_index)
+    return station, context, labels
+
+
+def render_shelf_scene(scenario: Scenario, scene: ShelfScene, camera: str = "front",
+                       label_images: str = "render") -> ShelfRender:
+    """Depth, label and colour images of `scene` from the scenario's camera `camera`."""
+    station, context, labels = shelf_station(scenario, scene, label_images)
     if camera not in scenario.cameras:
         raise SceneError(f"camera {camera!r} is not in the scenario's cameras ({', '.join(scenario.cameras)})")
-    builder = DiagramBuilder()
-    plant, scene_graph = AddMultibodyPlant(scenario.plant_config, builder)
-    parser = make_parser(plant)
-    add_environment(plant, scenario, parser)
-    origin = np.asarray(scenario.environment.position, float)
-    bodies = {}
-    objects = list(scene.objects) + ([scene.target] if scene.target is not None else [])
-    for o in objects:
-        rgba = TARGET_RGBA if scene.target is not None and o is scene.target else OCCLUDER_RGBA
-        (mi,) = parser.AddModelsFromString(_object_sdf(o, rgba), "sdf")
-        body = plant.GetBodyByName("body", mi)
-        plant.WeldFrames(plant.world_frame(), body.body_frame(),
-                         RigidTransform(origin + [o.x, o.y, o.height / 2]))
-        bodies[o.id] = int(body.index())
-    plant.Finalize()
-    cfg = scenario.cameras[camera]
-    add_cameras(builder, [cfg], plant, scene_graph)
-    sensor = builder.GetSubsystemByName(f"rgbd_sensor_{cfg.name}")
-    builder.ExportOutput(sensor.depth_image_32F_output_port(), "depth_image")
-    builder.ExportOutput(sensor.label_image_output_port(), "label_image")
-    builder.ExportOutput(sensor.color_image_output_port(), "rgb_image")
-    return builder.Build(), bodies
-
-
-def render_shelf_scene(scenario: Scenario, scene: ShelfScene, camera: str = "front") -> ShelfRender:
-    """Depth, label and colour images of `scene` from the scenario's camera `camera`."""
-    diagram, bodies = build_shelf_world(scenario, scene, camera)
-    context = diagram.CreateDefaultContext()
-    depth = np.array(diagram.GetOutputPort("depth_image").Eval(context).data)[:, :, 0].copy()
-    label = np.array(diagram.GetOutputPort("label_image").Eval(context).data)[:, :, 0].astype(int)
-    rgb = np.array(diagram.GetOutputPort("rgb_image").Eval(context).data)[:, :, :3].copy()
-    return ShelfRender(depth, label, rgb, bodies)
+    depth = np.array(station.GetOutputPort(f"{camera}.depth_image").Eval(context).data)[:, :, 0].copy()
+    label = np.array(station.GetOutputPort(f"{camera}.label_image").Eval(context).data)[:, :, 0].astype(int)
+    rgb = np.array(station.GetOutputPort(f"{camera}.rgb_image").Eval(context).data)[:, :, :3].copy()
+    return ShelfRender(depth, label, rgb, labels)
