@@ -2,10 +2,10 @@
 
 import numpy as np
 import pytest
+from pydrake.common.value import AbstractValue
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantValueSource
-from pydrake.common.value import AbstractValue
 
 from ms_drake.foss import Foss, FossSystem
 from ms_drake.foss.simulator import BLADE_THICKNESS, CONTACT_GAP
@@ -96,7 +96,7 @@ def test_suction_lifts_over_lower_objects_but_the_shaft_must_pass(foss):
     high = box("high", 0.0, -0.2, h=0.13)  # ... but not over this one
     ok = foss.suction_placements(scene(back, low), "back")
     assert len(ok) > 0
-    new, out = foss.step(scene(back, low), ShelfAction("suction", "back", ok[0][0] - back.x, ok[0][1] - 0.05 + 0.3))
+    _, out = foss.step(scene(back, low), ShelfAction("suction", "back", ok[0][0] - back.x, ok[0][1] - 0.05 + 0.3))
     assert out.success
     assert len(foss.suction_placements(scene(back, high), "back")) == 0
     assert all(a.object_id != "back" for a in foss.suction_actions(scene(back, high)))

@@ -21,7 +21,7 @@ from ms_drake.policies.shelf import (
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.shelf import generate_shelf_scene
 from ms_drake.shelf_geometry import ShelfGeometry
-from ms_drake.types import Action, ActionOutcome, ShelfAction, ShelfObject, ShelfOccupancy, ShelfScene
+from ms_drake.types import Action, ActionOutcome, ShelfObject, ShelfOccupancy, ShelfScene
 
 W = 640
 

@@ -279,7 +279,7 @@ def _search(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: floa
     best = {_key(scene): 0.0}
     counter, expanded = 1, 0
     while heap and expanded < max_nodes:
-        f, h, _, g, sc, plan, inside = heapq.heappop(heap)
+        _, h, _, g, sc, plan, inside = heapq.heappop(heap)
         if h == 0 or foss.revealed(sc):
             return plan
         if len(plan) >= budget or (not greedy and g > best.get(_key(sc), np.inf) + 1e-9):
