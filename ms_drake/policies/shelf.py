@@ -304,15 +304,21 @@ def _search(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: floa
 # -- selection ----------------------------------------------------------------------------------------
 
 
+def _action_key(a: ShelfAction) -> tuple:
+    """An action up to 1 mm in dx and dy: a scene observed again in physics (objects settled by a few
+    microns) proposes the same action with slightly different numbers."""
+    return a.kind, a.object_id, round(a.dx, 3), round(a.dy, 3)
+
+
 def _rejected(history) -> set:
-    """Shelf actions refused since the last executed one."""
+    """Keys (`_action_key`) of the shelf actions refused since the last executed one."""
     out = set()
     for outcome in reversed(tuple(history)):
         if outcome.success:
             break
         a = shelf_action(outcome.action)
         if a is not None:
-            out.add(a)
+            out.add(_action_key(a))
     return out
 
 
@@ -341,7 +347,7 @@ class ShelfPolicies:
             return self._oracle(scene, len(tuple(history)), rejected)
         seg = segment(self.foss.geometry, scene)
         suction = self.policy in ("random", "bluction_dar")
-        actions = [a for a in self.foss.actions(seg.known, suction=suction) if a not in rejected]
+        actions = [a for a in self.foss.actions(seg.known, suction=suction) if _action_key(a) not in rejected]
         if not actions:
             return Action("stop", reason=f"{self.policy}: no feasible action")
         if self.policy == "random":
@@ -359,7 +365,7 @@ class ShelfPolicies:
         suction = self.policy == "oracle_ps"
         key = (suction, _key(scene))
         plan = self._plans.get(key)
-        if plan is None or (plan and plan[0] in rejected):
+        if plan is None or (plan and _action_key(plan[0]) in rejected):
             plan = oracle_plan(self.foss, scene, suction, self.budget(scene, steps), self.params.psi,
                                self.params.oracle_max_nodes, self.params.oracle_placements)
             if plan is None:
