@@ -388,6 +388,7 @@ def data_shelf(count: int = typer.Option(..., "--count", min=1, help="Scenes (N)
                seed_start: int = typer.Option(0, "--seed-start", min=0, help="First scene seed"),
                shard_size: int = typer.Option(100, "--shard-size", min=1, help="Scenes per shard"),
                depth: bool = typer.Option(True, "--depth/--no-depth", help="Render the Drake depth image of each scene"),
+               depth_block: int = typer.Option(1, "--depth-block", min=1, help="Store depth averaged over BxB blocks"),
                workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers"),
                ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
                ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address")):
@@ -402,7 +403,7 @@ def data_shelf(count: int = typer.Option(..., "--count", min=1, help="Scenes (N)
             tqdm.write(f"shard {r.job[1]}: {r.error.strip().splitlines()[-1]} (rerun to retry)")
 
     res = write_shelf_dataset(out, count, seed_start, shard_size, depth, workers, ray or ray_address is not None,
-                              ray_address, progress)
+                              ray_address, progress, depth_block)
     bar.close()
     typer.echo(f"{res['written']} shards written, {res['skipped']} already there, {len(res['failed'])} failed, "
                f"in {out} ({time.perf_counter() - t0:.1f} s)")

@@ -15,7 +15,8 @@
 - `shelf_table`, `plot_shelf`: Table 9.1 (success %, median steps (IQR) of the successful
   searches) and a figure.
 - `write_shelf_dataset(...)`: `ms-drake data shelf`: shards of generated scenes with both
-  ground-truth distributions and (optionally) the Drake depth image, resumable shard by shard.
+  ground-truth distributions, the 1D ground truth of all three target sizes, and (optionally) the
+  Drake depth image (block-averaged with --depth-block), resumable shard by shard.
 """
 
 from __future__ import annotations
@@ -39,9 +40,9 @@ from ms_drake.parallel import run_jobs
 from ms_drake.perception.shelf_occupancy import ShelfOccupancyEstimator
 from ms_drake.policies.shelf import SHELF_POLICIES, ShelfPolicyParams, ShelfPolicySelector, check_shelf_policy
 from ms_drake.scenario import load_scenario
-from ms_drake.scenes.shelf import DEFAULT_TARGET, TARGET_SIZES, generate_shelf_scene, scene_to_dict
+from ms_drake.scenes.shelf import DEFAULT_TARGET, TARGET_SIZES, ShelfSceneParams, generate_shelf_scene, scene_to_dict
 from ms_drake.scenes.shelf_render import render_shelf_scene
-from ms_drake.shelf_geometry import ShelfGeometry
+from ms_drake.shelf_geometry import Prisms, ShelfGeometry, hidden_placements
 from ms_drake.types import ShelfScene
 
 SCENARIO = "FetchShelf"
@@ -274,27 +275,47 @@ def bench_shelf_scenes(count: int, seed_start: int = 0, target_size=DEFAULT_TARG
 # -- datasets -----------------------------------------------------------------------------------------
 
 
+def block_depth(depth: np.ndarray, block: int) -> np.ndarray:
+    """Mean of the finite depths of each block x block pixel block (0 where a block has none)."""
+    if block == 1:
+        return depth
+    h, w = depth.shape
+    d = depth[:h - h % block, :w - w % block].reshape(h // block, block, w // block, block)
+    ok = np.isfinite(d)
+    n = ok.sum(axis=(1, 3))
+    return np.where(n > 0, np.where(ok, d, 0).sum(axis=(1, 3)) / np.maximum(n, 1), 0).astype(np.float32)
+
+
 def dataset_shard_job(job: tuple) -> dict:
-    """(out_dir, shard index, first seed, count, depth) -> {shard, path, scenes, seconds}: writes
-    out_dir/shard_<index>.npz atomically. Scene `seed` has a drawn occluder count and the target of
-    TARGET_SIZES in turn (seed mod 3), so every head of a multi-height network gets data."""
-    out_dir, index, first, count, depth = job
+    """(out_dir, shard index, first seed, count, depth[, block]) -> {shard, path, scenes, seconds}:
+    writes out_dir/shard_<index>.npz atomically. Scene `seed` has a drawn occluder count and the
+    target of TARGET_SIZES in turn (seed mod 3); `image_x_sizes` also holds the 1D ground truth of
+    every size of TARGET_SIZES behind the same occluders, so every head of a multi-height network
+    gets data from every image. block > 1: the depth image is stored as block_depth(depth, block)."""
+    out_dir, index, first, count, depth, *rest = job
+    block = int(rest[0]) if rest else 1
     sizes = list(TARGET_SIZES.values())
     t0 = time.perf_counter()
     geometry = shelf_geometry(SCENARIO)
     scenario = load_scenario(None, SCENARIO) if depth else None
-    scenes, floors, image_x, depths, heights = [], [], [], [], []
+    scenes, floors, image_x, depths, heights, all_x = [], [], [], [], [], []
+    params = ShelfSceneParams()
     for seed in range(first, first + count):
         size = sizes[seed % len(sizes)]
-        sample = generate_shelf_scene(geometry, seed, None, size)
+        sample = generate_shelf_scene(geometry, seed, None, size, params)
         scenes.append(scene_to_dict(sample.scene))
         floors.append(sample.occupancy.floor.astype(np.float32))
         image_x.append(sample.occupancy.image_x.astype(np.float32))
         heights.append(size[2])
+        prisms = Prisms.of(sample.scene.objects)
+        all_x.append([sample.occupancy.image_x if s == size else
+                      hidden_placements(geometry, prisms, s, params.grid_step, params.gap).occupancy(geometry).image_x
+                      for s in sizes])
         if depth:
-            depths.append(render_shelf_scene(scenario, sample.scene).depth.astype(np.float32))
+            depths.append(block_depth(render_shelf_scene(scenario, sample.scene).depth.astype(np.float32), block))
     occ = sample.occupancy
     arrays = dict(floor=np.stack(floors), image_x=np.stack(image_x), target_height=np.array(heights, np.float32),
+                  image_x_sizes=np.array(all_x, np.float32), depth_block=np.array(block),
                   seeds=np.arange(first, first + count), floor_origin=np.array([occ.x0, occ.y0, occ.step]),
                   scenes=np.array(json.dumps(scenes)))
     if depth:
@@ -308,25 +329,27 @@ def dataset_shard_job(job: tuple) -> dict:
 
 def write_shelf_dataset(out_dir, count: int, seed_start: int = 0, shard_size: int = 100, depth: bool = True,
                         workers: int = 1, use_ray: bool = False, ray_address: str | None = None,
-                        progress=None) -> dict:
+                        progress=None, block: int = 1) -> dict:
     """Shards of `shard_size` scenes for seeds S..S+count-1 into out_dir (existing shards are kept:
-    resumable); returns {written, skipped, failed}."""
-    if count < 1 or shard_size < 1:
-        raise MsDrakeError(f"--count {count} / shard size {shard_size}: both must be >= 1")
+    resumable); depth images block-averaged by `block`; returns {written, skipped, failed}."""
+    if count < 1 or shard_size < 1 or block < 1:
+        raise MsDrakeError(f"--count {count} / shard size {shard_size} / --depth-block {block}: all must be >= 1")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "index.json").write_text(json.dumps(dict(
         scenario=SCENARIO, seed_start=seed_start, count=count, shard_size=shard_size, depth=depth,
         target_sizes=TARGET_SIZES, generator="ms_drake.scenes.shelf.generate_shelf_scene",
-        arrays="floor (K, ny, nx), image_x (K, W), target_height (K,), seeds (K,), floor_origin (x0, y0, step), "
-               "scenes (JSON), depth (K, H, W) metres"), indent=1))
+        depth_block=block,
+        arrays="floor (K, ny, nx), image_x (K, W), target_height (K,), image_x_sizes (K, 3, W) (TARGET_SIZES order), "
+               "seeds (K,), floor_origin (x0, y0, step), scenes (JSON), depth (K, H / block, W / block) metres (mean of "
+               "the finite depths of each block, 0 where none)"), indent=1))
     jobs, skipped = [], 0
     for index, first in enumerate(range(seed_start, seed_start + count, shard_size)):
         n = min(shard_size, seed_start + count - first)
         if (out / f"shard_{index:05d}.npz").exists():
             skipped += 1
             continue
-        jobs.append((str(out), index, first, n, depth))
+        jobs.append((str(out), index, first, n, depth, block))
     written, failed = 0, []
     for r in run_jobs(dataset_shard_job, jobs, workers=workers, use_ray=use_ray, ray_address=ray_address):
         if r.ok:
