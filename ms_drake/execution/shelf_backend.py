@@ -1,0 +1,410 @@
+"""ShelfBackend: the shelf actions of Ch. 9.2 (ShelfAction) on the Fetch with the bluction tool
+(FetchShelf), planned with the project's IK + ruckig (ms_drake.planning) and executed through the
+station's drivers (`fetch.position`, `fetch_bluction.position` = blade angle, `fetch_bluction.suction`)
+by the same ActionExecutor as the bin backends (`plan(action, hold, step, poses)` -> Motion,
+`outcome(...)`, `initial_commands()`).
+
+Frames: the shelf frame S of ms_drake.shelf_geometry (x across the opening, y into the shelf, z up,
+floor at 0, open front at y = -Y/2), placed at the environment's position. The tool is level and
+points into the shelf (its z along +y), its body y up, so the blade hangs down at blade angle 0 and
+stands up at pi (TOOL_ROTATION, as the fetch_push / fetch_suction pick tasks).
+
+push (O, dx): blade down. The blade's centre (frame `blade_tcp`) goes beside O's trailing side at
+  the height BLADE_Z, with the 3 cm shaft just clear of O (`shaft_clearance`), along O's front part as
+  in FOSS (its front edge at O's front face). Park -> staging (in front of the shelf, `staging`
+  m before the front plane) by a joint motion -> straight in along +y -> straight along x by |dx|
+  plus the gap between the blade and O (so O itself moves |dx|) -> hold -> back off 5 mm along x
+  -> straight out along -y -> park.
+suction (O, dx, dy): blade up. The cup (frame `tcp`) on O's front face (its front-most point for a
+  cylinder) at x = O.x, 2 cm below O's top; park -> staging -> straight in -> vacuum on 0.1 s
+  before contact, hold -> lift (FOSS's rule: at least 2 cm, and 1 cm over every object of the
+  sweeps to and from the front; `suction_lift`) -> pull out until O's back is 2 cm in front of
+  the shelf -> translate dx along x -> push in until O's front face is dy behind the front plane ->
+  lower onto the floor (3 mm into it: the cup gives) -> vacuum off, hold -> straight out -> park.
+park: the tool level and pointing into the shelf, below the shelf floor's height in front of the
+  cabinet (PARK_TIP, tip 8 cm in front of it, 10 cm below the floor's top): outside the front
+  camera's view, which sees the shelf from above the robot (the reference's Fetch also parks the
+  tool out of view before each image).
+
+Outcome (after the motion and the settle): the scene observed from body_poses (`observe`: each
+object's footprint centre, its footprint from its rotated extents, toppled when tilted by more
+than 20 degrees) against FOSS's prediction for the scene observed when the action was planned
+(Foss.step on the full scene, the target included). The action is "successful" (executed, the
+selector may move on) when the object moved by at least half the commanded displacement; the
+message records whether physics and FOSS agree: `agree=1` when FOSS accepted the action, the moved
+object's footprint centre ended within `tolerance` (2 cm) of FOSS's, no other object moved by more
+than `tolerance`, and nothing toppled (`agree=0` otherwise), followed by the measured errors.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydrake.math import RigidTransform, RotationMatrix
+
+from ms_drake.execution.executor import ExecutionError, Motion
+from ms_drake.foss import Foss, shelf_action
+from ms_drake.geometry import as_rigid_transform
+from ms_drake.planning import ik_pose, plan_cartesian_line, plan_joint_motion
+from ms_drake.planning.sequences import Schedule, Timeline, arm_ik, nearest_equivalent
+from ms_drake.robots import BluctionConfig, gripper_port_name
+from ms_drake.shelf_geometry import ShelfGeometry
+from ms_drake.types import Action, ActionOutcome, ShelfObject, ShelfScene
+
+#: Tool level, pointing into the shelf (+y), body y up: the blade hangs down at angle 0.
+TOOL_ROTATION = RotationMatrix(np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]]))
+BLADE_DOWN, BLADE_UP = 0.0, 3.14159  # the blade joint's limits are [0, 3.14159265]
+#: The tool tip when parked, shelf frame: centred, 8 cm in front of the shelf's front plane, 10 cm
+#: below its floor (out of the front camera's view).
+PARK_TIP = (0.0, -0.08, -0.10)
+TOPPLE_DEGREES = 20.0
+
+
+@dataclass(frozen=True)
+class ShelfBody:
+    """A shelf object of the station: its plant body index and its dimensions (a ShelfObject whose
+    x, y are where it was loaded)."""
+
+    body_index: int
+    shape: ShelfObject
+
+
+def observe(poses, bodies: dict, origin, target_id: str = "") -> tuple[ShelfScene, tuple[str, ...]]:
+    """The shelf scene in body_poses `poses` (list by body index of RigidTransforms / 4x4 arrays):
+    (ShelfScene of the objects (the target as scene.target), ids of toppled objects). bodies:
+    {object id: ShelfBody}. A tilted object's footprint is its rotated bounding box (a box)."""
+    origin = np.asarray(origin, float)
+    objs, target, toppled = [], None, []
+    for oid, b in bodies.items():
+        X = as_rigid_transform(poses[b.body_index], f"poses[{b.body_index}]")
+        p = X.translation() - origin
+        R = X.rotation().matrix()
+        s = b.shape
+        tilt = np.degrees(np.arccos(np.clip(R[2, 2], -1.0, 1.0)))
+        if tilt > TOPPLE_DEGREES:
+            toppled.append(oid)
+            half = np.abs(R) @ (0.5 * np.array([s.width, s.depth, s.height]))
+            o = ShelfObject(oid, "box", float(p[0]), float(p[1]), float(2 * half[0]), float(2 * half[1]),
+                            float(2 * half[2]))
+        else:
+            o = s.moved(float(p[0]), float(p[1]))
+        if oid == target_id:
+            target = o
+        else:
+            objs.append(o)
+    return ShelfScene(tuple(objs), target), tuple(toppled)
+
+
+class ShelfBackend:
+    """The Fetch's shelf actions (module docstring).
+
+    scenario: a shelf scenario with the Fetch and the bluction tool (FetchShelf); bodies: {object
+    id: ShelfBody} of the station's shelf objects (the target among them under `target_id`); foss:
+    the FOSS whose predictions the outcomes are compared with (default: the scenario's geometry).
+    speed / push_speed: the tool's Cartesian speed limits [m/s]; settle: the longest wait after a
+    motion [s] (the executor ends it earlier once the scene is at rest); tolerance: the agreement
+    tolerance [m] (module docstring)."""
+
+    def __init__(self, scenario, bodies: dict, target_id: str = "", foss: Foss | None = None, seed: int = 0,
+                 speed: float = 0.2, push_speed: float = 0.08, settle: float = 1.0, tolerance: float = 0.02,
+                 staging: float = 0.08, shaft_clearance: float = 0.004, blade_z: float = 0.006,
+                 line_step: float = 0.02, max_pull: float = 0.06):
+        if scenario.environment.type != "shelf" or scenario.robot.name != "fetch":
+            raise ExecutionError(f"ShelfBackend drives the Fetch at a shelf (scenario FetchShelf); this scenario has "
+                                 f"robot {scenario.robot.name!r} and environment {scenario.environment.type!r}")
+        grippers = list(scenario.robot.grippers) or ["bluction"]
+        if grippers[0] != "bluction":
+            raise ExecutionError(f"ShelfBackend needs the bluction tool on the Fetch; robot.grippers is {grippers!r}: "
+                                 "use [bluction]")
+        self.arm = "fetch"
+        self.tool = gripper_port_name(self.arm, "bluction")  # fetch_bluction
+        self.bodies = dict(bodies)
+        if target_id and target_id not in self.bodies:
+            raise ExecutionError(f"target_id {target_id!r} is not one of the shelf bodies ({', '.join(self.bodies)})")
+        self.target_id = target_id
+        self.origin = np.asarray(scenario.environment.position, float)
+        size = np.asarray(scenario.environment.resolved_size(), float)
+        self.half = 0.5 * size
+        self.foss = foss or Foss(ShelfGeometry.from_scenario(scenario))
+        self.seed = int(seed)
+        self.speed, self.push_speed, self.settle = float(speed), float(push_speed), float(settle)
+        self.tolerance, self.staging = float(tolerance), float(staging)
+        self.shaft_clearance, self.line_step = float(shaft_clearance), float(line_step)
+        self.max_pull = float(max_pull)
+        self.cfg = BluctionConfig()
+        self.r_shaft = self.cfg.shaft_diameter / 2
+        self.blade_z = float(blade_z) + self.cfg.blade_height / 2  # blade centre above the floor
+        # Tip of the tool ahead of the frames: the cup lip (tcp) is the tip; the blade's centre is
+        # blade_offset back from the shaft's end, which is cup_height behind the lip.
+        self.blade_to_tip = self.cfg.blade_offset + self.cfg.cup_height
+        self.cup_ik, limits, q_home, keep_cup = arm_ik(scenario, self.arm, frame="tcp", seed=seed)
+        self.blade_ik, _, _, keep_blade = arm_ik(scenario, self.arm, frame="blade_tcp", seed=seed)
+        self._keep = (keep_cup, keep_blade)
+        self.limits = limits
+        self._set_blade(self.cup_ik, BLADE_UP)  # suction IK with the blade up, push IK with it down
+        park = self.world([PARK_TIP[0], -self.half[1] + PARK_TIP[1], PARK_TIP[2]])
+        res = self.cup_ik.solve(RigidTransform(TOOL_ROTATION, park), q_home)
+        if not res.success:
+            raise ExecutionError(f"the Fetch cannot reach its park pose (tool tip at {np.round(park, 3).tolist()}): "
+                                 f"IK {res.status}; check the scenario's robot.base_position")
+        self.q_park = nearest_equivalent(self.cup_ik, res.q, q_home)
+
+    # ------------------------------------------------------------------ helpers
+    @staticmethod
+    def _set_blade(ik, angle: float):
+        plant, ctx = ik.plant, ik.context
+        q = plant.GetPositions(ctx)
+        q[plant.GetJointByName("blade_joint").position_start()] = angle
+        plant.SetPositions(ctx, q)
+
+    def world(self, p_shelf) -> np.ndarray:
+        return self.origin + np.asarray(p_shelf, float)
+
+    def initial_commands(self) -> dict:
+        return {f"{self.arm}.position": self.q_park, f"{self.tool}.position": [BLADE_UP],
+                f"{self.tool}.suction": [0.0]}
+
+    def observe(self, poses) -> tuple[ShelfScene, tuple[str, ...]]:
+        return observe(poses, self.bodies, self.origin, self.target_id)
+
+    def _path(self, ik, q_start, points, speeds):
+        """Straight tool lines through `points` (world, the first = the tool's pose at q_start)
+        at `speeds`; (list of JointTrajectory, final q) or (status, None)."""
+        trajs, q = [], np.asarray(q_start, float)
+        for a, b, v in zip(points[:-1], points[1:], speeds):
+            d = np.asarray(b, float) - np.asarray(a, float)
+            if np.linalg.norm(d) < 1e-6:
+                trajs.append(None)
+                continue
+            line = plan_cartesian_line(ik, ik_pose(ik, q), d, q, self.limits, step=self.line_step, max_speed=v)
+            if not line.success:
+                return line.status, None
+            trajs.append(line.trajectory)
+            q = line.trajectory.final()
+        return trajs, q
+
+    def _to(self, ik, p, q_seed):
+        res = ik.solve(RigidTransform(TOOL_ROTATION, p), q_seed)
+        if not res.success:
+            return None, res.status
+        return nearest_equivalent(ik, res.q, q_seed), "ok"
+
+    # ------------------------------------------------------------------ planning
+    def plan(self, action: Action, hold: dict, step: int, poses=None):
+        a = shelf_action(action)
+        if a is None:
+            raise ExecutionError(f"ShelfBackend executes Actions of kind 'shelf' (with a ShelfAction), got "
+                                 f"{action.kind!r}")
+        if poses is None:
+            raise ExecutionError("ShelfBackend plans from the objects' poses: connect the executor's body_poses input")
+        scene, _ = self.observe(poses)
+        try:
+            o = scene.object(a.object_id)
+        except KeyError:
+            return f"unknown_object:{a.object_id}"
+        predicted, foss_out = self.foss.step(scene, a) if scene.target is not None else \
+            self.foss.step(ShelfScene(scene.objects, None), a)
+        q_now = np.asarray(hold[f"{self.arm}.position"], float)
+        if a.kind == "push":
+            built = self._plan_push(o, a, q_now, scene)
+        elif a.kind == "suction":
+            lift = self.suction_lift(scene, o, self.foss.placement_center(o, a.dx, a.dy))
+            built = self._plan_suction(o, a, q_now, lift, scene)
+        else:
+            raise ExecutionError(f"unknown shelf action kind {a.kind!r}: push or suction")
+        if isinstance(built, str):
+            return built
+        tl, commands = built
+        target_xy = (o.x + a.dx, o.y) if a.kind == "push" else self.foss.placement_center(o, a.dx, a.dy)
+        info = {"step": step, "before": scene, "predicted": predicted, "foss": foss_out.message if not foss_out.success
+                else "ok", "goal_xy": tuple(map(float, target_xy)), "start_xy": (o.x, o.y)}
+        commands[f"{self.arm}.position"] = tl.value
+        return Motion(commands, check_time=tl.duration + self.settle, duration=tl.duration + self.settle, info=info,
+                      settle_from=tl.duration)
+
+    def _finish(self, ik, tl: Timeline, q_out, out_point, last_point):
+        """Leave the shelf straight along -y to the staging point, then the joint motion to park."""
+        trajs, q = self._path(ik, q_out, [last_point, out_point], [self.speed])
+        if q is None:
+            return trajs
+        for t in trajs:
+            if t is not None:
+                tl.play(t)
+        tl.play(plan_joint_motion([tl.final(), self.q_park], self.limits))
+        return None
+
+    def _stage(self, ik, q_now, staging_point):
+        """The timeline from q_now to the staging configuration (joint motion); or a status."""
+        q_stage, status = self._to(ik, staging_point, q_now)
+        if q_stage is None:
+            return status
+        tl = Timeline(q_now)
+        tl.hold(0.1)
+        tl.play(plan_joint_motion([q_now, q_stage], self.limits))
+        return tl
+
+    def _plan_push(self, o: ShelfObject, a, q_now, scene: ShelfScene):
+        s = float(np.sign(a.dx))
+        if s == 0:
+            return "zero_push"
+        ext_x = 0.5 * o.width
+        front = o.y - 0.5 * o.depth
+        y_blade = front + self.cfg.blade_width / 2
+        shaft_down = self.blade_z + self.cfg.blade_height / 2 + self.r_shaft  # shaft axis, blade down
+        if self.trailing_gap(scene, o, s) >= 2 * (self.r_shaft + self.shaft_clearance):
+            # The shaft fits beside O: blade low, shaft beside O (its blade a little away from O).
+            x_tool = o.x - s * (ext_x + self.r_shaft + self.shaft_clearance)
+            z_blade = self.blade_z
+            gap = self.r_shaft + self.shaft_clearance - self.cfg.blade_thickness / 2
+        else:
+            # The shaft passes over O: blade beside O, raised so the shaft clears O's top.
+            gap = self.shaft_clearance
+            x_tool = o.x - s * (ext_x + self.cfg.blade_thickness / 2 + gap)
+            z_blade = self.blade_z + max(0.0, o.height + self.r_shaft + 0.008 - shaft_down)
+        y_stage = -self.half[1] - self.staging - (self.blade_to_tip - self.cfg.blade_width / 2)
+        ik = self.blade_ik
+        stage = self.world([x_tool, y_stage, z_blade])
+        start = self.world([x_tool, y_blade, z_blade])
+        end = start + [s * (abs(a.dx) + gap), 0.0, 0.0]
+        back = end - [s * 0.005, 0.0, 0.0]
+        out = np.array([back[0], stage[1], back[2]])
+        tl = self._stage(ik, q_now, stage)
+        if isinstance(tl, str):
+            return tl
+        trajs, q = self._path(ik, tl.final(), [stage, start, end], [self.speed, self.push_speed])
+        if q is None:
+            return trajs
+        tl.play(trajs[0])
+        tl.mark("push")
+        tl.play(trajs[1])
+        tl.hold(0.3)
+        tl.mark("pushed")
+        trajs, q = self._path(ik, q, [end, back], [self.push_speed])
+        if q is None:
+            return trajs
+        tl.play(trajs[0])
+        err = self._finish(ik, tl, q, out, back)
+        if err:
+            return err
+        blade = Schedule()
+        blade.set(0.0, BLADE_DOWN)
+        blade.set(tl.duration, BLADE_UP)  # up again once parked
+        return tl, {f"{self.tool}.position": blade}
+
+    def trailing_gap(self, scene: ShelfScene, o: ShelfObject, s: float) -> float:
+        """Free width beside O's trailing side (pushing along s * x) over the blade's y range: to the
+        wall and to the occluders there (the target, unknown to the robot, is not counted)."""
+        ext = 0.5 * o.width
+        gap = self.half[0] + s * o.x - ext
+        front = o.y - 0.5 * o.depth
+        y0, y1 = front, front + self.cfg.blade_width
+        for b in scene.objects:
+            if b.id == o.id or b.y + 0.5 * b.depth < y0 - 0.05 or b.y - 0.5 * b.depth > y1:
+                continue  # the corridor from the front is FOSS's check; here: beside the blade and before it
+            d = s * (o.x - b.x) - ext - 0.5 * b.width
+            if d > -1e-9:
+                gap = min(gap, d)
+        return float(gap)
+
+    def suction_lift(self, scene: ShelfScene, o: ShelfObject, goal_xy) -> float:
+        """FOSS's lift (module docstring of ms_drake.foss): >= 2 cm, and 1 cm over every other occluder
+        whose footprint meets O's sweeps between its place or its goal and the front."""
+        p = self.foss.params
+        lift = p.lift
+        others = [b for b in scene.objects if b.id != o.id]  # the occluders: the robot does not know the target
+        for x, y in ((o.x, o.y), goal_xy):
+            for b in others:
+                if abs(b.x - x) < 0.5 * (b.width + o.width) + p.sweep_clearance and b.y - 0.5 * b.depth < y:
+                    lift = max(lift, b.height + p.lift_clearance)
+        return float(min(lift, self.half[2] * 2 - p.top_clearance - o.height))
+
+    def _plan_suction(self, o: ShelfObject, a, q_now, lift: float, scene: ShelfScene):
+        face = o.y - 0.5 * o.depth
+        z_cup = max(o.height - 0.02, self.r_shaft + 0.003)
+        goal_x, goal_y = self.foss.placement_center(o, a.dx, a.dy)
+        y_stage = -self.half[1] - self.staging
+        # O's centre when pulled out: its back 2 cm in front of the shelf, or as far as the Fetch
+        # reaches (the tool's tip `max_pull` in front of the front plane).
+        y_out_obj = max(-self.half[1] - 0.02 - 0.5 * o.depth, -self.half[1] - self.max_pull + 0.002 + 0.5 * o.depth)
+        # Across at the pulled-out depth: over every occluder the sweep there meets.
+        lift2 = lift
+        x0, x1 = min(o.x, goal_x) - 0.5 * o.width, max(o.x, goal_x) + 0.5 * o.width
+        for b in scene.objects:
+            if b.id != o.id and b.x + 0.5 * b.width > x0 and b.x - 0.5 * b.width < x1 and \
+                    b.y - 0.5 * b.depth < y_out_obj + 0.5 * o.depth and b.y + 0.5 * b.depth > y_out_obj - 0.5 * o.depth:
+                lift2 = max(lift2, b.height + self.foss.params.lift_clearance)
+        if z_cup + lift2 + self.r_shaft + self.cfg.blade_height > 2 * self.half[2] - 0.005:
+            return "shelf_top"  # the raised blade would hit the shelf's top
+        ik = self.cup_ik
+        stage = self.world([o.x, y_stage, z_cup])
+        touch = self.world([o.x, face - 0.002, z_cup])
+        up = touch + [0.0, 0.0, lift]
+        pulled = up + [0.0, y_out_obj - o.y, 0.0]
+        raised = pulled + [0.0, 0.0, lift2 - lift]
+        moved = raised + [goal_x - o.x, 0.0, 0.0]
+        pushed = moved + [0.0, goal_y - y_out_obj, 0.0]
+        down = pushed - [0.0, 0.0, lift2 + 0.003]
+        out = np.array([down[0], stage[1], down[2]])
+        tl = self._stage(ik, q_now, stage)
+        if isinstance(tl, str):
+            return tl
+        trajs, q = self._path(ik, tl.final(), [stage, touch], [self.speed])
+        if q is None:
+            return trajs
+        tl.play(trajs[0])
+        tl.mark("contact")
+        tl.hold(0.4)
+        trajs, q = self._path(ik, q, [touch, up, pulled, raised, moved, pushed, down],
+                              [0.1, self.speed, 0.1, self.speed, self.speed, 0.1])
+        if q is None:
+            return trajs
+        for t in trajs:
+            if t is not None:
+                tl.play(t)
+        tl.mark("placed")
+        release = tl.duration
+        tl.hold(0.4)
+        err = self._finish(ik, tl, q, out, down)
+        if err:
+            return err
+        vac = Schedule()
+        vac.set(0.0, 0.0)
+        vac.set(tl.marks["contact"] - 0.1, 1.0)
+        vac.set(release, 0.0)
+        blade = Schedule()
+        blade.set(0.0, BLADE_UP)
+        return tl, {f"{self.tool}.suction": vac, f"{self.tool}.position": blade}
+
+    # ------------------------------------------------------------------ outcome
+    def outcome(self, action: Action, motion: Motion, poses, step: int, removed):
+        a = shelf_action(action)
+        if poses is None:
+            return ActionOutcome(action, True, message="agree=nan no body_poses"), ()
+        after, toppled = self.observe(poses)
+        before = motion.info["before"]
+        predicted = motion.info["predicted"]
+
+        def xy(scene):
+            objs = list(scene.objects) + ([scene.target] if scene.target is not None else [])
+            return {b.id: np.array([b.x, b.y]) for b in objs}
+
+        p0, p1, pf = xy(before), xy(after), xy(predicted)
+        err = float(np.linalg.norm(p1[a.object_id] - pf[a.object_id]))
+        others = max((float(np.linalg.norm(p1[k] - p0[k])) for k in p0 if k != a.object_id and k in p1), default=0.0)
+        commanded = float(np.linalg.norm(np.asarray(motion.info["goal_xy"]) - np.asarray(motion.info["start_xy"])))
+        moved = float(np.linalg.norm(p1[a.object_id] - p0[a.object_id]))
+        foss_ok = motion.info["foss"] == "ok"
+        agree = foss_ok and err <= self.tolerance and others <= self.tolerance and not toppled
+        ok = moved >= 0.5 * commanded
+        msg = (f"agree={int(agree)} err={err:.3f} moved={moved:.3f} commanded={commanded:.3f} others={others:.3f} "
+               f"toppled={','.join(toppled) or '-'} foss={motion.info['foss']}")
+        return ActionOutcome(action, bool(ok), message=msg), ()
+
+
+def agreement(outcome: ActionOutcome) -> bool | None:
+    """Whether physics and FOSS agreed on an executed shelf action (None: not recorded)."""
+    for tok in outcome.message.split():
+        if tok.startswith("agree="):
+            return None if tok == "agree=nan" else tok == "agree=1"
+    return None

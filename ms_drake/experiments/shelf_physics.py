@@ -1,0 +1,272 @@
+"""Shelf search on the Fetch in Drake physics (Ch. 9.5.2 analogue, Table 9.2).
+
+- `build_shelf_physics(scenario, scene, params)`: the FetchShelf station holding the scene's
+  occluders and target as free bodies (boxes and cylinders of the drawn sizes, DENSITY kg/m^3,
+  compliant hydroelastic; the target in the target colour), the shelf controller
+  (ms_drake.policies.shelf_search) wired in three lines.
+- `run_shelf_physics(system, scene, params)`: simulate; at every idle step (the executor between
+  actions, the robot parked) the target's visible fraction is measured in the front camera's label
+  image: target pixels / pixels of its silhouette (its eight corners at its current pose projected
+  and filled); the search succeeds at v = 80 % (FOSS's threshold), fails at the horizon H = 2n, when
+  the policy has no action, or when the simulation fails. Per executed action the backend's
+  outcome says whether physics and FOSS agree (ms_drake.execution.shelf_backend: the moved object
+  within 2 cm of FOSS's placement, nothing else moved by more than 2 cm, nothing toppled).
+- `run_shelf_physics_bench(...)`: `ms-drake bench shelf-physics`: one JSON line per scene (seed,
+  occluders, policy, success, steps, agreement, ...), flushed and fsync'ed, resumable.
+- `physics_table(records)`: the Table 9.2 analogue.
+- `run_shelf_demo(out, ...)`: `ms-drake demo shelf`: one search with per-step images, a GIF and a
+  Meshcat recording.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from pydrake.math import RigidTransform
+from pydrake.multibody.tree import BodyIndex
+from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
+from pydrake.systems.framework import DiagramBuilder
+
+from ms_drake.errors import MsDrakeError
+from ms_drake.execution.shelf_backend import ShelfBody, agreement
+from ms_drake.experiments.harness import read_records
+from ms_drake.geometry import PinholeCamera
+from ms_drake.objects import TARGET_RGBA
+from ms_drake.objects.sdf import OBJECT_MODULUS, Inertia, Shape, object_sdf
+from ms_drake.policies.shelf_search import (
+    MakeShelfSearchController,
+    ShelfSearchParams,
+    ShelfSimulationInfo,
+    connect_controller,
+)
+from ms_drake.scenario import load_scenario
+from ms_drake.scenes.shelf import DEFAULT_TARGET, generate_shelf_scene
+from ms_drake.scenes.shelf_render import OCCLUDER_RGBA
+from ms_drake.shelf_geometry import ShelfGeometry, box_corners
+from ms_drake.station import MakeStation, get_plant, station_objects
+from ms_drake.station.robots import set_arm_positions
+from ms_drake.types import ShelfObject, ShelfScene
+
+SCENARIO = "FetchShelf"
+FIDELITY = "physics"
+DENSITY = 150.0  # kg/m^3: household packaging (a 20 cm cube weighs 1.2 kg; the cup holds ~2 kg in shear)
+VISIBILITY = 0.8
+REFERENCE_PHYSICAL = {"der3": 33, "bluction_dar": 100}  # Table 9.2, "All" row (%)
+
+
+class ShelfPhysicsError(MsDrakeError, ValueError):
+    """A physics shelf run asked for with settings it cannot honour."""
+
+
+def shelf_object_sdf(o: ShelfObject, rgba):
+    """sdf(model_name) -> SDF text of a free box / upright cylinder of o's size (DENSITY, compliant)."""
+    w, d, h = o.width, o.depth, o.height
+    if o.kind == "box":
+        shape = Shape("box", (w, d, h))
+        m = DENSITY * w * d * h
+        inertia = Inertia(m, (0.0, 0.0, 0.0), m * (d * d + h * h) / 12, m * (w * w + h * h) / 12,
+                          m * (w * w + d * d) / 12)
+    else:
+        r = w / 2
+        shape = Shape("cylinder", (r, h))
+        m = DENSITY * np.pi * r * r * h
+        inertia = Inertia(m, (0.0, 0.0, 0.0), m * (3 * r * r + h * h) / 12, m * (3 * r * r + h * h) / 12, m * r * r / 2)
+    return lambda name: object_sdf(name, inertia, [(shape, rgba)], [shape], compliance="compliant",
+                                   modulus=OBJECT_MODULUS, contact_spheres=False)
+
+
+@dataclass
+class ShelfPhysicsSystem:
+    diagram: object
+    station: object
+    plant: object
+    controller: object
+    scenario: object
+    sim: ShelfSimulationInfo
+    camera: PinholeCamera
+    camera_name: str = "front"
+
+    def output(self, context, name):
+        return self.controller.GetOutputPort(name).Eval(self.controller.GetMyContextFromRoot(context))
+
+    def station_output(self, context, name):
+        return self.station.GetOutputPort(name).Eval(self.station.GetMyContextFromRoot(context))
+
+
+def build_shelf_physics(scenario, scene: ShelfScene, params: ShelfSearchParams, meshcat=None) -> ShelfPhysicsSystem:
+    """The station with the scene's objects and the shelf controller, wired (module docstring)."""
+    if scene.target is None:
+        raise ShelfPhysicsError("build_shelf_physics: the scene needs its target (generate_shelf_scene)")
+    if scenario.environment.type != "shelf":
+        raise ShelfPhysicsError(f"scenario environment is {scenario.environment.type!r}: use FetchShelf")
+    scenario = dataclasses.replace(scenario, objects=dataclasses.replace(scenario.objects, count=0, names=[]))
+    objs = list(scene.objects) + [scene.target]
+    extra = [(f"shelf/{o.id}", shelf_object_sdf(o, TARGET_RGBA if o is scene.target else OCCLUDER_RGBA))
+             for o in objs]
+    builder = DiagramBuilder()
+    station = builder.AddSystem(MakeStation(scenario, meshcat=meshcat, extra_objects=extra))
+    plant = get_plant(station)
+    by_name = {so.full_name: so for so in station_objects(plant)}
+    bodies = {o.id: ShelfBody(int(by_name[f"shelf/{o.id}"].body_index), o) for o in objs}
+    sim = ShelfSimulationInfo(bodies, scene.target.id)
+    controller = builder.AddSystem(MakeShelfSearchController(scenario, params, sim=sim))
+    connect_controller(builder, controller, station)
+    diagram = builder.Build()
+    camera = PinholeCamera.from_config(scenario.cameras[params.camera])
+    return ShelfPhysicsSystem(diagram, station, plant, controller, scenario, sim, camera, params.camera)
+
+
+def set_initial(system: ShelfPhysicsSystem, context, scene: ShelfScene) -> None:
+    """The objects at the scene's poses (resting on the shelf floor) and the Fetch parked."""
+    pc = system.plant.GetMyMutableContextFromRoot(context)
+    origin = np.asarray(system.scenario.environment.position, float)
+    for oid, b in system.sim.bodies.items():
+        o = b.shape
+        X = RigidTransform(origin + [o.x, o.y, o.height / 2 + 1e-4])
+        system.plant.SetFreeBodyPose(pc, system.plant.get_body(BodyIndex(b.body_index)), X)
+    set_arm_positions(system.plant, pc, "fetch", system.controller.initial_commands())
+    q = system.plant.GetPositions(pc)
+    q[system.plant.GetJointByName("blade_joint").position_start()] = np.pi
+    system.plant.SetPositions(pc, q)
+
+
+def target_visibility(system: ShelfPhysicsSystem, context) -> float:
+    """Target pixels in the front label image / pixels of its silhouette at its current pose."""
+    label = np.asarray(system.station_output(context, f"{system.camera_name}.label_image").data)[:, :, 0]
+    b = system.sim.bodies[system.sim.target_id]
+    poses = system.station_output(context, "body_poses")
+    X = poses[b.body_index]
+    t = b.shape
+    half = 0.5 * np.array([t.width, t.depth, t.height])
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * half
+    pts = (X.rotation().matrix() @ corners.T).T + X.translation()
+    uv, _ = system.camera.project(pts)
+    sil = np.zeros(label.shape, np.uint8)
+    cv2.fillConvexPoly(sil, cv2.convexHull(np.round(uv).astype(np.int32)), 1)
+    total = int(sil.sum())
+    seen = int(np.count_nonzero((label == b.body_index) & (sil > 0)))
+    return seen / total if total else 0.0
+
+
+@dataclass
+class ShelfFrame:
+    step: int
+    rgb: np.ndarray
+    depth: np.ndarray
+    occupancy: object
+    action: object
+    visible: float
+
+
+@dataclass
+class ShelfPhysicsResult:
+    record: dict
+    frames: list = field(default_factory=list)
+
+
+def run_shelf_physics(system: ShelfPhysicsSystem, scene: ShelfScene, params: ShelfSearchParams,
+                      keep_frames: bool = False, meshcat=None, max_sim_time: float | None = None) -> ShelfPhysicsResult:
+    n = len(scene.objects)
+    horizon = params.horizon if params.horizon is not None else 2 * n
+    max_sim_time = max_sim_time or 60.0 + 45.0 * horizon
+    t_wall, t_cpu = time.perf_counter(), time.process_time()
+    simulator = Simulator(system.diagram)
+    ApplySimulatorConfig(system.scenario.simulator_config, simulator)
+    context = simulator.get_mutable_context()
+    set_initial(system, context, scene)
+    simulator.Initialize()
+    frames, visible, last_steps, k, t = [], 0.0, -1, 0, 0.0
+    failure, reason, error = "", "", ""
+    if meshcat is not None:
+        meshcat.StartRecording(set_visualizations_while_recording=False)
+    try:
+        while True:
+            status = system.output(context, "status")
+            if status.done:
+                failure, reason = "no_action", status.stop_reason
+                break
+            if not status.busy and status.steps != last_steps:  # idle: observe, then the next action
+                last_steps = status.steps
+                visible = target_visibility(system, context)
+                if keep_frames:
+                    action = system.output(context, "action") if visible < VISIBILITY and status.steps < horizon \
+                        else None
+                    rgb = np.array(system.station_output(context, "front.rgb_image").data)[..., :3].copy()
+                    depth = np.array(system.station_output(context, "front.depth_image").data)[..., 0].copy()
+                    frames.append(ShelfFrame(status.steps, rgb, depth, system.output(context, "occupancy_history"),
+                                             action, visible))
+                if visible >= VISIBILITY:
+                    break
+                if status.steps >= horizon:
+                    failure = "horizon"
+                    break
+            if t >= max_sim_time:
+                failure = "timeout"
+                break
+            k += 1
+            t = k * params.period
+            simulator.AdvanceTo(t)
+    except RuntimeError as e:
+        failure, error = "sim_failed", (str(e).splitlines() or [type(e).__name__])[0]
+    finally:
+        if meshcat is not None:
+            meshcat.StopRecording()
+            meshcat.PublishRecording()
+    history = system.output(context, "history")
+    executed = [o for o in history if not o.message.startswith("plan_failed")]
+    agree = [agreement(o) for o in executed]
+    kinds = [o.action.shelf.kind for o in executed]
+    rec = dict(seed=int(scene.seed), occluders=n, objects=n, policy=params.policy, fidelity=FIDELITY,
+               success=not failure, steps=len(history), actions=len(history), executed=len(executed),
+               pushes=kinds.count("push"), suctions=kinds.count("suction"),
+               plan_failures=len(history) - len(executed),
+               agreement=[a for a in agree], agree=sum(1 for a in agree if a), compared=sum(1 for a in agree if a is not None),
+               outcomes=[o.message for o in history],
+               actions_taken=[[o.action.shelf.kind, o.action.shelf.object_id, round(o.action.shelf.dx, 4),
+                               round(o.action.shelf.dy, 4)] for o in history],
+               visible_fraction=float(visible), failure=failure, stop_reason=reason, error=error,
+               sim_seconds=float(context.get_time()), seconds=time.perf_counter() - t_wall,
+               cpu_seconds=time.process_time() - t_cpu, pid=os.getpid())
+    return ShelfPhysicsResult(rec, frames)
+
+
+def shelf_physics_rollout(policy: str, seed: int, occluders: int | None = None, horizon: int | None = None,
+                          scenario_name: str = SCENARIO, meshcat=None, keep_frames: bool = False) -> ShelfPhysicsResult:
+    """Generate the scene of `seed` (occluders: None draws 2-12 from the seed) and search it."""
+    scenario = load_scenario(None, scenario_name)
+    geometry = ShelfGeometry.from_scenario(scenario)
+    sample = generate_shelf_scene(geometry, seed, occluders, DEFAULT_TARGET)
+    params = ShelfSearchParams(policy=policy, horizon=horizon, seed=seed)
+    system = build_shelf_physics(scenario, sample.scene, params, meshcat=meshcat)
+    return run_shelf_physics(system, sample.scene, params, keep_frames=keep_frames, meshcat=meshcat)
+
+
+def run_shelf_physics_bench(policy: str, scenes: int, seed_start: int, out, occluders: list[int] | None = None,
+                            log=print) -> list[dict]:
+    """Missing (seed) rollouts of `policy`, one JSON line each (resumable); occluders cycles
+    through the given counts by seed (None: drawn from the seed)."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    done = {(r["seed"], r["policy"]) for r in read_records(out)} if out.exists() else set()
+    recs = []
+    for i, seed in enumerate(range(seed_start, seed_start + scenes)):
+        if (seed, policy) in done:
+            continue
+        n = occluders[i % len(occluders)] if occluders else None
+        rec = shelf_physics_rollout(policy, seed, n).record
+        with open(out, "a") as f:
+            f.write(json.dumps(rec) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+        recs.append(rec)
+        log(f"seed {seed} ({rec['occluders']} occluders) {policy}: {'success' if rec['success'] else rec['failure']} "
+            f"after {rec['steps']} actions, FOSS agrees on {rec['agree']}/{rec['compared']}, "
+            f"{rec['sim_seconds']:.0f} s simulated in {rec['seconds']:.0f} s")
+    return recs

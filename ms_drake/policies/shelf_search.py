@@ -1,0 +1,169 @@
+"""The shelf mechanical-search controller (Ch. 9) as one Drake Diagram, wired to the FetchShelf
+station in three lines:
+
+    station = builder.AddSystem(MakeStation(scenario, extra_objects=...))   # a shelf scene's objects
+    controller = builder.AddSystem(MakeShelfSearchController(scenario, params, sim=sim))
+    connect_controller(builder, controller, station)
+
+In simulation, start the robot where the controller expects it (parked out of the camera's view):
+`set_arm_positions(plant, plant_context, "fetch", controller.initial_commands())`.
+
+Inside:
+  body_poses -> ShelfSceneObserver (simulation: the objects' true footprints) -> scene
+  scene -> ShelfOccupancyEstimator("ground_truth") -> occupancy
+  scene + occupancy + history -> ShelfPolicySelector(policy, per_action=True) -> action
+  action -> ActionExecutor(ShelfBackend) -> fetch.position, fetch_bluction.position (blade angle),
+            fetch_bluction.suction; history -> selector
+  front.rgb_image + front.depth_image -> ImagesReady -> executor.ready (idle until images arrive)
+
+Perception in this build reads the simulation's ground truth through `ShelfSimulationInfo` (the
+shelf objects' bodies and dimensions, and which one is the target): the observed scene is what the
+ShelfOccupancyEstimator's ground-truth backend and the policies' FOSS segmentation take as their
+observation (the policies themselves see only the occluders the camera sees; ms_drake.policies.shelf).
+A shelf segmentation of the depth image and the learned shelf occupancy network do not exist yet,
+so the controller cannot run on the hardware station: asked to without `sim`, it raises
+ControllerError. Its exported ports are the station's names all the same (front.rgb_image,
+front.depth_image, body_poses in; the Fetch's and the bluction tool's commands out).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform
+from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem
+
+from ms_drake.execution import ActionExecutor
+from ms_drake.execution.shelf_backend import ShelfBackend, ShelfBody, observe
+from ms_drake.foss import Foss
+from ms_drake.perception.ready import ImagesReady
+from ms_drake.perception.shelf_occupancy import ShelfOccupancyEstimator
+from ms_drake.policies.bin_search import ControllerError, connect_controller  # noqa: F401 (re-exported)
+from ms_drake.policies.shelf import ShelfPolicyParams, ShelfPolicySelector, check_shelf_policy
+from ms_drake.shelf_geometry import ShelfGeometry
+from ms_drake.types import ShelfScene
+
+
+@dataclass
+class ShelfSearchParams:
+    """Settings of the shelf-search controller. policy: one of ms_drake.policies.shelf.SHELF_POLICIES;
+    horizon: the action budget H (None: 2n, n the occluders); seed: every random choice (the random
+    policy); psi: the suction / push cost ratio; camera: the shelf camera; period: the executor's
+    and selector's update period [s]; speed / push_speed: the tool's Cartesian speed limits [m/s]."""
+
+    policy: str = "bluction_dar"
+    horizon: int | None = None
+    seed: int = 0
+    psi: float = 1.3
+    camera: str = "front"
+    period: float = 0.05
+    speed: float = 0.2
+    push_speed: float = 0.08
+
+    def __post_init__(self):
+        check_shelf_policy(self.policy)
+        if self.horizon is not None and int(self.horizon) < 1:
+            raise ControllerError(f"horizon must be >= 1 action (or None for 2n), got {self.horizon!r}")
+        if not self.period > 0:
+            raise ControllerError(f"period must be > 0 s, got {self.period!r}")
+
+
+@dataclass(frozen=True)
+class ShelfSimulationInfo:
+    """What only a simulated shelf station tells the controller: {object id: ShelfBody} (plant body
+    index and dimensions of every shelf object, the target included) and the target's id."""
+
+    bodies: dict
+    target_id: str = ""
+
+    def __post_init__(self):
+        if self.target_id and self.target_id not in self.bodies:
+            raise ControllerError(f"ShelfSimulationInfo: target_id {self.target_id!r} is not one of the bodies "
+                                  f"({', '.join(self.bodies) or 'none'})")
+        for k, b in self.bodies.items():
+            if not isinstance(b, ShelfBody):
+                raise ControllerError(f"ShelfSimulationInfo.bodies[{k!r}] is a {type(b).__name__}; give a ShelfBody "
+                                      "(body index and ShelfObject)")
+
+
+class ShelfSceneObserver(LeafSystem):
+    """Simulation ground truth as a shelf observation. Input ``body_poses`` (the plant's); output
+    ``scene`` (ShelfScene of the shelf objects at their poses, the target as scene.target)."""
+
+    def __init__(self, sim: ShelfSimulationInfo, origin):
+        super().__init__()
+        self.poses_port = self.DeclareAbstractInputPort("body_poses", AbstractValue.Make([RigidTransform()]))
+        self.DeclareAbstractOutputPort("scene", lambda: AbstractValue.Make(ShelfScene(())), self._calc)
+        self.sim = sim
+        self.origin = tuple(float(v) for v in origin)
+
+    def _calc(self, context, output):
+        if not self.poses_port.HasValue(context):
+            raise ControllerError("ShelfSceneObserver: connect body_poses (the station's body_poses output)")
+        scene, _ = observe(self.poses_port.Eval(context), self.sim.bodies, self.origin, self.sim.target_id)
+        output.set_value(scene)
+
+
+def MakeShelfSearchController(scenario, params: ShelfSearchParams | None = None,
+                              sim: ShelfSimulationInfo | None = None, target_size=None,
+                              name: str = "shelf_search_controller") -> "ShelfSearchController":
+    """The controller Diagram of a shelf search on `scenario`'s station (FetchShelf; module docstring).
+    target_size: the target's (w, d, h) [m] for the occupancy (None: the observed target's)."""
+    params = params or ShelfSearchParams()
+    if sim is None:
+        raise ControllerError("the shelf controller observes the scene through the simulation's ground truth "
+                              "(no shelf segmentation of the depth image exists yet): pass "
+                              "sim=ShelfSimulationInfo(bodies, target_id); it cannot drive the hardware station")
+    if params.camera not in scenario.cameras:
+        raise ControllerError(f"camera {params.camera!r} is not a camera of the scenario "
+                              f"(cameras: {', '.join(scenario.cameras) or 'none'})")
+    geometry = ShelfGeometry.from_scenario(scenario, params.camera)
+    foss = Foss(geometry)
+    backend = ShelfBackend(scenario, sim.bodies, sim.target_id, foss=foss, seed=params.seed, speed=params.speed,
+                           push_speed=params.push_speed)
+    cam = scenario.cameras[params.camera]
+    builder = DiagramBuilder()
+    observer = builder.AddNamedSystem("scene_observer", ShelfSceneObserver(sim, scenario.environment.position))
+    occupancy = builder.AddNamedSystem("occupancy_estimator", ShelfOccupancyEstimator(geometry, target_size))
+    policy_params = ShelfPolicyParams(psi=params.psi, seed=params.seed, horizon=params.horizon)
+    selector = builder.AddNamedSystem("policy_selector", ShelfPolicySelector(params.policy, foss, policy_params,
+                                                                            period=params.period, per_action=True))
+    executor = builder.AddNamedSystem("action_executor", ActionExecutor(backend, period=params.period))
+    ready = builder.AddNamedSystem("images_ready", ImagesReady(cam.width, cam.height))
+    scene = observer.GetOutputPort("scene")
+    builder.Connect(scene, occupancy.GetInputPort("scene"))
+    builder.Connect(scene, selector.GetInputPort("scene"))
+    builder.Connect(occupancy.GetOutputPort("occupancy"), selector.GetInputPort("occupancy"))
+    builder.Connect(selector.GetOutputPort("action"), executor.action_port)
+    builder.Connect(executor.history_port, selector.GetInputPort("history"))
+    builder.Connect(ready.GetOutputPort("ready"), executor.ready_port)
+    builder.ExportInput(ready.GetInputPort("rgb_image"), f"{params.camera}.rgb_image")
+    builder.ExportInput(ready.GetInputPort("depth_image"), f"{params.camera}.depth_image")
+    builder.ExportInput(observer.poses_port, "body_poses")
+    builder.ConnectInput("body_poses", executor.poses_port)
+    for port_name, port in executor.command_ports.items():
+        builder.ExportOutput(port, port_name)
+    for port_name in ("history", "outcome", "removed", "status"):
+        builder.ExportOutput(executor.GetOutputPort(port_name), port_name)
+    builder.ExportOutput(selector.GetOutputPort("action"), "action")
+    builder.ExportOutput(selector.GetOutputPort("occupancy_history"), "occupancy_history")
+    builder.ExportOutput(occupancy.GetOutputPort("occupancy"), "occupancy")
+    builder.ExportOutput(scene, "scene")
+    controller = ShelfSearchController(builder, backend, params, sim.target_id)
+    controller.set_name(name)
+    return controller
+
+
+class ShelfSearchController(Diagram):
+    """The Diagram MakeShelfSearchController builds; `initial_commands()`: the station commands it
+    starts from (the Fetch parked out of the camera's view, blade up, vacuum off); `backend`: its
+    ShelfBackend."""
+
+    def __init__(self, builder: DiagramBuilder, backend, params: ShelfSearchParams, target_id: str):
+        super().__init__()
+        builder.BuildInto(self)
+        self.backend, self.params, self.target_id = backend, params, target_id
+
+    def initial_commands(self) -> dict:
+        return self.backend.initial_commands()
