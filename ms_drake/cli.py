@@ -1,6 +1,7 @@
 """The `ms-drake` command.
 
-    ms-drake demo     a full X-Ray search of a 15-object heap: step PNGs, GIF, Meshcat recording
+    ms-drake demo     bin: a full X-Ray search of a 15-object heap; shelf: a shelf search on the Fetch
+                      in physics (step PNGs, GIF, Meshcat recording)
     ms-drake scene    a scenario and seed -> images
     ms-drake heaps    many heaps in parallel -> JSON lines (resumable)
     ms-drake diagram  the station's Graphviz diagram (.dot, and .svg/.png when Graphviz is installed)
@@ -34,6 +35,14 @@ from ms_drake.experiments.grasp_figure import grasp_figure
 from ms_drake.experiments.harness import format_summary, plot, run_bench
 from ms_drake.experiments.picks import TASKS, run_pick
 from ms_drake.experiments.scene_images import make_scene, write_scene_images
+from ms_drake.experiments.shelf_physics import DEMO_OCCLUDERS as SHELF_DEMO_OCCLUDERS
+from ms_drake.experiments.shelf_physics import DEMO_SEED as SHELF_DEMO_SEED
+from ms_drake.experiments.shelf_physics import (
+    physics_records,
+    physics_table,
+    run_shelf_demo,
+    run_shelf_physics_bench,
+)
 from ms_drake.experiments.xray import PROTOCOLS, XRAY_HORIZON, XRAY_OBJECTS
 from ms_drake.grasping.evaluator import MODELS
 from ms_drake.objects import get_object_set
@@ -59,14 +68,42 @@ def _scenario(file: Optional[Path], name: str):
 
 
 @app.command()
-def demo(out: Path = typer.Option(Path("out/demo"), help="Output folder"),
-         seed: int = typer.Option(1002, help="Heap seed"),
-         objects: int = typer.Option(15, min=1, max=60, help="Objects in the heap"),
-         policy: str = typer.Option("xray", help="Selector (default: X-Ray)"),
-         horizon: int = typer.Option(10, min=1, help="Action budget H"),
+def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating gripper) or shelf (the Fetch "
+                                                "with the bluction tool, in physics)"),
+         out: Optional[Path] = typer.Option(None, help="Output folder (default out/demo, out/demo_shelf)"),
+         seed: Optional[int] = typer.Option(None, help=f"Heap seed (default 1002) / shelf scene seed "
+                                                        f"(default {SHELF_DEMO_SEED})"),
+         objects: Optional[int] = typer.Option(None, min=1, max=60, help="Objects in the heap (default 15) / "
+                                                                         f"occluders on the shelf (default {SHELF_DEMO_OCCLUDERS})"),
+         policy: Optional[str] = typer.Option(None, help="Selector (default: X-Ray) / shelf policy "
+                                                         "(default: bluction_dar)"),
+         horizon: Optional[int] = typer.Option(None, min=1, help="Action budget H (default 10 / 2n)"),
          meshcat: bool = typer.Option(True, help="Write a Meshcat HTML recording")):
-    """A full search: heap, X-Ray on the floating gripper; per-step PNGs (masks, occupancy, action),
-    a GIF and a Meshcat recording."""
+    """A full search with per-step PNGs, a GIF and a Meshcat recording: `bin` (heap, X-Ray on the
+    floating gripper: masks, occupancy, action) or `shelf` (a shelf scene searched by the Fetch with
+    the bluction tool in Drake physics: depth, distribution, action)."""
+    if kind not in ("bin", "shelf"):
+        _fail(f"demo {kind!r}: choose bin or shelf")
+    if kind == "shelf":
+        policy = check_shelf_policy(policy or "bluction_dar")
+        seed = SHELF_DEMO_SEED if seed is None else seed
+        objects = SHELF_DEMO_OCCLUDERS if objects is None else objects
+        if not 2 <= objects <= 12:
+            _fail(f"--objects {objects}: a shelf scene has 2 to 12 occluders")
+        out = out or Path("out/demo_shelf")
+        t = time.perf_counter()
+        typer.echo(f"searching shelf scene {seed} ({objects} occluders) with {policy} on the Fetch ...")
+        written = run_shelf_demo(out, seed=seed, occluders=objects, policy=policy, horizon=horizon,
+                                 meshcat_html=meshcat, log=typer.echo)
+        for k, v in written.items():
+            typer.echo(f"  {k:18s} {v}")
+        typer.echo(f"wrote {len(written)} files to {out} in {time.perf_counter() - t:.1f} s")
+        return
+    out = out or Path("out/demo")
+    seed = 1002 if seed is None else seed
+    objects = 15 if objects is None else objects
+    policy = policy or "xray"
+    horizon = 10 if horizon is None else horizon
     check_policy(policy)
     t = time.perf_counter()
     typer.echo(f"generating a {objects}-object heap (seed {seed}) and searching it with {policy} ...")
@@ -357,6 +394,38 @@ def bench_shelf(ctx: typer.Context,
                    f"[{100 * s[n]['success_ci'][0]:.1f}, {100 * s[n]['success_ci'][1]:.1f}], median steps "
                    f"{q[1]:g} (IQR {q[0]:g} - {q[2]:g})")
     typer.echo(f"results in {out}")
+
+
+@bench_app.command("shelf-physics")
+def bench_shelf_physics(policy: str = typer.Option(..., "--policy", help=f"Shelf policy: {', '.join(SHELF_POLICIES)}"),
+                        scenes: int = typer.Option(10, "--scenes", min=1, help="Scenes (N)"),
+                        seed_start: int = typer.Option(0, "--seed-start", min=0, help="First scene seed (S)"),
+                        out: Path = typer.Option(..., "--out", help="Output .jsonl (appended to; resumes)"),
+                        occluders: Optional[list[int]] = typer.Option(None, "--occluders",
+                                                                      help="Occluder counts cycled over the seeds "
+                                                                           "(default: drawn from the seed)")):
+    """Shelf search on the Fetch in Drake physics (Table 9.2 analogue): scenes S..S+N-1; one JSON
+    line per scene (seed, occluders, policy, success, steps, physics-FOSS agreement); resumable."""
+    check_shelf_policy(policy)
+    if out.suffix != ".jsonl":
+        _fail(f"--out {out}: give a .jsonl file")
+    if occluders and any(not 2 <= n <= 12 for n in occluders):
+        _fail(f"--occluders {occluders}: shelf scenes have 2 to 12 occluders")
+    run_shelf_physics_bench(policy, scenes, seed_start, out, occluders, log=typer.echo)
+    recs = physics_records([out])
+    typer.echo(physics_table(recs, tuple(dict.fromkeys(r["policy"] for r in recs))))
+    typer.echo(f"results in {out}")
+
+
+@bench_app.command("shelf-physics-table")
+def bench_shelf_physics_table(files: list[Path] = typer.Argument(..., help="Result .jsonl files "
+                                                                         "(ms-drake bench shelf-physics)")):
+    """The Table 9.2 analogue (markdown) from physics shelf result files."""
+    missing = [str(f) for f in files if not f.exists()]
+    if missing:
+        _fail(f"no such result file: {', '.join(missing)}")
+    recs = physics_records(files)
+    typer.echo(physics_table(recs))
 
 
 @bench_app.command("shelf-table")

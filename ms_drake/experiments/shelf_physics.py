@@ -28,7 +28,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
+import imageio.v2 as imageio
 import numpy as np
+from pydrake.geometry import Meshcat
 from pydrake.math import RigidTransform
 from pydrake.multibody.tree import BodyIndex
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
@@ -163,6 +165,7 @@ class ShelfFrame:
     occupancy: object
     action: object
     visible: float
+    scene: ShelfScene | None = None  # observed (simulation ground truth)
 
 
 @dataclass
@@ -201,7 +204,7 @@ def run_shelf_physics(system: ShelfPhysicsSystem, scene: ShelfScene, params: She
                     rgb = np.array(system.station_output(context, "front.rgb_image").data)[..., :3].copy()
                     depth = np.array(system.station_output(context, "front.depth_image").data)[..., 0].copy()
                     frames.append(ShelfFrame(status.steps, rgb, depth, system.output(context, "occupancy_history"),
-                                             action, visible))
+                                             action, visible, system.output(context, "scene")))
                 if visible >= VISIBILITY:
                     break
                 if status.steps >= horizon:
@@ -270,3 +273,133 @@ def run_shelf_physics_bench(policy: str, scenes: int, seed_start: int, out, occl
             f"after {rec['steps']} actions, FOSS agrees on {rec['agree']}/{rec['compared']}, "
             f"{rec['sim_seconds']:.0f} s simulated in {rec['seconds']:.0f} s")
     return recs
+
+
+def physics_table(recs: list[dict], policies=("der3", "bluction_dar")) -> str:
+    """Table 9.2 analogue (markdown): per occluder count and policy, successes and the steps of the
+    successful searches; then success rate, median steps (IQR), and physics-FOSS agreement."""
+    names = {"der3": "DER-3", "bluction_dar": "Bluction-DAR", "dar": "DAR", "random": "Random",
+             "oracle_p": "Oracle-P", "oracle_ps": "Oracle-P+S"}
+    by = {p: [r for r in recs if r["policy"] == p] for p in policies}
+    counts = sorted({r["occluders"] for r in recs})
+    lines = ["| occluders | metric | " + " | ".join(names.get(p, p) for p in policies) + " |",
+             "| --- | --- | " + " | ".join("---" for _ in policies) + " |"]
+    for n in counts:
+        cells, steps = [], []
+        for p in policies:
+            rs = [r for r in by[p] if r["occluders"] == n]
+            ok = [r for r in rs if r["success"]]
+            cells.append(f"{len(ok)}/{len(rs)}")
+            steps.append(", ".join(str(r["steps"]) for r in ok) or "(-)")
+        lines.append(f"| {n} | successes | " + " | ".join(cells) + " |")
+        lines.append(f"| | no. steps | " + " | ".join(steps) + " |")
+    rate, med, agree = [], [], []
+    for p in policies:
+        rs = by[p]
+        ok = [r["steps"] for r in rs if r["success"]]
+        rate.append(f"{100 * len(ok) / len(rs):.0f} % ({len(ok)}/{len(rs)})" if rs else "-")
+        med.append(f"{np.median(ok):.1f} ({np.percentile(ok, 25):.1f} - {np.percentile(ok, 75):.1f})" if ok else "-")
+        a, c = sum(r["agree"] for r in rs), sum(r["compared"] for r in rs)
+        agree.append(f"{100 * a / c:.0f} % ({a}/{c})" if c else "-")
+    lines.append("| all | success rate | " + " | ".join(rate) + " |")
+    lines.append("| all | median steps (IQR) | " + " | ".join(med) + " |")
+    lines.append("| all | physics = FOSS per action | " + " | ".join(agree) + " |")
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------ demo
+DEMO_SEED = 3
+DEMO_OCCLUDERS = 6
+
+
+def _depth_panel(depth: np.ndarray) -> np.ndarray:
+    d = np.where(np.isfinite(depth), depth, np.nan)
+    lo, hi = np.nanpercentile(d, 1), np.nanpercentile(d, 99)
+    g = np.nan_to_num((d - lo) / max(hi - lo, 1e-6), nan=1.0).clip(0, 1)
+    return cv2.applyColorMap((255 * (1 - g)).astype(np.uint8), cv2.COLORMAP_VIRIDIS)[:, :, ::-1].copy()
+
+
+def _distribution_panel(rgb: np.ndarray, occ) -> np.ndarray:
+    pic = (0.6 * rgb).astype(np.uint8)
+    if occ is not None and occ.image_x.size == rgb.shape[1] and occ.image_x.max() > 0:
+        h = rgb.shape[0]
+        p = occ.image_x / occ.image_x.max()
+        for u, v in enumerate(p):
+            if v > 0:
+                cv2.line(pic, (u, h - 1), (u, h - 1 - int(0.8 * h * v)), (255, 140, 0), 1)
+    cv2.putText(pic, "P'_t(x): target occupancy along the image x axis", (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.55,
+                (255, 255, 255), 2)
+    return pic
+
+
+def _action_panel(rgb: np.ndarray, frame: ShelfFrame, system: ShelfPhysicsSystem, scene: ShelfScene) -> np.ndarray:
+    pic = rgb.copy()
+    a = frame.action.shelf if frame.action is not None and frame.action.kind == "shelf" else None
+    origin = np.asarray(system.scenario.environment.position, float)
+    if a is not None:
+        o = scene.object(a.object_id)
+        if a.kind == "push":
+            p0 = origin + [o.x, o.y - o.depth / 2, 0.04]
+            p1 = p0 + [a.dx, 0.0, 0.0]
+            color, text = (0, 200, 255), f"push {a.object_id} dx={a.dx:+.3f} m"
+        else:
+            half = 0.5 * system.scenario.environment.resolved_size()[1]
+            p0 = origin + [o.x, o.y, o.height]
+            p1 = origin + [o.x + a.dx, -half + a.dy + o.depth / 2, o.height]
+            color, text = (0, 255, 0), f"suction {a.object_id} dx={a.dx:+.3f} dy={a.dy:.3f} m"
+        uv, _ = system.camera.project(np.stack([p0, p1]))
+        uv = np.round(uv).astype(int)
+        cv2.arrowedLine(pic, tuple(map(int, uv[0])), tuple(map(int, uv[1])), color, 3, tipLength=0.2)
+    else:
+        text = "target revealed" if frame.visible >= VISIBILITY else "stop"
+    cv2.putText(pic, f"step {frame.step}: visible {100 * frame.visible:.0f} %  {text}", (8, 24),
+                cv2.FONT_HERSHEY_SIMPLEX, 0.55, (255, 255, 255), 2)
+    return pic
+
+
+def run_shelf_demo(out, seed: int = DEMO_SEED, occluders: int = DEMO_OCCLUDERS, policy: str = "bluction_dar",
+                   horizon: int | None = None, meshcat_html: bool = True, log=print) -> dict:
+    """One search on the Fetch (module docstring): step_kk.png (depth | distribution | action),
+    search.gif, search.json and meshcat_recording.html in `out`."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    scenario = load_scenario(None, SCENARIO)
+    sample = generate_shelf_scene(ShelfGeometry.from_scenario(scenario), seed, occluders, DEFAULT_TARGET)
+    params = ShelfSearchParams(policy=policy, horizon=horizon, seed=seed)
+    meshcat = Meshcat() if meshcat_html else None
+    system = build_shelf_physics(scenario, sample.scene, params, meshcat=meshcat)
+    res = run_shelf_physics(system, sample.scene, params, keep_frames=True, meshcat=meshcat)
+    written, images, scene = {}, [], sample.scene
+    for k, fr in enumerate(res.frames):
+        # the scene the action was chosen in: observed from the simulation at that step
+        scene = _observed(res, k, sample.scene)
+        img = np.concatenate([_depth_panel(fr.depth), _distribution_panel(fr.rgb, fr.occupancy),
+                              _action_panel(fr.rgb, fr, system, scene)], axis=1)
+        p = out / f"step_{fr.step:02d}.png"
+        cv2.imwrite(str(p), img[:, :, ::-1])
+        written[f"step_{fr.step:02d}"] = str(p)
+        images.append(cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA))
+    if images:
+        gif = out / "search.gif"
+        imageio.mimsave(gif, images, duration=1.5, loop=0)
+        written["gif"] = str(gif)
+    (out / "search.json").write_text(json.dumps(res.record, indent=1))
+    written["search"] = str(out / "search.json")
+    if meshcat is not None:
+        html = out / "meshcat_recording.html"
+        html.write_text(meshcat.StaticHtml())
+        written["meshcat"] = str(html)
+    r = res.record
+    log(f"  {policy} on seed {seed} ({occluders} occluders): {'success' if r['success'] else r['failure']} after "
+        f"{r['steps']} actions (visible {100 * r['visible_fraction']:.0f} %), FOSS agrees on {r['agree']}/{r['compared']}, "
+        f"{r['sim_seconds']:.0f} s simulated in {r['seconds']:.0f} s")
+    return written
+
+
+def _observed(res: ShelfPhysicsResult, k: int, scene: ShelfScene) -> ShelfScene:
+    return res.frames[k].scene if getattr(res.frames[k], "scene", None) is not None else scene
+
+
+def physics_records(files) -> list[dict]:
+    """The physics shelf records (fidelity "physics") of result files."""
+    return [r for f in files for r in read_records(Path(f)) if r.get("fidelity") == FIDELITY]
