@@ -308,7 +308,7 @@ def physics_table(recs: list[dict], policies=("der3", "bluction_dar")) -> str:
 
 
 # ------------------------------------------------------------------------------ demo
-DEMO_SEED = 3
+DEMO_SEED = 0
 DEMO_OCCLUDERS = 6
 
 
