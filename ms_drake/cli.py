@@ -369,10 +369,15 @@ def bench_shelf(ctx: typer.Context,
                 workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers (W)"),
                 horizon: Optional[int] = typer.Option(None, "--horizon", min=1, help="Action budget (default 2n)"),
                 ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
-                ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address")):
-    """Shelf search in FOSS (Table 9.1): scenes S..S+K-1 for each occluder count, ground-truth
-    occupancy; one JSON line per search (resumable), then success rates and median steps."""
+                ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address"),
+                perception: str = typer.Option("ground_truth", "--perception",
+                                               help="Occupancy backend: ground_truth or learned (depth renders; "
+                                                    "write it to its own --out file)")):
+    """Shelf search in FOSS (Table 9.1): scenes S..S+K-1 for each occluder count, ground-truth (or
+    learned) occupancy; one JSON line per search (resumable), then success rates and median steps."""
     check_shelf_policy(policy)
+    if perception not in ("ground_truth", "learned"):
+        _fail(f"--perception {perception}: choose ground_truth or learned")
     counts = _occluder_counts(occluders, ctx.args)
     if out.suffix != ".jsonl":
         _fail(f"--out {out}: give a .jsonl file")
@@ -384,7 +389,7 @@ def bench_shelf(ctx: typer.Context,
             tqdm.write(f"occluders {rec['occluders']} seed {rec['seed']}: {rec.get('error', '')} (rerun to retry)")
 
     s = run_shelf_bench(policy, counts, scenes, seed_start, out, workers=workers, use_ray=ray or ray_address is not None,
-                        ray_address=ray_address, horizon=horizon, progress=progress)
+                        ray_address=ray_address, horizon=horizon, progress=progress, perception=perception)
     bar.close()
     if s["resumed"]:
         typer.echo(f"resuming: {s['resumed']} of {len(counts) * scenes} searches were already in {out}")
@@ -585,3 +590,63 @@ def main():
 
 if __name__ == "__main__":
     main()
+# -- Learned shelf occupancy (Ch. 9.4.2): ms-drake train / bench shelf-occupancy ------------------------
+
+from ms_drake.experiments.shelf_learning import bench_shelf_occupancy, train_shelf_occupancy  # noqa: E402
+from ms_drake.experiments.shelf_learning import write_json as write_shelf_json  # noqa: E402
+
+
+@train_app.command("shelf-occupancy")
+def train_shelf_occupancy_cmd(
+        data: Path = typer.Option(..., "--data", help="Dataset folder with train/ (ms-drake data shelf --depth-block 4)"),
+        out: Path = typer.Option(Path("models/weights/shelf_occupancy.pt"), "--out", help="Weights file"),
+        epochs: int = typer.Option(8, "--epochs", min=1, help="Epochs (cosine schedule over all)"),
+        batch: int = typer.Option(32, "--batch", min=1, help="Batch size"),
+        seed: int = typer.Option(0, "--seed", min=0, help="Seed"),
+        threads: int = typer.Option(1, "--threads", min=1, help="torch threads (1 on this shared machine)"),
+        max_minutes: float = typer.Option(30.0, "--max-minutes", help="Stop after the epoch that ends past this")):
+    """Train the shelf occupancy network; resumes from OUT.ckpt; writes OUT (weights + meta)."""
+    bar = tqdm(desc="training", unit="batch")
+
+    def progress(epoch, b, n, loss):
+        if b == 0:
+            bar.reset(total=n)
+            bar.set_description(f"epoch {epoch + 1}/{epochs}")
+        bar.update(1)
+        bar.set_postfix(loss=f"{loss:.4f}")
+
+    cmd = " ".join(["ms-drake", "train", "shelf-occupancy", "--data", str(data), "--out", str(out), "--epochs",
+                    str(epochs), "--batch", str(batch), "--seed", str(seed), "--threads", str(threads),
+                    "--max-minutes", f"{max_minutes:g}"])
+    meta = train_shelf_occupancy(data, out, epochs=epochs, batch=batch, seed=seed, threads=threads,
+                                 max_minutes=max_minutes, progress=progress, command=cmd)
+    bar.close()
+    for h in meta["history"]:
+        typer.echo(f"epoch {h['epoch']}: loss {h['loss']:.4f} ({h['seconds']:.0f} s)")
+    typer.echo(f"wrote {out} ({meta['epochs_done']} of {epochs} epochs, {meta['seconds'] / 60:.1f} min)")
+
+
+@bench_app.command("shelf-occupancy")
+def bench_shelf_occupancy_cmd(
+        data: Path = typer.Option(..., "--data", help="Dataset folder with test/ (ms-drake data shelf --depth-block 4)"),
+        weights: Optional[Path] = typer.Option(None, "--weights", help="Weights (default: shipped)"),
+        out: Optional[Path] = typer.Option(None, "--out", help="Also write the results as JSON here")):
+    """Held-out accuracy of the learned shelf occupancy: total variation of P(x), balanced accuracy
+    and IoU (line 1466's thresholds) per target height, against a uniform P(x); inference ms."""
+    res = bench_shelf_occupancy(data, weights)
+    typer.echo(f"{res['test_scenes']} test scenes (seeds {res['test_seeds'][0]}-{res['test_seeds'][1]})")
+    typer.echo("| target (w x d x h cm) | scenes | TV | bal. acc. % | IoU | TV, all images | uniform TV | "
+               "uniform bal. acc. % | uniform IoU |")
+    typer.echo("|---|---|---|---|---|---|---|---|---|")
+    for r in res["rows"] + [dict(size=None, scenes=res["test_scenes"], **res["overall"])]:
+        name = "all" if r["size"] is None else " x ".join(f"{100 * v:g}" for v in r["size"])
+        o, a, u = r["own"], r["all_images"], r["uniform"]
+        typer.echo(f"| {name} | {r['scenes']} | {o['tv']:.3f} | {100 * o['balanced_accuracy']:.1f} | {o['iou']:.2f} | "
+                   f"{a['tv']:.3f} | {u['tv']:.3f} | {100 * u['balanced_accuracy']:.1f} | {u['iou']:.2f} |")
+    typer.echo(f"inference: {res['ms_per_image']:.1f} ms per image (median of {res['timed']}, p90 "
+               f"{res['ms_p90']:.1f}; one torch thread, from the 480 x 640 depth image)")
+    if out is not None:
+        write_shelf_json(out, res)
+        typer.echo(f"wrote {out}")
+
+

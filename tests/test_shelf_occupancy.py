@@ -1,4 +1,5 @@
-"""ShelfOccupancyEstimator: the ground-truth backend alone and wired to FOSS; the learned backend's error."""
+"""ShelfOccupancyEstimator: the ground-truth backend alone and wired to FOSS; the learned backend's error
+(missing weights; the learned backend itself: tests/test_shelf_occupancy_learned.py)."""
 
 import numpy as np
 import pytest
@@ -55,9 +56,9 @@ def test_no_occluders_no_hiding_place(geometry):
     assert occ.floor.sum() == 0 and occ.image_x.sum() == 0
 
 
-def test_backends(geometry):
-    with pytest.raises(PerceptionError, match=r"weights/shelf_occupancy.pt.*ground_truth"):
-        ShelfOccupancyEstimator(geometry, backend="learned")
+def test_backends(geometry, tmp_path):
+    with pytest.raises(PerceptionError, match=r"none.pt.*ms-drake train shelf-occupancy.*ground_truth"):
+        ShelfOccupancyEstimator(geometry, backend="learned", weights=tmp_path / "none.pt")
     with pytest.raises(PerceptionError, match="ground_truth, learned"):
         ShelfOccupancyEstimator(geometry, backend="magic")
     with pytest.raises(PerceptionError, match="target_size"):

@@ -1,10 +1,12 @@
 """Shelf search in FOSS (Table 9.1) and shelf datasets.
 
 - `build_shelf_search(foss, scene, policy)`: the wired Diagram FossSystem -> ShelfOccupancyEstimator
-  ("ground_truth") -> ShelfPolicySelector -> back to FossSystem, stepping once per period.
+  ("ground_truth") -> ShelfPolicySelector -> back to FossSystem, stepping once per period; with
+  perception="learned" the estimator reads the depth image of a ShelfDepthCamera on FossSystem's
+  scene (a Drake render of every state) instead of the scene.
 - `shelf_rollout(policy, occluders, seed)`: one search of the scene generate_shelf_scene(seed,
   occluders) (the same scene for every policy) with horizon H = 2n; a JSON-able record: seed,
-  occluders, policy, success, steps, push / suction counts, refused actions, the failure
+  occluders, policy, perception ("ground_truth" or "learned"), success, steps, push / suction counts, refused actions, the failure
   ("horizon": budget spent; "no_action": the policy had nothing to do), timings (scene generation,
   perception, decision and FOSS step, ms).
 - `run_shelf_bench(...)`: the missing rollouts of (occluders x seeds) through ms_drake.parallel,
@@ -38,10 +40,22 @@ from ms_drake.experiments.harness import final_records, read_records, summarize
 from ms_drake.foss import Foss, FossSystem
 from ms_drake.parallel import run_jobs
 from ms_drake.perception.shelf_occupancy import ShelfOccupancyEstimator
-from ms_drake.policies.shelf import SHELF_POLICIES, ShelfPolicyParams, ShelfPolicySelector, check_shelf_policy
+from ms_drake.perception.shelf_occupancy_net import block_depth
+from ms_drake.policies.shelf import (
+    SHELF_POLICIES,
+    ShelfPolicyParams,
+    ShelfPolicySelector,
+    check_shelf_policy,
+)
 from ms_drake.scenario import load_scenario
-from ms_drake.scenes.shelf import DEFAULT_TARGET, TARGET_SIZES, ShelfSceneParams, generate_shelf_scene, scene_to_dict
-from ms_drake.scenes.shelf_render import render_shelf_scene
+from ms_drake.scenes.shelf import (
+    DEFAULT_TARGET,
+    TARGET_SIZES,
+    ShelfSceneParams,
+    generate_shelf_scene,
+    scene_to_dict,
+)
+from ms_drake.scenes.shelf_render import ShelfDepthCamera, render_shelf_scene
 from ms_drake.shelf_geometry import Prisms, ShelfGeometry, hidden_placements
 from ms_drake.types import ShelfScene
 
@@ -59,14 +73,19 @@ def shelf_geometry(scenario_name: str = SCENARIO, camera: str = "front") -> Shel
 
 
 def build_shelf_search(foss: Foss, scene: ShelfScene, policy: str, params: ShelfPolicyParams | None = None,
-                       target_size=None, period: float = 1.0):
+                       target_size=None, period: float = 1.0, perception: str = "ground_truth",
+                       scenario_name: str = SCENARIO):
     """The search Diagram; exported outputs: action, visible_fraction, scene, history, occupancy,
     occupancy_history."""
     builder = DiagramBuilder()
     sim = builder.AddNamedSystem("foss", FossSystem(foss, scene, period))
-    est = builder.AddNamedSystem("occupancy", ShelfOccupancyEstimator(foss.geometry, target_size))
+    est = builder.AddNamedSystem("occupancy", ShelfOccupancyEstimator(foss.geometry, target_size, perception))
     sel = builder.AddNamedSystem("policy", ShelfPolicySelector(policy, foss, params, period))
     builder.Connect(sim.GetOutputPort("scene"), est.GetInputPort("scene"))
+    if perception == "learned":
+        cam = builder.AddNamedSystem("camera", ShelfDepthCamera(load_scenario(None, scenario_name)))
+        builder.Connect(sim.GetOutputPort("scene"), cam.GetInputPort("scene"))
+        builder.Connect(cam.GetOutputPort("depth_image"), est.GetInputPort("depth_image"))
     builder.Connect(sim.GetOutputPort("scene"), sel.GetInputPort("scene"))
     builder.Connect(sim.GetOutputPort("history"), sel.GetInputPort("history"))
     builder.Connect(est.GetOutputPort("occupancy"), sel.GetInputPort("occupancy"))
@@ -80,7 +99,7 @@ def build_shelf_search(foss: Foss, scene: ShelfScene, policy: str, params: Shelf
 
 
 def shelf_rollout(policy: str, occluders: int, seed: int, params: ShelfPolicyParams | None = None,
-                  target_size=DEFAULT_TARGET, scenario_name: str = SCENARIO) -> dict:
+                  target_size=DEFAULT_TARGET, scenario_name: str = SCENARIO, perception: str = "ground_truth") -> dict:
     """One search in FOSS (module docstring); the record of it."""
     check_shelf_policy(policy)
     params = params or ShelfPolicyParams(seed=seed)
@@ -90,14 +109,15 @@ def shelf_rollout(policy: str, occluders: int, seed: int, params: ShelfPolicyPar
     t = time.process_time()
     sample = generate_shelf_scene(geometry, seed, occluders, target_size)
     scene_ms = 1e3 * (time.process_time() - t)
-    diagram = build_shelf_search(foss, sample.scene, policy, params)
+    diagram = build_shelf_search(foss, sample.scene, policy, params, target_size, perception=perception,
+                                 scenario_name=scenario_name)
     simulator = Simulator(diagram)
     context = simulator.get_mutable_context()
     period = diagram.GetSubsystemByName("foss").period
     horizon = params.horizon if params.horizon is not None else 2 * occluders
     ports = {name: diagram.GetOutputPort(name) for name in ("action", "visible_fraction", "scene", "history",
                                                              "occupancy")}
-    perception, decisions, steps_ms = [], [], []
+    perceive, decisions, steps_ms = [], [], []
     failure, reason, steps = "", "", 0
     while True:
         visible = float(ports["visible_fraction"].Eval(context)[0])
@@ -111,7 +131,7 @@ def shelf_rollout(policy: str, occluders: int, seed: int, params: ShelfPolicyPar
         t1 = time.process_time()
         action = ports["action"].Eval(context)
         t2 = time.process_time()
-        perception.append(t1 - t)
+        perceive.append(t1 - t)
         decisions.append(t2 - t1)
         if action.kind != "shelf":
             failure, reason = "no_action", action.reason
@@ -130,32 +150,37 @@ def shelf_rollout(policy: str, occluders: int, seed: int, params: ShelfPolicyPar
         return float(1e3 * f(x)) if x else float("nan")
 
     return dict(seed=int(seed), occluders=int(occluders), objects=int(occluders), policy=policy, fidelity=FIDELITY,
+                perception=perception,
                 success=not failure, steps=steps, actions=steps, pushes=kinds.count("push"),
                 suctions=kinds.count("suction"), refused=len(history) - len(done),
                 cost=kinds.count("push") + params.psi * kinds.count("suction"), failure=failure, stop_reason=reason,
                 visible_fraction=float(ports["visible_fraction"].Eval(context)[0]),
                 target_size=list(map(float, target_size)), scene_ms=scene_ms,
-                perception_ms=ms(perception, np.median), decision_ms=ms(decisions, np.median),
+                perception_ms=ms(perceive, np.median), decision_ms=ms(decisions, np.median),
                 decision_ms_max=ms(decisions, np.max), foss_ms=ms(steps_ms, np.median),
                 seconds=time.perf_counter() - t_start, cpu_seconds=time.process_time() - cpu_start, pid=os.getpid())
 
 
 def shelf_rollout_job(job: tuple) -> dict:
-    """(policy, occluders, seed[, horizon]) -> record; module-level for the worker pool."""
+    """(policy, occluders, seed[, horizon[, perception]]) -> record; module-level for the worker pool."""
     policy, occluders, seed, *rest = job
     horizon = rest[0] if rest else None
-    return shelf_rollout(policy, occluders, seed, ShelfPolicyParams(seed=seed, horizon=horizon))
+    perception = rest[1] if len(rest) > 1 else "ground_truth"
+    return shelf_rollout(policy, occluders, seed, ShelfPolicyParams(seed=seed, horizon=horizon),
+                         perception=perception)
 
 
-def _matches(r: dict, policy: str) -> bool:
-    return r.get("policy") == policy and r.get("fidelity") == FIDELITY
+def _matches(r: dict, policy: str, perception: str = "ground_truth") -> bool:
+    return (r.get("policy") == policy and r.get("fidelity") == FIDELITY
+            and r.get("perception", "ground_truth") == perception)
 
 
 def run_shelf_bench(policy: str, occluders: list[int], scenes: int, seed_start: int, out, workers: int = 1,
                     use_ray: bool = False, ray_address: str | None = None, horizon: int | None = None,
-                    progress=None) -> dict:
+                    progress=None, perception: str = "ground_truth") -> dict:
     """Run the missing rollouts of seeds S..S+K-1 for every occluder count, append them to `out`
-    (JSON lines); returns {occluders or "all": summary} over the requested seeds."""
+    (JSON lines); returns {occluders or "all": summary} over the requested seeds. Records without
+    a `perception` field are ground-truth ones."""
     check_shelf_policy(policy)
     bad = [n for n in occluders if not 2 <= n <= 12]
     if bad:
@@ -163,9 +188,9 @@ def run_shelf_bench(policy: str, occluders: list[int], scenes: int, seed_start: 
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     done = {(int(r["objects"]), int(r["seed"])) for r in final_records(read_records(out))
-            if _matches(r, policy) and r.get("failure") != "worker_died"}
+            if _matches(r, policy, perception) and r.get("failure") != "worker_died"}
     seeds = range(seed_start, seed_start + scenes)
-    jobs = [(policy, n, s, horizon) for n in occluders for s in seeds if (n, s) not in done]
+    jobs = [(policy, n, s, horizon, perception) for n in occluders for s in seeds if (n, s) not in done]
     with open(out, "a") as f:
         for r in run_jobs(shelf_rollout_job, jobs, workers=workers, use_ray=use_ray, ray_address=ray_address):
             if r.ok:
@@ -173,13 +198,13 @@ def run_shelf_bench(policy: str, occluders: list[int], scenes: int, seed_start: 
             else:
                 err = (r.error or "").strip().splitlines()
                 rec = dict(seed=r.job[2], occluders=r.job[1], objects=r.job[1], policy=policy, fidelity=FIDELITY,
-                           success=False, steps=0, actions=0, failure="worker_died", error=err[-1] if err else "")
+                           perception=perception, success=False, steps=0, actions=0, failure="worker_died", error=err[-1] if err else "")
             f.write(json.dumps(rec) + "\n")
             f.flush()
             os.fsync(f.fileno())
             if progress is not None:
                 progress(rec)
-    recs = [r for r in final_records(read_records(out)) if _matches(r, policy) and int(r["seed"]) in seeds
+    recs = [r for r in final_records(read_records(out)) if _matches(r, policy, perception) and int(r["seed"]) in seeds
             and int(r["objects"]) in occluders]
     summary = {n: summarize([r for r in recs if int(r["objects"]) == n]) for n in occluders}
     summary["all"] = summarize(recs)
@@ -273,17 +298,6 @@ def bench_shelf_scenes(count: int, seed_start: int = 0, target_size=DEFAULT_TARG
 
 
 # -- datasets -----------------------------------------------------------------------------------------
-
-
-def block_depth(depth: np.ndarray, block: int) -> np.ndarray:
-    """Mean of the finite depths of each block x block pixel block (0 where a block has none)."""
-    if block == 1:
-        return depth
-    h, w = depth.shape
-    d = depth[:h - h % block, :w - w % block].reshape(h // block, block, w // block, block)
-    ok = np.isfinite(d)
-    n = ok.sum(axis=(1, 3))
-    return np.where(n > 0, np.where(ok, d, 0).sum(axis=(1, 3)) / np.maximum(n, 1), 0).astype(np.float32)
 
 
 def dataset_shard_job(job: tuple) -> dict:

@@ -12,9 +12,12 @@ Backends:
   collapses onto it; while it is hidden its true placement is added to the hidden set (the
   placements consistent with the observation include the truth even when it sits closer to an
   occluder than the grid resolves).
-- "learned": the reference's network (depth image -> distributions for three target heights).
-  Its weights (LEARNED_WEIGHTS) are not part of this build; asking for it raises a
-  PerceptionError that names the missing file.
+- "learned": the reference's network (ms_drake.perception.shelf_occupancy_net: the shelf camera's
+  480 x 640 depth image -> P(x) for three target heights; the head nearest the target's height is
+  used). It reads the ``depth_image`` input (ImageDepth32F, metres) instead of the scene; its
+  ShelfOccupancy has P(x) only (`floor` is an empty (0, 0) array: the network predicts no floor
+  distribution). Its weights (LEARNED_WEIGHTS, models/weights/shelf_occupancy.md) load when the
+  system is made; missing weights raise a PerceptionError naming the commands that make them.
 """
 
 from __future__ import annotations
@@ -22,10 +25,19 @@ from __future__ import annotations
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
+from pydrake.systems.sensors import ImageDepth32F
 
 from ms_drake.errors import PerceptionError
 from ms_drake.paths import models_dir
-from ms_drake.shelf_geometry import Prisms, ShelfGeometry, box_corners, coverage, hidden_placements, visible_fraction
+from ms_drake.perception.shelf_occupancy_net import IMAGE_SHAPE, LearnedShelfOccupancy
+from ms_drake.shelf_geometry import (
+    Prisms,
+    ShelfGeometry,
+    box_corners,
+    coverage,
+    hidden_placements,
+    visible_fraction,
+)
 from ms_drake.types import ShelfOccupancy, ShelfScene
 
 BACKENDS = ("ground_truth", "learned")
@@ -69,36 +81,48 @@ def ground_truth_occupancy(geometry: ShelfGeometry, scene: ShelfScene, target_si
 
 
 class ShelfOccupancyEstimator(LeafSystem):
-    """Ports (declared first): input ``scene`` (ShelfScene; the ground-truth backend's observation),
-    output ``occupancy`` (ShelfOccupancy).
+    """Ports (declared first): inputs ``scene`` (ShelfScene; the ground-truth backend's observation)
+    and ``depth_image`` (ImageDepth32F of the shelf camera; the learned backend's), output
+    ``occupancy`` (ShelfOccupancy).
 
     geometry: the shelf and camera (ShelfGeometry.from_scenario); target_size: the known target's
-    (w, d, h) in metres (None: the scene's target's); backend: one of BACKENDS."""
+    (w, d, h) in metres (None: the scene's target's for "ground_truth", DEFAULT_TARGET for
+    "learned", which sees no scene); backend: one of BACKENDS; weights: the learned backend's file
+    (None: models/weights/shelf_occupancy.pt)."""
 
     def __init__(self, geometry: ShelfGeometry, target_size=None, backend: str = "ground_truth",
-                 step: float = 0.005):
+                 step: float = 0.005, weights=None):
         super().__init__()
         if backend not in BACKENDS:
             raise PerceptionError(f"ShelfOccupancyEstimator(backend={backend!r}): choose one of {', '.join(BACKENDS)}")
-        if backend == "learned":
-            path = models_dir() / LEARNED_WEIGHTS
-            raise PerceptionError(
-                f"ShelfOccupancyEstimator(backend='learned'): the learned shelf occupancy network needs its weights "
-                f"at {path}, which this build does not have (the network is not trained yet); use "
-                "backend='ground_truth'")
         if target_size is not None and (len(target_size) != 3 or min(target_size) <= 0):
             raise PerceptionError(f"ShelfOccupancyEstimator(target_size={target_size!r}): give (w, d, h) > 0 in metres")
         width = geometry.camera.width
+        if backend == "learned" and (geometry.camera.height, width) != IMAGE_SHAPE:
+            raise PerceptionError(f"ShelfOccupancyEstimator(backend='learned'): the camera is {width} x "
+                                  f"{geometry.camera.height}; the network takes {IMAGE_SHAPE[1]} x {IMAGE_SHAPE[0]}")
         # Ports first.
         self.scene_port = self.DeclareAbstractInputPort("scene", AbstractValue.Make(ShelfScene(())))
+        self.depth_port = self.DeclareAbstractInputPort(
+            "depth_image", AbstractValue.Make(ImageDepth32F(width, geometry.camera.height)))
         self.DeclareAbstractOutputPort(
             "occupancy", lambda: AbstractValue.Make(ShelfOccupancy(np.zeros((1, 1)), np.zeros(width))), self._calc)
         self.geometry = geometry
         self.target_size = target_size
         self.backend = backend
         self.step = step
+        self.model = LearnedShelfOccupancy(weights if weights is not None else models_dir() / LEARNED_WEIGHTS) \
+            if backend == "learned" else None
 
     def _calc(self, context, output):
+        if self.backend == "learned":
+            if not self.depth_port.HasValue(context):
+                raise PerceptionError("ShelfOccupancyEstimator('learned'): connect the depth_image input (the shelf "
+                                      "camera's depth, e.g. ShelfDepthCamera's)")
+            depth = np.array(self.depth_port.Eval(context).data, np.float32)[:, :, 0]
+            p = self.model.predict(depth, self.target_size if self.target_size is not None else DEFAULT_TARGET)
+            output.set_value(ShelfOccupancy(np.zeros((0, 0)), p))
+            return
         if not self.scene_port.HasValue(context):
             raise PerceptionError("ShelfOccupancyEstimator: connect the scene input (FossSystem's scene)")
         output.set_value(ground_truth_occupancy(self.geometry, self.scene_port.Eval(context), self.target_size,

@@ -7,6 +7,11 @@ before it looks) and no registry objects -- with every occluder and the target a
 cylinder (`MakeStation(extra_objects=...)`, SDF from ms_drake.objects.sdf, the target in the target
 colour), poses them on the shelf floor and renders one camera: depth (metres), label image (VTK's
 own render by default) and colour.
+
+`ShelfDepthCamera(scenario)`: a LeafSystem, input ``scene`` (ShelfScene) -> output
+``depth_image`` (ImageDepth32F), the render of the scene's current state (FOSS has no station of
+its own; the learned shelf occupancy reads this image). It keeps its station while the scene's
+objects (ids, shapes and sizes) stay the same and only re-poses them, and keeps the last render.
 """
 
 from __future__ import annotations
@@ -16,7 +21,10 @@ from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
+from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
+from pydrake.systems.framework import LeafSystem
+from pydrake.systems.sensors import ImageDepth32F
 
 from ms_drake.errors import SceneError
 from ms_drake.objects import TARGET_RGBA
@@ -74,9 +82,16 @@ def shelf_station(scenario: Scenario, scene: ShelfScene, label_images: str = "re
              for o in objects]
     station = MakeStation(s, label_images=label_images, extra_objects=extra)
     context = station.CreateDefaultContext()
+    return station, context, pose_shelf_objects(station, context, scenario, scene)
+
+
+def pose_shelf_objects(station, context, scenario: Scenario, scene: ShelfScene) -> dict:
+    """Pose the station's shelf objects (made by shelf_station for objects of the same ids) where
+    `scene` has them; returns {object id: label}."""
     plant = get_plant(station)
     plant_context = plant.GetMyMutableContextFromRoot(context)
     origin = np.asarray(scenario.environment.position, float)
+    objects = list(scene.objects) + ([scene.target] if scene.target is not None else [])
     by_id = {o.id: o for o in objects}
     labels = {}
     for so in station_objects(plant):
@@ -84,7 +99,7 @@ def shelf_station(scenario: Scenario, scene: ShelfScene, label_images: str = "re
         plant.SetFreeBodyPose(plant_context, plant.get_body(so.body_index),
                               RigidTransform(origin + [o.x, o.y, o.height / 2]))
         labels[o.id] = int(so.body_index)
-    return station, context, labels
+    return labels
 
 
 def render_shelf_scene(scenario: Scenario, scene: ShelfScene, camera: str = "front",
@@ -97,3 +112,37 @@ def render_shelf_scene(scenario: Scenario, scene: ShelfScene, camera: str = "fro
     label = np.array(station.GetOutputPort(f"{camera}.label_image").Eval(context).data)[:, :, 0].astype(int)
     rgb = np.array(station.GetOutputPort(f"{camera}.rgb_image").Eval(context).data)[:, :, :3].copy()
     return ShelfRender(depth, label, rgb, labels)
+
+
+class ShelfDepthCamera(LeafSystem):
+    """Ports (declared first): input ``scene`` (ShelfScene), output ``depth_image`` (ImageDepth32F,
+    metres, inf where nothing) of the scenario's camera `camera`."""
+
+    def __init__(self, scenario: Scenario, camera: str = "front"):
+        super().__init__()
+        if camera not in scenario.cameras:
+            raise SceneError(f"camera {camera!r} is not in the scenario's cameras ({', '.join(scenario.cameras)})")
+        cam = scenario.cameras[camera]
+        self.scene_port = self.DeclareAbstractInputPort("scene", AbstractValue.Make(ShelfScene(())))
+        self.DeclareAbstractOutputPort("depth_image", lambda: AbstractValue.Make(ImageDepth32F(cam.width, cam.height)),
+                                       self._calc)
+        self.scenario, self.camera = scenario, camera
+        self._last = None  # (scene, image)
+        self._station = None  # (objects' ids, shapes and sizes; station; its context)
+
+    def _calc(self, context, output):
+        scene = self.scene_port.Eval(context)
+        if self._last is None or self._last[0] != scene:
+            objects = list(scene.objects) + ([scene.target] if scene.target is not None else [])
+            key = tuple((o.id, o.kind, o.width, o.depth, o.height) for o in objects)
+            if self._station is None or self._station[0] != key:
+                station, station_context, _ = shelf_station(self.scenario, scene)
+                self._station = (key, station, station_context)
+            else:
+                _, station, station_context = self._station
+                pose_shelf_objects(station, station_context, self.scenario, scene)
+            depth = np.array(station.GetOutputPort(f"{self.camera}.depth_image").Eval(station_context).data)[:, :, 0]
+            image = ImageDepth32F(depth.shape[1], depth.shape[0])
+            image.mutable_data[:, :, 0] = depth
+            self._last = (scene, image)
+        output.set_value(self._last[1])
