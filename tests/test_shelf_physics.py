@@ -9,11 +9,26 @@ from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
 from pydrake.systems.sensors import ImageDepth32F, ImageRgba8U
 
 from ms_drake.execution import ExecutionError
-from ms_drake.execution.shelf_backend import BLADE_DOWN, BLADE_UP, ShelfBackend, ShelfBody, agreement, observe
-from ms_drake.experiments.shelf_physics import build_shelf_physics, set_initial, target_visibility
+from ms_drake.execution.shelf_backend import (
+    BLADE_DOWN,
+    BLADE_UP,
+    ShelfBackend,
+    ShelfBody,
+    agreement,
+    observe,
+)
+from ms_drake.experiments.shelf_physics import (
+    build_shelf_physics,
+    set_initial,
+    target_visibility,
+)
 from ms_drake.planning import ik_pose
 from ms_drake.policies.bin_search import ControllerError
-from ms_drake.policies.shelf_search import MakeShelfSearchController, ShelfSearchParams, ShelfSimulationInfo
+from ms_drake.policies.shelf_search import (
+    MakeShelfSearchController,
+    ShelfSearchParams,
+    ShelfSimulationInfo,
+)
 from ms_drake.scenario import load_scenario
 from ms_drake.types import Action, ShelfAction, ShelfObject, ShelfScene
 

@@ -51,7 +51,7 @@ from ms_drake.policies.shelf_search import (
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.shelf import DEFAULT_TARGET, generate_shelf_scene
 from ms_drake.scenes.shelf_render import OCCLUDER_RGBA
-from ms_drake.shelf_geometry import ShelfGeometry, box_corners
+from ms_drake.shelf_geometry import ShelfGeometry
 from ms_drake.station import MakeStation, get_plant, station_objects
 from ms_drake.station.robots import set_arm_positions
 from ms_drake.types import ShelfObject, ShelfScene
@@ -292,7 +292,7 @@ def physics_table(recs: list[dict], policies=("der3", "bluction_dar")) -> str:
             cells.append(f"{len(ok)}/{len(rs)}")
             steps.append(", ".join(str(r["steps"]) for r in ok) or "(-)")
         lines.append(f"| {n} | successes | " + " | ".join(cells) + " |")
-        lines.append(f"| | no. steps | " + " | ".join(steps) + " |")
+        lines.append("| | no. steps | " + " | ".join(steps) + " |")
     rate, med, agree = [], [], []
     for p in policies:
         rs = by[p]

@@ -40,7 +40,11 @@ from ms_drake.foss import Foss
 from ms_drake.perception.ready import ImagesReady
 from ms_drake.perception.shelf_occupancy import ShelfOccupancyEstimator
 from ms_drake.policies.bin_search import ControllerError, connect_controller  # noqa: F401 (re-exported)
-from ms_drake.policies.shelf import ShelfPolicyParams, ShelfPolicySelector, check_shelf_policy
+from ms_drake.policies.shelf import (
+    ShelfPolicyParams,
+    ShelfPolicySelector,
+    check_shelf_policy,
+)
 from ms_drake.shelf_geometry import ShelfGeometry
 from ms_drake.types import ShelfScene
 
@@ -107,7 +111,7 @@ class ShelfSceneObserver(LeafSystem):
 
 def MakeShelfSearchController(scenario, params: ShelfSearchParams | None = None,
                               sim: ShelfSimulationInfo | None = None, target_size=None,
-                              name: str = "shelf_search_controller") -> "ShelfSearchController":
+                              name: str = "shelf_search_controller") -> ShelfSearchController:
     """The controller Diagram of a shelf search on `scenario`'s station (FetchShelf; module docstring).
     target_size: the target's (w, d, h) [m] for the occupancy (None: the observed target's)."""
     params = params or ShelfSearchParams()
