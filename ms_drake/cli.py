@@ -489,6 +489,7 @@ def data_shelf(count: int = typer.Option(..., "--count", min=1, help="Scenes (N)
 # Learned occupancy (Ch. 8.3): dataset, training, Table 8.1
 
 from ms_drake.experiments.occupancy_data import write_occupancy_dataset  # noqa: E402
+from ms_drake.experiments.harness import paired_comparison, read_records  # noqa: E402
 from ms_drake.experiments.occupancy_learning import bench_occupancy, train_occupancy, write_json  # noqa: E402
 
 
@@ -500,9 +501,18 @@ def data_occupancy(count: int = typer.Option(..., "--count", min=1, help="Images
                    heaps_per_shard: int = typer.Option(4, "--heaps-per-shard", min=1, help="Heaps per shard"),
                    workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers"),
                    ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
-                   ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address")):
+                   ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address"),
+                   target: Optional[list[str]] = typer.Option(None, "--target", help="Out-of-set box target "
+                                                              "'L,W,T' in metres (repeatable), e.g. 0.06,0.06,0.005"),
+                   test_only: bool = typer.Option(False, "--test-only", help="Every shard a test shard")):
     """Depth images + target modal masks + ground-truth occupancy (ten box aspect ratios), split by
     image and by object, sharded; shards already written are kept."""
+    try:
+        targets = [tuple(float(v) for v in t.split(",")) for t in target] if target else None
+    except ValueError:
+        _fail(f"--target {target}: give L,W,T in metres, e.g. --target 0.06,0.06,0.005")
+    if targets and any(len(t) != 3 for t in targets):
+        _fail(f"--target {target}: give three numbers L,W,T per target")
     t0 = time.perf_counter()
     per = views * heaps_per_shard
     bar = tqdm(total=-(-count // per), desc="shards", unit="shard")
@@ -513,7 +523,8 @@ def data_occupancy(count: int = typer.Option(..., "--count", min=1, help="Images
             tqdm.write(f"shard {r.job[1]}: {r.error.strip().splitlines()[-1]} (rerun to retry)")
 
     res = write_occupancy_dataset(out, count, seed, views, heaps_per_shard, workers,
-                                  ray or ray_address is not None, ray_address, progress)
+                                  ray or ray_address is not None, ray_address, progress, targets=targets,
+                                  test_only=test_only)
     bar.close()
     typer.echo(f"{res['written']} shards written, {res['skipped']} already there, {len(res['failed'])} failed, "
                f"in {out} ({time.perf_counter() - t0:.1f} s)")
@@ -556,6 +567,20 @@ def train_occupancy_cmd(data: Path = typer.Option(..., "--data", help="Dataset f
     typer.echo(f"wrote {out} ({meta['epochs_done']} of {epochs} epochs, {meta['seconds'] / 60:.1f} min)")
 
 
+@bench_app.command("paired")
+def bench_paired(a: Path = typer.Argument(..., help="Result .jsonl of policy A"),
+                 b: Path = typer.Argument(..., help="Result .jsonl of policy B (the same heaps)")):
+    """Paired sign test of success, A vs B, on the heaps both files hold."""
+    missing = [str(f) for f in (a, b) if not f.exists()]
+    if missing:
+        _fail(f"no such result file: {', '.join(missing)}; run `ms-drake bench search ... --out FILE.jsonl` first")
+    r = paired_comparison(read_records(a), read_records(b))
+    typer.echo(f"{r['heaps']} heaps: only A {len(r['only_a'])}, only B {len(r['only_b'])}, both {r['both']}, "
+               f"neither {r['neither']}; two-sided sign test p = {r['p']:.3g}")
+    typer.echo(f"only A: {r['only_a']}")
+    typer.echo(f"only B: {r['only_b']}")
+
+
 @bench_app.command("occupancy")
 def bench_occupancy_cmd(data: Path = typer.Option(..., "--data", help="Dataset folder (its test shards)"),
                         weights: Optional[Path] = typer.Option(None, "--weights", help="Weights (default: shipped)"),
@@ -573,23 +598,13 @@ def bench_occupancy_cmd(data: Path = typer.Option(..., "--data", help="Dataset f
     for name, r in res["baselines"].items():
         typer.echo(f"baseline {name}: bal. acc. {100 * r['balanced_accuracy']:.1f} %, IoU {r['iou']:.2f}, "
                    f"MSE {r['mse']:.4f}")
-    typer.echo(f"inference: {res['ms_per_image']:.1f} ms per image (median of {res['timed']}, one torch thread, "
-               "preprocessing and upsampling included)")
+    typer.echo(f"inference: {res['ms_per_image']:.1f} ms wall, {res['cpu_ms_per_image']:.1f} ms CPU per image (median "
+               f"of {res['timed']}, one torch thread, preprocessing and upsampling included)")
     if out is not None:
         write_json(out, res)
         typer.echo(f"wrote {out}")
 
 
-def main():
-    try:
-        app()
-    except MsDrakeError as e:
-        typer.echo(f"error: {e}", err=True)
-        sys.exit(2)
-
-
-if __name__ == "__main__":
-    main()
 # -- Learned shelf occupancy (Ch. 9.4.2): ms-drake train / bench shelf-occupancy ------------------------
 
 from ms_drake.experiments.shelf_learning import bench_shelf_occupancy, train_shelf_occupancy  # noqa: E402
@@ -650,3 +665,13 @@ def bench_shelf_occupancy_cmd(
         typer.echo(f"wrote {out}")
 
 
+def main():
+    try:
+        app()
+    except MsDrakeError as e:
+        typer.echo(f"error: {e}", err=True)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

@@ -24,6 +24,7 @@ from pathlib import Path
 import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
+from scipy.stats import binomtest
 
 from ms_drake.experiments.rollout import rollout
 from ms_drake.experiments.xray import PROTOCOLS, xray_heap
@@ -228,6 +229,21 @@ def summarize(recs: list[dict], seed: int = 0) -> dict:
         median_seconds=float(np.median(secs)) if len(secs) else float("nan"),
         median_cpu_seconds=float(np.median(cpu)) if len(cpu) else float("nan"),
         failures=failures)
+
+
+def paired_comparison(recs_a: list[dict], recs_b: list[dict]) -> dict:
+    """Success of two policies on the same heaps (seeds in both): heaps only A solves, only B
+    solves, both, neither, and the two-sided exact sign test (binomial, p = 1/2) on the
+    discordant heaps."""
+    a = {int(r["seed"]): bool(r["success"]) for r in final_records(recs_a)}
+    b = {int(r["seed"]): bool(r["success"]) for r in final_records(recs_b)}
+    seeds = sorted(set(a) & set(b))
+    only_a = [k for k in seeds if a[k] and not b[k]]
+    only_b = [k for k in seeds if b[k] and not a[k]]
+    both = sum(1 for k in seeds if a[k] and b[k])
+    n = len(only_a) + len(only_b)
+    p = float(binomtest(len(only_a), n, 0.5).pvalue) if n else 1.0
+    return dict(heaps=len(seeds), only_a=only_a, only_b=only_b, both=both, neither=len(seeds) - both - n, p=p)
 
 
 def format_summary(policy: str, s: dict) -> str:

@@ -58,6 +58,7 @@ from ms_drake.perception.occupancy import AnalyticOccupancy, TargetBox, convex_s
 from ms_drake.perception.occupancy_net import (
     TARGET_RATIOS,
     WORK_SHAPE,
+    nearest_ratio,
     target_box_size,
     working_inputs,
     working_target,
@@ -75,8 +76,8 @@ class DatasetError(MsDrakeError, ValueError):
     """A dataset folder or request that cannot be used."""
 
 
-def shard_split(k: int) -> str:
-    return "test" if k % TEST_EVERY == TEST_EVERY - 1 else "train"
+def shard_split(k: int, test_only: bool = False) -> str:
+    return "test" if test_only or k % TEST_EVERY == TEST_EVERY - 1 else "train"
 
 
 def truncated_poisson(rng: np.random.Generator, lam: float = 12.0, lo: int = 10, hi: int = 15) -> int:
@@ -186,8 +187,8 @@ def make_samples(scenario, heap, views: int, rng: np.random.Generator, ratios=TA
             k = int(rng.integers(len(ratios)))
             box = TargetBox.of(target_box_size(ratios[k]))
         else:
-            k = int(rng.integers(len(box_sizes)))
-            box = TargetBox.of(box_sizes[k])
+            box = TargetBox.of(box_sizes[int(rng.integers(len(box_sizes)))])
+            k = nearest_ratio(box.length, box.width)[0]  # the channel that serves this target
         xy, yaw = sample_target(heap, ws, box, rng)
         d2, modal = insert_target(depth, cam, ws, box, xy, yaw)
         rho = AnalyticOccupancy(cam, ws, box).estimate(d2, modal)
@@ -199,9 +200,9 @@ def make_samples(scenario, heap, views: int, rng: np.random.Generator, ratios=TA
 
 
 def shard_job(job: tuple) -> dict:
-    """(out, k, seed, heaps_per_shard, views, sets, targets) -> writes shard k; module-level for pickling."""
-    out, k, seed, heaps_per_shard, views, sets, targets = job
-    split = shard_split(k)
+    """(out, k, seed, heaps_per_shard, views, sets, targets, test_only) -> writes shard k; module-level for pickling."""
+    out, k, seed, heaps_per_shard, views, sets, targets, test_only = job
+    split = shard_split(k, test_only)
     path = Path(out) / f"shard_{k:05d}_{split}.npz"
     if path.exists():
         return dict(shard=k, samples=0, skipped=True)
@@ -238,16 +239,20 @@ def shard_job(job: tuple) -> dict:
 
 def write_occupancy_dataset(out, count: int, seed: int = 0, views: int = 8, heaps_per_shard: int = 4,
                             workers: int = 1, use_ray: bool = False, ray_address: str | None = None,
-                            progress=None, sets=OBJECT_SETS, targets=None) -> dict:
-    """Shards of about `count` images into `out` (see the module doc); returns counts."""
+                            progress=None, sets=OBJECT_SETS, targets=None, test_only: bool = False) -> dict:
+    """Shards of about `count` images into `out` (see the module doc); returns counts.
+    targets: (length, width, thickness) boxes to use instead of the ten training boxes (an
+    out-of-set evaluation set; each sample's ratio is the channel of its closest aspect ratio);
+    test_only: every shard is a test shard (held-out occluders only)."""
     if views < 1 or heaps_per_shard < 1:
         raise DatasetError(f"views={views}, heaps_per_shard={heaps_per_shard}: both must be >= 1")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     per = views * heaps_per_shard
     shards = -(-int(count) // per)
-    jobs = [(str(out), k, int(seed), heaps_per_shard, views, tuple(sets), targets) for k in range(shards)]
-    todo = [j for j in jobs if not (out / f"shard_{j[1]:05d}_{shard_split(j[1])}.npz").exists()]
+    targets = None if targets is None else tuple(tuple(float(v) for v in t) for t in targets)
+    jobs = [(str(out), k, int(seed), heaps_per_shard, views, tuple(sets), targets, test_only) for k in range(shards)]
+    todo = [j for j in jobs if not (out / f"shard_{j[1]:05d}_{shard_split(j[1], test_only)}.npz").exists()]
     res = dict(shards=shards, skipped=shards - len(todo), written=0, failed=[])
     for r in run_jobs(shard_job, todo, workers=workers, use_ray=use_ray, ray_address=ray_address,
                       max_tasks_per_child=50):

@@ -138,6 +138,9 @@ def make_net(config: NetConfig = NetConfig()):
             # decoder levels: one 3x3 convolution over [upsampled, skip]
             self.dec = nn.ModuleList([nn.Sequential(*conv(2 * ch[i - 1], ch[i - 1])) for i in range(cfg.levels - 1, 0, -1)])
             self.head = nn.Conv2d(ch[0], cfg.outputs, 1)
+            # Most ground-truth pixels are 0: start the sigmoid near 0 (0.05) rather than at 0.5,
+            # or the first hundreds of steps only pull every output down.
+            nn.init.constant_(self.head.bias, -3.0)
 
         def forward(self, x):
             skips = []

@@ -1,0 +1,51 @@
+"""Pictures of the heaps where two policies of the Table 8.2 runs differ (docs/BENCHMARKS.md, X-Ray).
+
+    .venv/bin/python sims/xray_differences.py --a FILE_A.jsonl --b FILE_B.jsonl --heap-dir DIR --out DIR [--max 4]
+
+For each heap one policy solves and the other does not (ms_drake.experiments.harness.paired_comparison),
+both rollouts are rerun with their frames (the same seeds: bit-identical searches) and every step's
+panels (masks and target, X-Ray's occupancy, the action; ms_drake.experiments.demo.frame_image)
+are stacked into <out>/<policy>_s<seed>.png; a line per rollout lists its actions.
+"""
+
+import argparse
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ms_drake.experiments.demo import frame_image
+from ms_drake.experiments.harness import cached_heap, paired_comparison, read_records
+from ms_drake.experiments.rollout import rollout
+from ms_drake.experiments.xray import XRAY_HORIZON, XRAY_OBJECTS
+from ms_drake.geometry import PinholeCamera
+from ms_drake.scenario import load_scenario
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--a", type=Path, required=True)
+    ap.add_argument("--b", type=Path, required=True)
+    ap.add_argument("--heap-dir", required=True)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--max", type=int, default=4, help="heaps per direction")
+    args = ap.parse_args()
+    ra, rb = read_records(args.a), read_records(args.b)
+    pa, pb = ra[0]["policy"], rb[0]["policy"]
+    cmp = paired_comparison(ra, rb)
+    camera = PinholeCamera.from_config(load_scenario(None, "FloatingGripperBin").cameras["overhead"])
+    args.out.mkdir(parents=True, exist_ok=True)
+    for seeds in (cmp["only_a"][:args.max], cmp["only_b"][:args.max]):
+        for seed in seeds:
+            heap = cached_heap(XRAY_OBJECTS, seed, args.heap_dir, "xray")
+            for policy in (pa, pb):
+                r = rollout(policy, XRAY_OBJECTS, seed, horizon=XRAY_HORIZON, heap=heap, keep_frames=True)
+                pic = np.concatenate([frame_image(f, camera) for f in r.frames], axis=0)
+                path = args.out / f"{policy}_s{seed}.png"
+                cv2.imwrite(str(path), cv2.resize(pic, None, fx=0.5, fy=0.5)[:, :, ::-1])
+                print(f"seed {seed} {policy}: {'success' if r.success else r.failure} after {r.actions}; "
+                      + "; ".join(f"{f.step}: {f.action.reason}" for f in r.frames) + f" -> {path}")
+
+
+if __name__ == "__main__":
+    main()
