@@ -32,9 +32,34 @@ from ms_drake.errors import MsDrakeError
 from ms_drake.execution import FIDELITIES
 from ms_drake.experiments.demo import run_demo
 from ms_drake.experiments.grasp_figure import grasp_figure
-from ms_drake.experiments.harness import format_summary, plot, run_bench
+from ms_drake.experiments.harness import (
+    format_summary,
+    paired_comparison,
+    plot,
+    read_records,
+    run_bench,
+)
+from ms_drake.experiments.occupancy_data import write_occupancy_dataset
+from ms_drake.experiments.occupancy_learning import (
+    bench_occupancy,
+    train_occupancy,
+    write_json,
+)
 from ms_drake.experiments.picks import TASKS, run_pick
 from ms_drake.experiments.scene_images import make_scene, write_scene_images
+from ms_drake.experiments.shelf import (
+    bench_shelf_scenes,
+    plot_shelf,
+    run_shelf_bench,
+    shelf_records,
+    shelf_table,
+    write_shelf_dataset,
+)
+from ms_drake.experiments.shelf_learning import (
+    bench_shelf_occupancy,
+    train_shelf_occupancy,
+)
+from ms_drake.experiments.shelf_learning import write_json as write_shelf_json
 from ms_drake.experiments.shelf_physics import DEMO_OCCLUDERS as SHELF_DEMO_OCCLUDERS
 from ms_drake.experiments.shelf_physics import DEMO_SEED as SHELF_DEMO_SEED
 from ms_drake.experiments.shelf_physics import (
@@ -48,6 +73,7 @@ from ms_drake.grasping.evaluator import MODELS
 from ms_drake.objects import get_object_set
 from ms_drake.parallel import run_jobs
 from ms_drake.policies.bin_selectors import check_policy
+from ms_drake.policies.shelf import SHELF_POLICIES, check_shelf_policy
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import HeapParams, generate_heap, heap_to_dict
 from ms_drake.station import MakeStation
@@ -333,15 +359,6 @@ def pick(task: str = typer.Argument(..., help=f"Pick task: {', '.join(TASKS)}"),
 
 # -- Shelf search (Ch. 9): ms-drake bench shelf / shelf-table, ms-drake data shelf -----------------------
 
-from ms_drake.experiments.shelf import (  # noqa: E402
-    bench_shelf_scenes,
-    plot_shelf,
-    run_shelf_bench,
-    shelf_records,
-    shelf_table,
-    write_shelf_dataset,
-)
-from ms_drake.policies.shelf import SHELF_POLICIES, check_shelf_policy  # noqa: E402
 
 data_app = typer.Typer(add_completion=False, no_args_is_help=True, help="Datasets made by the simulator.")
 app.add_typer(data_app, name="data")
@@ -488,10 +505,6 @@ def data_shelf(count: int = typer.Option(..., "--count", min=1, help="Scenes (N)
 # ---------------------------------------------------------------------------------------------
 # Learned occupancy (Ch. 8.3): dataset, training, Table 8.1
 
-from ms_drake.experiments.occupancy_data import write_occupancy_dataset  # noqa: E402
-from ms_drake.experiments.harness import paired_comparison, read_records  # noqa: E402
-from ms_drake.experiments.occupancy_learning import bench_occupancy, train_occupancy, write_json  # noqa: E402
-
 
 @data_app.command("occupancy")
 def data_occupancy(count: int = typer.Option(..., "--count", min=1, help="Images (N), rounded up to whole shards"),
@@ -606,9 +619,6 @@ def bench_occupancy_cmd(data: Path = typer.Option(..., "--data", help="Dataset f
 
 
 # -- Learned shelf occupancy (Ch. 9.4.2): ms-drake train / bench shelf-occupancy ------------------------
-
-from ms_drake.experiments.shelf_learning import bench_shelf_occupancy, train_shelf_occupancy  # noqa: E402
-from ms_drake.experiments.shelf_learning import write_json as write_shelf_json  # noqa: E402
 
 
 @train_app.command("shelf-occupancy")
