@@ -45,7 +45,7 @@ BLOCK = 4
 IMAGE_SHAPE = (480, 640)
 WORK_SHAPE = (IMAGE_SHAPE[0] // BLOCK, IMAGE_SHAPE[1] // BLOCK)  # (120, 160)
 DEPTH_CENTER, DEPTH_UNIT, DEPTH_MAX = 1.0, 0.5, 2.5  # m
-MAKE_WEIGHTS = ("ms-drake data shelf --count 6000 --seed-start 100000 --depth-block 4 --out DATA/train && "
+MAKE_WEIGHTS = ("ms-drake data shelf --count 5100 --seed-start 100000 --depth-block 4 --out DATA/train && "
                 "ms-drake train shelf-occupancy --data DATA --out models/weights/shelf_occupancy.pt")
 
 
