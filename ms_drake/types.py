@@ -159,7 +159,7 @@ class ShelfOccupancy:
     """Target occupancy on a shelf (Ch. 9.4.2): `floor` (ny, nx) over target footprint centres on
     the shelf floor, cell (i, j) at (x0 + j * step, y0 + i * step) in the shelf frame; `image_x`
     (W,) the 1D distribution P_t(x) along the camera image's x axis. Each sums to 1, or is all 0
-    when no placement is possible."""
+    when no placement is possible; the learned backend's `floor` is empty (shape (0, 0))."""
 
     floor: np.ndarray
     image_x: np.ndarray
