@@ -9,12 +9,10 @@ meshcat_recording.html (the whole search, a Meshcat StaticHtml recording).
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
 import cv2
-import imageio.v2 as imageio
 import numpy as np
 from pydrake.geometry import Meshcat
 
@@ -24,10 +22,15 @@ from ms_drake.experiments.rollout import (
     build_search,
     run_search,
 )
+from ms_drake.experiments.scene_images import (
+    colorize_masks,
+    make_scene,
+    write_scene_images,
+    write_search_pictures,
+)
 from ms_drake.geometry import PinholeCamera
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import SEARCH_HEAPS
-from ms_drake.experiments.scene_images import colorize_masks, make_scene, write_scene_images
 
 
 def _overlay_occupancy(rgb: np.ndarray, occ) -> np.ndarray:
@@ -94,23 +97,8 @@ def run_demo(out: Path, seed: int = 0, objects: int = 15, policy: str = "xray", 
     system = build_search(scenario, heap, params, meshcat=meshcat)
     res = run_search(system, heap, params, keep_frames=True, meshcat=meshcat)
     camera = PinholeCamera.from_config(system.scenario.cameras["overhead"])
-    images = []
-    for fr in res.frames:
-        img = frame_image(fr, camera)
-        p = out / f"step_{fr.step:02d}.png"
-        cv2.imwrite(str(p), img[:, :, ::-1])
-        written[f"step_{fr.step:02d}"] = str(p)
-        images.append(cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA))
-    if images:
-        gif = out / "search.gif"
-        imageio.mimsave(gif, images, duration=1.0, loop=0)
-        written["gif"] = str(gif)
-    (out / "search.json").write_text(json.dumps(res.record(), indent=1))
-    written["search"] = str(out / "search.json")
-    if meshcat is not None:
-        html = out / "meshcat_recording.html"
-        html.write_text(meshcat.StaticHtml())
-        written["meshcat"] = str(html)
+    written.update(write_search_pictures(out, [(fr.step, frame_image(fr, camera)) for fr in res.frames], res.record(),
+                                         meshcat, gif_seconds=1.0))
     log(f"  {policy}: {'success' if res.success else res.failure} after {res.actions} actions "
         f"({', '.join(res.action_kinds) or 'none'}) in {res.seconds:.1f} s")
     return written

@@ -12,6 +12,7 @@ import json
 from pathlib import Path
 
 import cv2
+import imageio.v2 as imageio
 import numpy as np
 from pydrake.geometry import Meshcat
 from pydrake.systems.analysis import Simulator
@@ -120,4 +121,28 @@ def write_scene_images(scenario: Scenario, heap: Heap, out_dir, meshcat_html: bo
         p = out / "meshcat_recording.html"
         p.write_text(meshcat.StaticHtml())
         written["meshcat"] = str(p)
+    return written
+
+
+def write_search_pictures(out: Path, frames, record: dict, meshcat=None, gif_seconds: float = 1.0) -> dict:
+    """The pictures of a search: one PNG per step (`frames`: (step, RGB uint8 image) pairs), a GIF of
+    them at half size, the record as search.json and the Meshcat recording (when `meshcat` is
+    given). Returns {name: path}."""
+    out = Path(out)
+    written, images = {}, []
+    for step, img in frames:
+        p = out / f"step_{step:02d}.png"
+        cv2.imwrite(str(p), img[:, :, ::-1])
+        written[f"step_{step:02d}"] = str(p)
+        images.append(cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA))
+    if images:
+        gif = out / "search.gif"
+        imageio.mimsave(gif, images, duration=gif_seconds, loop=0)
+        written["gif"] = str(gif)
+    (out / "search.json").write_text(json.dumps(record, indent=1))
+    written["search"] = str(out / "search.json")
+    if meshcat is not None:
+        html = out / "meshcat_recording.html"
+        html.write_text(meshcat.StaticHtml())
+        written["meshcat"] = str(html)
     return written

@@ -28,7 +28,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
-import imageio.v2 as imageio
 import numpy as np
 from pydrake.geometry import Meshcat
 from pydrake.math import RigidTransform
@@ -39,6 +38,7 @@ from pydrake.systems.framework import DiagramBuilder
 from ms_drake.errors import MsDrakeError
 from ms_drake.execution.shelf_backend import ShelfBody, agreement
 from ms_drake.experiments.harness import read_records
+from ms_drake.experiments.scene_images import write_search_pictures
 from ms_drake.geometry import PinholeCamera
 from ms_drake.objects import TARGET_RGBA
 from ms_drake.objects.sdf import OBJECT_MODULUS, Inertia, Shape, object_sdf
@@ -369,26 +369,13 @@ def run_shelf_demo(out, seed: int = DEMO_SEED, occluders: int = DEMO_OCCLUDERS, 
     meshcat = Meshcat() if meshcat_html else None
     system = build_shelf_physics(scenario, sample.scene, params, meshcat=meshcat)
     res = run_shelf_physics(system, sample.scene, params, keep_frames=True, meshcat=meshcat)
-    written, images, scene = {}, [], sample.scene
+    pictures, scene = [], sample.scene
     for k, fr in enumerate(res.frames):
         # the scene the action was chosen in: observed from the simulation at that step
         scene = _observed(res, k, sample.scene)
-        img = np.concatenate([_depth_panel(fr.depth), _distribution_panel(fr.rgb, fr.occupancy),
-                              _action_panel(fr.rgb, fr, system, scene)], axis=1)
-        p = out / f"step_{fr.step:02d}.png"
-        cv2.imwrite(str(p), img[:, :, ::-1])
-        written[f"step_{fr.step:02d}"] = str(p)
-        images.append(cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA))
-    if images:
-        gif = out / "search.gif"
-        imageio.mimsave(gif, images, duration=1.5, loop=0)
-        written["gif"] = str(gif)
-    (out / "search.json").write_text(json.dumps(res.record, indent=1))
-    written["search"] = str(out / "search.json")
-    if meshcat is not None:
-        html = out / "meshcat_recording.html"
-        html.write_text(meshcat.StaticHtml())
-        written["meshcat"] = str(html)
+        pictures.append((fr.step, np.concatenate([_depth_panel(fr.depth), _distribution_panel(fr.rgb, fr.occupancy),
+                                                  _action_panel(fr.rgb, fr, system, scene)], axis=1)))
+    written = write_search_pictures(out, pictures, res.record, meshcat, gif_seconds=1.5)
     r = res.record
     log(f"  {policy} on seed {seed} ({occluders} occluders): {'success' if r['success'] else r['failure']} after "
         f"{r['steps']} actions (visible {100 * r['visible_fraction']:.0f} %), FOSS agrees on {r['agree']}/{r['compared']}, "
