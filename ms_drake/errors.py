@@ -34,3 +34,8 @@ class PerceptionError(MsDrakeError, ValueError):
 
 class SceneError(MsDrakeError, RuntimeError):
     """A shelf scene could not be generated (impossible request, no hiding place after the bounded tries)."""
+
+
+class DatasetError(MsDrakeError, ValueError):
+    """A dataset folder, shard or training request that cannot be used (names the file and the
+    command that makes it)."""

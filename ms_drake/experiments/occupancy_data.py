@@ -51,10 +51,15 @@ from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlantConfig
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.sensors import CameraInfo
 
-from ms_drake.errors import HeapError, MsDrakeError
+from ms_drake.errors import DatasetError, HeapError
 from ms_drake.geometry import PinholeCamera, Workspace
+from ms_drake.parallel import run_jobs
 from ms_drake.paths import make_parser
-from ms_drake.perception.occupancy import AnalyticOccupancy, TargetBox, convex_silhouette
+from ms_drake.perception.occupancy import (
+    AnalyticOccupancy,
+    TargetBox,
+    convex_silhouette,
+)
 from ms_drake.perception.occupancy_net import (
     TARGET_RATIOS,
     WORK_SHAPE,
@@ -63,17 +68,12 @@ from ms_drake.perception.occupancy_net import (
     working_inputs,
     working_target,
 )
-from ms_drake.parallel import run_jobs
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import HeapParams, generate_heap
 from ms_drake.station.station import add_environment, add_objects
 
 OBJECT_SETS = ("ycb", "random_urdfs", "procedural")
 TEST_EVERY = 5  # shard k is a test shard when k % TEST_EVERY == TEST_EVERY - 1
-
-
-class DatasetError(MsDrakeError, ValueError):
-    """A dataset folder or request that cannot be used."""
 
 
 def shard_split(k: int, test_only: bool = False) -> str:

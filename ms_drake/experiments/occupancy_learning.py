@@ -21,14 +21,20 @@ pixel count for the negatives' rate only).
 from __future__ import annotations
 
 import json
-import os
 import time
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
-from ms_drake.experiments.occupancy_data import DatasetError, load_dataset
+from ms_drake.errors import DatasetError
+from ms_drake.experiments.occupancy_data import load_dataset
+from ms_drake.experiments.training import (
+    resume,
+    save_atomically,
+    save_checkpoint,
+    torch_setup,
+)
 from ms_drake.perception.occupancy_net import (
     FULL_SHAPE,
     TARGET_AREA,
@@ -58,15 +64,6 @@ def occupancy_metrics(pred: np.ndarray, gt: np.ndarray) -> dict:
     union = (pos | pp).sum(axis=(1, 2))
     iou = np.where(union > 0, (pos & pp).sum(axis=(1, 2)) / np.maximum(union, 1), 1.0)
     return dict(balanced_accuracy=bal, iou=iou, mse=((pred - gt) ** 2).mean(axis=(1, 2)))
-
-
-def _torch_setup(seed: int, threads: int):
-    import torch  # optional heavy dependency: only the learned occupancy needs it
-
-    torch.manual_seed(seed)
-    torch.set_num_threads(max(1, int(threads)))
-    torch.use_deterministic_algorithms(True, warn_only=True)
-    return torch
 
 
 def _flip(x: np.ndarray, y: np.ndarray, rng: np.random.Generator):
@@ -105,7 +102,7 @@ def train_occupancy(data, out, epochs: int = 12, batch: int = 32, seed: int = 0,
                     command: str = "") -> dict:
     """Train on the train shards of `data`; write `out` (weights + meta) and `out`.ckpt (resume).
     Stops early (after a whole epoch) when `max_minutes` of wall time would be exceeded."""
-    torch = _torch_setup(seed, threads)
+    torch = torch_setup(seed, threads)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     ckpt = out.with_suffix(".ckpt")
@@ -118,16 +115,8 @@ def train_occupancy(data, out, epochs: int = 12, batch: int = 32, seed: int = 0,
     opt = make_optimizer(net)
     steps_per_epoch = n // batch
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs * steps_per_epoch)
-    start, history, seconds = 0, [], 0.0
-    if ckpt.exists():
-        ck = torch.load(ckpt, map_location="cpu", weights_only=False)
-        if ck.get("config") != asdict(config) or ck.get("epochs") != epochs or ck.get("n") != n:
-            raise DatasetError(f"{ckpt} was made with other settings (config/epochs/data size); delete it to start "
-                               "over, or rerun with the settings it was made with")
-        net.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optimizer"])
-        sched.load_state_dict(ck["scheduler"])
-        start, history, seconds = ck["epoch"], ck["history"], ck["seconds"]
+    settings = dict(config=asdict(config), epochs=epochs, n=n)
+    start, history, seconds = resume(torch, ckpt, settings, net, opt, sched)
     t0 = time.perf_counter() - seconds
     for epoch in range(start, epochs):
         te = time.perf_counter()
@@ -149,18 +138,11 @@ def train_occupancy(data, out, epochs: int = 12, batch: int = 32, seed: int = 0,
             if progress is not None:
                 progress(epoch, b, steps_per_epoch, loss.item())
         history.append(dict(epoch=epoch + 1, loss=total / steps_per_epoch, seconds=time.perf_counter() - te))
-        state = dict(model=net.state_dict(), optimizer=opt.state_dict(), scheduler=sched.state_dict(),
-                     epoch=epoch + 1, history=history, seconds=time.perf_counter() - t0, config=asdict(config),
-                     epochs=epochs, n=n)
-        tmp = ckpt.with_suffix(f".{os.getpid()}.tmp")
-        torch.save(state, tmp)
-        os.replace(tmp, ckpt)
+        save_checkpoint(torch, ckpt, settings, net, opt, sched, epoch + 1, history, time.perf_counter() - t0)
     meta = dict(data=str(data), train_images=n, epochs_done=len(history), epochs=epochs, batch=batch, seed=seed,
                 seconds=time.perf_counter() - t0, history=history, command=command,
                 ratios=list(TARGET_RATIOS), torch=torch.__version__)
-    tmp = out.with_suffix(f".{os.getpid()}.tmp")
-    torch.save(dict(model=net.state_dict(), config=asdict(config), meta=meta), tmp)
-    os.replace(tmp, out)
+    save_atomically(torch, dict(model=net.state_dict(), config=asdict(config), meta=meta), out)
     return meta
 
 
@@ -210,7 +192,7 @@ def bench_occupancy(data, weights=None, scaling: bool = False, timed: int = 50, 
     Timing: `LearnedOccupancy.estimate` on full 640 x 480 inputs (preprocessing, forward pass,
     upsampling; the cost does not depend on the content), one torch thread, median of `timed` calls,
     wall and CPU time of the process (on a shared machine the CPU time is the cost on one core)."""
-    torch = _torch_setup(seed, 1)
+    torch = torch_setup(seed, 1)
     d = load_dataset(data, "test")
     net, ck = load_model(weights)
     d["y"] = d["y"].astype(np.float32)

@@ -27,14 +27,19 @@ for each image's own target size and for all three sizes:
 from __future__ import annotations
 
 import json
-import os
 import time
 from pathlib import Path
 
 import numpy as np
 
-from ms_drake.errors import MsDrakeError
+from ms_drake.errors import DatasetError
 from ms_drake.experiments.occupancy_learning import occupancy_metrics
+from ms_drake.experiments.training import (
+    resume,
+    save_atomically,
+    save_checkpoint,
+    torch_setup,
+)
 from ms_drake.perception.shelf_occupancy_net import (
     BLOCK,
     HEAD_SIZES,
@@ -50,10 +55,6 @@ from ms_drake.perception.shelf_occupancy_net import (
     network_input,
     pool_bins,
 )
-
-
-class DatasetError(MsDrakeError):
-    pass
 
 
 def load_shelf_dataset(folder) -> dict:
@@ -81,15 +82,6 @@ def load_shelf_dataset(folder) -> dict:
     # image_x_sizes is in TARGET_SIZES order (cube, flat, tall) = HEAD_SIZES order.
     return dict(depth=np.concatenate(depth), image_x_sizes=np.concatenate(ys), head=np.array(heads),
                 seeds=np.concatenate(seeds), shards=len(shards))
-
-
-def _torch_setup(seed: int, threads: int):
-    import torch  # optional heavy dependency: only the learned shelf occupancy needs it
-
-    torch.manual_seed(seed)
-    torch.set_num_threads(max(1, int(threads)))
-    torch.use_deterministic_algorithms(True, warn_only=True)
-    return torch
 
 
 def make_optimizer(net, lr: float = 2e-3, weight_decay: float = 1e-4):
@@ -124,17 +116,11 @@ def train_steps(net, opt, x, y, steps: int = 1) -> list[float]:
     return losses
 
 
-def _atomic_save(torch, obj, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
-
-
 def train_shelf_occupancy(data, out, epochs: int = 8, batch: int = 32, seed: int = 0, threads: int = 1,
                           config: NetConfig = NetConfig(), max_minutes: float = 30.0, progress=None,
                           command: str = "") -> dict:
     """Train on DATA/train; write `out` (weights + meta) and `out`.ckpt (resume); module docstring."""
-    torch = _torch_setup(seed, threads)
+    torch = torch_setup(seed, threads)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     ckpt = out.with_suffix(".ckpt")
@@ -153,16 +139,7 @@ def train_shelf_occupancy(data, out, epochs: int = 8, batch: int = 32, seed: int
     steps_per_epoch = n // batch
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs * steps_per_epoch)
     settings = dict(config=config_dict(config), epochs=epochs, batch=batch, seed=seed, scenes=n)
-    history, start_epoch, seconds = [], 0, 0.0
-    if ckpt.exists():
-        ck = torch.load(ckpt, map_location="cpu", weights_only=False)
-        if ck["settings"] != settings:
-            raise DatasetError(f"{ckpt} was made with other settings ({ck['settings']} vs {settings}: data size, "
-                               "epochs, batch or seed); delete it to start over, or train with its settings")
-        net.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optimizer"])
-        sched.load_state_dict(ck["scheduler"])
-        history, start_epoch, seconds = ck["history"], ck["epoch"], ck["seconds"]
+    start_epoch, history, seconds = resume(torch, ckpt, settings, net, opt, sched)
     t_run = time.perf_counter()
     for epoch in range(start_epoch, epochs):
         if seconds + (time.perf_counter() - t_run) > 60 * max_minutes:
@@ -185,15 +162,14 @@ def train_shelf_occupancy(data, out, epochs: int = 8, batch: int = 32, seed: int
             if progress is not None:
                 progress(epoch, b, steps_per_epoch, loss.item())
         history.append(dict(epoch=epoch + 1, loss=float(np.mean(losses)), seconds=time.perf_counter() - t0))
-        _atomic_save(torch, dict(settings=settings, model=net.state_dict(), optimizer=opt.state_dict(),
-                                 scheduler=sched.state_dict(), history=history, epoch=epoch + 1,
-                                 seconds=seconds + time.perf_counter() - t_run), ckpt)
+        save_checkpoint(torch, ckpt, settings, net, opt, sched, epoch + 1, history,
+                        seconds + time.perf_counter() - t_run)
     seconds += time.perf_counter() - t_run
     done = history[-1]["epoch"] if history else 0
     meta = dict(data=str(data), scenes=n, seeds=[int(d["seeds"].min()), int(d["seeds"].max())], epochs=epochs,
                 epochs_done=done, batch=batch, seed=seed, threads=threads, seconds=seconds, history=history,
                 command=command, torch=torch.__version__)
-    _atomic_save(torch, dict(config=config_dict(config), state_dict=net.state_dict(), meta=meta), out)
+    save_atomically(torch, dict(config=config_dict(config), state_dict=net.state_dict(), meta=meta), out)
     return meta
 
 
