@@ -1,0 +1,120 @@
+"""ShelfSegmenter: shelf objects from the front camera's depth image (Drake renders of generated scenes)."""
+
+import numpy as np
+import pytest
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.sensors import ImageDepth32F, ImageRgba8U
+
+from ms_drake.errors import PerceptionError
+from ms_drake.perception.shelf_segmentation import (
+    ShelfSegmentationParams,
+    ShelfSegmenter,
+    segment_shelf,
+)
+from ms_drake.scenario import load_scenario
+from ms_drake.scenes.shelf import generate_shelf_scene
+from ms_drake.scenes.shelf_render import (
+    pose_shelf_objects,
+    render_shelf_scene,
+    shelf_station,
+)
+from ms_drake.shelf_geometry import ShelfGeometry
+from ms_drake.types import ShelfObject, ShelfScene
+
+
+@pytest.fixture(scope="module")
+def shelf():
+    scenario = load_scenario(None, "FetchShelf")
+    return scenario, ShelfGeometry.from_scenario(scenario)
+
+
+def _matches(render, masks, scene):
+    """{estimated object: ground-truth id} by the majority label under each mask."""
+    by_label = {v: k for k, v in render.labels.items()}
+    out = {}
+    for k, o in enumerate(scene.objects):
+        labels, counts = np.unique(render.label[masks.masks[k]], return_counts=True)
+        out[o.id] = by_label.get(int(labels[np.argmax(counts)]))
+    return out
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_rendered_scenes_give_back_their_objects(shelf, seed):
+    scenario, geometry = shelf
+    truth = generate_shelf_scene(geometry, seed, 8).scene
+    render = render_shelf_scene(scenario, truth)
+    masks, scene = segment_shelf(geometry, render.depth)
+    assert len(masks) == len(scene.objects)
+    assert [o.x for o in scene.objects] == sorted(o.x for o in scene.objects)
+    match = _matches(render, masks, scene)
+    by_id = {o.id: o for o in truth.objects}
+    seen = {o.id for o in truth.objects if render.mask(o.id).sum() >= 1500}
+    assert seen <= set(match.values())  # every well-seen occluder is found, once
+    assert len(set(match.values())) == len(match)
+    for o in scene.objects:
+        t = by_id[match[o.id]]
+        if t.id not in seen:
+            continue
+        assert o.kind == t.kind, (o, t)
+        assert abs(o.height - t.height) < 0.005 and abs(o.x - t.x) < 0.01 and abs(o.y - t.y) < 0.01, (o, t)
+        assert abs(o.width - t.width) < 0.01 and abs(o.depth - t.depth) < 0.015, (o, t)
+
+
+def test_empty_shelf_has_no_objects(shelf):
+    scenario, geometry = shelf
+    render = render_shelf_scene(scenario, ShelfScene(()))
+    masks, scene = segment_shelf(geometry, render.depth)
+    assert len(masks) == 0 and scene.objects == ()
+
+
+def test_segmenter_alone_with_a_fixed_image(shelf):
+    scenario, geometry = shelf
+    truth = ShelfScene((ShelfObject("a", "box", -0.12, -0.1, 0.12, 0.1, 0.15),
+                        ShelfObject("b", "cylinder", 0.15, 0.05, 0.1, 0.1, 0.2)),
+                       ShelfObject("target", "box", 0.0, -0.2, 0.06, 0.06, 0.06))
+    render = render_shelf_scene(scenario, truth)
+    system = ShelfSegmenter(geometry)
+    context = system.CreateDefaultContext()
+    with pytest.raises(PerceptionError, match="depth_image"):
+        system.GetOutputPort("scene").Eval(context)
+    image = ImageDepth32F(geometry.camera.width, geometry.camera.height)
+    image.mutable_data[:, :, 0] = render.depth
+    system.GetInputPort("depth_image").FixValue(context, image)
+    scene = system.GetOutputPort("scene").Eval(context)
+    # Without the colour image the visible target is one more object.
+    assert [o.kind for o in scene.objects] == ["box", "box", "cylinder"]
+    assert not system.GetOutputPort("target_mask").Eval(context).any()
+    rgb = ImageRgba8U(geometry.camera.width, geometry.camera.height)
+    rgb.mutable_data[:, :, :3] = render.rgb
+    rgb.mutable_data[:, :, 3] = 255
+    system.GetInputPort("rgb_image").FixValue(context, rgb)
+    scene = system.GetOutputPort("scene").Eval(context)
+    target = system.GetOutputPort("target_mask").Eval(context)
+    masks = system.GetOutputPort("masks").Eval(context)
+    assert [o.kind for o in scene.objects] == ["box", "cylinder"]
+    assert abs(scene.objects[0].x - (-0.12)) < 0.01 and abs(scene.objects[1].x - 0.15) < 0.01
+    assert (target & render.mask("target")).sum() > 0.8 * render.mask("target").sum()
+    assert not (masks.masks & target[None]).any()
+
+
+def test_segmenter_wired_to_the_station(shelf):
+    scenario, geometry = shelf
+    truth = generate_shelf_scene(geometry, 5, 6).scene
+    station, _, _ = shelf_station(scenario, truth)
+    builder = DiagramBuilder()
+    builder.AddSystem(station)
+    seg = builder.AddSystem(ShelfSegmenter(geometry))
+    builder.Connect(station.GetOutputPort("front.depth_image"), seg.GetInputPort("depth_image"))
+    builder.Connect(station.GetOutputPort("front.rgb_image"), seg.GetInputPort("rgb_image"))
+    diagram = builder.Build()
+    context = diagram.CreateDefaultContext()
+    pose_shelf_objects(station, context, scenario, truth)  # the plant lies inside the root diagram
+    scene = seg.GetOutputPort("scene").Eval(seg.GetMyContextFromRoot(context))
+    render = render_shelf_scene(scenario, truth)
+    seen = sum(render.mask(o.id).sum() >= 1500 for o in truth.objects)
+    assert seen <= len(scene.objects) <= len(truth.objects)
+
+
+def test_bad_parameters_are_named():
+    with pytest.raises(PerceptionError, match="tolerance"):
+        ShelfSegmentationParams(tolerance=0.0)
