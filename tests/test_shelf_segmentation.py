@@ -6,6 +6,7 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.sensors import ImageDepth32F, ImageRgba8U
 
 from ms_drake.errors import PerceptionError
+from ms_drake.experiments.shelf_segmentation import bench_shelf_segmentation
 from ms_drake.perception.shelf_segmentation import (
     ShelfSegmentationParams,
     ShelfSegmenter,
@@ -118,3 +119,17 @@ def test_segmenter_wired_to_the_station(shelf):
 def test_bad_parameters_are_named():
     with pytest.raises(PerceptionError, match="tolerance"):
         ShelfSegmentationParams(tolerance=0.0)
+
+
+def test_bench_writes_scene_lines_and_resumes(tmp_path):
+    out = tmp_path / "seg.jsonl"
+    first = bench_shelf_segmentation(1, [4, 8], 0, out)
+    assert first["scenes"] == 2 and first["coco_images"] == 2
+    assert first["recall"] > 0.9 and first["ap"] > 0.8
+    again = bench_shelf_segmentation(1, [4, 8], 0, out)  # nothing left to do
+    assert "coco_images" not in again and again["matched"] == first["matched"]
+    assert len(out.read_text().splitlines()) == 2
+    noisy = bench_shelf_segmentation(1, [4], 0, out, noise=0.002, dropout=0.05)
+    assert noisy["scenes"] == 1 and len(out.read_text().splitlines()) == 3
+    with pytest.raises(ValueError, match="dropout"):
+        bench_shelf_segmentation(1, [4], 0, out, dropout=1.5)

@@ -12,7 +12,8 @@ and its policies work on those masks and on the objects they imply. Here:
    tops, 30 degrees below the camera) stay connected, and an object standing behind another is
    split from it by the depth jump at the front object's silhouette.
 3. Objects. Each instance becomes an upright ShelfObject (what FOSS and the policies plan with):
-   - height: the highest point; x extent: the instance's; front: its frontmost y;
+   - height: the highest point; x extent: the instance's; front: its frontmost y (each leaving out
+     the `outliers` percent of points at the ends, which a noisy sensor scatters);
    - cylinder or box: along x, the frontmost point of each 1 cm column of the lower 80 % of the
      instance follows a circular arc for a cylinder and stays at the front for a box; the instance
      is a cylinder when the columns' mean setback exceeds `cylinder_setback` of the half-width;
@@ -57,7 +58,8 @@ class ShelfSegmentationParams:
     ceiling are the shelf; column: x bin width [m] of the cylinder test; cylinder_setback: the
     cylinder test's threshold (mean setback of the columns' fronts / half-width; a cylinder's is
     about 1 - pi / 4 = 0.21, a box's 0); min_depth: a box top's y extent below this [m] counts as
-    unseen (the depth is then the width)."""
+    unseen (the depth is then the width); outliers: the percentage of an instance's points at each end
+of its x, y and z ranges left out of the extents (a noisy sensor's stray points)."""
 
     tolerance: float = 0.006
     min_pixels: int = 150
@@ -65,6 +67,7 @@ class ShelfSegmentationParams:
     column: float = 0.01
     cylinder_setback: float = 0.08
     min_depth: float = 0.015
+    outliers: float = 0.2
 
     def __post_init__(self):
         if self.tolerance <= 0 or self.min_pixels < 1 or self.margin < 0 or self.column <= 0:
@@ -116,10 +119,11 @@ def estimate_object(object_id: str, points: np.ndarray, geometry: ShelfGeometry,
                     params: ShelfSegmentationParams = ShelfSegmentationParams()) -> ShelfObject:
     """The upright box or cylinder (module docstring, step 3) behind one instance's points (V, 3)."""
     x, y, z = points[:, 0], points[:, 1], points[:, 2]
-    height = float(z.max())
-    x_lo, x_hi = float(x.min()), float(x.max())
+    lo, hi = params.outliers, 100.0 - params.outliers  # robust to a sensor's noise
+    height = float(np.percentile(z, hi))
+    x_lo, x_hi = (float(v) for v in np.percentile(x, [lo, hi]))
     half_width = max(0.5 * (x_hi - x_lo), 1e-3)
-    front = float(y.min())
+    front = float(np.percentile(y, lo))
     side = z < 0.8 * height
     setback = 0.0
     if side.sum() >= 3:
@@ -129,7 +133,7 @@ def estimate_object(object_id: str, points: np.ndarray, geometry: ShelfGeometry,
         fronts = fronts[np.isfinite(fronts)]
         setback = float(np.mean(fronts - fronts.min())) / half_width if len(fronts) >= 3 else 0.0
     top = points[z > height - 0.004]
-    top_extent = float(top[:, 1].max() - top[:, 1].min()) if len(top) else 0.0
+    top_extent = float(np.subtract(*np.percentile(top[:, 1], [hi, lo]))) if len(top) else 0.0
     back = 0.5 * geometry.size[1]
     if setback > params.cylinder_setback:
         diameter = min(max(2 * half_width, top_extent), back - front)

@@ -1,0 +1,150 @@
+"""How well the ShelfSegmenter recovers a shelf scene from the front camera's depth image.
+
+`bench_shelf_segmentation(...)` (`ms-drake bench shelf-segmentation`): for the scenes of Table 9.1
+(generate_shelf_scene(seed, n), the target hidden), a Drake render (depth + label image) and the
+segmentation of its depth image. Per scene: the occluders the camera sees (at least `min_pixels`
+label pixels), the instances found, those matched to one occluder (mask IoU >= 0.5), and for each
+match the estimated object against the true one: kind, centre and size errors and the IoU of the
+footprints (seen from above). Over all scenes: COCO mask AP / AR@100 (pycocotools, the bin
+segmentation's metric) and the time per image. One JSON line per scene in `out` (resumable), the
+summary returned and printed. `noise` (m) and `dropout` (a fraction of pixels lost) make the depth
+image a sensor's: Gaussian noise on every depth, and missing pixels, drawn from the scene's seed.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from ms_drake.errors import MsDrakeError
+from ms_drake.experiments.harness import read_records
+from ms_drake.parallel import run_jobs
+from ms_drake.perception.segmentation import coco_mask_metrics
+from ms_drake.perception.shelf_segmentation import (
+    ShelfSegmentationParams,
+    segment_shelf,
+)
+from ms_drake.scenario import load_scenario
+from ms_drake.scenes.shelf import generate_shelf_scene
+from ms_drake.scenes.shelf_render import render_shelf_scene
+from ms_drake.shelf_geometry import Prisms, ShelfGeometry
+from ms_drake.types import InstanceMasks
+
+SCENARIO = "FetchShelf"
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / max((a | b).sum(), 1))
+
+
+def sensor_depth(depth: np.ndarray, noise: float, dropout: float, seed: int) -> np.ndarray:
+    """A depth image with Gaussian noise (std `noise` m) and a `dropout` fraction of pixels lost (NaN)."""
+    if noise < 0 or not 0 <= dropout < 1:
+        raise ValueError(f"noise={noise} must be >= 0 and dropout={dropout} in [0, 1)")
+    rng = np.random.default_rng([int(seed), 0x5E6])
+    out = depth + noise * rng.standard_normal(depth.shape) if noise > 0 else depth.copy()
+    if dropout > 0:
+        out[rng.random(depth.shape) < dropout] = np.nan
+    return out
+
+
+def scene_record(scenario, geometry: ShelfGeometry, seed: int, occluders: int, min_pixels: int,
+                 params: ShelfSegmentationParams, noise: float = 0.0, dropout: float = 0.0
+                 ) -> tuple[dict, InstanceMasks, InstanceMasks]:
+    """(record, ground-truth masks, predicted masks) of one scene (module docstring)."""
+    truth = generate_shelf_scene(geometry, seed, occluders).scene
+    render = render_shelf_scene(scenario, truth)
+    depth = sensor_depth(render.depth, noise, dropout, seed)
+    t0 = time.process_time()
+    masks, est = segment_shelf(geometry, depth, params)
+    seconds = time.process_time() - t0
+    visible = [o for o in truth.objects if render.mask(o.id).sum() >= min_pixels]
+    gt = InstanceMasks(np.stack([render.mask(o.id) for o in visible]) if visible else
+                       np.zeros((0,) + render.depth.shape, bool), tuple(o.id for o in visible), np.ones(len(visible)))
+    matches = []
+    used = set()
+    for k, o in enumerate(est.objects):
+        ious = [_iou(masks.masks[k], gt.masks[j]) for j in range(len(gt))]
+        j = int(np.argmax(ious)) if ious else -1
+        if j < 0 or ious[j] < 0.5 or j in used:
+            continue
+        used.add(j)
+        t = visible[j]
+        fp_est, fp_true = Prisms.of([o]).footprints()[0], Prisms.of([t]).footprints()[0]
+        matches.append({"id": t.id, "kind_ok": o.kind == t.kind, "mask_iou": ious[j],
+                        "dx": o.x - t.x, "dy": o.y - t.y, "dwidth": o.width - t.width, "ddepth": o.depth - t.depth,
+                        "dheight": o.height - t.height,
+                        "footprint_iou": float(fp_est.intersection(fp_true).area / fp_est.union(fp_true).area)})
+    record = {"seed": seed, "occluders": occluders, "noise": noise, "dropout": dropout, "visible": len(visible), "found": len(est.objects),
+              "matched": len(matches), "seconds": seconds, "matches": matches}
+    return record, gt, masks
+
+
+@functools.lru_cache(maxsize=1)
+def _shelf() -> tuple:
+    scenario = load_scenario(None, SCENARIO)
+    return scenario, ShelfGeometry.from_scenario(scenario)
+
+
+def scene_job(job: tuple) -> tuple[dict, InstanceMasks, InstanceMasks]:
+    """(occluders, seed, min_pixels, noise, dropout) -> scene_record(...); module-level for the pool."""
+    n, seed, min_pixels, noise, dropout = job
+    scenario, geometry = _shelf()
+    return scene_record(scenario, geometry, seed, n, min_pixels, ShelfSegmentationParams(), noise, dropout)
+
+
+def bench_shelf_segmentation(scenes: int, occluders: list[int], seed_start: int, out: Path,
+                             min_pixels: int = 500, noise: float = 0.0, dropout: float = 0.0, workers: int = 1,
+                             use_ray: bool = False) -> dict:
+    """Segment `scenes` scenes per occluder count; one JSON line per scene in `out` (resumes) and
+    the summary (module docstring). AP / AR are computed over the scenes segmented in this call."""
+    sensor_depth(np.zeros((1, 1)), noise, dropout, 0)  # checks the arguments before any work
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    same = lambda r: r.get("noise", 0.0) == noise and r.get("dropout", 0.0) == dropout
+    done = {(r["occluders"], r["seed"]) for r in read_records(out) if same(r)} if out.exists() else set()
+    jobs = [(n, s, min_pixels, noise, dropout) for n in occluders for s in range(seed_start, seed_start + scenes)
+            if (n, s) not in done]
+    gts, dts = [], []
+    with open(out, "a") as f:
+        for r in tqdm(run_jobs(scene_job, jobs, workers=workers, use_ray=use_ray), total=len(jobs),
+                      desc="shelf segmentation", unit="scene"):
+            if not r.ok:
+                raise MsDrakeError(f"shelf segmentation of scene {r.job[1]} ({r.job[0]} occluders) failed: {r.error}")
+            rec, gt, dt = r.value
+            gts.append(gt)
+            dts.append(dt)
+            f.write(json.dumps(rec) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+    recs = [r for r in read_records(out) if same(r) and r["occluders"] in occluders and
+            seed_start <= r["seed"] < seed_start + scenes]
+    summary = summarize_segmentation(recs)
+    if gts:
+        summary.update({k.lower(): v for k, v in coco_mask_metrics(gts, dts).items() if k in ("AP", "AP50", "AR100")})
+        summary["coco_images"] = len(gts)
+    return summary
+
+
+def summarize_segmentation(recs: list[dict]) -> dict:
+    """Totals and error quantiles of scene records (bench_shelf_segmentation's lines)."""
+    matches = [m for r in recs for m in r["matches"]]
+    visible = sum(r["visible"] for r in recs)
+    found = sum(r["found"] for r in recs)
+
+    def q(key, f=abs):
+        v = np.array([f(m[key]) for m in matches]) if matches else np.zeros(1)
+        return {"median": float(np.median(v)), "p90": float(np.percentile(v, 90))}
+
+    return {"scenes": len(recs), "visible": visible, "found": found, "matched": len(matches),
+            "recall": len(matches) / max(visible, 1), "precision": len(matches) / max(found, 1),
+            "kind_accuracy": float(np.mean([m["kind_ok"] for m in matches])) if matches else 0.0,
+            "abs_dx_m": q("dx"), "abs_dwidth_m": q("dwidth"), "abs_ddepth_m": q("ddepth"), "abs_dheight_m": q("dheight"),
+            "footprint_iou": q("footprint_iou", float),
+            "ms_per_image": {"median": 1000 * float(np.median([r["seconds"] for r in recs])) if recs else 0.0}}
