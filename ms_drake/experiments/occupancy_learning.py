@@ -3,7 +3,10 @@
 `train_occupancy` (``ms-drake train occupancy --data DIR --out FILE.pt``): AdamW (lr 1e-3,
 weight decay 5e-4, cosine decay to 0), batches of 32, random horizontal and vertical flips of
 input and ground truth together (a mirrored heap is a heap), pixelwise MSE on the channel of each
-sample's aspect ratio (occupancy_net.ratio_loss). Our choices where the reference's (ResNet-50
+sample's aspect ratio (occupancy_net.ratio_loss) of the output under the seen-target constraint
+(occupancy_net.constrain_to_visible: what the estimator returns), optionally with ground-truth
+positives weighted 1 + w (`positive_weight`) and from the weights of an earlier run (`init`,
+fine-tuning). Our choices where the reference's (ResNet-50
 FCN, SGD with momentum 0.99, lr 1e-5, 40 epochs on a V100) does not fit two shared CPU cores.
 Deterministic from `seed` (torch and numpy generators; the batch order of epoch e comes from
 (seed, e)). After every epoch the model, optimizer and scheduler go to ``FILE.ckpt`` (written
@@ -43,7 +46,9 @@ from ms_drake.perception.occupancy_net import (
     NetConfig,
     load_model,
     make_net,
+    estimator_output,
     ratio_loss,
+    visible_support,
     zoom,
 )
 
@@ -74,17 +79,41 @@ def _flip(x: np.ndarray, y: np.ndarray, rng: np.random.Generator):
     return np.ascontiguousarray(x), np.ascontiguousarray(y)
 
 
-def train_steps(net, opt, x, y, ratio, steps: int = 1) -> list[float]:
-    """`steps` optimizer steps on one fixed batch (numpy arrays); the losses before each step."""
+def diagonals(size: np.ndarray) -> np.ndarray:
+    """(n,) footprint diagonals [m] of (n, 3) target sizes."""
+    size = np.asarray(size, np.float64)
+    return np.hypot(size[:, 0], size[:, 1])
+
+
+def batch_constraint(x: np.ndarray, diag: np.ndarray):
+    """(support, floor), (n, H, W) float32 each, of the seen-target constraint for a batch of
+    inputs (n, 3, H, W): support 1 and floor 0 where nothing is seen."""
+    support = np.ones((len(x), *x.shape[2:]), np.float32)
+    floor = np.clip(np.asarray(x[:, 0], np.float32), 0.0, 1.0)
+    for i in range(len(x)):
+        s = visible_support(floor[i], float(diag[i]))
+        if s is not None:
+            support[i] = s
+    return support, floor
+
+
+def train_steps(net, opt, x, y, ratio, steps: int = 1, diag: np.ndarray | None = None,
+                positive_weight: float = 0.0) -> list[float]:
+    """`steps` optimizer steps on one fixed batch (numpy arrays); the losses before each step.
+    diag (n,): target diagonals [m] for the seen-target constraint (None: no constraint)."""
     import torch  # optional heavy dependency: only the learned occupancy needs it
 
     net.train()
-    xt, yt, rt = torch.from_numpy(np.asarray(x, np.float32)), torch.from_numpy(np.asarray(y, np.float32)), \
+    x = np.asarray(x, np.float32)
+    xt, yt, rt = torch.from_numpy(x), torch.from_numpy(np.asarray(y, np.float32)), \
         torch.from_numpy(np.asarray(ratio, np.int64))
+    sup = flo = None
+    if diag is not None:
+        sup, flo = (torch.from_numpy(a) for a in batch_constraint(x, diag))
     losses = []
     for _ in range(steps):
         opt.zero_grad()
-        loss = ratio_loss(net(xt), yt, rt)
+        loss = ratio_loss(net(xt), yt, rt, sup, flo, positive_weight)
         loss.backward()
         opt.step()
         losses.append(loss.item())
@@ -99,9 +128,11 @@ def make_optimizer(net, lr: float = 1e-3, weight_decay: float = 5e-4):
 
 def train_occupancy(data, out, epochs: int = 12, batch: int = 32, seed: int = 0, threads: int = 1,
                     config: NetConfig = NetConfig(), max_minutes: float = 60.0, progress=None,
-                    command: str = "") -> dict:
+                    command: str = "", lr: float = 1e-3, positive_weight: float = 0.0,
+                    init: str | Path | None = None) -> dict:
     """Train on the train shards of `data`; write `out` (weights + meta) and `out`.ckpt (resume).
-    Stops early (after a whole epoch) when `max_minutes` of wall time would be exceeded."""
+    Stops early (after a whole epoch) when `max_minutes` of wall time would be exceeded.
+    init: a weights file to start from (its network configuration replaces `config`)."""
     torch = torch_setup(seed, threads)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -111,11 +142,17 @@ def train_occupancy(data, out, epochs: int = 12, batch: int = 32, seed: int = 0,
     if n < batch:
         raise DatasetError(f"{data}: {n} training images, fewer than a batch ({batch}); make more with "
                            "`ms-drake data occupancy --count ...`")
-    net = make_net(config)
-    opt = make_optimizer(net)
+    if init is not None:
+        net, ck0 = load_model(init)
+        config = NetConfig(**ck0["config"])
+    else:
+        net = make_net(config)
+    opt = make_optimizer(net, lr=lr)
     steps_per_epoch = n // batch
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs * steps_per_epoch)
-    settings = dict(config=asdict(config), epochs=epochs, n=n)
+    settings = dict(config=asdict(config), epochs=epochs, n=n, lr=lr, positive_weight=positive_weight,
+                    init=str(init) if init is not None else None)
+    diag = diagonals(d["size"])
     start, history, seconds = resume(torch, ckpt, settings, net, opt, sched)
     t0 = time.perf_counter() - seconds
     for epoch in range(start, epochs):
@@ -129,8 +166,10 @@ def train_occupancy(data, out, epochs: int = 12, batch: int = 32, seed: int = 0,
         for b in range(steps_per_epoch):
             idx = np.sort(order[b * batch:(b + 1) * batch])
             x, y = _flip(d["x"][idx].astype(np.float32), d["y"][idx].astype(np.float32), rng)
+            sup, flo = batch_constraint(x, diag[idx])
             opt.zero_grad()
-            loss = ratio_loss(net(torch.from_numpy(x)), torch.from_numpy(y), torch.from_numpy(d["ratio"][idx]))
+            loss = ratio_loss(net(torch.from_numpy(x)), torch.from_numpy(y), torch.from_numpy(d["ratio"][idx]),
+                              torch.from_numpy(sup), torch.from_numpy(flo), positive_weight)
             loss.backward()
             opt.step()
             sched.step()
@@ -140,14 +179,18 @@ def train_occupancy(data, out, epochs: int = 12, batch: int = 32, seed: int = 0,
         history.append(dict(epoch=epoch + 1, loss=total / steps_per_epoch, seconds=time.perf_counter() - te))
         save_checkpoint(torch, ckpt, settings, net, opt, sched, epoch + 1, history, time.perf_counter() - t0)
     meta = dict(data=str(data), train_images=n, epochs_done=len(history), epochs=epochs, batch=batch, seed=seed,
+                lr=lr, positive_weight=positive_weight, init=str(init) if init is not None else None,
                 seconds=time.perf_counter() - t0, history=history, command=command,
                 ratios=list(TARGET_RATIOS), torch=torch.__version__)
     save_atomically(torch, dict(model=net.state_dict(), config=asdict(config), meta=meta), out)
     return meta
 
 
-def predict(net, x: np.ndarray, ratio: np.ndarray, scales: np.ndarray | None = None, batch: int = 64) -> np.ndarray:
-    """(n, 96, 128) predictions of each sample's ratio channel; `scales` (n,): input scaling per sample."""
+def predict(net, x: np.ndarray, ratio: np.ndarray, scales: np.ndarray | None = None, batch: int = 64,
+            diag: np.ndarray | None = None) -> np.ndarray:
+    """(n, 96, 128) predictions of each sample's ratio channel; `scales` (n,): input scaling per
+    sample; `diag` (n,): target diagonals [m], gives what the estimator returns
+    (occupancy_net.estimator_output; None: the network's raw output)."""
     import torch  # optional heavy dependency: only the learned occupancy needs it
 
     net.eval()
@@ -161,16 +204,21 @@ def predict(net, x: np.ndarray, ratio: np.ndarray, scales: np.ndarray | None = N
             y = y[np.arange(len(xb)), ratio[i:i + batch]]
             if scales is not None:
                 y = np.stack([zoom(yi[None], s)[0] for yi, s in zip(y, scales[i:i + batch])])
+            if diag is not None:
+                y = np.stack([estimator_output(yi, xi[0], float(di))
+                              for yi, xi, di in zip(y, np.asarray(x[i:i + batch], np.float32), diag[i:i + batch])])
             out[i:i + len(xb)] = y
     return out
 
 
 def metrics_table(d: dict, pred: np.ndarray, ratios=(1, 2, 5, 10)) -> list[dict]:
-    """Rows per aspect ratio (and all): images, balanced accuracy, IoU (means), MSE."""
+    """Rows per aspect ratio, all, all with the target hidden ("hidden") and partly seen ("seen"):
+    images, balanced accuracy, IoU (means), MSE."""
     m = occupancy_metrics(pred, d["y"].astype(np.float32))
     rows = []
-    for r in list(ratios) + ["all"]:
-        sel = np.ones(len(pred), bool) if r == "all" else d["ratio"] == TARGET_RATIOS.index(r)
+    for r in list(ratios) + ["all", "hidden", "seen"]:
+        sel = (np.ones(len(pred), bool) if r == "all" else d["visible"] == 0 if r == "hidden" else
+               d["visible"] > 0 if r == "seen" else d["ratio"] == TARGET_RATIOS.index(r))
         if not sel.any():
             continue
         rows.append(dict(ratio=r, images=int(sel.sum()), balanced_accuracy=float(np.mean(m["balanced_accuracy"][sel])),
@@ -185,7 +233,9 @@ def write_json(path, obj) -> None:
 
 
 def bench_occupancy(data, weights=None, scaling: bool = False, timed: int = 50, seed: int = 0) -> dict:
-    """Table 8.1 rows on the test shards of `data`, two baselines, and the inference time.
+    """Table 8.1 rows on the test shards of `data` (the estimator's output: the network under the
+    seen-target constraint, scaled to a maximum of 1; `raw_rows`: the network alone), two
+    baselines, and the inference time.
 
     Baselines: "uniform" predicts one value over the bin's pixels (the uniform distribution scaled
     to a maximum of 1); "modal" predicts the observed modal mask (nothing when hidden).
@@ -200,8 +250,9 @@ def bench_occupancy(data, weights=None, scaling: bool = False, timed: int = 50, 
     if scaling:
         area = d["size"][:, 0] * d["size"][:, 1]
         scales = np.sqrt(area / TARGET_AREA)
-    pred = predict(net, d["x"], d["ratio"], scales)
+    pred = predict(net, d["x"], d["ratio"], scales, diag=diagonals(d["size"]))
     rows = metrics_table(d, pred)
+    raw_rows = metrics_table(d, predict(net, d["x"], d["ratio"], scales))  # without the seen-target constraint
     # the bin's pixels: the working crop minus its border (the bin spans ~107 x 85 of 128 x 96)
     uni = np.zeros_like(d["y"])
     uni[:, 6:-6, 10:-10] = 1.0
@@ -219,7 +270,7 @@ def bench_occupancy(data, weights=None, scaling: bool = False, timed: int = 50, 
         est.estimate(depth, mask)
         times.append(time.perf_counter() - t)
         cpu.append(time.process_time() - c)
-    return dict(rows=rows, baselines=base, ms_per_image=1000 * float(np.median(times)),
+    return dict(rows=rows, raw_rows=raw_rows, baselines=base, ms_per_image=1000 * float(np.median(times)),
                 cpu_ms_per_image=1000 * float(np.median(cpu)), timed=timed,
                 scaling=scaling, weights=str(weights or "shipped"), test_images=len(pred),
                 files=len(d["files"]), torch_threads=torch.get_num_threads())

@@ -18,6 +18,16 @@ matter. Outputs: one channel per aspect ratio of `TARGET_RATIOS` (line 1461: one
 ratio in the reference), each a sigmoid map of the ground truth scaled to a maximum of 1 (the
 normalization under which line 1466's thresholds 0.1 / 0.2 are stated).
 
+The seen part of the target (our addition; lines 1470-1480 show the reference's net "collapse
+the distribution to a small area around the visible part of the target"): every placement that
+explains the observation holds the target's seen pixels, so no pixel farther than the target's
+diagonal from any seen pixel can be covered, and the seen pixels themselves are covered by every
+placement (value 1 on the max-scaled map). `visible_support` gives that region (the diagonal in
+working pixels of the nominal camera, fx 685 px at 0.8 m, times 1.15 for the camera jitter of the
+training data, plus one pixel) and `constrain_to_visible` applies both facts to a prediction:
+zero outside the region, at least the block's seen fraction inside. The network is trained on the
+constrained output (the loss sees only what the estimator returns) and the estimator returns it.
+
 Input scaling (line 1468): for a target whose size differs from the training box of its ratio
 by a factor s, the working image is zoomed by 1 / s about its centre (so the target looks like
 the training box), predicted, and the prediction zoomed back by s.
@@ -45,6 +55,10 @@ CROP = (48, 64, 384, 512)  # top, left, height, width in the full image
 BLOCK = 4
 WORK_SHAPE = (CROP[2] // BLOCK, CROP[3] // BLOCK)  # (96, 128)
 DEPTH_UNIT = 0.05  # m
+
+
+WORK_PX_PER_M = 685.0 / 0.8 / BLOCK  # working pixels per metre on the bin floor, nominal overhead camera
+VISIBLE_SLACK = 1.15  # camera 0.75-0.85 m high, focal lengths +-5 % (occupancy_data.random_camera)
 
 
 def default_weights() -> Path:
@@ -88,6 +102,46 @@ def working_target(rho: np.ndarray) -> np.ndarray:
     r = block_mean(_crop(np.asarray(rho, np.float64)))
     mx = r.max()
     return (r / mx if mx > 0 else r).astype(np.float32)
+
+
+def target_diagonal(size) -> float:
+    """Diagonal [m] of a (length, width[, thickness]) footprint."""
+    return float(np.hypot(float(size[0]), float(size[1])))
+
+
+def visible_support(mask_frac: np.ndarray, diagonal: float, slack: float = VISIBLE_SLACK) -> np.ndarray | None:
+    """(96, 128) bool: the working pixels a target of footprint `diagonal` [m] holding every seen
+    pixel can cover (within the diagonal of the farthest seen pixel); None when nothing is seen."""
+    seen = np.asarray(mask_frac) > 0
+    if not seen.any():
+        return None
+    pts = np.argwhere(seen).astype(np.float32)  # (n, 2): row, column
+    if len(pts) > 3:  # the farthest point of a set is one of its convex hull's vertices
+        pts = cv2.convexHull(pts[:, ::-1].copy()).reshape(-1, 2)[:, ::-1]
+    r = diagonal * WORK_PX_PER_M * slack + 1.0
+    rows, cols = np.arange(seen.shape[0], dtype=np.float32), np.arange(seen.shape[1], dtype=np.float32)
+    far = np.zeros(seen.shape, np.float32)
+    for pr, pc in pts:
+        np.maximum(far, (rows[:, None] - pr) ** 2 + (cols[None, :] - pc) ** 2, out=far)
+    return far <= r * r
+
+
+def constrain_to_visible(pred: np.ndarray, mask_frac: np.ndarray, diagonal: float) -> np.ndarray:
+    """A (96, 128) working prediction with the seen target applied (module doc): 0 outside
+    `visible_support`, at least the seen fraction of each block; unchanged when nothing is seen."""
+    support = visible_support(mask_frac, diagonal)
+    if support is None:
+        return pred
+    return np.maximum(np.where(support, pred, 0.0), np.clip(mask_frac, 0.0, 1.0)).astype(np.float32)
+
+
+def estimator_output(pred: np.ndarray, mask_frac: np.ndarray, diagonal: float) -> np.ndarray:
+    """What the estimator returns at working resolution: `constrain_to_visible`, then scaled to a
+    maximum of 1 as the ground truth is (the distribution X-Ray reads is normalized to sum 1
+    anyway; the scale matters only to line 1466's thresholds)."""
+    y = constrain_to_visible(pred, mask_frac, diagonal)
+    mx = float(y.max())
+    return (y / mx).astype(np.float32) if mx > 0 else y
 
 
 def full_resolution(work: np.ndarray) -> np.ndarray:
@@ -154,12 +208,20 @@ def make_net(config: NetConfig = NetConfig()):
     return OccupancyUNet(config)
 
 
-def ratio_loss(pred, target, ratio_index):
-    """Pixelwise MSE on the channel of each sample's aspect ratio (line 1462)."""
+def ratio_loss(pred, target, ratio_index, support=None, floor=None, positive_weight: float = 0.0):
+    """Pixelwise MSE on the channel of each sample's aspect ratio (line 1462). support (n, H, W)
+    and floor (n, H, W): the seen-target constraint (`constrain_to_visible`: support all ones and
+    floor 0 where nothing is seen) applied to the output before the loss; positive_weight w: the
+    squared error of a ground-truth positive (> 0.1, line 1466) counts 1 + w times."""
     import torch  # optional heavy dependency: only the learned backend needs it
 
     sel = pred[torch.arange(pred.shape[0]), ratio_index]
-    return ((sel - target) ** 2).mean()
+    if support is not None:
+        sel = torch.maximum(sel * support, floor)
+    err = (sel - target) ** 2
+    if positive_weight:
+        err = err * (1.0 + positive_weight * (target > 0.1).to(err.dtype))
+    return err.mean()
 
 
 def load_model(path: Path | str | None = None):
@@ -206,6 +268,7 @@ class LearnedOccupancy:
             vals = sorted([float(v) for v in target_size][:2], reverse=True)
             length, width = vals
         k, s = nearest_ratio(length, width)
+        self.diagonal = float(np.hypot(length, width))
         self.ratio_index = k if ratio_index is None else int(ratio_index)
         self.scale = s if input_scaling else 1.0
         self.net, self.checkpoint = load_model(weights)
@@ -214,13 +277,14 @@ class LearnedOccupancy:
         self.last_seconds = 0.0
 
     def predict_working(self, x: np.ndarray) -> np.ndarray:
-        """(3, 96, 128) inputs -> (96, 128) prediction of this target's channel (zoom applied)."""
+        """(3, 96, 128) inputs -> (96, 128) prediction of this target's channel (zoom applied, then
+        `estimator_output`)."""
         torch = self._torch
         t = time.perf_counter()
         xin = zoom(x, 1.0 / self.scale)
         with torch.inference_mode():
             y = self.net(torch.from_numpy(np.ascontiguousarray(xin))[None])[0, self.ratio_index].numpy()
-        y = zoom(y[None], self.scale)[0]
+        y = estimator_output(zoom(y[None], self.scale)[0], x[0], self.diagonal)
         self.last_seconds = time.perf_counter() - t
         return y
 

@@ -15,7 +15,8 @@ Selectors (the priority list decides which object is tried first):
   preempted_random_push  the same, with pushing;
   largest                the target mask first, the others by visible area (largest first);
   largest_push           the same, with pushing;
-  xray                   masks by sum(mask * occupancy) (Ch. 8.4), ties by area;
+  xray                   the target mask first when it is seen, then masks by sum(mask * occupancy)
+                         (Ch. 8.4), ties by area;
   oracle                 the true target first, then the masks that cover the target's true amodal
                          mask most, then by area: a selector with the true state (an upper bound).
 
@@ -29,9 +30,13 @@ object that has a valid push. Termination (an Action of kind "stop" with `reason
   too_many_pushes    the next action would be a push after `max_consecutive_pushes` pushes in a row;
   no_action          no grasp qualifies and no push is valid (or pushing is off).
 X-Ray and the oracle grasp only (Ch. 8.4 uses grasps), with t_thresh for every object (our
-choice: the text gives no X-Ray threshold). Note for Table 8.2: Ch. 8's baselines "Random" and
-"Largest" both try the target first (line 1510), i.e. they are `preempted_random` and
-`largest` here; Ch. 7's `random` has no preference for the target.
+choice: the text gives no X-Ray threshold). X-Ray trying the seen target first is our reading of
+lines 1473-1480 and 1514-1516: the reference's distribution collapses onto a seen target, so its
+mask scores highest, and X-Ray removes an occluder "when a robust grasp is not available on the
+target"; stated explicitly here so that a distribution spread by a few percent onto the
+occluders cannot rank an occluder above a graspable seen target. Note for Table 8.2: Ch. 8's
+baselines "Random" and "Largest" both try the target first (line 1510), i.e. they are
+`preempted_random` and `largest` here; Ch. 7's `random` has no preference for the target.
 
 Contract with the executor: ActionOutcome.removed_object is the true id of the object that left
 the bin (in simulation the model-instance name, which is also the ground-truth mask id);
@@ -127,9 +132,12 @@ def xray_scores(masks: InstanceMasks, occupancy: OccupancyMap) -> np.ndarray:
     return (masks.masks.reshape(len(masks), -1).astype(float) @ rho.ravel())
 
 
-def priority_xray(masks: InstanceMasks, occupancy: OccupancyMap) -> list[int]:
+def priority_xray(masks: InstanceMasks, occupancy: OccupancyMap, target: TargetEstimate | None = None) -> list[int]:
+    """The seen target first (see the module doc), then masks by X-Ray score, ties by area."""
     s = xray_scores(masks, occupancy)
-    return [int(i) for i in np.lexsort((-masks.areas(), -s))] if len(masks) else []
+    order = [int(i) for i in np.lexsort((-masks.areas(), -s))] if len(masks) else []
+    t = target_index(masks, target)
+    return ([t] if t >= 0 else []) + [i for i in order if i != t]
 
 
 def priority_oracle(masks: InstanceMasks, target_id: str, target_amodal: np.ndarray | None) -> list[int]:
@@ -192,7 +200,7 @@ def select_action(policy: str, masks: InstanceMasks, target: TargetEstimate | No
     elif policy == "xray":
         if occupancy is None:
             raise PolicyError("the xray policy needs the occupancy input (OccupancyEstimator)")
-        order = priority_xray(masks, occupancy)
+        order = priority_xray(masks, occupancy, target)
     else:
         order = priority_oracle(masks, target_id, target_amodal)
     t_idx = masks.ids.index(target_id) if policy == "oracle" and target_id in masks.ids else target_index(masks, target)
