@@ -11,6 +11,8 @@ Backends (``Segmenter(backend=...)``):
   connected components). Clusters with `min_pixels`..`max_pixels` pixels (full resolution)
   are kept; every foreground pixel takes the cluster of its nearest sampled point within
   `tolerance`, which projects the clusters back to image masks.
+- ``learned``: the network of ms_drake.perception.segmentation_net trained on synthetic depth
+  images (``ms-drake train segmentation``; see that module for the design), depth only.
 - ``region_growing``: PCL-style smoothness region growing on the organized cloud. Per pixel a
   normal and a curvature (surface variation lambda_0 / (lambda_0 + lambda_1 + lambda_2)) come
   from a PCA of the `window` x `window` neighbourhood; 8-neighbours are "smooth" when their
@@ -46,11 +48,10 @@ from scipy.spatial import cKDTree
 from ms_drake.errors import PerceptionError
 from ms_drake.geometry import PinholeCamera, Workspace, depth_array, world_points
 from ms_drake.perception.masks import label_image_to_masks
+from ms_drake.perception.segmentation_net import LearnedSegmentation
 from ms_drake.types import InstanceMasks
 
-BACKENDS = ("ground_truth", "euclidean", "region_growing")
-
-
+BACKENDS = ("ground_truth", "euclidean", "region_growing", "learned")
 
 
 
@@ -174,22 +175,24 @@ class Segmenter(LeafSystem):
     Inputs ``depth_image`` (ImageDepth32F, metres) and ``label_image`` (ImageLabel16I; only the
     ground_truth backend reads it); output ``masks`` (InstanceMasks).
 
-    backend: ground_truth | euclidean | region_growing.
-    camera: PinholeCamera of the depth camera (intrinsics and world pose), for the point-cloud backends.
+    backend: ground_truth | euclidean | region_growing | learned.
+    camera: PinholeCamera of the depth camera (intrinsics and world pose), for the point-cloud
+    backends (the learned backend needs none: it works on the 640 x 480 overhead image).
     workspace: the bin's inner box (Workspace.from_scenario), for the point-cloud backends.
     label_to_id: render label -> object id (masks.object_labels(plant)), for ground_truth.
     params: EuclideanParams / RegionGrowingParams (defaults: tuned values).
+    weights: the learned backend's weights file (default: the shipped models/weights/segmentation.pt).
     """
 
     def __init__(self, backend: str, camera: PinholeCamera | None = None, workspace: Workspace | None = None,
-                 label_to_id: dict[int, str] | None = None, params=None, min_pixels: int = 20):
+                 label_to_id: dict[int, str] | None = None, params=None, min_pixels: int = 20, weights=None):
         super().__init__()
         if backend not in BACKENDS:
             raise PerceptionError(f"Segmenter backend {backend!r} unknown; choose one of {', '.join(BACKENDS)}")
         if backend == "ground_truth" and label_to_id is None:
             raise PerceptionError("Segmenter(backend='ground_truth') needs label_to_id "
                                   "(ms_drake.perception.masks.object_labels(plant))")
-        if backend != "ground_truth" and (camera is None or workspace is None):
+        if backend in ("euclidean", "region_growing") and (camera is None or workspace is None):
             raise PerceptionError(f"Segmenter(backend={backend!r}) needs camera= (PinholeCamera.from_config) "
                                   "and workspace= (Workspace.from_scenario)")
         w, h = (camera.width, camera.height) if camera is not None else (640, 480)
@@ -206,6 +209,7 @@ class Segmenter(LeafSystem):
         if params is None:
             params = {"euclidean": EuclideanParams(), "region_growing": RegionGrowingParams()}.get(backend)
         self.params = params
+        self.learned = LearnedSegmentation(weights) if backend == "learned" else None
 
     def segment(self, depth=None, labels=None) -> InstanceMasks:
         """The computation behind the output port (depth: (H, W) metres; labels: (H, W) ints)."""
@@ -215,6 +219,8 @@ class Segmenter(LeafSystem):
             return label_image_to_masks(np.asarray(labels), self.label_to_id, self.min_pixels)
         if depth is None:
             raise PerceptionError(f"Segmenter({self.backend}): connect or fix the depth_image input")
+        if self.backend == "learned":
+            return self.learned.segment(depth_array(depth))
         P_W = world_points(self.camera, depth_array(depth))
         if self.backend == "euclidean":
             return euclidean_clustering(P_W, self.workspace, self.params)
@@ -231,23 +237,28 @@ class Segmenter(LeafSystem):
             output.set_value(self.segment(depth=self.depth_port.Eval(context)))
 
 
-def coco_mask_metrics(ground_truth: list[InstanceMasks], predictions: list[InstanceMasks]) -> dict:
-    """COCO mask AP (IoU 0.50:0.95) and AR@100 of `predictions` against `ground_truth`, one pair of
-    InstanceMasks per image (pycocotools). Returns {"AP", "AP50", "AR100", "images", "gt", "dt"}."""
+def encode_masks(masks: InstanceMasks) -> dict:
+    """{"shape": (H, W), "rles": COCO RLEs, "scores"} of InstanceMasks (compact, picklable)."""
+    h, w = masks.masks.shape[1:]
+    rles = [mask_utils.encode(np.asfortranarray(masks.masks[k].astype(np.uint8))) for k in range(len(masks))]
+    return {"shape": (int(h), int(w)), "rles": rles, "scores": [float(v) for v in masks.scores]}
 
+
+def coco_metrics(ground_truth: list[dict], predictions: list[dict]) -> dict:
+    """COCO mask AP (IoU 0.50:0.95), AP50 and AR@100 (pycocotools) of `predictions` against
+    `ground_truth`, both lists of `encode_masks` dicts, one pair per image.
+    Returns {"AP", "AP50", "AR100", "images", "gt", "dt"}."""
     if len(ground_truth) != len(predictions):
-        raise PerceptionError("coco_mask_metrics: give one prediction per ground-truth image")
+        raise PerceptionError("coco_metrics: give one prediction per ground-truth image")
     images, anns, dets = [], [], []
     for i, (gt, dt) in enumerate(zip(ground_truth, predictions)):
-        h, w = gt.masks.shape[1:]
+        h, w = gt["shape"]
         images.append({"id": i, "height": int(h), "width": int(w)})
-        for k in range(len(gt)):
-            rle = mask_utils.encode(np.asfortranarray(gt.masks[k].astype(np.uint8)))
+        for rle in gt["rles"]:
             anns.append({"id": len(anns) + 1, "image_id": i, "category_id": 1, "segmentation": rle,
                          "area": float(mask_utils.area(rle)), "bbox": list(mask_utils.toBbox(rle)), "iscrowd": 0})
-        for k in range(len(dt)):
-            rle = mask_utils.encode(np.asfortranarray(dt.masks[k].astype(np.uint8)))
-            dets.append({"image_id": i, "category_id": 1, "segmentation": rle, "score": float(dt.scores[k])})
+        for rle, score in zip(dt["rles"], dt["scores"]):
+            dets.append({"image_id": i, "category_id": 1, "segmentation": rle, "score": float(score)})
     coco = COCO()
     coco.dataset = {"images": images, "annotations": anns, "categories": [{"id": 1, "name": "object"}]}
     with contextlib.redirect_stdout(io.StringIO()):
@@ -261,3 +272,11 @@ def coco_mask_metrics(ground_truth: list[InstanceMasks], predictions: list[Insta
         ev.summarize()
     return {"AP": float(ev.stats[0]), "AP50": float(ev.stats[1]), "AR100": float(ev.stats[8]),
             "images": len(images), "gt": len(anns), "dt": len(dets)}
+
+
+def coco_mask_metrics(ground_truth: list[InstanceMasks], predictions: list[InstanceMasks]) -> dict:
+    """COCO mask AP (IoU 0.50:0.95) and AR@100 of `predictions` against `ground_truth`, one pair of
+    InstanceMasks per image (pycocotools). Returns {"AP", "AP50", "AR100", "images", "gt", "dt"}."""
+    if len(ground_truth) != len(predictions):
+        raise PerceptionError("coco_mask_metrics: give one prediction per ground-truth image")
+    return coco_metrics([encode_masks(g) for g in ground_truth], [encode_masks(p) for p in predictions])

@@ -1,0 +1,265 @@
+"""Training of the learned depth segmenter and the Table B.1 benchmark (Ch. 5.5-5.6).
+
+`train_segmentation` (``ms-drake train segmentation --data DIR --out FILE.pt``): AdamW (lr 2e-3,
+weight decay 1e-4, cosine decay to 0), batches of 16 random `crop` windows (96 x 128 working
+pixels, a quarter of the 192 x 256 image) centred on an object pixel of the image (+- 24 px),
+random horizontal and vertical flips; pixelwise cross-entropy on the three classes of
+segmentation_net. Our choices where the reference's (SGD, lr 0.01, momentum 0.9, 60 epochs on a
+Titan X) does not fit two shared CPU cores: the network is fully convolutional, so it learns
+from windows and runs on the whole image, and a window around the heap holds nearly all the
+information of the image at a quarter of the cost. Deterministic from `seed` (the batch order and
+windows of epoch e come from (seed, e)). After every epoch the model, optimizer and scheduler go to
+``FILE.ckpt`` (experiments.training), so a killed run resumes with the same command; the shipped
+``FILE`` holds the weights, the network configuration and a `meta` dict (data, command, epochs,
+seconds, losses).
+
+`bench_segmentation` (``ms-drake bench segmentation --backend B --images N --seed-start S``): image
+s is heap s of held-out objects (the test split of its object set; sets taken in turn by seed,
+m ~ Poisson(7.5) truncated to [1, 10]) seen by one jittered overhead camera
+(occupancy_data.random_camera), as the dataset draws them; the backend segments its depth
+image; COCO mask AP (IoU 0.50:0.95), AP50 and AR@100 by pycocotools over all images
+(segmentation.coco_metrics), and the median seconds per image of the backend alone.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from ms_drake.errors import DatasetError, HeapError
+from ms_drake.experiments.occupancy_data import random_camera, truncated_poisson
+from ms_drake.experiments.segmentation_data import (
+    MAX_OBJECTS,
+    MEAN_OBJECTS,
+    OBJECT_SETS,
+    LabelledHeapRenderer,
+    ground_truth,
+    instance_masks,
+    load_working,
+    sensor_model,
+)
+from ms_drake.experiments.training import (
+    resume,
+    save_atomically,
+    save_checkpoint,
+    torch_setup,
+)
+from ms_drake.geometry import PinholeCamera, Workspace
+from ms_drake.parallel import run_jobs
+from ms_drake.perception.segmentation import Segmenter, coco_metrics, encode_masks
+from ms_drake.perception.segmentation_net import (
+    NetConfig,
+    class_targets,
+    make_net,
+    segmentation_loss,
+)
+from ms_drake.scenario import load_scenario
+from ms_drake.scenes.heaps import HeapParams, generate_heap
+
+CROP_SHAPE = (96, 128)
+BENCH_BACKENDS = ("euclidean", "region_growing", "learned", "ground_truth")
+
+
+def _windows(lab: np.ndarray, shape, rng: np.random.Generator) -> list[tuple[int, int]]:
+    """Top-left corners of one `shape` window per image, centred on a random object pixel (+- 24 px)."""
+    H, W = lab.shape[1:]
+    h, w = shape
+    out = []
+    for im in lab:
+        ys, xs = np.nonzero(im)
+        if len(ys):
+            j = int(rng.integers(len(ys)))
+            cy, cx = ys[j] + int(rng.integers(-24, 25)), xs[j] + int(rng.integers(-24, 25))
+        else:
+            cy, cx = H // 2, W // 2
+        out.append((int(np.clip(cy - h // 2, 0, H - h)), int(np.clip(cx - w // 2, 0, W - w))))
+    return out
+
+
+def make_batch(x: np.ndarray, y: np.ndarray, idx, rng: np.random.Generator, shape=CROP_SHAPE):
+    """(inputs (B, 2, h, w) float32, classes (B, h, w) int64): windows and flips of images `idx`."""
+    xs, ys = [], []
+    corners = _windows(y[idx], shape, rng) if shape is not None else [(0, 0)] * len(idx)
+    h, w = shape if shape is not None else y.shape[1:]
+    for i, (t, l) in zip(idx, corners):
+        xi = x[i, :, t:t + h, l:l + w].astype(np.float32)
+        yi = y[i, t:t + h, l:l + w]
+        if rng.random() < 0.5:
+            xi, yi = xi[..., ::-1], yi[..., ::-1]
+        if rng.random() < 0.5:
+            xi, yi = xi[..., ::-1, :], yi[..., ::-1, :]
+        xs.append(xi)
+        ys.append(yi)
+    return np.ascontiguousarray(np.stack(xs)), np.ascontiguousarray(np.stack(ys)).astype(np.int64)
+
+
+def make_optimizer(net, lr: float = 2e-3, weight_decay: float = 1e-4):
+    import torch  # optional heavy dependency: only the learned segmenter needs it
+
+    return torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=weight_decay)
+
+
+def train_steps(net, opt, x, y, steps: int = 1) -> list[float]:
+    """`steps` optimizer steps on one fixed batch (numpy: inputs (B, 2, h, w), classes (B, h, w));
+    the losses before each step."""
+    import torch  # optional heavy dependency: only the learned segmenter needs it
+
+    net.train()
+    xt, yt = torch.from_numpy(np.asarray(x, np.float32)), torch.from_numpy(np.asarray(y, np.int64))
+    losses = []
+    for _ in range(steps):
+        opt.zero_grad()
+        loss = segmentation_loss(net(xt), yt)
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    return losses
+
+
+def train_segmentation(data, out, epochs: int = 8, batch: int = 16, seed: int = 0, threads: int = 1,
+                       config: NetConfig | None = None, max_minutes: float = 60.0, progress=None, command: str = "",
+                       lr: float = 2e-3, max_images: int | None = None) -> dict:
+    """Train on the train shards of `data` (the first `max_images` if given); write `out` (weights +
+    meta) and `out`.ckpt (resume). Stops early (after a whole epoch) when `max_minutes` of wall
+    time would be exceeded."""
+    torch = torch_setup(seed, threads)
+    config = config or NetConfig()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    ckpt = out.with_suffix(".ckpt")
+    d = load_working(data, "train")
+    x, lab = d["x"], d["lab"]
+    if max_images is not None:
+        x, lab = x[:max_images], lab[:max_images]
+    n = len(x)
+    if n < batch:
+        raise DatasetError(f"{data}: {n} training images, fewer than a batch ({batch}); make more with "
+                           "`ms-drake data segmentation --count ...`")
+    y = np.stack([class_targets(m) for m in lab]).astype(np.uint8)
+    net = make_net(config)
+    opt = make_optimizer(net, lr)
+    steps_per_epoch = n // batch
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs * steps_per_epoch)
+    settings = dict(config=asdict(config), epochs=epochs, n=n, batch=batch, lr=lr, seed=seed)
+    start, history, seconds = resume(torch, ckpt, settings, net, opt, sched)
+    t0 = time.perf_counter() - seconds
+    for epoch in range(start, epochs):
+        te = time.perf_counter()
+        if epoch > 0 and (te - t0) / epoch * (epoch + 1) > 60.0 * max_minutes:
+            break
+        rng = np.random.default_rng([seed, epoch])
+        order = rng.permutation(n)
+        net.train()
+        total = 0.0
+        for b in range(steps_per_epoch):
+            xb, yb = make_batch(x, y, np.sort(order[b * batch:(b + 1) * batch]), rng)
+            opt.zero_grad()
+            loss = segmentation_loss(net(torch.from_numpy(xb)), torch.from_numpy(yb))
+            loss.backward()
+            opt.step()
+            sched.step()
+            total += loss.item()
+            if progress is not None:
+                progress(epoch, b, steps_per_epoch, loss.item())
+        history.append(dict(epoch=epoch + 1, loss=total / steps_per_epoch, seconds=time.perf_counter() - te))
+        save_checkpoint(torch, ckpt, settings, net, opt, sched, epoch + 1, history, time.perf_counter() - t0)
+        save_atomically(torch, dict(model=net.state_dict(), config=asdict(config),
+                                    meta=_meta(data, n, history, epochs, batch, seed, lr, t0, command, torch)), out)
+    meta = _meta(data, n, history, epochs, batch, seed, lr, t0, command, torch)
+    save_atomically(torch, dict(model=net.state_dict(), config=asdict(config), meta=meta), out)
+    return meta
+
+
+def _meta(data, n, history, epochs, batch, seed, lr, t0, command, torch) -> dict:
+    return dict(data=str(data), train_images=n, epochs_done=len(history), epochs=epochs, batch=batch, seed=seed,
+                lr=lr, crop=list(CROP_SHAPE), seconds=time.perf_counter() - t0, history=list(history),
+                command=command, torch=torch.__version__)
+
+
+# ---------------------------------------------------------------------------------------------
+# Table B.1: held-out images from seeds, each backend, COCO AP / AR
+
+
+def bench_image(seed: int, noise: float = 0.0, dropout: float = 0.0, scenario=None):
+    """(depth (480, 640) float32 m, ground-truth InstanceMasks, camera) of benchmark image `seed`:
+    a heap of held-out (test-split) objects, one jittered camera (see the module doc)."""
+    scenario = scenario or load_scenario(None, "BinHeap15")
+    rng = np.random.default_rng([seed, 91])
+    oset = OBJECT_SETS[seed % len(OBJECT_SETS)]
+    n = truncated_poisson(rng, MEAN_OBJECTS, 1, MAX_OBJECTS)
+    heap = generate_heap(scenario, n, seed, object_set=oset, params=HeapParams(engine="bullet", split="test",
+                                                                              render=False))
+    nominal = PinholeCamera.from_config(scenario.cameras[next(iter(scenario.cameras))])
+    r = LabelledHeapRenderer(scenario, heap)
+    cam = random_camera(nominal, rng)
+    depth = sensor_model(r.depth(cam), rng, noise, dropout)
+    inst, names = ground_truth(r.labels(cam), r.label_to_name)
+    return depth, instance_masks(inst, names), cam
+
+
+def make_segmenter(backend: str, cam: PinholeCamera, workspace: Workspace, weights=None) -> Segmenter:
+    if backend == "learned":
+        return Segmenter("learned", weights=weights)
+    return Segmenter(backend, camera=cam, workspace=workspace, label_to_id={})
+
+
+def bench_job(job: tuple) -> list[dict]:
+    """(backend, seeds, noise, dropout, weights) -> per image: RLEs of ground truth and detections,
+    seconds; module-level for pickling."""
+    backend, seeds, noise, dropout, weights = job
+    scenario = load_scenario(None, "BinHeap15")
+    ws = Workspace.from_scenario(scenario)
+    out, learned = [], None
+    for s in seeds:
+        try:
+            depth, gt, cam = bench_image(s, noise, dropout, scenario)
+        except HeapError as e:
+            out.append(dict(seed=s, error=str(e)))
+            continue
+        if backend == "learned":
+            learned = learned or make_segmenter("learned", cam, ws, weights)
+            seg = learned
+        else:
+            seg = make_segmenter(backend, cam, ws)
+        t = time.perf_counter()
+        pred = gt if backend == "ground_truth" else seg.segment(depth=depth)
+        dt = time.perf_counter() - t
+        out.append(dict(seed=s, gt=encode_masks(gt), dt=encode_masks(pred), seconds=dt))
+    return out
+
+
+def bench_segmentation(backend: str, images: int, seed_start: int, workers: int = 1, noise: float = 0.0,
+                       dropout: float = 0.0, weights=None, progress=None, chunk: int = 10) -> dict:
+    """Table B.1 row of `backend` on images seed_start .. seed_start + images - 1 (module doc)."""
+    if backend not in BENCH_BACKENDS:
+        raise DatasetError(f"--backend {backend!r}: choose one of {', '.join(BENCH_BACKENDS)}")
+    seeds = list(range(seed_start, seed_start + images))
+    jobs = [(backend, tuple(seeds[i:i + chunk]), noise, dropout, None if weights is None else str(weights))
+            for i in range(0, len(seeds), chunk)]
+    rows = []
+    for r in run_jobs(bench_job, jobs, workers=workers, max_tasks_per_child=5):
+        if not r.ok:
+            raise DatasetError(f"bench segmentation: images {r.job[1][0]}-{r.job[1][-1]} failed: "
+                               f"{(r.error or '').strip().splitlines()[-1:]}")
+        rows += r.value
+        if progress is not None:
+            progress(len(r.value))
+    rows.sort(key=lambda r: r["seed"])
+    ok = [r for r in rows if "gt" in r]
+    m = coco_metrics([r["gt"] for r in ok], [r["dt"] for r in ok])
+    secs = [r["seconds"] for r in ok]
+    return dict(backend=backend, ap=m["AP"], ap50=m["AP50"], ar=m["AR100"], images=len(ok), gt=m["gt"], dt=m["dt"],
+                failed_images=[r["seed"] for r in rows if "gt" not in r], seed_start=seed_start, noise=noise,
+                dropout=dropout, seconds_median=statistics.median(secs) if secs else 0.0,
+                weights=None if weights is None else str(weights))
+
+
+def write_json(path, obj) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(obj, indent=1))
