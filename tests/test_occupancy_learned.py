@@ -8,24 +8,36 @@ from pydrake.systems.sensors import ImageDepth32F
 
 from ms_drake.errors import PerceptionError
 from ms_drake.experiments.occupancy_data import load_dataset, shard_split, write_occupancy_dataset
-from ms_drake.experiments.occupancy_learning import make_optimizer, occupancy_metrics, predict, train_steps
+from ms_drake.experiments.occupancy_learning import (
+    batch_constraint,
+    diagonals,
+    make_optimizer,
+    occupancy_metrics,
+    predict,
+    train_steps,
+)
 from ms_drake.experiments.rollout import SearchParams, build_search
 from ms_drake.experiments.xray import XRAY_TARGET, xray_heap
 from ms_drake.objects import get_object
 from ms_drake.perception.occupancy import OccupancyEstimator, TargetBox
 from ms_drake.perception.occupancy_net import (
     FULL_SHAPE,
+    WORK_PX_PER_M,
     WORK_SHAPE,
     LearnedOccupancy,
+    constrain_to_visible,
     default_weights,
+    estimator_output,
     load_model,
     make_net,
     nearest_ratio,
+    visible_support,
 )
+from ms_drake.policies import select_action
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import set_heap_poses
 from ms_drake.station.robots import set_arm_positions
-from ms_drake.types import OccupancyMap, TargetEstimate
+from ms_drake.types import Grasp, InstanceMasks, OccupancyMap, TargetEstimate
 
 torch = pytest.importorskip("torch")
 
@@ -59,7 +71,14 @@ def test_a_training_step_lowers_the_loss_on_a_fixed_batch(tiny):
     d = load_dataset(tiny, "train")
     net = make_net()
     opt = make_optimizer(net, lr=3e-3)
-    losses = train_steps(net, opt, d["x"][:4].astype(np.float32), d["y"][:4].astype(np.float32), d["ratio"][:4], 8)
+    x, y = d["x"][:4].astype(np.float32), d["y"][:4].astype(np.float32)
+    losses = train_steps(net, opt, x, y, d["ratio"][:4], 8)
+    assert losses[-1] < 0.95 * losses[0]
+    # the same under the seen-target constraint and with positives weighted (the shipped settings)
+    torch.manual_seed(0)
+    net = make_net()
+    opt = make_optimizer(net, lr=3e-3)
+    losses = train_steps(net, opt, x, y, d["ratio"][:4], 8, diag=diagonals(d["size"][:4]), positive_weight=1.0)
     assert losses[-1] < 0.95 * losses[0]
 
 
@@ -74,6 +93,56 @@ def test_shipped_weights_load_and_beat_a_uniform_distribution(tiny):
     m, u = occupancy_metrics(pred, y), occupancy_metrics(uniform, y)
     assert m["mse"].mean() < u["mse"].mean()
     assert m["balanced_accuracy"].mean() > u["balanced_accuracy"].mean()
+    est = predict(net, d["x"], d["ratio"], diag=diagonals(d["size"]))  # what the estimator returns
+    e = occupancy_metrics(est, y)
+    assert np.allclose(est.max(axis=(1, 2)), 1.0)
+    assert e["balanced_accuracy"].mean() > u["balanced_accuracy"].mean() and e["iou"].mean() > u["iou"].mean()
+
+
+def test_seen_target_constraint():
+    seen = np.zeros(WORK_SHAPE, np.float32)
+    seen[40:44, 60:64] = 1.0  # a 4 x 4 block patch fully seen
+    seen[44, 60:64] = 0.5  # and a half-seen row
+    diag = 0.03 * np.sqrt(2)  # the 3 x 3 cm box
+    sup = visible_support(seen, diag)
+    r = diag * WORK_PX_PER_M * 1.15 + 1.0
+    rows, cols = np.nonzero(sup)
+    # every supported pixel lies within r of every seen pixel (the corners of the patch suffice)
+    for pr, pc in ((40, 60), (40, 63), (44, 60), (44, 63)):
+        assert np.all((rows - pr) ** 2 + (cols - pc) ** 2 <= r * r + 1e-6)
+    assert sup[42, 62] and sup[42, 62 + int(r) - 3] and not sup[42, 62 + int(r) + 3]
+    pred = np.full(WORK_SHAPE, 0.3, np.float32)
+    c = constrain_to_visible(pred, seen, diag)
+    assert np.all(c[~sup] == 0) and np.all(c[40:44, 60:64] == 1.0) and c[44, 61] == pytest.approx(0.5)
+    assert c[42, 62 + int(r) - 3] == pytest.approx(0.3)
+    out = estimator_output(pred * 0.5, seen, diag)
+    assert out.max() == pytest.approx(1.0) and np.all(out[~sup] == 0)
+    nothing = np.zeros(WORK_SHAPE, np.float32)
+    assert visible_support(nothing, diag) is None and constrain_to_visible(pred, nothing, diag) is pred
+    sup_b, floor_b = batch_constraint(np.stack([np.stack([seen, pred, pred]), np.stack([nothing, pred, pred])]),
+                                      np.array([diag, diag]))
+    assert np.array_equal(sup_b[0] > 0, sup) and np.all(sup_b[1] == 1) and np.all(floor_b[1] == 0)
+
+
+def test_xray_grasps_a_seen_graspable_target_before_the_best_scored_occluder():
+    h, w = 60, 80
+    m = np.zeros((2, h, w), bool)
+    m[0, 5:10, 5:10] = True  # the target, seen
+    m[1, 20:50, 0:40] = True  # an occluder
+    masks = InstanceMasks(m, ("t", "big"), np.ones(2))
+    rho = np.zeros((h, w))
+    rho[20:50, 0:40] = 1.0  # all of the occupancy on the occluder
+    occ = OccupancyMap(rho / rho.sum())
+    seen = TargetEstimate(True, m[0], 0.95, 0)
+    g = tuple(Grasp("suction", (0.0, 0.0, 0.0), (0.0, 0.0, -1.0), quality=q, object_id=k)
+              for k, q in (("t", 0.5), ("big", 0.9)))
+    assert select_action("xray", masks, seen, g, occupancy=occ).grasp.object_id == "t"
+    # not graspable: the occluder with the most occupancy
+    g_low = (Grasp("suction", (0.0, 0.0, 0.0), (0.0, 0.0, -1.0), quality=0.05, object_id="t"), g[1])
+    assert select_action("xray", masks, seen, g_low, occupancy=occ).grasp.object_id == "big"
+    # the target not seen: by occupancy
+    hidden = TargetEstimate(False, np.zeros((h, w), bool))
+    assert select_action("xray", masks, hidden, g, occupancy=occ).grasp.object_id == "big"
 
 
 def test_missing_weights_name_the_command(tmp_path):
