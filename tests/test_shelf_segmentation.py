@@ -15,6 +15,7 @@ from ms_drake.perception.shelf_segmentation import (
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.shelf import generate_shelf_scene
 from ms_drake.scenes.shelf_render import (
+    ShelfDepthCamera,
     pose_shelf_objects,
     render_shelf_scene,
     shelf_station,
@@ -133,3 +134,33 @@ def test_bench_writes_scene_lines_and_resumes(tmp_path):
     assert noisy["scenes"] == 1 and len(out.read_text().splitlines()) == 3
     with pytest.raises(ValueError, match="dropout"):
         bench_shelf_segmentation(1, [4], 0, out, dropout=1.5)
+
+
+def test_depth_camera_feeds_the_segmenter(shelf):
+    scenario, geometry = shelf
+    truth = ShelfScene((ShelfObject("a", "box", -0.12, -0.1, 0.12, 0.1, 0.15),),
+                       ShelfObject("target", "box", 0.1, -0.15, 0.06, 0.06, 0.06))
+    camera = ShelfDepthCamera(scenario)
+    context = camera.CreateDefaultContext()
+    camera.GetInputPort("scene").FixValue(context, truth)
+    render = render_shelf_scene(scenario, truth)
+    depth = np.array(camera.GetOutputPort("depth_image").Eval(context).data)[:, :, 0]
+    assert np.allclose(np.nan_to_num(depth, posinf=9), np.nan_to_num(render.depth, posinf=9), atol=1e-4)
+    rgb = np.array(camera.GetOutputPort("rgb_image").Eval(context).data)[:, :, :3]
+    assert np.array_equal(rgb, render.rgb)
+    builder = DiagramBuilder()
+    cam = builder.AddSystem(ShelfDepthCamera(scenario))
+    seg = builder.AddSystem(ShelfSegmenter(geometry))
+    builder.Connect(cam.GetOutputPort("depth_image"), seg.GetInputPort("depth_image"))
+    builder.Connect(cam.GetOutputPort("rgb_image"), seg.GetInputPort("rgb_image"))
+    builder.ExportInput(cam.GetInputPort("scene"), "scene")
+    builder.ExportOutput(seg.GetOutputPort("scene"), "estimate")
+    diagram = builder.Build()
+    context = diagram.CreateDefaultContext()
+    diagram.GetInputPort("scene").FixValue(context, truth)
+    estimate = diagram.GetOutputPort("estimate").Eval(context)
+    assert len(estimate.objects) == 1 and abs(estimate.objects[0].x + 0.12) < 0.01  # the target left out
+    moved = ShelfScene((truth.objects[0].moved(0.1, 0.1),), truth.target)  # behind the target now
+    diagram.GetInputPort("scene").FixValue(context, moved)
+    estimate = diagram.GetOutputPort("estimate").Eval(context)
+    assert len(estimate.objects) == 1 and abs(estimate.objects[0].x - 0.1) < 0.01  # re-rendered

@@ -8,9 +8,10 @@ cylinder (`MakeStation(extra_objects=...)`, SDF from ms_drake.objects.sdf, the t
 colour), poses them on the shelf floor and renders one camera: depth (metres), label image (VTK's
 own render by default) and colour.
 
-`ShelfDepthCamera(scenario)`: a LeafSystem, input ``scene`` (ShelfScene) -> output
-``depth_image`` (ImageDepth32F), the render of the scene's current state (FOSS has no station of
-its own; the learned shelf occupancy reads this image). It keeps its station while the scene's
+`ShelfDepthCamera(scenario)`: a LeafSystem, input ``scene`` (ShelfScene) -> outputs
+``depth_image`` (ImageDepth32F) and ``rgb_image`` (ImageRgba8U), the renders of the scene's
+current state (FOSS has no station of its own; the learned shelf occupancy and the
+ShelfSegmenter read these images). It keeps its station while the scene's
 objects (ids, shapes and sizes) stay the same and only re-poses them, and keeps the last render.
 """
 
@@ -24,7 +25,7 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import LeafSystem
-from pydrake.systems.sensors import ImageDepth32F
+from pydrake.systems.sensors import ImageDepth32F, ImageRgba8U
 
 from ms_drake.errors import SceneError
 from ms_drake.objects import TARGET_RGBA
@@ -115,8 +116,9 @@ def render_shelf_scene(scenario: Scenario, scene: ShelfScene, camera: str = "fro
 
 
 class ShelfDepthCamera(LeafSystem):
-    """Ports (declared first): input ``scene`` (ShelfScene), output ``depth_image`` (ImageDepth32F,
-    metres, inf where nothing) of the scenario's camera `camera`."""
+    """Ports (declared first): input ``scene`` (ShelfScene), outputs ``depth_image`` (ImageDepth32F,
+    metres, inf where nothing) and ``rgb_image`` (ImageRgba8U; the target in the target colour) of
+    the scenario's camera `camera`. Each output renders only its own image, once per scene."""
 
     def __init__(self, scenario: Scenario, camera: str = "front"):
         super().__init__()
@@ -125,24 +127,34 @@ class ShelfDepthCamera(LeafSystem):
         cam = scenario.cameras[camera]
         self.scene_port = self.DeclareAbstractInputPort("scene", AbstractValue.Make(ShelfScene(())))
         self.DeclareAbstractOutputPort("depth_image", lambda: AbstractValue.Make(ImageDepth32F(cam.width, cam.height)),
-                                       self._calc)
+                                       partial(self._calc, "depth_image"))
+        self.DeclareAbstractOutputPort("rgb_image", lambda: AbstractValue.Make(ImageRgba8U(cam.width, cam.height)),
+                                       partial(self._calc, "rgb_image"))
         self.scenario, self.camera = scenario, camera
-        self._last = None  # (scene, image)
-        self._station = None  # (objects' ids, shapes and sizes; station; its context)
+        self._last = {}  # image name -> (scene, image)
+        self._station = None  # (objects' ids, shapes and sizes; station; its context; the scene it is posed at)
 
-    def _calc(self, context, output):
+    def _posed_station(self, scene: ShelfScene):
+        objects = list(scene.objects) + ([scene.target] if scene.target is not None else [])
+        key = tuple((o.id, o.kind, o.width, o.depth, o.height) for o in objects)
+        if self._station is None or self._station[0] != key:
+            station, station_context, _ = shelf_station(self.scenario, scene)
+            self._station = [key, station, station_context, scene]
+        elif self._station[3] != scene:
+            pose_shelf_objects(self._station[1], self._station[2], self.scenario, scene)
+            self._station[3] = scene
+        return self._station[1], self._station[2]
+
+    def _calc(self, name: str, context, output):
         scene = self.scene_port.Eval(context)
-        if self._last is None or self._last[0] != scene:
-            objects = list(scene.objects) + ([scene.target] if scene.target is not None else [])
-            key = tuple((o.id, o.kind, o.width, o.depth, o.height) for o in objects)
-            if self._station is None or self._station[0] != key:
-                station, station_context, _ = shelf_station(self.scenario, scene)
-                self._station = (key, station, station_context)
+        last = self._last.get(name)
+        if last is None or last[0] != scene:
+            station, station_context = self._posed_station(scene)
+            data = np.array(station.GetOutputPort(f"{self.camera}.{name}").Eval(station_context).data)
+            if name == "depth_image":
+                image = ImageDepth32F(data.shape[1], data.shape[0])
             else:
-                _, station, station_context = self._station
-                pose_shelf_objects(station, station_context, self.scenario, scene)
-            depth = np.array(station.GetOutputPort(f"{self.camera}.depth_image").Eval(station_context).data)[:, :, 0]
-            image = ImageDepth32F(depth.shape[1], depth.shape[0])
-            image.mutable_data[:, :, 0] = depth
-            self._last = (scene, image)
-        output.set_value(self._last[1])
+                image = ImageRgba8U(data.shape[1], data.shape[0])
+            image.mutable_data[:] = data
+            last = self._last[name] = (scene, image)
+        output.set_value(last[1])
