@@ -5,8 +5,12 @@ import pytest
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.sensors import ImageDepth32F, ImageRgba8U
 
-from ms_drake.errors import PerceptionError
-from ms_drake.experiments.shelf_segmentation import bench_shelf_segmentation
+from ms_drake.errors import MsDrakeError, PerceptionError
+from ms_drake.experiments.shelf_segmentation import (
+    AssociateShelfObjects,
+    associate,
+    bench_shelf_segmentation,
+)
 from ms_drake.perception.shelf_segmentation import (
     ShelfSegmentationParams,
     ShelfSegmenter,
@@ -164,3 +168,24 @@ def test_depth_camera_feeds_the_segmenter(shelf):
     diagram.GetInputPort("scene").FixValue(context, moved)
     estimate = diagram.GetOutputPort("estimate").Eval(context)
     assert len(estimate.objects) == 1 and abs(estimate.objects[0].x - 0.1) < 0.01  # re-rendered
+
+
+def test_associate_names_estimates_after_the_true_objects(shelf):
+    scenario, geometry = shelf
+    truth = generate_shelf_scene(geometry, 3, 8).scene
+    render = render_shelf_scene(scenario, truth)
+    _, estimate = segment_shelf(geometry, render.depth)
+    named = associate(estimate, truth)
+    assert named.target is None and len(named.objects) == len(estimate.objects)
+    by_id = {o.id: o for o in truth.objects}
+    assert all(o.id in by_id for o in named.objects)  # every well-seen object found its twin
+    assert all(abs(o.x - by_id[o.id].x) < 0.01 for o in named.objects)
+    stray = ShelfScene(estimate.objects + (ShelfObject("seg_x", "box", 0.25, -0.25, 0.02, 0.02, 0.02),))
+    assert associate(stray, truth).objects[-1].id == "seg_x"  # nothing there: it keeps its name
+    system = AssociateShelfObjects()
+    context = system.CreateDefaultContext()
+    with pytest.raises(MsDrakeError, match="estimate"):
+        system.GetOutputPort("scene").Eval(context)
+    system.GetInputPort("estimate").FixValue(context, estimate)
+    system.GetInputPort("scene").FixValue(context, truth)
+    assert system.GetOutputPort("scene").Eval(context) == named

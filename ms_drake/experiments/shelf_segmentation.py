@@ -9,6 +9,10 @@ footprints (seen from above). Over all scenes: COCO mask AP / AR@100 (pycocotool
 segmentation's metric) and the time per image. One JSON line per scene in `out` (resumable), the
 summary returned and printed. `noise` (m) and `dropout` (a fraction of pixels lost) make the depth
 image a sensor's: Gaussian noise on every depth, and missing pixels, drawn from the scene's seed.
+
+`AssociateShelfObjects` (simulation only): the segmenter's objects named after the true objects
+they stand for, so that an action a policy plans on the estimate can be applied by FOSS to the true
+scene (a robot needs no names: it acts where the object was seen).
 """
 
 from __future__ import annotations
@@ -20,6 +24,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import LeafSystem
 from tqdm import tqdm
 
 from ms_drake.errors import MsDrakeError
@@ -34,7 +40,7 @@ from ms_drake.scenario import load_scenario
 from ms_drake.scenes.shelf import generate_shelf_scene
 from ms_drake.scenes.shelf_render import render_shelf_scene
 from ms_drake.shelf_geometry import Prisms, ShelfGeometry
-from ms_drake.types import InstanceMasks
+from ms_drake.types import InstanceMasks, ShelfObject, ShelfScene
 
 SCENARIO = "FetchShelf"
 
@@ -148,3 +154,44 @@ def summarize_segmentation(recs: list[dict]) -> dict:
             "abs_dx_m": q("dx"), "abs_dwidth_m": q("dwidth"), "abs_ddepth_m": q("ddepth"), "abs_dheight_m": q("dheight"),
             "footprint_iou": q("footprint_iou", float),
             "ms_per_image": {"median": 1000 * float(np.median([r["seconds"] for r in recs])) if recs else 0.0}}
+
+
+def associate(estimate: ShelfScene, truth: ShelfScene, min_iou: float = 0.3) -> ShelfScene:
+    """`estimate`'s objects, each renamed to the occluder of `truth` whose footprint overlaps it
+    most (footprint IoU >= min_iou, one to one, best pairs first); the others keep their names."""
+    if not estimate.objects or not truth.objects:
+        return ShelfScene(estimate.objects, None, truth.seed)
+    fe, ft = Prisms.of(estimate.objects).footprints(), Prisms.of(truth.objects).footprints()
+    iou = np.array([[a.intersection(b).area / max(a.union(b).area, 1e-12) for b in ft] for a in fe])
+    names = {}
+    taken = set()
+    for flat in np.argsort(-iou, axis=None):
+        i, j = np.unravel_index(flat, iou.shape)
+        if iou[i, j] < min_iou:
+            break
+        if i in names or j in taken:
+            continue
+        names[i] = truth.objects[j].id
+        taken.add(j)
+    objects = tuple(ShelfObject(names.get(i, o.id), o.kind, o.x, o.y, o.width, o.depth, o.height)
+                    for i, o in enumerate(estimate.objects))
+    return ShelfScene(objects, None, truth.seed)
+
+
+class AssociateShelfObjects(LeafSystem):
+    """Ports (declared first): inputs ``estimate`` (ShelfScene, the ShelfSegmenter's) and ``scene``
+    (ShelfScene, the simulator's truth); output ``scene`` (the estimate, objects named after the true
+    ones they match: `associate`)."""
+
+    def __init__(self, min_iou: float = 0.3):
+        super().__init__()
+        self.estimate_port = self.DeclareAbstractInputPort("estimate", AbstractValue.Make(ShelfScene(())))
+        self.truth_port = self.DeclareAbstractInputPort("scene", AbstractValue.Make(ShelfScene(())))
+        self.DeclareAbstractOutputPort("scene", lambda: AbstractValue.Make(ShelfScene(())), self._calc)
+        self.min_iou = float(min_iou)
+
+    def _calc(self, context, output):
+        if not (self.estimate_port.HasValue(context) and self.truth_port.HasValue(context)):
+            raise MsDrakeError("AssociateShelfObjects: connect both the estimate (ShelfSegmenter.scene) and the "
+                               "scene (FossSystem.scene) inputs")
+        output.set_value(associate(self.estimate_port.Eval(context), self.truth_port.Eval(context), self.min_iou))
