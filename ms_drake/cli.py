@@ -516,16 +516,18 @@ def data_occupancy(count: int = typer.Option(..., "--count", min=1, help="Images
                    ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
                    ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address"),
                    target: Optional[list[str]] = typer.Option(None, "--target", help="Out-of-set box target "
-                                                              "'L,W,T' in metres (repeatable), e.g. 0.06,0.06,0.005"),
+                                                              "'L,W,T' in metres (repeatable), e.g. 0.06,0.06,0.005, or a "
+                                                              "cylinder lying flat 'cyl:L,D', e.g. cyl:0.15,0.015"),
                    test_only: bool = typer.Option(False, "--test-only", help="Every shard a test shard")):
     """Depth images + target modal masks + ground-truth occupancy (ten box aspect ratios), split by
     image and by object, sharded; shards already written are kept."""
     try:
-        targets = [tuple(float(v) for v in t.split(",")) for t in target] if target else None
+        targets = [("cylinder", *(float(v) for v in t[4:].split(","))) if t.startswith("cyl:")
+                   else tuple(float(v) for v in t.split(",")) for t in target] if target else None
     except ValueError:
-        _fail(f"--target {target}: give L,W,T in metres, e.g. --target 0.06,0.06,0.005")
+        _fail(f"--target {target}: give L,W,T in metres, e.g. --target 0.06,0.06,0.005, or cyl:L,D")
     if targets and any(len(t) != 3 for t in targets):
-        _fail(f"--target {target}: give three numbers L,W,T per target")
+        _fail(f"--target {target}: give three numbers L,W,T per box target, two (cyl:L,D) per cylinder")
     t0 = time.perf_counter()
     per = views * heaps_per_shard
     bar = tqdm(total=-(-count // per), desc="shards", unit="shard")

@@ -38,6 +38,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import trimesh
 from pydrake.geometry import (
     ClippingRange,
     DepthRange,
@@ -58,6 +59,7 @@ from ms_drake.paths import make_parser
 from ms_drake.perception.occupancy import (
     AnalyticOccupancy,
     TargetBox,
+    TargetMesh,
     convex_silhouette,
 )
 from ms_drake.perception.occupancy_net import (
@@ -137,9 +139,38 @@ def _ray_z(cam: PinholeCamera) -> np.ndarray:
     return (R[2, 0] * (u - cam.cx) / cam.fx + R[2, 1] * (v - cam.cy) / cam.fy + R[2, 2]).astype(np.float32)
 
 
+class LyingCylinder:
+    """A cylinder lying on the floor along x (the "flute" of Table 8.1: longer, thinner and deeper
+    than the boxes): `length`, diameter `width` = `thickness`. It serves `insert_target` as a box
+    does (its silhouette is that of its convex mesh, its seen surface the plane of its top -- the
+    visibility model of the ground-truth generator, which gets it as a TargetMesh)."""
+
+    def __init__(self, length: float, diameter: float):
+        if not 0 < diameter <= length:
+            raise DatasetError(f"cylinder {length} x {diameter} m: give 0 < diameter <= length")
+        self.length, self.width, self.thickness = float(length), float(diameter), float(diameter)
+
+    def mesh_vertices_faces(self):
+        m = trimesh.creation.cylinder(radius=0.5 * self.width, height=self.length, sections=24)
+        m.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))  # axis along x
+        return np.asarray(m.vertices), np.asarray(m.faces)
+
+    def target_mesh(self) -> TargetMesh:
+        v, f = self.mesh_vertices_faces()
+        return TargetMesh(v, f, np.eye(3))
+
+
+def target_shape(spec):
+    """A dataset target from its spec: (length, width, thickness) a box lying flat;
+    ("cylinder", length, diameter) a LyingCylinder."""
+    if len(spec) == 3 and spec[0] == "cylinder":
+        return LyingCylinder(float(spec[1]), float(spec[2]))
+    return TargetBox.of(spec)
+
+
 def insert_target(depth: np.ndarray, cam: PinholeCamera, ws: Workspace, box: TargetBox, xy, yaw: float):
-    """(depth with the box's visible top, modal mask): the box lies flat on the floor at `xy`,
-    turned by `yaw`; it shows where the heap's surface is below its top."""
+    """(depth with the box's visible top, modal mask): the box (or LyingCylinder) lies flat on the
+    floor at `xy`, turned by `yaw`; it shows where the heap's surface is below its top."""
     ray_z = _ray_z(cam)
     z_cam = cam.X_WC.translation()[2]
     d = np.where(np.isfinite(depth) & (depth > 0), depth, np.float32(np.inf))
@@ -174,8 +205,8 @@ def sample_target(heap, ws: Workspace, box: TargetBox, rng: np.random.Generator)
 
 def make_samples(scenario, heap, views: int, rng: np.random.Generator, ratios=TARGET_RATIOS,
                  box_sizes=None) -> list[dict]:
-    """`views` samples of one heap (see the module doc). box_sizes: explicit (length, width,
-    thickness) targets to draw from instead of the training boxes (out-of-set targets)."""
+    """`views` samples of one heap (see the module doc). box_sizes: explicit targets to draw from
+    instead of the training boxes (out-of-set targets; specs of `target_shape`)."""
     nominal = PinholeCamera.from_config(scenario.cameras[next(iter(scenario.cameras))])
     ws = Workspace.from_scenario(scenario)
     renderer = HeapRenderer(scenario, heap)
@@ -187,11 +218,12 @@ def make_samples(scenario, heap, views: int, rng: np.random.Generator, ratios=TA
             k = int(rng.integers(len(ratios)))
             box = TargetBox.of(target_box_size(ratios[k]))
         else:
-            box = TargetBox.of(box_sizes[int(rng.integers(len(box_sizes)))])
+            box = target_shape(box_sizes[int(rng.integers(len(box_sizes)))])
             k = nearest_ratio(box.length, box.width)[0]  # the channel that serves this target
         xy, yaw = sample_target(heap, ws, box, rng)
         d2, modal = insert_target(depth, cam, ws, box, xy, yaw)
-        rho = AnalyticOccupancy(cam, ws, box).estimate(d2, modal)
+        shape = box.target_mesh() if isinstance(box, LyingCylinder) else box
+        rho = AnalyticOccupancy(cam, ws, shape).estimate(d2, modal)
         x = working_inputs(d2, modal)
         out.append(dict(x=x.astype(np.float16), y=working_target(rho).astype(np.float16), ratio=k,
                         visible=int(modal.sum()), heap_seed=int(heap.seed), size=np.array([box.length, box.width,
@@ -241,8 +273,9 @@ def write_occupancy_dataset(out, count: int, seed: int = 0, views: int = 8, heap
                             workers: int = 1, use_ray: bool = False, ray_address: str | None = None,
                             progress=None, sets=OBJECT_SETS, targets=None, test_only: bool = False) -> dict:
     """Shards of about `count` images into `out` (see the module doc); returns counts.
-    targets: (length, width, thickness) boxes to use instead of the ten training boxes (an
-    out-of-set evaluation set; each sample's ratio is the channel of its closest aspect ratio);
+    targets: (length, width, thickness) boxes or ("cylinder", length, diameter) cylinders to use
+    instead of the ten training boxes (an out-of-set evaluation set; each sample's ratio is the
+    channel of its closest aspect ratio);
     test_only: every shard is a test shard (held-out occluders only)."""
     if views < 1 or heaps_per_shard < 1:
         raise DatasetError(f"views={views}, heaps_per_shard={heaps_per_shard}: both must be >= 1")
@@ -250,7 +283,8 @@ def write_occupancy_dataset(out, count: int, seed: int = 0, views: int = 8, heap
     out.mkdir(parents=True, exist_ok=True)
     per = views * heaps_per_shard
     shards = -(-int(count) // per)
-    targets = None if targets is None else tuple(tuple(float(v) for v in t) for t in targets)
+    targets = None if targets is None else tuple(
+        ("cylinder", float(t[1]), float(t[2])) if t[0] == "cylinder" else tuple(float(v) for v in t) for t in targets)
     jobs = [(str(out), k, int(seed), heaps_per_shard, views, tuple(sets), targets, test_only) for k in range(shards)]
     todo = [j for j in jobs if not (out / f"shard_{j[1]:05d}_{shard_split(j[1], test_only)}.npz").exists()]
     res = dict(shards=shards, skipped=shards - len(todo), written=0, failed=[])
