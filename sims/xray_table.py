@@ -1,0 +1,71 @@
+"""Table 8.2 from the result files of several policies, on the heaps all of them searched.
+
+    .venv/bin/python sims/xray_table.py docs/data/xray82_xray.jsonl docs/data/xray82_largest.jsonl \
+        docs/data/xray82_preempted_random.jsonl --out docs/img/xray82
+
+Per policy (ms_drake.experiments.harness.summarize): success with its bootstrap 95 % interval,
+action quartiles over successes, failures; the paired sign test of every pair
+(harness.paired_comparison); the seen fraction of the target at the start splits the heaps
+(heap.visible_ratios, from --heap-dir) when given; the Fig. 8.6 histogram and the cumulative
+successes (harness.plot) of the common heaps into --out.
+"""
+
+import argparse
+import itertools
+import json
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ms_drake.experiments.harness import final_records, format_summary, paired_comparison, plot, read_records, summarize
+from ms_drake.scenes.heaps import load_heap
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("files", nargs="+", type=Path)
+    ap.add_argument("--out", type=Path, default=None, help="folder for the histogram PNGs")
+    ap.add_argument("--heap-dir", type=Path, default=None, help="cached heaps: split by the target's start")
+    args = ap.parse_args()
+    recs = {f: [r for r in final_records(read_records(f)) if r.get("failure") != "worker_died"] for f in args.files}
+    common = set.intersection(*({int(r["seed"]) for r in rs} for rs in recs.values()))
+    print(f"{len(common)} heaps in every file (seeds {min(common)}-{max(common)})" if common else "no common heaps")
+    if not common:
+        return
+    recs = {f: sorted((r for r in rs if int(r["seed"]) in common), key=lambda r: r["seed"]) for f, rs in recs.items()}
+    for f, rs in recs.items():
+        print(format_summary(rs[0]["policy"], summarize(rs)))
+    for fa, fb in itertools.combinations(args.files, 2):
+        c = paired_comparison(recs[fa], recs[fb])
+        print(f"{recs[fa][0]['policy']} vs {recs[fb][0]['policy']}: only A {len(c['only_a'])}, only B "
+              f"{len(c['only_b'])}, both {c['both']}, neither {c['neither']}; sign test p = {c['p']:.3g}")
+    if args.heap_dir is not None:
+        seen = {}
+        for k in common:
+            h = load_heap(args.heap_dir / f"heap_xray_N{recs[args.files[0]][0]['objects']}_s{k}.json")
+            seen[k] = h.visible_ratios[h.target_index]
+        v = np.array(list(seen.values()))
+        print(f"target seen fraction at the start: 0 in {(v == 0).sum()}, < 0.1 in {(v < 0.1).sum()}, "
+              f"median {np.median(v):.2f}")
+        for lo, hi, name in ((0, 1e-9, "hidden"), (1e-9, 0.1, "seen < 10 %"), (0.1, 1.01, "seen >= 10 %")):
+            parts = []
+            for f, rs in recs.items():
+                sel = [r for r in rs if lo <= seen[int(r["seed"])] < hi]
+                if sel:
+                    parts.append(f"{rs[0]['policy']} {100 * np.mean([r['success'] for r in sel]):.0f} %")
+            n = sum(1 for k in common if lo <= seen[k] < hi)
+            print(f"  {name}: {n} heaps; " + ", ".join(parts))
+    if args.out is not None:
+        with tempfile.TemporaryDirectory() as tmp:
+            files = []
+            for f, rs in recs.items():
+                p = Path(tmp) / f.name
+                p.write_text("".join(json.dumps(r) + "\n" for r in rs))
+                files.append(p)
+            for p in plot(files, args.out):
+                print(f"wrote {p}")
+
+
+if __name__ == "__main__":
+    main()
