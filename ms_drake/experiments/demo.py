@@ -1,5 +1,10 @@
 """`ms-drake demo`: one full X-Ray search on the floating gripper (primitive fidelity), written out.
 
+The heap is one of Table 8.2's (`protocol="xray"`, ms_drake.experiments.xray: the lid target
+dropped first, 14 unseen mesh objects piled on it; X-Ray reads the learned occupancy), seed
+`DEMO_SEED` by default: its target starts hidden. `protocol="ch7"` searches a heap of the
+scenario's objects instead (SEARCH_HEAPS; the target is the most occluded object).
+
 Outputs in the folder: the initial scene (overhead_{rgb,depth,masks,target}.png, heap.json, as
 `ms-drake scene`), then per step k: step_kk.png (three panels: RGB with the instance masks and
 the target outlined | the target occupancy distribution over the RGB | the chosen action drawn
@@ -28,6 +33,7 @@ from ms_drake.experiments.scene_images import (
     write_scene_images,
     write_search_pictures,
 )
+from ms_drake.experiments.xray import xray_heap
 from ms_drake.geometry import PinholeCamera
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import SEARCH_HEAPS
@@ -79,14 +85,21 @@ def frame_image(frame, camera) -> np.ndarray:
     return np.concatenate([masks, occ, _draw_action(rgb, frame.action, camera)], axis=1)
 
 
-def run_demo(out: Path, seed: int = 0, objects: int = 15, policy: str = "xray", horizon: int = 10,
-             meshcat_html: bool = True, log=print) -> dict:
+DEMO_SEED = 5000
+PROTOCOLS = ("xray", "ch7")
+
+
+def run_demo(out: Path, seed: int = DEMO_SEED, objects: int = 15, policy: str = "xray", horizon: int = 10,
+             meshcat_html: bool = True, log=print, protocol: str = "xray") -> dict:
     """Generate the heap, write the initial scene, run the search and write its pictures."""
+    if protocol not in PROTOCOLS:
+        raise ValueError(f"demo protocol {protocol!r} unknown; choose one of {', '.join(PROTOCOLS)}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()
     base = load_scenario(None, "BinHeap15")
-    heap = make_scene(base, seed, objects, params=SEARCH_HEAPS)  # the search's heaps (Drake drop world)
+    heap = (xray_heap(seed, objects - 1) if protocol == "xray" else  # Table 8.2's heaps
+            make_scene(base, seed, objects, params=SEARCH_HEAPS))  # the Ch. 7 search's heaps (Drake drop world)
     log(f"  {len(heap.objects)} objects settled in {time.perf_counter() - t:.1f} s; target {heap.target}")
     written = write_scene_images(base, heap, out, meshcat_html=False)
     meshcat = None
