@@ -21,10 +21,12 @@ suction (O, dx, dy): blade up. The cup (frame `tcp`) on O's front face (its fron
   sweeps to and from the front; `suction_lift`) -> pull out until O's back is 2 cm in front of
   the shelf -> translate dx along x -> push in until O's front face is dy behind the front plane ->
   lower onto the floor (3 mm into it: the cup gives) -> vacuum off, hold -> straight out -> park.
-park: the tool level and pointing into the shelf, below the shelf floor's height in front of the
-  cabinet (PARK_TIP, tip 8 cm in front of it, 10 cm below the floor's top): outside the front
-  camera's view, which sees the shelf from above the robot (the reference's Fetch also parks the
-  tool out of view before each image).
+park: the tool level and pointing into the shelf, its tip 15 cm in front of the shelf's front plane
+  at its floor's height (PARK_TIP; IK seeded at the station's SHELF_PARK), the torso at 0.26 m, near
+  the work poses' heights (the torso is slow: 0.1 m/s), the arm in the branch from which the
+  most shelf actions plan (measured over sampled scenes): outside
+  the front camera's view, which sees the shelf from above the robot, 30 degrees down (the
+  reference's Fetch also parks the tool out of view before each image).
 
 Outcome (after the motion and the settle): the scene observed from body_poses (`observe`: each
 object's footprint centre, its footprint from its rotated extents, toppled when tilted by more
@@ -50,14 +52,15 @@ from ms_drake.planning import ik_pose, plan_cartesian_line, plan_joint_motion
 from ms_drake.planning.sequences import Schedule, Timeline, arm_ik, nearest_equivalent
 from ms_drake.robots import BluctionConfig, gripper_port_name
 from ms_drake.shelf_geometry import ShelfGeometry
+from ms_drake.station.robots import SHELF_PARK
 from ms_drake.types import Action, ActionOutcome, ShelfObject, ShelfScene
 
 #: Tool level, pointing into the shelf (+y), body y up: the blade hangs down at angle 0.
 TOOL_ROTATION = RotationMatrix(np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]]))
 BLADE_DOWN, BLADE_UP = 0.0, 3.14159  # the blade joint's limits are [0, 3.14159265]
-#: The tool tip when parked, shelf frame: centred, 8 cm in front of the shelf's front plane, 10 cm
-#: below its floor (out of the front camera's view).
-PARK_TIP = (0.0, -0.08, -0.10)
+#: The tool tip when parked, shelf frame: centred, 15 cm in front of the shelf's front plane, at its
+#: floor's height (out of the front camera's view; module docstring).
+PARK_TIP = (0.0, -0.15, 0.0)
 TOPPLE_DEGREES = 20.0
 
 
@@ -102,12 +105,14 @@ class ShelfBackend:
     scenario: a shelf scenario with the Fetch and the bluction tool (FetchShelf); bodies: {object
     id: ShelfBody} of the station's shelf objects (the target among them under `target_id`); foss:
     the FOSS whose predictions the outcomes are compared with (default: the scenario's geometry).
-    speed / push_speed: the tool's Cartesian speed limits [m/s]; settle: the longest wait after a
+    speed / push_speed / slow_speed: the tool's Cartesian speed limits [m/s] in free space, while
+    pushing, and for the suction cup's contact, pull and placement lines; settle: the longest wait after a
     motion [s] (the executor ends it earlier once the scene is at rest); tolerance: the agreement
     tolerance [m] (module docstring)."""
 
     def __init__(self, scenario, bodies: dict, target_id: str = "", foss: Foss | None = None, seed: int = 0,
-                 speed: float = 0.2, push_speed: float = 0.08, settle: float = 1.0, tolerance: float = 0.02,
+                 speed: float = 0.35, push_speed: float = 0.12, slow_speed: float = 0.15, settle: float = 1.0,
+                 tolerance: float = 0.02,
                  staging: float = 0.08, shaft_clearance: float = 0.004, blade_z: float = 0.006,
                  line_step: float = 0.02, max_pull: float = 0.06):
         if scenario.environment.type != "shelf" or scenario.robot.name != "fetch":
@@ -129,6 +134,10 @@ class ShelfBackend:
         self.foss = foss or Foss(ShelfGeometry.from_scenario(scenario))
         self.seed = int(seed)
         self.speed, self.push_speed, self.settle = float(speed), float(push_speed), float(settle)
+        self.slow_speed = float(slow_speed)
+        if min(self.speed, self.push_speed, self.slow_speed) <= 0:
+            raise ExecutionError(f"ShelfBackend speeds must be > 0 m/s: speed={speed}, push_speed={push_speed}, "
+                                 f"slow_speed={slow_speed}")
         self.tolerance, self.staging = float(tolerance), float(staging)
         self.shaft_clearance, self.line_step = float(shaft_clearance), float(line_step)
         self.max_pull = float(max_pull)
@@ -144,11 +153,13 @@ class ShelfBackend:
         self.limits = limits
         self._set_blade(self.cup_ik, BLADE_UP)  # suction IK with the blade up, push IK with it down
         park = self.world([PARK_TIP[0], -self.half[1] + PARK_TIP[1], PARK_TIP[2]])
-        res = self.cup_ik.solve(RigidTransform(TOOL_ROTATION, park), q_home)
+        q_seed = np.array(SHELF_PARK.get(scenario.robot.name, q_home), float)
+        res = self.cup_ik.solve(RigidTransform(TOOL_ROTATION, park), q_seed)
         if not res.success:
             raise ExecutionError(f"the Fetch cannot reach its park pose (tool tip at {np.round(park, 3).tolist()}): "
                                  f"IK {res.status}; check the scenario's robot.base_position")
-        self.q_park = nearest_equivalent(self.cup_ik, res.q, q_home)
+        self.q_park = nearest_equivalent(self.cup_ik, res.q, q_seed)
+        self._feasible: dict = {}
 
     # ------------------------------------------------------------------ helpers
     @staticmethod
@@ -199,13 +210,17 @@ class ShelfBackend:
         if poses is None:
             raise ExecutionError("ShelfBackend plans from the objects' poses: connect the executor's body_poses input")
         scene, _ = self.observe(poses)
+        return self.plan_scene(a, np.asarray(hold[f"{self.arm}.position"], float), scene, step)
+
+    def plan_scene(self, a, q_now, scene: ShelfScene, step: int = 0):
+        """The Motion of ShelfAction `a` from arm joints q_now in `scene` (its objects' footprints;
+        the target, if any, only for FOSS's prediction), or the planner's status string."""
         try:
             o = scene.object(a.object_id)
         except KeyError:
             return f"unknown_object:{a.object_id}"
-        predicted, foss_out = self.foss.step(scene, a) if scene.target is not None else \
-            self.foss.step(ShelfScene(scene.objects, None), a)
-        q_now = np.asarray(hold[f"{self.arm}.position"], float)
+        predicted, foss_out = self.foss.step(scene, a)
+        q_now = np.asarray(q_now, float)
         if a.kind == "push":
             built = self._plan_push(o, a, q_now, scene)
         elif a.kind == "suction":
@@ -222,6 +237,17 @@ class ShelfBackend:
         commands[f"{self.arm}.position"] = tl.value
         return Motion(commands, check_time=tl.duration + self.settle, duration=tl.duration + self.settle, info=info,
                       settle_from=tl.duration)
+
+    def feasible(self, a, scene: ShelfScene) -> str:
+        """"ok" when the Fetch can execute ShelfAction `a` from its park pose in `scene` (the
+        planner's status otherwise). Cached by the action and the scene's footprints to 1 mm, so
+        a scene observed again after an action re-plans only what changed."""
+        key = (a.kind, a.object_id, round(a.dx, 3), round(a.dy, 3),
+               tuple((b.id, round(b.x, 3), round(b.y, 3)) for b in scene.objects))
+        if key not in self._feasible:
+            m = self.plan_scene(a, self.q_park, scene)
+            self._feasible[key] = m if isinstance(m, str) else "ok"
+        return self._feasible[key]
 
     def _finish(self, ik, tl: Timeline, q_out, out_point, last_point):
         """Leave the shelf straight along -y to the staging point, then the joint motion to park."""
@@ -240,7 +266,7 @@ class ShelfBackend:
         if q_stage is None:
             return status
         tl = Timeline(q_now)
-        tl.hold(0.1)
+        tl.hold(0.05)
         tl.play(plan_joint_motion([q_now, q_stage], self.limits))
         return tl
 
@@ -278,7 +304,7 @@ class ShelfBackend:
         tl.play(trajs[0])
         tl.mark("push")
         tl.play(trajs[1])
-        tl.hold(0.3)
+        tl.hold(0.15)
         tl.mark("pushed")
         trajs, q = self._path(ik, q, [end, back], [self.push_speed])
         if q is None:
@@ -354,9 +380,10 @@ class ShelfBackend:
             return trajs
         tl.play(trajs[0])
         tl.mark("contact")
-        tl.hold(0.4)
+        tl.hold(0.25)
         trajs, q = self._path(ik, q, [touch, up, pulled, raised, moved, pushed, down],
-                              [0.1, self.speed, 0.1, self.speed, self.speed, 0.1])
+                              [self.slow_speed, self.speed, self.slow_speed, self.speed, self.speed,
+                               self.slow_speed])
         if q is None:
             return trajs
         for t in trajs:
@@ -364,7 +391,7 @@ class ShelfBackend:
                 tl.play(t)
         tl.mark("placed")
         release = tl.duration
-        tl.hold(0.4)
+        tl.hold(0.25)
         err = self._finish(ik, tl, q, out, down)
         if err:
             return err

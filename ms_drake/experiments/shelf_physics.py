@@ -20,6 +20,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import os
@@ -60,6 +61,10 @@ SCENARIO = "FetchShelf"
 FIDELITY = "physics"
 DENSITY = 150.0  # kg/m^3: household packaging (a 20 cm cube weighs 1.2 kg; the cup holds ~2 kg in shear)
 VISIBILITY = 0.8
+#: The plant's time step in these runs [s] (the scenario's is 2 ms): the discrete SAP-family solver
+#: is stable at 5 ms here and the outcomes of the same actions agree with 2 ms to 1 mm
+#: (docs/BENCHMARKS.md, "Shelf search on the Fetch (physics)").
+TIME_STEP = 0.005
 REFERENCE_PHYSICAL = {"der3": 33, "bluction_dar": 100}  # Table 9.2, "All" row (%)
 
 
@@ -102,13 +107,27 @@ class ShelfPhysicsSystem:
         return self.station.GetOutputPort(name).Eval(self.station.GetMyContextFromRoot(context))
 
 
-def build_shelf_physics(scenario, scene: ShelfScene, params: ShelfSearchParams, meshcat=None) -> ShelfPhysicsSystem:
-    """The station with the scene's objects and the shelf controller, wired (module docstring)."""
+def with_time_step(scenario, time_step: float | None):
+    """The scenario with its plant's time step replaced (None: unchanged)."""
+    if time_step is None:
+        return scenario
+    if not time_step > 0:
+        raise ShelfPhysicsError(f"time_step={time_step!r}: give a discrete time step > 0 s (e.g. {TIME_STEP})")
+    config = copy.copy(scenario.plant_config)
+    config.time_step = float(time_step)
+    return dataclasses.replace(scenario, plant_config=config)
+
+
+def build_shelf_physics(scenario, scene: ShelfScene, params: ShelfSearchParams, meshcat=None,
+                        time_step: float | None = TIME_STEP) -> ShelfPhysicsSystem:
+    """The station with the scene's objects and the shelf controller, wired (module docstring);
+    time_step: the plant's (None: the scenario's)."""
     if scene.target is None:
         raise ShelfPhysicsError("build_shelf_physics: the scene needs its target (generate_shelf_scene)")
     if scenario.environment.type != "shelf":
         raise ShelfPhysicsError(f"scenario environment is {scenario.environment.type!r}: use FetchShelf")
-    scenario = dataclasses.replace(scenario, objects=dataclasses.replace(scenario.objects, count=0, names=[]))
+    scenario = dataclasses.replace(with_time_step(scenario, time_step),
+                                   objects=dataclasses.replace(scenario.objects, count=0, names=[]))
     objs = list(scene.objects) + [scene.target]
     extra = [(f"shelf/{o.id}", shelf_object_sdf(o, TARGET_RGBA if o is scene.target else OCCLUDER_RGBA))
              for o in objs]
@@ -241,13 +260,15 @@ def run_shelf_physics(system: ShelfPhysicsSystem, scene: ShelfScene, params: She
 
 
 def shelf_physics_rollout(policy: str, seed: int, occluders: int | None = None, horizon: int | None = None,
-                          scenario_name: str = SCENARIO, meshcat=None, keep_frames: bool = False) -> ShelfPhysicsResult:
-    """Generate the scene of `seed` (occluders: None draws 2-12 from the seed) and search it."""
+                          scenario_name: str = SCENARIO, meshcat=None, keep_frames: bool = False,
+                          time_step: float | None = TIME_STEP, **params) -> ShelfPhysicsResult:
+    """Generate the scene of `seed` (occluders: None draws 2-12 from the seed) and search it;
+    params: further ShelfSearchParams (e.g. fetch_feasible=False, speed=0.2)."""
     scenario = load_scenario(None, scenario_name)
     geometry = ShelfGeometry.from_scenario(scenario)
     sample = generate_shelf_scene(geometry, seed, occluders, DEFAULT_TARGET)
-    params = ShelfSearchParams(policy=policy, horizon=horizon, seed=seed)
-    system = build_shelf_physics(scenario, sample.scene, params, meshcat=meshcat)
+    params = ShelfSearchParams(policy=policy, horizon=horizon, seed=seed, **params)
+    system = build_shelf_physics(scenario, sample.scene, params, meshcat=meshcat, time_step=time_step)
     return run_shelf_physics(system, sample.scene, params, keep_frames=keep_frames, meshcat=meshcat)
 
 

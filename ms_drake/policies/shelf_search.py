@@ -11,7 +11,8 @@ In simulation, start the robot where the controller expects it (parked out of th
 Inside:
   body_poses -> ShelfSceneObserver (simulation: the objects' true footprints) -> scene
   scene -> ShelfOccupancyEstimator("ground_truth") -> occupancy
-  scene + occupancy + history -> ShelfPolicySelector(policy, per_action=True) -> action
+  scene + occupancy + history -> FetchFeasibleSelector(policy) -> action (the policy's best action
+            the Fetch's planner accepts; params.fetch_feasible=False: ShelfPolicySelector, FOSS alone)
   action -> ActionExecutor(ShelfBackend) -> fetch.position, fetch_bluction.position (blade angle),
             fetch_bluction.suction; history -> selector
   front.rgb_image + front.depth_image -> ImagesReady -> executor.ready (idle until images arrive)
@@ -28,8 +29,10 @@ front.depth_image, body_poses in; the Fetch's and the bluction tool's commands o
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
+import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem
@@ -46,7 +49,7 @@ from ms_drake.policies.shelf import (
     check_shelf_policy,
 )
 from ms_drake.shelf_geometry import ShelfGeometry
-from ms_drake.types import ShelfScene
+from ms_drake.types import Action, ActionOutcome, ShelfScene
 
 
 @dataclass
@@ -54,7 +57,10 @@ class ShelfSearchParams:
     """Settings of the shelf-search controller. policy: one of ms_drake.policies.shelf.SHELF_POLICIES;
     horizon: the action budget H (None: 2n, n the occluders); seed: every random choice (the random
     policy); psi: the suction / push cost ratio; camera: the shelf camera; period: the executor's
-    and selector's update period [s]; speed / push_speed: the tool's Cartesian speed limits [m/s]."""
+    and selector's update period [s]; speed / push_speed / slow_speed: the tool's Cartesian speed limits [m/s]
+    (ShelfBackend);
+    fetch_feasible: choose the policy's best action the Fetch can execute (FetchFeasibleSelector,
+    checking at most `max_candidates` in the policy's order) instead of its best action in FOSS."""
 
     policy: str = "bluction_dar"
     horizon: int | None = None
@@ -62,11 +68,16 @@ class ShelfSearchParams:
     psi: float = 1.3
     camera: str = "front"
     period: float = 0.05
-    speed: float = 0.2
-    push_speed: float = 0.08
+    speed: float = 0.35
+    push_speed: float = 0.12
+    slow_speed: float = 0.15
+    fetch_feasible: bool = True
+    max_candidates: int = 60
 
     def __post_init__(self):
         check_shelf_policy(self.policy)
+        if int(self.max_candidates) < 1:
+            raise ControllerError(f"max_candidates must be >= 1, got {self.max_candidates!r}")
         if self.horizon is not None and int(self.horizon) < 1:
             raise ControllerError(f"horizon must be >= 1 action (or None for 2n), got {self.horizon!r}")
         if not self.period > 0:
@@ -109,6 +120,59 @@ class ShelfSceneObserver(LeafSystem):
         output.set_value(scene)
 
 
+class FetchFeasibleSelector(ShelfPolicySelector):
+    """The ShelfPolicySelector (per action) whose action is the policy's best one that the Fetch can
+    execute: the reference's "first kinematically feasible action" (lines 1643-1672) checked with
+    the robot's planner (ShelfBackend.feasible: IK + Cartesian lines from the park pose, cached per
+    scene) instead of FOSS alone. The policy ranks as it does in FOSS; its choice is planned; an
+    infeasible choice is added to the history as refused (so the policy's own rule drops it) and
+    the policy chooses again, at most `max_candidates` times (then "stop"). The action's reason
+    ends with the number of candidates skipped. Same ports as ShelfPolicySelector."""
+
+    def __init__(self, policy: str, foss: Foss, backend: ShelfBackend, params: ShelfPolicyParams | None = None,
+                 period: float = 1.0, max_candidates: int = 60):
+        super().__init__(policy, foss, params, period=period, per_action=True)
+        if int(max_candidates) < 1:
+            raise ControllerError(f"FetchFeasibleSelector: max_candidates must be >= 1, got {max_candidates!r}")
+        self.backend = backend
+        self.max_candidates = int(max_candidates)
+        self._memo: tuple | None = None
+
+    def choose(self, scene: ShelfScene, dist, history=()) -> Action:
+        """The policy's best Fetch-feasible action for `scene` (class docstring)."""
+        tried = list(history)
+        skipped = 0
+        for _ in range(self.max_candidates):
+            action = self.rules.select(scene, dist, tried)
+            if action.kind != "shelf":
+                return dataclasses.replace(action, reason=f"{action.reason} ({skipped} Fetch-infeasible skipped)")
+            status = self.backend.feasible(action.shelf, scene)
+            if status == "ok":
+                return dataclasses.replace(action, reason=f"{action.reason} ({skipped} Fetch-infeasible skipped)")
+            skipped += 1
+            tried.append(ActionOutcome(action, False, message=f"fetch_infeasible:{status}"))
+        return Action("stop", reason=f"{self.policy}: none of the {self.max_candidates} best actions is feasible "
+                                     "on the Fetch")
+
+    def _calc_action(self, context, output):
+        if not self.scene_port.HasValue(context):
+            raise ControllerError(f"FetchFeasibleSelector({self.policy!r}): connect the scene input")
+        scene = self.scene_port.Eval(context)
+        history = tuple(self.history_port.Eval(context)) if self.history_port.HasValue(context) else ()
+        dist = None if self.rules.policy.startswith("oracle") else self._current(context).image_x
+        key = (tuple((b.id, round(b.x, 4), round(b.y, 4)) for b in scene.objects), len(history),
+               None if dist is None else np.asarray(dist).tobytes())
+        if self._memo is None or self._memo[0] != key:
+            self._memo = (key, self.choose(scene, dist, history))
+        output.set_value(self._memo[1])
+
+    def _update(self, context, state):
+        # P'_n changes only when the history has grown: skip the occupancy otherwise.
+        if context.get_abstract_state(self._count).get_value() == self._steps(context):
+            return
+        super()._update(context, state)
+
+
 def MakeShelfSearchController(scenario, params: ShelfSearchParams | None = None,
                               sim: ShelfSimulationInfo | None = None, target_size=None,
                               name: str = "shelf_search_controller") -> ShelfSearchController:
@@ -125,14 +189,18 @@ def MakeShelfSearchController(scenario, params: ShelfSearchParams | None = None,
     geometry = ShelfGeometry.from_scenario(scenario, params.camera)
     foss = Foss(geometry)
     backend = ShelfBackend(scenario, sim.bodies, sim.target_id, foss=foss, seed=params.seed, speed=params.speed,
-                           push_speed=params.push_speed)
+                           push_speed=params.push_speed, slow_speed=params.slow_speed)
     cam = scenario.cameras[params.camera]
     builder = DiagramBuilder()
     observer = builder.AddNamedSystem("scene_observer", ShelfSceneObserver(sim, scenario.environment.position))
     occupancy = builder.AddNamedSystem("occupancy_estimator", ShelfOccupancyEstimator(geometry, target_size))
     policy_params = ShelfPolicyParams(psi=params.psi, seed=params.seed, horizon=params.horizon)
-    selector = builder.AddNamedSystem("policy_selector", ShelfPolicySelector(params.policy, foss, policy_params,
-                                                                            period=params.period, per_action=True))
+    if params.fetch_feasible:
+        selector = FetchFeasibleSelector(params.policy, foss, backend, policy_params, period=params.period,
+                                         max_candidates=params.max_candidates)
+    else:
+        selector = ShelfPolicySelector(params.policy, foss, policy_params, period=params.period, per_action=True)
+    builder.AddNamedSystem("policy_selector", selector)
     executor = builder.AddNamedSystem("action_executor", ActionExecutor(backend, period=params.period))
     ready = builder.AddNamedSystem("images_ready", ImagesReady(cam.width, cam.height))
     scene = observer.GetOutputPort("scene")

@@ -9,7 +9,7 @@ Stations (MakeStation calls these):
     drivers.apply_robot_drivers(builder, plant, scene_graph, handle)        (after Finalize)
     resolve_robot_config(scenario.robot) -> [(arm, gripper, port)], {port prefix: driver}
     station_robot_spec("floating"), station_arm_spec("yumi_left"), arm_joint_limits("fetch")
-Every arm starts at ArmSpec.home (set_home); the floating gripper 0.45 m above its base origin,
+Every arm starts at ArmSpec.home (set_home), the Fetch at a shelf at SHELF_PARK; the floating gripper 0.45 m above its base origin,
 pointing down.
 
 Weld conventions (the flange frame of each arm and the transform X_FG from the flange frame F to
@@ -250,10 +250,19 @@ def add_robot_from_scenario(builder, plant, scene_graph, scenario, parser):
                                   arm, drivers[port]) for arm, g, port in chosen]
     arms = [ArmHandle(a, instance, spec.arms[a].joints, drivers[a]) for a in spec.arms]
     set_home(plant, instance, spec)
+    if scenario.environment.type == "shelf" and rc.name in SHELF_PARK:
+        for n, v in zip(spec.arms[rc.name].joints, SHELF_PARK[rc.name]):
+            plant.GetJointByName(n, instance).set_default_positions([v])
     arm_joints = {n for a in arms for n in a.joints}
     hold = tuple(plant.get_joint(j).name() for j in plant.GetJointIndices(instance)
                  if plant.get_joint(j).num_velocities() == 1 and plant.get_joint(j).name() not in arm_joints)
     return RobotHandle(rc.name, instance, X_WR, arms, grippers, hold)
+
+
+#: At a shelf, the Fetch starts parked out of the front camera's view: the bluction tool level and
+#: pointing into the shelf, its tip 15 cm in front of the shelf's front plane at its floor's height,
+#: the torso at 0.26 m, near the work poses' (by IK; ms_drake.execution.shelf_backend parks there).
+SHELF_PARK = {"fetch": (0.26, 1.6, 1.0, -0.16, 1.95, -1.63, 1.4, -0.18)}
 
 
 def set_home(plant, instance, spec: RobotSpec):

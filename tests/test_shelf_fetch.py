@@ -1,0 +1,126 @@
+"""The Fetch at the shelf: its park pose leaves the front camera's view of the shelf free (the
+station's initial pose and the controller's), and FetchFeasibleSelector chooses the policy's best
+action that the Fetch's planner accepts (alone with fixed inputs, and in the controller Diagram)."""
+
+import cv2
+import numpy as np
+import pytest
+from pydrake.multibody.tree import BodyIndex
+
+from ms_drake.execution.shelf_backend import ShelfBackend, ShelfBody
+from ms_drake.experiments.shelf_physics import build_shelf_physics, set_initial
+from ms_drake.foss import Foss
+from ms_drake.geometry import PinholeCamera
+from ms_drake.perception.shelf_occupancy import ground_truth_occupancy
+from ms_drake.policies.bin_search import ControllerError
+from ms_drake.policies.shelf import ShelfPolicyParams
+from ms_drake.policies.shelf_search import (
+    FetchFeasibleSelector,
+    MakeShelfSearchController,
+    ShelfSearchParams,
+    ShelfSimulationInfo,
+)
+from ms_drake.scenario import load_scenario
+from ms_drake.scenes.shelf import DEFAULT_TARGET, generate_shelf_scene
+from ms_drake.shelf_geometry import ShelfGeometry
+from ms_drake.station import MakeStation, get_plant
+from ms_drake.types import ShelfObject, ShelfScene
+
+
+@pytest.fixture(scope="module")
+def scenario():
+    return load_scenario(None, "FetchShelf")
+
+
+def _shelf_region(scenario, camera) -> np.ndarray:
+    """Mask of the front image where the shelf's inside projects (its box, floor to top)."""
+    hx, hy, h = 0.5 * np.asarray(scenario.environment.resolved_size(), float) * [1, 1, 2]
+    origin = np.asarray(scenario.environment.position, float)
+    pts = origin + np.array([[sx * hx, sy * hy, z] for sx in (-1, 1) for sy in (-1, 1) for z in (0.0, h)])
+    uv, _ = camera.project(pts)
+    mask = np.zeros((camera.height, camera.width), np.uint8)
+    cv2.fillConvexPoly(mask, cv2.convexHull(np.round(uv).astype(np.int32)), 1)
+    return mask > 0
+
+
+def _robot_pixels(plant, label, region) -> int:
+    robot = [i for i in range(plant.num_bodies())
+             if plant.GetModelInstanceName(plant.get_body(BodyIndex(i)).model_instance()).startswith("fetch")]
+    assert len(robot) > 10  # the Fetch's links and the bluction tool's
+    return int(np.count_nonzero(np.isin(label, robot) & region))
+
+
+def test_station_initial_pose_leaves_the_shelf_in_view(scenario):
+    station = MakeStation(scenario)
+    ctx = station.CreateDefaultContext()
+    label = np.asarray(station.GetOutputPort("front.label_image").Eval(ctx).data)[:, :, 0]
+    camera = PinholeCamera.from_config(scenario.cameras["front"])
+    region = _shelf_region(scenario, camera)
+    assert region.sum() > 0.2 * region.size  # the shelf fills a good part of the image
+    assert _robot_pixels(get_plant(station), label, region) == 0
+
+
+def test_controller_park_pose_leaves_the_shelf_in_view(scenario):
+    occ = ShelfObject("occ00", "box", 0.1, -0.1, 0.1, 0.08, 0.12)
+    target = ShelfObject("target", "box", 0.1, 0.1, 0.06, 0.06, 0.06)
+    scene = ShelfScene((occ,), target, 0)
+    system = build_shelf_physics(scenario, scene, ShelfSearchParams(policy="dar"))
+    ctx = system.diagram.CreateDefaultContext()
+    set_initial(system, ctx, scene)  # the controller's park pose, blade up
+    label = np.asarray(system.station_output(ctx, "front.label_image").data)[:, :, 0]
+    assert _robot_pixels(system.plant, label, _shelf_region(scenario, system.camera)) == 0
+    # the objects are in view: the labeller sees the occluder
+    assert np.count_nonzero(label == system.sim.bodies["occ00"].body_index) > 500
+
+
+@pytest.fixture(scope="module")
+def hard_scene(scenario):
+    """Seed 7, 10 occluders: Bluction-DAR's best action in FOSS (a suction) is out of the Fetch's reach."""
+    geometry = ShelfGeometry.from_scenario(scenario)
+    scene = generate_shelf_scene(geometry, 7, 10, DEFAULT_TARGET).scene
+    objs = list(scene.objects) + [scene.target]
+    bodies = {o.id: ShelfBody(k, o) for k, o in enumerate(objs)}
+    backend = ShelfBackend(scenario, bodies, scene.target.id)
+    return scene, backend, geometry, ground_truth_occupancy(geometry, scene).image_x
+
+
+def test_feasible_selector_skips_what_the_fetch_cannot_do(hard_scene):
+    scene, backend, geometry, dist = hard_scene
+    sel = FetchFeasibleSelector("bluction_dar", Foss(geometry), backend, ShelfPolicyParams(seed=7))
+    best = sel.rules.select(scene, dist, ())
+    assert backend.feasible(best.shelf, scene) != "ok"
+    chosen = sel.choose(scene, dist, ())
+    assert chosen.kind == "shelf" and chosen.shelf != best.shelf
+    assert backend.feasible(chosen.shelf, scene) == "ok"
+    assert chosen.reason.endswith("(1 Fetch-infeasible skipped)")
+    # the plan the executor makes from the park pose succeeds too
+    assert not isinstance(backend.plan_scene(chosen.shelf, backend.q_park, scene), str)
+    # with one candidate only, the selector stops instead of proposing an infeasible action
+    one = FetchFeasibleSelector("bluction_dar", Foss(geometry), backend, ShelfPolicyParams(seed=7), max_candidates=1)
+    stop = one.choose(scene, dist, ())
+    assert stop.kind == "stop" and "feasible on the Fetch" in stop.reason
+
+
+def test_feasible_selector_alone_fixed_inputs(hard_scene):
+    scene, backend, geometry, dist = hard_scene
+    sel = FetchFeasibleSelector("bluction_dar", Foss(geometry), backend, ShelfPolicyParams(seed=7))
+    ctx = sel.CreateDefaultContext()
+    sel.GetInputPort("scene").FixValue(ctx, scene)
+    sel.GetInputPort("occupancy").FixValue(ctx, ground_truth_occupancy(geometry, scene))
+    sel.GetInputPort("history").FixValue(ctx, ())
+    a = sel.GetOutputPort("action").Eval(ctx)
+    assert a.kind == "shelf" and backend.feasible(a.shelf, scene) == "ok"
+    assert a == sel.choose(scene, dist, ())
+    with pytest.raises(ControllerError, match="max_candidates"):
+        FetchFeasibleSelector("dar", Foss(geometry), backend, max_candidates=0)
+
+
+def test_controller_uses_the_feasible_selector(scenario, hard_scene):
+    scene, backend, _, _ = hard_scene
+    sim = ShelfSimulationInfo(backend.bodies, scene.target.id)
+    c = MakeShelfSearchController(scenario, ShelfSearchParams(policy="bluction_dar", seed=7), sim=sim)
+    assert isinstance(c.GetSubsystemByName("policy_selector"), FetchFeasibleSelector)
+    c2 = MakeShelfSearchController(scenario, ShelfSearchParams(policy="bluction_dar", fetch_feasible=False), sim=sim)
+    assert not isinstance(c2.GetSubsystemByName("policy_selector"), FetchFeasibleSelector)
+    with pytest.raises(ControllerError, match="max_candidates"):
+        ShelfSearchParams(max_candidates=0)
