@@ -46,7 +46,11 @@ from ms_drake.experiments.occupancy_learning import (
     write_json,
 )
 from ms_drake.experiments.picks import TASKS, run_pick
+from ms_drake.experiments.segmentation_data import write_segmentation_dataset
+from ms_drake.experiments.segmentation_learning import bench_segmentation, train_segmentation
+from ms_drake.experiments.segmentation_learning import write_json as write_seg_json
 from ms_drake.experiments.scene_images import make_scene, write_scene_images
+from ms_drake.experiments.shelf import PERCEPTIONS as SHELF_PERCEPTIONS
 from ms_drake.experiments.shelf import (
     bench_shelf_scenes,
     plot_shelf,
@@ -68,6 +72,7 @@ from ms_drake.experiments.shelf_physics import (
     run_shelf_demo,
     run_shelf_physics_bench,
 )
+from ms_drake.experiments.shelf_segmentation import bench_shelf_segmentation
 from ms_drake.experiments.xray import PROTOCOLS, XRAY_HORIZON, XRAY_OBJECTS
 from ms_drake.grasping.evaluator import MODELS
 from ms_drake.objects import get_object_set
@@ -388,13 +393,14 @@ def bench_shelf(ctx: typer.Context,
                 ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
                 ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address"),
                 perception: str = typer.Option("ground_truth", "--perception",
-                                               help="Occupancy backend: ground_truth or learned (depth renders; "
-                                                    "write it to its own --out file)")):
+                                               help="ground_truth (FOSS's scene, analytic occupancy), learned "
+                                                    "(learned occupancy of depth renders) or depth (also the "
+                                                    "objects segmented from the render); own --out file each")):
     """Shelf search in FOSS (Table 9.1): scenes S..S+K-1 for each occluder count, ground-truth (or
     learned) occupancy; one JSON line per search (resumable), then success rates and median steps."""
     check_shelf_policy(policy)
-    if perception not in ("ground_truth", "learned"):
-        _fail(f"--perception {perception}: choose ground_truth or learned")
+    if perception not in SHELF_PERCEPTIONS:
+        _fail(f"--perception {perception}: choose one of {', '.join(SHELF_PERCEPTIONS)}")
     counts = _occluder_counts(occluders, ctx.args)
     if out.suffix != ".jsonl":
         _fail(f"--out {out}: give a .jsonl file")
@@ -461,6 +467,25 @@ def bench_shelf_table(files: list[Path] = typer.Argument(..., help="Result .json
     typer.echo(shelf_table(recs))
     if plot_dir is not None:
         typer.echo(f"wrote {plot_shelf(recs, plot_dir)}")
+
+
+@bench_app.command("shelf-segmentation")
+def bench_shelf_segmentation_cmd(
+        scenes: int = typer.Option(100, "--scenes", min=1, help="Scenes per occluder count"),
+        occluders: list[int] = typer.Option([4, 6, 8, 10], "--occluders", help="Occluder counts (repeat)"),
+        seed_start: int = typer.Option(0, "--seed-start", min=0, help="First scene seed"),
+        out: Path = typer.Option(..., "--out", help="Result .jsonl (one line per scene; resumes)"),
+        noise: float = typer.Option(0.0, "--noise", min=0.0, help="Depth noise std [m]"),
+        dropout: float = typer.Option(0.0, "--dropout", min=0.0, max=0.99, help="Fraction of pixels lost"),
+        workers: int = typer.Option(1, "--workers", min=1, help="Local worker processes"),
+        use_ray: bool = typer.Option(False, "--ray", help="Run on Ray")):
+    """How well the ShelfSegmenter recovers Table 9.1's scenes from the front camera's depth image."""
+    bad = [n for n in occluders if not 2 <= n <= 12]
+    if bad:
+        _fail(f"--occluders {' '.join(map(str, bad))}: shelf scenes have 2 to 12 occluders")
+    r = bench_shelf_segmentation(scenes, occluders, seed_start, out, noise=noise, dropout=dropout, workers=workers,
+                                 use_ray=use_ray)
+    typer.echo(json.dumps(r, indent=1))
 
 
 @bench_app.command("shelf-scenes")
@@ -685,6 +710,101 @@ def bench_shelf_occupancy_cmd(
                f"{res['ms_p90']:.1f}; one torch thread, from the 480 x 640 depth image)")
     if out is not None:
         write_shelf_json(out, res)
+        typer.echo(f"wrote {out}")
+
+
+# ---------------------------------------------------------------------------------------------
+# Learned depth segmentation (Ch. 5): ms-drake data / train / bench segmentation
+
+
+@data_app.command("segmentation")
+def data_segmentation(count: int = typer.Option(..., "--count", min=1, help="Images (N), rounded up to whole shards"),
+                      out: Path = typer.Option(..., "--out", help="Output folder (shard_<k>_<split>.npz/.json; resumes)"),
+                      seed: int = typer.Option(0, "--seed", min=0, help="Dataset seed"),
+                      views: int = typer.Option(4, "--views", min=1, help="Camera views (images) per heap"),
+                      heaps_per_shard: int = typer.Option(8, "--heaps-per-shard", min=1, help="Heaps per shard"),
+                      noise: float = typer.Option(0.0, "--noise", min=0.0, help="Gaussian depth noise sigma, m"),
+                      dropout: float = typer.Option(0.0, "--dropout", min=0.0, max=0.99,
+                                                    help="Missing-pixel rate (half single pixels, half at edges)"),
+                      workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers"),
+                      ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
+                      ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address")):
+    """WISDOM-Sim-like depth images of heaps with modal masks (COCO JSON), split by image and by
+    object, sharded; shards already written are kept."""
+    t0 = time.perf_counter()
+    bar = tqdm(total=-(-count // (views * heaps_per_shard)), desc="shards", unit="shard")
+
+    def progress(r):
+        bar.update(1)
+        if not r.ok:
+            tqdm.write(f"shard {r.job[1]}: {r.error.strip().splitlines()[-1]} (rerun to retry)")
+
+    res = write_segmentation_dataset(out, count, seed, views, heaps_per_shard, workers, ray or ray_address is not None,
+                                     ray_address, progress, noise=noise, dropout=dropout)
+    bar.close()
+    wall = time.perf_counter() - t0
+    per = f"; {res['cpu'] / res['images']:.3f} CPU-s and {wall * workers / res['images']:.3f} wall-s x workers " \
+          "per image" if res["images"] else ""
+    typer.echo(f"{res['written']} shards ({res['images']} images) written, {res['skipped']} already there, "
+               f"{len(res['failed'])} failed, in {out} ({wall:.1f} s{per}); COCO: {', '.join(res['coco'])}")
+    if res["failed"]:
+        raise typer.Exit(1)
+
+
+@train_app.command("segmentation")
+def train_segmentation_cmd(
+        data: Path = typer.Option(..., "--data", help="Dataset folder (ms-drake data segmentation)"),
+        out: Path = typer.Option(Path("models/weights/segmentation.pt"), "--out", help="Weights file"),
+        epochs: int = typer.Option(8, "--epochs", min=1, help="Epochs (cosine schedule over all)"),
+        batch: int = typer.Option(16, "--batch", min=1, help="Batch size (96 x 128 windows)"),
+        lr: float = typer.Option(2e-3, "--lr", help="AdamW learning rate (cosine decay to 0)"),
+        max_images: Optional[int] = typer.Option(None, "--max-images", min=1, help="Train on the first N images"),
+        seed: int = typer.Option(0, "--seed", min=0, help="Seed"),
+        threads: int = typer.Option(1, "--threads", min=1, help="torch threads"),
+        max_minutes: float = typer.Option(60.0, "--max-minutes", help="Stop after the epoch that would end past "
+                                          "this wall time")):
+    """Train the depth segmentation network; resumes from OUT.ckpt; writes OUT (weights + meta) after
+    every epoch."""
+    bar = tqdm(desc="training", unit="batch")
+
+    def progress(epoch, b, n, loss):
+        if b == 0:
+            bar.reset(total=n)
+            bar.set_description(f"epoch {epoch + 1}/{epochs}")
+        bar.update(1)
+        bar.set_postfix(loss=f"{loss:.4f}")
+
+    cmd = " ".join(["ms-drake", "train", "segmentation", "--data", str(data), "--out", str(out), "--epochs",
+                    str(epochs), "--batch", str(batch), "--lr", str(lr), "--seed", str(seed), "--threads",
+                    str(threads)] + (["--max-images", str(max_images)] if max_images else []))
+    meta = train_segmentation(data, out, epochs=epochs, batch=batch, seed=seed, threads=threads, lr=lr,
+                              max_minutes=max_minutes, progress=progress, command=cmd, max_images=max_images)
+    bar.close()
+    for h in meta["history"]:
+        typer.echo(f"epoch {h['epoch']}: loss {h['loss']:.5f} ({h['seconds']:.0f} s)")
+    typer.echo(f"wrote {out} ({meta['epochs_done']} of {epochs} epochs, {meta['seconds'] / 60:.1f} min)")
+
+
+@bench_app.command("segmentation")
+def bench_segmentation_cmd(
+        backend: str = typer.Option(..., "--backend", help="euclidean | region_growing | learned | ground_truth"),
+        images: int = typer.Option(100, "--images", min=1, help="Held-out images (one heap each)"),
+        seed_start: int = typer.Option(100000, "--seed-start", min=0, help="Seed of the first image"),
+        out: Optional[Path] = typer.Option(None, "--out", help="Write the result (backend, ap, ar, images) as JSON"),
+        workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers"),
+        noise: float = typer.Option(0.0, "--noise", min=0.0, help="Gaussian depth noise sigma, m"),
+        dropout: float = typer.Option(0.0, "--dropout", min=0.0, max=0.99, help="Missing-pixel rate"),
+        weights: Optional[Path] = typer.Option(None, "--weights", help="Learned backend's weights (default: shipped)")):
+    """Table B.1: COCO mask AP / AR@100 of one segmentation backend on held-out heap images made from
+    the seeds."""
+    bar = tqdm(total=images, desc=f"bench {backend}", unit="image")
+    res = bench_segmentation(backend, images, seed_start, workers, noise, dropout, weights, progress=bar.update)
+    bar.close()
+    typer.echo(f"{backend}: AP {res['ap']:.3f}, AP50 {res['ap50']:.3f}, AR@100 {res['ar']:.3f} on {res['images']} "
+               f"images ({res['gt']} masks, {res['dt']} detections); median {res['seconds_median'] * 1000:.0f} ms "
+               "per image")
+    if out is not None:
+        write_seg_json(out, res)
         typer.echo(f"wrote {out}")
 
 

@@ -6,6 +6,7 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.sensors import ImageDepth32F, ImageRgba8U
 
 from ms_drake.errors import MsDrakeError, PerceptionError
+from ms_drake.experiments.shelf import shelf_rollout
 from ms_drake.experiments.shelf_segmentation import (
     AssociateShelfObjects,
     associate,
@@ -189,3 +190,11 @@ def test_associate_names_estimates_after_the_true_objects(shelf):
     system.GetInputPort("estimate").FixValue(context, estimate)
     system.GetInputPort("scene").FixValue(context, truth)
     assert system.GetOutputPort("scene").Eval(context) == named
+
+
+def test_foss_search_with_depth_perception():
+    """The policy sees only the segmenter's objects of each render, and still finds the target."""
+    record = shelf_rollout("bluction_dar", 8, 0, perception="depth")
+    assert record["perception"] == "depth" and record["success"] and record["steps"] >= 1
+    with pytest.raises(MsDrakeError, match="perception"):
+        shelf_rollout("dar", 4, 0, perception="sonar")

@@ -3,10 +3,13 @@
 - `build_shelf_search(foss, scene, policy)`: the wired Diagram FossSystem -> ShelfOccupancyEstimator
   ("ground_truth") -> ShelfPolicySelector -> back to FossSystem, stepping once per period; with
   perception="learned" the estimator reads the depth image of a ShelfDepthCamera on FossSystem's
-  scene (a Drake render of every state) instead of the scene.
+  scene (a Drake render of every state) instead of the scene; with perception="depth" the policy
+  also sees only what the ShelfSegmenter makes of that render (objects estimated from the depth
+  image, the target's colour left out; AssociateShelfObjects names them after the true objects so
+  FOSS can apply the actions) instead of FOSS's idealised segmentation.
 - `shelf_rollout(policy, occluders, seed)`: one search of the scene generate_shelf_scene(seed,
   occluders) (the same scene for every policy) with horizon H = 2n; a JSON-able record: seed,
-  occluders, policy, perception ("ground_truth" or "learned"), success, steps, push / suction counts, refused actions, the failure
+  occluders, policy, perception (one of PERCEPTIONS), success, steps, push / suction counts, refused actions, the failure
   ("horizon": budget spent; "no_action": the policy had nothing to do), timings (scene generation,
   perception, decision and FOSS step, ms).
 - `run_shelf_bench(...)`: the missing rollouts of (occluders x seeds) through ms_drake.parallel,
@@ -37,10 +40,12 @@ from pydrake.systems.framework import DiagramBuilder
 
 from ms_drake.errors import MsDrakeError
 from ms_drake.experiments.harness import final_records, read_records, summarize
+from ms_drake.experiments.shelf_segmentation import AssociateShelfObjects
 from ms_drake.foss import Foss, FossSystem
 from ms_drake.parallel import run_jobs
 from ms_drake.perception.shelf_occupancy import ShelfOccupancyEstimator
 from ms_drake.perception.shelf_occupancy_net import block_depth
+from ms_drake.perception.shelf_segmentation import ShelfSegmenter
 from ms_drake.policies.shelf import (
     SHELF_POLICIES,
     ShelfPolicyParams,
@@ -61,6 +66,9 @@ from ms_drake.types import ShelfScene
 
 SCENARIO = "FetchShelf"
 FIDELITY = "foss"
+#: What the policies observe: FOSS's scene and the analytic occupancy; the learned occupancy of a
+#: depth render; the learned occupancy and the ShelfSegmenter's objects of that render.
+PERCEPTIONS = ("ground_truth", "learned", "depth")
 REFERENCE = {  # the reference's Table 9.1, "All" row: success rate (%)
     "oracle_p": 98, "oracle_ps": 100, "dar": 54, "der3": 60, "bluction_dar": 86}
 POLICY_NAMES = {"oracle_p": "Oracle-P", "oracle_ps": "Oracle-P+S", "dar": "DAR", "der3": "DER-3",
@@ -77,16 +85,28 @@ def build_shelf_search(foss: Foss, scene: ShelfScene, policy: str, params: Shelf
                        scenario_name: str = SCENARIO):
     """The search Diagram; exported outputs: action, visible_fraction, scene, history, occupancy,
     occupancy_history."""
+    if perception not in PERCEPTIONS:
+        raise MsDrakeError(f"perception {perception!r}: choose one of {', '.join(PERCEPTIONS)}")
     builder = DiagramBuilder()
     sim = builder.AddNamedSystem("foss", FossSystem(foss, scene, period))
-    est = builder.AddNamedSystem("occupancy", ShelfOccupancyEstimator(foss.geometry, target_size, perception))
+    backend = "ground_truth" if perception == "ground_truth" else "learned"
+    est = builder.AddNamedSystem("occupancy", ShelfOccupancyEstimator(foss.geometry, target_size, backend))
     sel = builder.AddNamedSystem("policy", ShelfPolicySelector(policy, foss, params, period))
     builder.Connect(sim.GetOutputPort("scene"), est.GetInputPort("scene"))
-    if perception == "learned":
+    observed = sim.GetOutputPort("scene")
+    if perception != "ground_truth":
         cam = builder.AddNamedSystem("camera", ShelfDepthCamera(load_scenario(None, scenario_name)))
         builder.Connect(sim.GetOutputPort("scene"), cam.GetInputPort("scene"))
         builder.Connect(cam.GetOutputPort("depth_image"), est.GetInputPort("depth_image"))
-    builder.Connect(sim.GetOutputPort("scene"), sel.GetInputPort("scene"))
+    if perception == "depth":
+        seg = builder.AddNamedSystem("segmenter", ShelfSegmenter(foss.geometry))
+        builder.Connect(cam.GetOutputPort("depth_image"), seg.GetInputPort("depth_image"))
+        builder.Connect(cam.GetOutputPort("rgb_image"), seg.GetInputPort("rgb_image"))
+        names = builder.AddNamedSystem("associate", AssociateShelfObjects())
+        builder.Connect(seg.GetOutputPort("scene"), names.GetInputPort("estimate"))
+        builder.Connect(sim.GetOutputPort("scene"), names.GetInputPort("scene"))
+        observed = names.GetOutputPort("scene")
+    builder.Connect(observed, sel.GetInputPort("scene"))
     builder.Connect(sim.GetOutputPort("history"), sel.GetInputPort("history"))
     builder.Connect(est.GetOutputPort("occupancy"), sel.GetInputPort("occupancy"))
     builder.Connect(sel.GetOutputPort("action"), sim.GetInputPort("action"))
