@@ -93,7 +93,8 @@ def test_class_targets_mark_contacts_only():
     lab[5:15, 22:28] = 3  # alone
     c = class_targets(lab)
     assert set(np.unique(c[lab == 0])) == {0}
-    assert (c[5:15, 9:11] == 2).all() and (c[:, :8] != 2).all() and (c[lab == 3] == 1).all()
+    assert (c[5:15, 8:12] == 2).all() and (c[:, :8] != 2).all() and (c[:, 12:] != 2).all()
+    assert (c[lab == 3] == 1).all()
 
 
 def test_grouping_splits_at_boundaries_and_scores():

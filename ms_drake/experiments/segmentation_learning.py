@@ -2,16 +2,16 @@
 
 `train_segmentation` (``ms-drake train segmentation --data DIR --out FILE.pt``): AdamW (lr 2e-3,
 weight decay 1e-4, cosine decay to 0), batches of 16 random `crop` windows (96 x 128 working
-pixels, a quarter of the 192 x 256 image) centred on an object pixel of the image (+- 24 px),
-random horizontal and vertical flips; pixelwise cross-entropy on the three classes of
-segmentation_net. Our choices where the reference's (SGD, lr 0.01, momentum 0.9, 60 epochs on a
-Titan X) does not fit two shared CPU cores: the network is fully convolutional, so it learns
-from windows and runs on the whole image, and a window around the heap holds nearly all the
-information of the image at a quarter of the cost. Deterministic from `seed` (the batch order and
-windows of epoch e come from (seed, e)). After every epoch the model, optimizer and scheduler go to
-``FILE.ckpt`` (experiments.training), so a killed run resumes with the same command; the shipped
-``FILE`` holds the weights, the network configuration and a `meta` dict (data, command, epochs,
-seconds, losses).
+pixels, a quarter of the 192 x 256 image), half of them anywhere in the image and half centred
+on an object pixel of the image (+- 24 px), random horizontal and vertical flips; pixelwise
+cross-entropy on the three classes of segmentation_net. Our choices where the reference's (SGD,
+lr 0.01, momentum 0.9, 60 epochs on a Titan X) does not fit two shared CPU cores: the network is
+fully convolutional, so it learns from windows and runs on the whole image, at a quarter of the
+cost per image. Deterministic from `seed` (the batch order and windows of epoch e come from
+(seed, e)). After every epoch the model, optimizer and scheduler go to ``FILE.ckpt``
+(experiments.training), so a killed run resumes with the same command; ``FILE`` (written after
+every epoch too) holds the weights, the network configuration and a `meta` dict (data, command,
+epochs, seconds, losses).
 
 `bench_segmentation` (``ms-drake bench segmentation --backend B --images N --seed-start S``): image
 s is heap s of held-out objects (the test split of its object set; sets taken in turn by seed,
@@ -24,12 +24,14 @@ image; COCO mask AP (IoU 0.50:0.95), AP50 and AR@100 by pycocotools over all ima
 from __future__ import annotations
 
 import json
+import os
 import statistics
 import time
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
+from pydrake.math import RigidTransform
 
 from ms_drake.errors import DatasetError, HeapError
 from ms_drake.experiments.occupancy_data import random_camera, truncated_poisson
@@ -40,7 +42,6 @@ from ms_drake.experiments.segmentation_data import (
     LabelledHeapRenderer,
     ground_truth,
     instance_masks,
-    load_working,
     sensor_model,
 )
 from ms_drake.experiments.training import (
@@ -53,6 +54,7 @@ from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.parallel import run_jobs
 from ms_drake.perception.segmentation import Segmenter, coco_metrics, encode_masks
 from ms_drake.perception.segmentation_net import (
+    WORK_SHAPE,
     NetConfig,
     class_targets,
     make_net,
@@ -66,12 +68,16 @@ BENCH_BACKENDS = ("euclidean", "region_growing", "learned", "ground_truth")
 
 
 def _windows(lab: np.ndarray, shape, rng: np.random.Generator) -> list[tuple[int, int]]:
-    """Top-left corners of one `shape` window per image, centred on a random object pixel (+- 24 px)."""
+    """Top-left corners of one `shape` window per image: half of them anywhere in the image (the bin's
+    walls and empty floor must be learnt too), half centred on a random object pixel (+- 24 px)."""
     H, W = lab.shape[1:]
     h, w = shape
     out = []
     for im in lab:
-        ys, xs = np.nonzero(im)
+        if rng.random() < 0.5:
+            out.append((int(rng.integers(0, H - h + 1)), int(rng.integers(0, W - w + 1))))
+            continue
+        ys, xs = np.nonzero(im > 0)
         if len(ys):
             j = int(rng.integers(len(ys)))
             cy, cx = ys[j] + int(rng.integers(-24, 25)), xs[j] + int(rng.integers(-24, 25))
@@ -121,43 +127,76 @@ def train_steps(net, opt, x, y, steps: int = 1) -> list[float]:
     return losses
 
 
+class TrainingImages:
+    """The working arrays and class targets of the train shards of `data` (the first `max_images`);
+    `refresh()` adds shards written since (a dataset still being generated)."""
+
+    def __init__(self, data, max_images: int | None = None):
+        self.data, self.max_images = Path(data), max_images
+        self.files: list[str] = []
+        self.x = np.zeros((0, 2, *WORK_SHAPE), np.float16)
+        self.y = np.zeros((0, *WORK_SHAPE), np.uint8)
+        self.refresh()
+
+    def refresh(self) -> int:
+        files = [str(f) for f in sorted(self.data.glob("shard_*_train.npz"))]
+        new = [f for f in files if f not in self.files]
+        if self.max_images is not None and len(self.x) >= self.max_images:
+            new = []
+        if new:
+            xs, ys = [self.x], [self.y]
+            for f in new:
+                with np.load(f) as z:
+                    xs.append(z["x"])
+                    ys.append(np.stack([class_targets(m) for m in z["lab"]]).astype(np.uint8))
+            self.x, self.y = np.concatenate(xs)[:self.max_images], np.concatenate(ys)[:self.max_images]
+            self.files += new
+        return len(self.x)
+
+
 def train_segmentation(data, out, epochs: int = 8, batch: int = 16, seed: int = 0, threads: int = 1,
                        config: NetConfig | None = None, max_minutes: float = 60.0, progress=None, command: str = "",
-                       lr: float = 2e-3, max_images: int | None = None) -> dict:
+                       lr: float = 2e-3, max_images: int | None = None, steps_per_epoch: int | None = None) -> dict:
     """Train on the train shards of `data` (the first `max_images` if given); write `out` (weights +
     meta) and `out`.ckpt (resume). Stops early (after a whole epoch) when `max_minutes` of wall
-    time would be exceeded."""
+    time would be exceeded.
+
+    steps_per_epoch None: an epoch is one pass over the images. Given: an epoch is that many
+    batches, drawn from the train shards on disk when it starts (training can start while
+    `ms-drake data segmentation` is still writing; each epoch's image count is in the history)."""
     torch = torch_setup(seed, threads)
     config = config or NetConfig()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     ckpt = out.with_suffix(".ckpt")
-    d = load_working(data, "train")
-    x, lab = d["x"], d["lab"]
-    if max_images is not None:
-        x, lab = x[:max_images], lab[:max_images]
-    n = len(x)
+    images = TrainingImages(data, max_images)
+    n = len(images.x)
+    if n == 0:
+        raise DatasetError(f"{data}: no train shards (shard_*_train.npz); make them with "
+                           f"`ms-drake data segmentation --count 4000 --out {data}`")
     if n < batch:
         raise DatasetError(f"{data}: {n} training images, fewer than a batch ({batch}); make more with "
                            "`ms-drake data segmentation --count ...`")
-    y = np.stack([class_targets(m) for m in lab]).astype(np.uint8)
     net = make_net(config)
     opt = make_optimizer(net, lr)
-    steps_per_epoch = n // batch
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs * steps_per_epoch)
-    settings = dict(config=asdict(config), epochs=epochs, n=n, batch=batch, lr=lr, seed=seed)
+    steps = steps_per_epoch or n // batch
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs * steps)
+    settings = dict(config=asdict(config), epochs=epochs, batch=batch, lr=lr, seed=seed, max_images=max_images,
+                    steps_per_epoch=steps_per_epoch, n=None if steps_per_epoch else n)
     start, history, seconds = resume(torch, ckpt, settings, net, opt, sched)
     t0 = time.perf_counter() - seconds
     for epoch in range(start, epochs):
         te = time.perf_counter()
         if epoch > 0 and (te - t0) / epoch * (epoch + 1) > 60.0 * max_minutes:
             break
+        if steps_per_epoch:
+            n = images.refresh()
         rng = np.random.default_rng([seed, epoch])
-        order = rng.permutation(n)
+        order = np.concatenate([rng.permutation(n) for _ in range(-(-steps * batch // n))])
         net.train()
         total = 0.0
-        for b in range(steps_per_epoch):
-            xb, yb = make_batch(x, y, np.sort(order[b * batch:(b + 1) * batch]), rng)
+        for b in range(steps):
+            xb, yb = make_batch(images.x, images.y, np.sort(order[b * batch:(b + 1) * batch]), rng)
             opt.zero_grad()
             loss = segmentation_loss(net(torch.from_numpy(xb)), torch.from_numpy(yb))
             loss.backward()
@@ -165,8 +204,8 @@ def train_segmentation(data, out, epochs: int = 8, batch: int = 16, seed: int = 
             sched.step()
             total += loss.item()
             if progress is not None:
-                progress(epoch, b, steps_per_epoch, loss.item())
-        history.append(dict(epoch=epoch + 1, loss=total / steps_per_epoch, seconds=time.perf_counter() - te))
+                progress(epoch, b, steps, loss.item())
+        history.append(dict(epoch=epoch + 1, loss=total / steps, images=n, seconds=time.perf_counter() - te))
         save_checkpoint(torch, ckpt, settings, net, opt, sched, epoch + 1, history, time.perf_counter() - t0)
         save_atomically(torch, dict(model=net.state_dict(), config=asdict(config),
                                     meta=_meta(data, n, history, epochs, batch, seed, lr, t0, command, torch)), out)
@@ -208,16 +247,37 @@ def make_segmenter(backend: str, cam: PinholeCamera, workspace: Workspace, weigh
     return Segmenter(backend, camera=cam, workspace=workspace, label_to_id={})
 
 
+def cached_bench_image(seed: int, noise: float, dropout: float, scenario, cache) -> tuple:
+    """`bench_image`, kept in (or read from) ``cache/img_<seed>_<noise>_<dropout>.npz`` if `cache`."""
+    f = None if cache is None else Path(cache) / f"img_{seed}_{noise:g}_{dropout:g}.npz"
+    if f is not None and f.exists():
+        with np.load(f) as z:
+            cam = PinholeCamera(640, 480, *[float(v) for v in z["intrinsics"]], RigidTransform(z["X_WC"]))
+            return z["depth"], instance_masks(z["inst"], [str(v) for v in z["objects"]]), cam
+    depth, gt, cam = bench_image(seed, noise, dropout, scenario)
+    if f is not None:
+        f.parent.mkdir(parents=True, exist_ok=True)
+        inst = np.zeros(depth.shape, np.uint8)
+        for k, m in enumerate(gt.masks):
+            inst[m] = k + 1
+        tmp = f.with_suffix(f".{os.getpid()}.tmp.npz")
+        np.savez_compressed(tmp, depth=depth, inst=inst, objects=np.array(gt.ids, dtype=str),
+                            intrinsics=np.array([cam.fx, cam.fy, cam.cx, cam.cy]), X_WC=cam.X_WC.GetAsMatrix4())
+        os.replace(tmp, f)
+    return depth, gt, cam
+
+
 def bench_job(job: tuple) -> list[dict]:
-    """(backend, seeds, noise, dropout, weights) -> per image: RLEs of ground truth and detections,
-    seconds; module-level for pickling."""
-    backend, seeds, noise, dropout, weights = job
+    """(backend, seeds, noise, dropout, weights[, cache]) -> per image: RLEs of ground truth and
+    detections, seconds; module-level for pickling."""
+    backend, seeds, noise, dropout, weights = job[:5]
+    cache = job[5] if len(job) > 5 else None
     scenario = load_scenario(None, "BinHeap15")
     ws = Workspace.from_scenario(scenario)
     out, learned = [], None
     for s in seeds:
         try:
-            depth, gt, cam = bench_image(s, noise, dropout, scenario)
+            depth, gt, cam = cached_bench_image(s, noise, dropout, scenario, cache)
         except HeapError as e:
             out.append(dict(seed=s, error=str(e)))
             continue
@@ -234,13 +294,14 @@ def bench_job(job: tuple) -> list[dict]:
 
 
 def bench_segmentation(backend: str, images: int, seed_start: int, workers: int = 1, noise: float = 0.0,
-                       dropout: float = 0.0, weights=None, progress=None, chunk: int = 10) -> dict:
-    """Table B.1 row of `backend` on images seed_start .. seed_start + images - 1 (module doc)."""
+                       dropout: float = 0.0, weights=None, progress=None, chunk: int = 10, cache=None) -> dict:
+    """Table B.1 row of `backend` on images seed_start .. seed_start + images - 1 (module doc).
+    cache: a folder keeping the rendered images (and ground truth) for the other backends."""
     if backend not in BENCH_BACKENDS:
         raise DatasetError(f"--backend {backend!r}: choose one of {', '.join(BENCH_BACKENDS)}")
     seeds = list(range(seed_start, seed_start + images))
-    jobs = [(backend, tuple(seeds[i:i + chunk]), noise, dropout, None if weights is None else str(weights))
-            for i in range(0, len(seeds), chunk)]
+    jobs = [(backend, tuple(seeds[i:i + chunk]), noise, dropout, None if weights is None else str(weights),
+             None if cache is None else str(cache)) for i in range(0, len(seeds), chunk)]
     rows = []
     for r in run_jobs(bench_job, jobs, workers=workers, max_tasks_per_child=5):
         if not r.ok:

@@ -20,8 +20,8 @@ Working resolution. The central 512 x 384 px of the 640 x 480 overhead image (th
 blocks: 256 x 192 px, ~2.3 mm per pixel at 0.8 m, so a 1 cm object is ~4 px wide.
 Inputs, two channels: the depth relative to the crop's median in units of 5 cm (missing pixels
 take the largest valid depth) and the valid-pixel fraction (sensor dropout). Targets: label 0
-where no object is seen, 2 on object pixels with a different object among their 8 neighbours
-(1 px either side of a contact), 1 on the other object pixels.
+where no object is seen, 2 on object pixels with a different object within `BOUNDARY` pixels
+(Chebyshev distance; a band 2 x 2 px wide along a contact, ~9 mm), 1 on the other object pixels.
 
 Grouping (`instances_from_probabilities`): the connected components (4-connectivity) of the
 pixels with P(interior) > 0.5 are the seeds (>= `min_seed` pixels); every pixel with P(background)
@@ -52,6 +52,7 @@ BLOCK = 2
 WORK_SHAPE = (CROP[2] // BLOCK, CROP[3] // BLOCK)  # (192, 256)
 CLASSES = ("background", "interior", "boundary")
 MIN_GT_PIXELS = 20  # full-resolution visible pixels for a ground-truth mask
+BOUNDARY = 2  # working pixels on either side of a contact between two objects
 
 
 def default_weights() -> Path:
@@ -88,7 +89,7 @@ def working_labels(labels: np.ndarray) -> np.ndarray:
 def class_targets(lab: np.ndarray) -> np.ndarray:
     """Instance labels (H, W) (0 = background) -> classes 0 background, 1 interior, 2 boundary."""
     lab = np.asarray(lab)
-    k = np.ones((3, 3), np.uint8)
+    k = np.ones((2 * BOUNDARY + 1, 2 * BOUNDARY + 1), np.uint8)
     big = np.where(lab > 0, lab, 0).astype(np.float32)
     small = np.where(lab > 0, lab, np.float32(65535.0)).astype(np.float32)
     hi = cv2.dilate(big, k)
@@ -154,7 +155,7 @@ def make_net(config: NetConfig = NetConfig()):
     return SegmentationUNet(config)
 
 
-CLASS_WEIGHTS = (1.0, 1.0, 3.0)  # boundaries are few pixels but decide every split
+CLASS_WEIGHTS = (1.0, 1.0, 4.0)  # boundaries are few pixels but decide every split
 
 
 def segmentation_loss(logits, targets):
