@@ -759,6 +759,8 @@ def train_segmentation_cmd(
         batch: int = typer.Option(16, "--batch", min=1, help="Batch size (96 x 128 windows)"),
         lr: float = typer.Option(2e-3, "--lr", help="AdamW learning rate (cosine decay to 0)"),
         max_images: Optional[int] = typer.Option(None, "--max-images", min=1, help="Train on the first N images"),
+        steps_per_epoch: Optional[int] = typer.Option(None, "--steps-per-epoch", min=1, help="Batches per epoch, "
+                                                      "from the shards on disk at its start (default: one pass)"),
         seed: int = typer.Option(0, "--seed", min=0, help="Seed"),
         threads: int = typer.Option(1, "--threads", min=1, help="torch threads"),
         max_minutes: float = typer.Option(60.0, "--max-minutes", help="Stop after the epoch that would end past "
@@ -776,9 +778,11 @@ def train_segmentation_cmd(
 
     cmd = " ".join(["ms-drake", "train", "segmentation", "--data", str(data), "--out", str(out), "--epochs",
                     str(epochs), "--batch", str(batch), "--lr", str(lr), "--seed", str(seed), "--threads",
-                    str(threads)] + (["--max-images", str(max_images)] if max_images else []))
+                    str(threads)] + (["--max-images", str(max_images)] if max_images else [])
+                   + (["--steps-per-epoch", str(steps_per_epoch)] if steps_per_epoch else []))
     meta = train_segmentation(data, out, epochs=epochs, batch=batch, seed=seed, threads=threads, lr=lr,
-                              max_minutes=max_minutes, progress=progress, command=cmd, max_images=max_images)
+                              max_minutes=max_minutes, progress=progress, command=cmd, max_images=max_images,
+                              steps_per_epoch=steps_per_epoch)
     bar.close()
     for h in meta["history"]:
         typer.echo(f"epoch {h['epoch']}: loss {h['loss']:.5f} ({h['seconds']:.0f} s)")
@@ -794,11 +798,13 @@ def bench_segmentation_cmd(
         workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers"),
         noise: float = typer.Option(0.0, "--noise", min=0.0, help="Gaussian depth noise sigma, m"),
         dropout: float = typer.Option(0.0, "--dropout", min=0.0, max=0.99, help="Missing-pixel rate"),
-        weights: Optional[Path] = typer.Option(None, "--weights", help="Learned backend's weights (default: shipped)")):
+        weights: Optional[Path] = typer.Option(None, "--weights", help="Learned backend's weights (default: shipped)"),
+        cache: Optional[Path] = typer.Option(None, "--cache", help="Keep / reuse the rendered images in this folder")):
     """Table B.1: COCO mask AP / AR@100 of one segmentation backend on held-out heap images made from
     the seeds."""
     bar = tqdm(total=images, desc=f"bench {backend}", unit="image")
-    res = bench_segmentation(backend, images, seed_start, workers, noise, dropout, weights, progress=bar.update)
+    res = bench_segmentation(backend, images, seed_start, workers, noise, dropout, weights, progress=bar.update,
+                             cache=cache)
     bar.close()
     typer.echo(f"{backend}: AP {res['ap']:.3f}, AP50 {res['ap50']:.3f}, AR@100 {res['ar']:.3f} on {res['images']} "
                f"images ({res['gt']} masks, {res['dt']} detections); median {res['seconds_median'] * 1000:.0f} ms "
