@@ -8,7 +8,13 @@ import pytest
 from pydrake.multibody.tree import BodyIndex
 
 from ms_drake.execution.shelf_backend import ShelfBackend, ShelfBody
-from ms_drake.experiments.shelf_physics import build_shelf_physics, set_initial
+from ms_drake.experiments.shelf_physics import (
+    ShelfPhysicsError,
+    _skipped,
+    build_shelf_physics,
+    set_initial,
+    with_time_step,
+)
 from ms_drake.foss import Foss
 from ms_drake.geometry import PinholeCamera
 from ms_drake.perception.shelf_occupancy import ground_truth_occupancy
@@ -124,3 +130,12 @@ def test_controller_uses_the_feasible_selector(scenario, hard_scene):
     assert not isinstance(c2.GetSubsystemByName("policy_selector"), FetchFeasibleSelector)
     with pytest.raises(ControllerError, match="max_candidates"):
         ShelfSearchParams(max_candidates=0)
+
+
+def test_time_step_and_skipped_counts(scenario):
+    s = with_time_step(scenario, 0.01)
+    assert s.plant_config.time_step == 0.01 and scenario.plant_config.time_step == 0.002
+    assert with_time_step(scenario, None) is scenario
+    with pytest.raises(ShelfPhysicsError, match="time_step"):
+        with_time_step(scenario, 0.0)
+    assert _skipped("bluction_dar: score 0.1 (3 Fetch-infeasible skipped)") == 3 and _skipped("random") == 0

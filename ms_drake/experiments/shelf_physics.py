@@ -24,6 +24,7 @@ import copy
 import dataclasses
 import json
 import os
+import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,6 +44,7 @@ from ms_drake.experiments.scene_images import write_search_pictures
 from ms_drake.geometry import PinholeCamera
 from ms_drake.objects import TARGET_RGBA
 from ms_drake.objects.sdf import OBJECT_MODULUS, Inertia, Shape, object_sdf
+from ms_drake.parallel import run_jobs
 from ms_drake.policies.shelf_search import (
     MakeShelfSearchController,
     ShelfSearchParams,
@@ -61,11 +63,13 @@ SCENARIO = "FetchShelf"
 FIDELITY = "physics"
 DENSITY = 150.0  # kg/m^3: household packaging (a 20 cm cube weighs 1.2 kg; the cup holds ~2 kg in shear)
 VISIBILITY = 0.8
-#: The plant's time step in these runs [s] (the scenario's is 2 ms): the discrete SAP-family solver
-#: is stable at 5 ms here and the outcomes of the same actions agree with 2 ms to 1 mm
-#: (docs/BENCHMARKS.md, "Shelf search on the Fetch (physics)").
-TIME_STEP = 0.005
+#: The plant's time step in these runs [s] (the scenario's is 2 ms): the discrete SAP-family solver is
+#: stable at 10 ms here, and the same actions end alike at 2, 5 and 10 ms (to 1-3 mm for pushes and
+#: suction placements; docs/BENCHMARKS.md, "Shelf search on the Fetch (physics)") at a third of
+#: the 2 ms cost.
+TIME_STEP = 0.01
 REFERENCE_PHYSICAL = {"der3": 33, "bluction_dar": 100}  # Table 9.2, "All" row (%)
+PHYSICS_TASKS_PER_CHILD = 4  # scenes per worker process before a fresh one (memory of unfreed diagrams)
 
 
 class ShelfPhysicsError(MsDrakeError, ValueError):
@@ -253,10 +257,18 @@ def run_shelf_physics(system: ShelfPhysicsSystem, scene: ShelfScene, params: She
                outcomes=[o.message for o in history],
                actions_taken=[[o.action.shelf.kind, o.action.shelf.object_id, round(o.action.shelf.dx, 4),
                                round(o.action.shelf.dy, 4)] for o in history],
+               skipped=sum(_skipped(o.action.reason) for o in history),
+               fetch_feasible=bool(params.fetch_feasible), time_step=float(system.plant.time_step()),
                visible_fraction=float(visible), failure=failure, stop_reason=reason, error=error,
                sim_seconds=float(context.get_time()), seconds=time.perf_counter() - t_wall,
                cpu_seconds=time.process_time() - t_cpu, pid=os.getpid())
     return ShelfPhysicsResult(rec, frames)
+
+
+def _skipped(reason: str) -> int:
+    """Candidates FetchFeasibleSelector skipped before an action ("... (k Fetch-infeasible skipped)")."""
+    m = re.search(r"\((\d+) Fetch-infeasible skipped\)", reason or "")
+    return int(m.group(1)) if m else 0
 
 
 def shelf_physics_rollout(policy: str, seed: int, occluders: int | None = None, horizon: int | None = None,
@@ -272,27 +284,39 @@ def shelf_physics_rollout(policy: str, seed: int, occluders: int | None = None, 
     return run_shelf_physics(system, sample.scene, params, keep_frames=keep_frames, meshcat=meshcat)
 
 
+def _bench_job(job: tuple) -> dict:
+    policy, seed, n, kwargs = job
+    return shelf_physics_rollout(policy, seed, n, **kwargs).record
+
+
 def run_shelf_physics_bench(policy: str, scenes: int, seed_start: int, out, occluders: list[int] | None = None,
-                            log=print) -> list[dict]:
-    """Missing (seed) rollouts of `policy`, one JSON line each (resumable); occluders cycles
-    through the given counts by seed (None: drawn from the seed)."""
+                            workers: int = 1, log=print, **kwargs) -> list[dict]:
+    """Missing (seed) rollouts of `policy`, one JSON line each (flushed and fsync'ed as each scene
+    ends: resumable); occluders cycles through the given counts by seed (None: drawn from the
+    seed); workers: local processes (ms_drake.parallel.run_jobs; fresh processes every few
+    scenes, as Drake diagrams are never freed); kwargs: shelf_physics_rollout's (e.g.
+    fetch_feasible=False)."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     done = {(r["seed"], r["policy"]) for r in read_records(out)} if out.exists() else set()
+    jobs = [(policy, seed, occluders[i % len(occluders)] if occluders else None, dict(kwargs))
+            for i, seed in enumerate(range(seed_start, seed_start + scenes)) if (seed, policy) not in done]
     recs = []
-    for i, seed in enumerate(range(seed_start, seed_start + scenes)):
-        if (seed, policy) in done:
+    for res in run_jobs(_bench_job, jobs, workers=workers, max_tasks_per_child=PHYSICS_TASKS_PER_CHILD):
+        if not res.ok:
+            log(f"seed {res.job[1]} {policy}: failed ({res.error.splitlines()[0]}); run again to retry it")
             continue
-        n = occluders[i % len(occluders)] if occluders else None
-        rec = shelf_physics_rollout(policy, seed, n).record
+        rec = res.value
         with open(out, "a") as f:
             f.write(json.dumps(rec) + "\n")
             f.flush()
             os.fsync(f.fileno())
         recs.append(rec)
-        log(f"seed {seed} ({rec['occluders']} occluders) {policy}: {'success' if rec['success'] else rec['failure']} "
-            f"after {rec['steps']} actions, FOSS agrees on {rec['agree']}/{rec['compared']}, "
-            f"{rec['sim_seconds']:.0f} s simulated in {rec['seconds']:.0f} s")
+        log(f"seed {rec['seed']} ({rec['occluders']} occluders) {policy}: "
+            f"{'success' if rec['success'] else rec['failure']} after {rec['steps']} actions "
+            f"({rec['plan_failures']} plan failures, {rec['skipped']} Fetch-infeasible skipped), FOSS agrees on "
+            f"{rec['agree']}/{rec['compared']}, {rec['sim_seconds']:.0f} s simulated in {rec['cpu_seconds']:.0f} s CPU "
+            f"({rec['seconds']:.0f} s wall)")
     return recs
 
 

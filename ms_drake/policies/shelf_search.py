@@ -141,15 +141,11 @@ class FetchFeasibleSelector(ShelfPolicySelector):
     def choose(self, scene: ShelfScene, dist, history=()) -> Action:
         """The policy's best Fetch-feasible action for `scene` (class docstring)."""
         tried = list(history)
-        skipped = 0
-        for _ in range(self.max_candidates):
+        for skipped in range(self.max_candidates):
             action = self.rules.select(scene, dist, tried)
-            if action.kind != "shelf":
+            if action.kind != "shelf" or self.backend.feasible(action.shelf, scene) == "ok":
                 return dataclasses.replace(action, reason=f"{action.reason} ({skipped} Fetch-infeasible skipped)")
             status = self.backend.feasible(action.shelf, scene)
-            if status == "ok":
-                return dataclasses.replace(action, reason=f"{action.reason} ({skipped} Fetch-infeasible skipped)")
-            skipped += 1
             tried.append(ActionOutcome(action, False, message=f"fetch_infeasible:{status}"))
         return Action("stop", reason=f"{self.policy}: none of the {self.max_candidates} best actions is feasible "
                                      "on the Fetch")
