@@ -431,7 +431,11 @@ def bench_shelf_physics(policy: str = typer.Option(..., "--policy", help=f"Shelf
                         out: Path = typer.Option(..., "--out", help="Output .jsonl (appended to; resumes)"),
                         occluders: Optional[list[int]] = typer.Option(None, "--occluders",
                                                                       help="Occluder counts cycled over the seeds "
-                                                                           "(default: drawn from the seed)")):
+                                                                           "(default: drawn from the seed)"),
+                        workers: int = typer.Option(1, "--workers", min=1, help="Local worker processes"),
+                        foss_choice: bool = typer.Option(False, "--foss-choice",
+                                                         help="Choose by FOSS alone (no check on the Fetch's "
+                                                              "planner before acting)")):
     """Shelf search on the Fetch in Drake physics (Table 9.2 analogue): scenes S..S+N-1; one JSON
     line per scene (seed, occluders, policy, success, steps, physics-FOSS agreement); resumable."""
     check_shelf_policy(policy)
@@ -439,7 +443,8 @@ def bench_shelf_physics(policy: str = typer.Option(..., "--policy", help=f"Shelf
         _fail(f"--out {out}: give a .jsonl file")
     if occluders and any(not 2 <= n <= 12 for n in occluders):
         _fail(f"--occluders {occluders}: shelf scenes have 2 to 12 occluders")
-    run_shelf_physics_bench(policy, scenes, seed_start, out, occluders, log=typer.echo)
+    run_shelf_physics_bench(policy, scenes, seed_start, out, occluders, workers=workers, log=typer.echo,
+                            fetch_feasible=not foss_choice)
     recs = physics_records([out])
     typer.echo(physics_table(recs, tuple(dict.fromkeys(r["policy"] for r in recs))))
     typer.echo(f"results in {out}")
