@@ -11,7 +11,9 @@ from ms_drake.execution.shelf_backend import ShelfBackend, ShelfBody
 from ms_drake.experiments.shelf_physics import (
     ShelfPhysicsError,
     _skipped,
+    action_agreement,
     build_shelf_physics,
+    physics_table,
     set_initial,
     with_time_step,
 )
@@ -139,3 +141,18 @@ def test_time_step_and_skipped_counts(scenario):
     with pytest.raises(ShelfPhysicsError, match="time_step"):
         with_time_step(scenario, 0.0)
     assert _skipped("bluction_dar: score 0.1 (3 Fetch-infeasible skipped)") == 3 and _skipped("random") == 0
+
+
+def test_action_agreement_counts_what_each_action_toppled():
+    rec = {"actions_taken": [["push", "a", 0.1, 0.0], ["push", "b", 0.1, 0.0], ["suction", "c", 0.1, 0.0],
+                             ["push", "d", 0.1, 0.0], ["suction", "e", 0.0, 0.0]],
+           "outcomes": ["agree=0 err=0.002 moved=0.1 commanded=0.1 others=0.004 toppled=b foss=ok",
+                        "agree=0 err=0.003 moved=0.1 commanded=0.1 others=0.001 toppled=b foss=ok",
+                        "agree=0 err=0.25 moved=0.02 commanded=0.3 others=0.000 toppled=b foss=ok",
+                        "plan_failed:unreachable",
+                        "agree=0 err=0.001 moved=0.1 commanded=0.1 others=0.000 toppled=b,e foss=ok"]}
+    assert action_agreement(rec) == [("push", False), ("push", True), ("suction", False), ("suction", False)]
+    table = physics_table([dict(rec, policy="der3", occluders=8, success=True, steps=5, plan_failures=1,
+                                skipped=2)], ("der3",))
+    assert "| all | physics = FOSS per action | 25 % (1/4) |" in table
+    assert "| all | physics = FOSS, pushes | 50 % (1/2) |" in table and "| 1 of 5 steps |" in table

@@ -35,7 +35,8 @@ than 20 degrees) against FOSS's prediction for the scene observed when the actio
 selector may move on) when the object moved by at least half the commanded displacement; the
 message records whether physics and FOSS agree: `agree=1` when FOSS accepted the action, the moved
 object's footprint centre ended within `tolerance` (2 cm) of FOSS's, no other object moved by more
-than `tolerance`, and nothing toppled (`agree=0` otherwise), followed by the measured errors.
+than `tolerance`, and the action toppled nothing (`agree=0` otherwise), followed by the measured
+errors (`toppled=`: every object lying toppled after the action).
 """
 
 from __future__ import annotations
@@ -209,12 +210,13 @@ class ShelfBackend:
                                  f"{action.kind!r}")
         if poses is None:
             raise ExecutionError("ShelfBackend plans from the objects' poses: connect the executor's body_poses input")
-        scene, _ = self.observe(poses)
-        return self.plan_scene(a, np.asarray(hold[f"{self.arm}.position"], float), scene, step)
+        scene, toppled = self.observe(poses)
+        return self.plan_scene(a, np.asarray(hold[f"{self.arm}.position"], float), scene, step, toppled)
 
-    def plan_scene(self, a, q_now, scene: ShelfScene, step: int = 0):
+    def plan_scene(self, a, q_now, scene: ShelfScene, step: int = 0, toppled=()):
         """The Motion of ShelfAction `a` from arm joints q_now in `scene` (its objects' footprints;
-        the target, if any, only for FOSS's prediction), or the planner's status string."""
+        the target, if any, only for FOSS's prediction; `toppled`: ids of objects already toppled),
+        or the planner's status string."""
         try:
             o = scene.object(a.object_id)
         except KeyError:
@@ -233,7 +235,8 @@ class ShelfBackend:
         tl, commands = built
         target_xy = (o.x + a.dx, o.y) if a.kind == "push" else self.foss.placement_center(o, a.dx, a.dy)
         info = {"step": step, "before": scene, "predicted": predicted, "foss": foss_out.message if not foss_out.success
-                else "ok", "goal_xy": tuple(map(float, target_xy)), "start_xy": (o.x, o.y)}
+                else "ok", "goal_xy": tuple(map(float, target_xy)), "start_xy": (o.x, o.y),
+                "toppled_before": tuple(toppled)}
         commands[f"{self.arm}.position"] = tl.value
         return Motion(commands, check_time=tl.duration + self.settle, duration=tl.duration + self.settle, info=info,
                       settle_from=tl.duration)
@@ -422,7 +425,8 @@ class ShelfBackend:
         commanded = float(np.linalg.norm(np.asarray(motion.info["goal_xy"]) - np.asarray(motion.info["start_xy"])))
         moved = float(np.linalg.norm(p1[a.object_id] - p0[a.object_id]))
         foss_ok = motion.info["foss"] == "ok"
-        agree = foss_ok and err <= self.tolerance and others <= self.tolerance and not toppled
+        new_toppled = set(toppled) - set(motion.info.get("toppled_before", ()))
+        agree = foss_ok and err <= self.tolerance and others <= self.tolerance and not new_toppled
         ok = moved >= 0.5 * commanded
         msg = (f"agree={int(agree)} err={err:.3f} moved={moved:.3f} commanded={commanded:.3f} others={others:.3f} "
                f"toppled={','.join(toppled) or '-'} foss={motion.info['foss']}")

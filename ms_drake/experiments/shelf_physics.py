@@ -152,7 +152,7 @@ def set_initial(system: ShelfPhysicsSystem, context, scene: ShelfScene) -> None:
     """The objects at the scene's poses (resting on the shelf floor) and the Fetch parked."""
     pc = system.plant.GetMyMutableContextFromRoot(context)
     origin = np.asarray(system.scenario.environment.position, float)
-    for oid, b in system.sim.bodies.items():
+    for b in system.sim.bodies.values():
         o = b.shape
         X = RigidTransform(origin + [o.x, o.y, o.height / 2 + 1e-4])
         system.plant.SetFreeBodyPose(pc, system.plant.get_body(BodyIndex(b.body_index)), X)
@@ -320,9 +320,33 @@ def run_shelf_physics_bench(policy: str, scenes: int, seed_start: int, out, occl
     return recs
 
 
+def _fields(message: str) -> dict:
+    return dict(tok.split("=", 1) for tok in message.split() if "=" in tok)
+
+
+def action_agreement(rec: dict, tolerance: float = 0.02) -> list[tuple[str, bool]]:
+    """(kind, physics = FOSS) of every executed action of a record, from its outcome messages
+    (ms_drake.execution.shelf_backend): FOSS accepted it, the moved object ended within
+    `tolerance` of FOSS's placement, nothing else moved by more than `tolerance`, and the action
+    toppled nothing (an object lying toppled since an earlier action does not count again)."""
+    out, before = [], set()
+    for (kind, *_), msg in zip(rec["actions_taken"], rec["outcomes"]):
+        f = _fields(msg)
+        if "err" not in f:
+            continue  # a plan failure: nothing executed
+        toppled = set() if f.get("toppled", "-") == "-" else set(f["toppled"].split(","))
+        ok = (f.get("foss") == "ok" and float(f["err"]) <= tolerance and float(f["others"]) <= tolerance
+              and not toppled - before)
+        out.append((kind, bool(ok)))
+        before = toppled
+    return out
+
+
 def physics_table(recs: list[dict], policies=("der3", "bluction_dar")) -> str:
     """Table 9.2 analogue (markdown): per occluder count and policy, successes and the steps of the
-    successful searches; then success rate, median steps (IQR), and physics-FOSS agreement."""
+    successful searches; then success rate, median steps (IQR), plan failures (actions the Fetch
+    could not plan when executing them), candidates the Fetch-feasibility check skipped, and
+    physics-FOSS agreement per executed action (action_agreement), for pushes and suction apart."""
     names = {"der3": "DER-3", "bluction_dar": "Bluction-DAR", "dar": "DAR", "random": "Random",
              "oracle_p": "Oracle-P", "oracle_ps": "Oracle-P+S"}
     by = {p: [r for r in recs if r["policy"] == p] for p in policies}
@@ -338,17 +362,28 @@ def physics_table(recs: list[dict], policies=("der3", "bluction_dar")) -> str:
             steps.append(", ".join(str(r["steps"]) for r in ok) or "(-)")
         lines.append(f"| {n} | successes | " + " | ".join(cells) + " |")
         lines.append("| | no. steps | " + " | ".join(steps) + " |")
-    rate, med, agree = [], [], []
+
+    def pct(a, c):
+        return f"{100 * a / c:.0f} % ({a}/{c})" if c else "-"
+
+    rows = {k: [] for k in ("rate", "med", "fail", "skip", "agree", "push", "suction")}
     for p in policies:
         rs = by[p]
         ok = [r["steps"] for r in rs if r["success"]]
-        rate.append(f"{100 * len(ok) / len(rs):.0f} % ({len(ok)}/{len(rs)})" if rs else "-")
-        med.append(f"{np.median(ok):.1f} ({np.percentile(ok, 25):.1f} - {np.percentile(ok, 75):.1f})" if ok else "-")
-        a, c = sum(r["agree"] for r in rs), sum(r["compared"] for r in rs)
-        agree.append(f"{100 * a / c:.0f} % ({a}/{c})" if c else "-")
-    lines.append("| all | success rate | " + " | ".join(rate) + " |")
-    lines.append("| all | median steps (IQR) | " + " | ".join(med) + " |")
-    lines.append("| all | physics = FOSS per action | " + " | ".join(agree) + " |")
+        rows["rate"].append(pct(len(ok), len(rs)) if rs else "-")
+        rows["med"].append(f"{np.median(ok):.1f} ({np.percentile(ok, 25):.1f} - {np.percentile(ok, 75):.1f})"
+                           if ok else "-")
+        rows["fail"].append(f"{sum(r['plan_failures'] for r in rs)} of {sum(r['steps'] for r in rs)} steps")
+        rows["skip"].append(str(sum(r.get("skipped", 0) for r in rs)))
+        ag = [a for r in rs for a in action_agreement(r)]
+        rows["agree"].append(pct(sum(ok for _, ok in ag), len(ag)))
+        for kind in ("push", "suction"):
+            k = [ok for kd, ok in ag if kd == kind]
+            rows[kind].append(pct(sum(k), len(k)))
+    for key, label in (("rate", "success rate"), ("med", "median steps (IQR)"), ("fail", "plan failures"),
+                       ("skip", "Fetch-infeasible candidates skipped"), ("agree", "physics = FOSS per action"),
+                       ("push", "physics = FOSS, pushes"), ("suction", "physics = FOSS, suction")):
+        lines.append(f"| all | {label} | " + " | ".join(rows[key]) + " |")
     return "\n".join(lines)
 
 
