@@ -47,6 +47,23 @@ def test_push_travels_until_it_touches_the_nearest_neighbour(foss):
     assert pushes[("a", -1.0)].dx == pytest.approx(-(0.3 - 0.15) + CONTACT_GAP)
 
 
+def test_pushes_that_leave_room_for_the_blade(foss):
+    s = scene(box("a", -0.1, 0.0), box("b", 0.15, 0.0))
+    contact = {(a.object_id, a.dx) for a in foss.push_actions(s)}
+    both = foss.push_actions(s, leave_room=True)
+    assert contact <= {(a.object_id, a.dx) for a in both} and len(both) > len(contact)
+    short = [a for a in both if a.object_id == "a" and 0 < a.dx < 0.15 - CONTACT_GAP - 1e-9]
+    assert len(short) == 1
+    new, out = foss.step(s, short[0])
+    assert out.success
+    gap = (new.object("b").x - 0.05) - (new.object("a").x + 0.05)
+    assert gap > BLADE_THICKNESS
+    # ... so "b" can still be pushed right, which a push of "a" to contact forbids.
+    assert any(a.object_id == "b" and a.dx > 0 for a in foss.push_actions(new))
+    touching, _ = foss.step(s, ShelfAction("push", "a", 0.3))
+    assert not any(a.object_id == "b" and a.dx > 0 for a in foss.push_actions(touching))
+
+
 def test_cylinders_touch_at_the_right_distance(foss):
     s = scene(ShelfObject("c", "cylinder", -0.1, 0.0, 0.1, 0.1, 0.1), ShelfObject("d", "cylinder", 0.1, 0.06, 0.1, 0.1, 0.1))
     new, out = foss.step(s, ShelfAction("push", "c", 0.3))

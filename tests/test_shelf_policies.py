@@ -1,5 +1,7 @@
 """Shelf policies (Ch. 9.4.3-9.4.4) and the ShelfPolicySelector system."""
 
+import time
+
 import numpy as np
 import pytest
 from pydrake.systems.analysis import Simulator
@@ -21,7 +23,13 @@ from ms_drake.policies.shelf import (
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.shelf import generate_shelf_scene
 from ms_drake.shelf_geometry import ShelfGeometry
-from ms_drake.types import Action, ActionOutcome, ShelfObject, ShelfOccupancy, ShelfScene
+from ms_drake.types import (
+    Action,
+    ActionOutcome,
+    ShelfObject,
+    ShelfOccupancy,
+    ShelfScene,
+)
 
 W = 640
 
@@ -130,6 +138,18 @@ def test_oracles_on_hand_made_scenes(foss):
     assert [(a.kind, a.object_id) for a in plan] == [("suction", "b")]
     stop = ShelfPolicies("oracle_p", foss).select(squeezed, None)
     assert stop.kind == "stop" and "no plan" in stop.reason
+
+
+def test_oracle_time_bound(foss):
+    target = box("target", 0.0, 0.12, 0.06, 0.06, 0.06)
+    squeezed = ShelfScene((box("b", 0.0, 0.0, w=0.2, h=0.2), box("l", -0.155, 0.0), box("r", 0.155, 0.0)),
+                          target, 0)
+    with pytest.raises(PolicyError, match="max_seconds"):
+        oracle_plan(foss, squeezed, suction=True, budget=6, max_seconds=0.0)
+    # A bound too short for even one expansion: no plan, at once.
+    t = time.process_time()
+    assert oracle_plan(foss, squeezed, suction=True, budget=6, max_seconds=1e-9) is None
+    assert time.process_time() - t < 1.0
 
 
 def test_oracle_follows_its_cached_plan(foss):

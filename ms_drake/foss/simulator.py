@@ -11,7 +11,9 @@ actions move one object, and nothing else ever moves. The bluction tool's two ac
   touch another object or O the wall (no multi-object pushes). Pushes shorter than MIN_PUSH are
   refused.
   `push_actions` proposes, for every object and both directions, the push up to its nearest
-  neighbour (less CONTACT_GAP).
+  neighbour (less CONTACT_GAP), the reference's candidates (Ch. 9.4.3); with leave_room=True also
+  the same push stopped BLADE_ROOM + the blade's thickness short of the neighbour, so the blade
+  still fits between the two (d_x is any real number in Ch. 9.2; the oracles use these).
 - suction (O, d_x, d_y): the blade turned up, the tool's shaft (radius SHAFT_RADIUS) reaches
   straight in from the front to O's front face at the height of O's top less the cup's radius,
   passing over lower objects (anything in its corridor reaching that height blocks it); the cup
@@ -36,10 +38,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ms_drake.shelf_geometry import Prisms, ShelfGeometry, contact_distance, overlap, visible_fraction
+from ms_drake.shelf_geometry import (
+    Prisms,
+    ShelfGeometry,
+    contact_distance,
+    overlap,
+    visible_fraction,
+)
 from ms_drake.types import Action, ActionOutcome, ShelfAction, ShelfScene
 
-BLADE_THICKNESS = 0.01  # m, along the push (x)
+BLADE_THICKNESS = 0.004  # m, along the push (x): the Fetch's bluction tool (ms_drake.robots.BluctionConfig)
 BLADE_WIDTH = 0.065  # m, along y (the reference's blade: 6.5 cm wide, 7.5 cm high)
 LIFT = 0.02  # m, least suction lift; more when the sweep passes over objects
 LIFT_CLEARANCE = 0.01  # m, between a lifted object's bottom and the objects it passes over
@@ -47,6 +55,7 @@ TOP_CLEARANCE = 0.01  # m, between a lifted object's top and the shelf top
 SHAFT_RADIUS = 0.015  # m: the 3 cm suction tube and cup
 MIN_PUSH = 0.01  # m
 CONTACT_GAP = 0.001  # m left between a pushed object and the one it stops at
+BLADE_ROOM = 0.002  # m beyond the blade's thickness left by a push that stops short (leave_room)
 SWEEP_CLEARANCE = 0.0005  # m, least gap between a suction sweep and the other objects (< CONTACT_GAP)
 SUCTION_GRID = (50, 8)  # placements across the width (x) and the depth (y)
 VISIBILITY_THRESHOLD = 0.8
@@ -133,18 +142,27 @@ class Foss:
         wall = hx - dirs * c[:, 0] - ext[:, 0]
         return fits, np.minimum(d, wall)
 
-    def push_actions(self, scene: ShelfScene) -> list[ShelfAction]:
-        """Every feasible push to the nearest neighbour (or wall), both directions, object order."""
+    def push_actions(self, scene: ShelfScene, leave_room: bool = False) -> list[ShelfAction]:
+        """Every feasible push to the nearest neighbour (or wall), both directions, object order;
+        leave_room: each followed by the same push stopped short by the blade's thickness +
+        BLADE_ROOM (when that is still >= min_push)."""
         P, n = self._bodies(scene)
         if n == 0:
             return []
+        p = self.params
         ks = np.repeat(np.arange(n), 2)
         dirs = np.tile([-1.0, 1.0], n)
         fits, reach = self._push_reach(P, ks, dirs)
-        travel = reach - self.params.contact_gap
-        ok = fits & (travel >= self.params.min_push)
-        return [ShelfAction("push", scene.objects[k].id, s * t)
-                for k, s, t, good in zip(ks.tolist(), dirs.tolist(), travel.tolist(), ok.tolist()) if good]
+        travel = reach - p.contact_gap
+        ok = fits & (travel >= p.min_push)
+        short = reach - p.blade_thickness - BLADE_ROOM
+        out = []
+        for k, s, t, t_short, good in zip(ks.tolist(), dirs.tolist(), travel.tolist(), short.tolist(), ok.tolist()):
+            if good:
+                out.append(ShelfAction("push", scene.objects[k].id, s * t))
+                if leave_room and t_short >= p.min_push:
+                    out.append(ShelfAction("push", scene.objects[k].id, s * t_short))
+        return out
 
     # -- suction ------------------------------------------------------------------------------------
 
