@@ -26,19 +26,20 @@ All three keep the history P'_t = min(P_t, P'_{t-1}) (P'_0 = P_0), renormalised.
   reference's visibility triangle (overhead: from the camera's floor point to the target's front
   face): the number of occluders still in it, each needing an action of cost >= 1 (1 once it is
   clear while the target is still not seen: objects beside it may hide the target's top).
-  oracle_p branches on every feasible push, each both to the neighbour and stopped short so the
-  blade still fits between (Foss.push_actions(leave_room=True): d_x is any real number in Ch. 9.2,
-  and a push to contact leaves the neighbour unpushable from that side); oracle_ps also on suction
-  actions of the
+  oracle_p branches on every feasible push (to the neighbour; in the later stages below also
+  stopped short so the blade still fits between, Foss.push_actions(leave_room=True): d_x is any
+  real number in Ch. 9.2, and a push to contact leaves the neighbour unpushable from that side);
+  oracle_ps also on suction actions of the
   occluders, each taken to grid placements outside the triangle (per side of the target, the
   ones farthest from it, in distinct grid rows): up to `oracle_placements` for the occluders in the
   triangle and those in the way of their sweeps to the front, 2 for the others (which may have to
   make room), instead of all 400: the reference's exhaustive trees are out of reach in Python. After
   `oracle_max_nodes` expansions without a plan, A* gives way to a greedy best-first search (fewest
-  occluders in the triangle first, 2 * oracle_max_nodes expansions), which finds a plan, not the
-  cheapest, in most of the rest; then the oracle stops, or earlier when the two have used
-  `oracle_max_seconds` of CPU time (a bound on the time per scene; only searches that are failing
-  reach it on the Table 9.1 scenes). Plans are cached by scene content, so
+  occluders in the triangle first, the latest-found state first among equals: depth first, 3 *
+  oracle_max_nodes expansions), which finds a plan, not the cheapest, in most of the rest; if neither does, both run again with the pushes that stop short
+  added (more branches: found to lose plans to the node limits when used from the start). The
+  oracle stops once the stages have used `oracle_max_seconds` of CPU time (a bound on the time
+  per scene). Plans are cached by scene content, so
   executing one re-plans nothing.
 """
 
@@ -69,7 +70,7 @@ class ShelfPolicyParams:
     seed: int = 0  # random policy
     lookahead: int = 3  # der<n>
     horizon: int | None = None  # action budget H (None: 2n); the oracles plan within what is left
-    oracle_max_nodes: int = 500  # A*'s expansions; the greedy fallback gets twice as many
+    oracle_max_nodes: int = 500  # A*'s expansions per stage; each greedy fallback gets three times as many
     oracle_max_seconds: float = 8.0  # CPU seconds of one plan (A* and fallback together)
     oracle_placements: int = 4
 
@@ -261,21 +262,26 @@ def _key(scene: ShelfScene) -> tuple:
 
 def oracle_plan(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: float = PSI,
                 max_nodes: int = 500, placements: int = 4, max_seconds: float = 8.0) -> tuple[ShelfAction, ...] | None:
-    """The cheapest action sequence (<= budget actions) after which FOSS sees the target (A*); if
-    A* expands max_nodes states without one, any such sequence (greedy best-first, 2 * max_nodes
-    expansions); None if neither finds one, or when the two have used max_seconds of CPU time
-    (module docstring)."""
+    """An action sequence (<= budget actions) after which FOSS sees the target, in stages until one
+    finds it: A* (the cheapest; max_nodes expansions) then greedy best-first (3 * max_nodes) over
+    pushes to the neighbour, then the same two with the pushes that stop short added
+    (Foss.push_actions(leave_room=True)); None if none finds one, or once the stages have used
+    max_seconds of CPU time (module docstring)."""
     if not max_seconds > 0:
         raise PolicyError(f"oracle max_seconds={max_seconds}: must be > 0 (e.g. 8.0)")
     deadline = time.process_time() + max_seconds
-    plan = _search(foss, scene, suction, budget, psi, max_nodes, placements, greedy=False, deadline=deadline)
-    if plan is None:
-        plan = _search(foss, scene, suction, budget, psi, 2 * max_nodes, placements, greedy=True, deadline=deadline)
-    return plan
+    for leave_room in (False, True):
+        for greedy, nodes in ((False, max_nodes), (True, 3 * max_nodes)):
+            plan = _search(foss, scene, suction, budget, psi, nodes, placements, greedy=greedy, deadline=deadline,
+                           leave_room=leave_room)
+            if plan is not None:
+                return plan
+    return None
 
 
 def _search(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: float, max_nodes: int,
-            placements: int, greedy: bool, deadline: float = np.inf) -> tuple[ShelfAction, ...] | None:
+            placements: int, greedy: bool, deadline: float = np.inf,
+            leave_room: bool = False) -> tuple[ShelfAction, ...] | None:
     if scene.target is None:
         raise PolicyError("the oracles need the full state: connect a scene with its target")
     tri = visibility_triangle(foss.geometry, scene.target)
@@ -296,7 +302,7 @@ def _search(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: floa
         if len(plan) >= budget or (not greedy and g > best.get(_key(sc), np.inf) + 1e-9):
             continue
         expanded += 1
-        actions = [(a, 1.0) for a in foss.push_actions(sc, leave_room=True)]
+        actions = [(a, 1.0) for a in foss.push_actions(sc, leave_room=leave_room)]
         if suction:
             actions += [(a, psi) for a in _oracle_suction(foss, sc, tri, _movers(sc, inside), placements)]
         for a, cost in actions:
@@ -307,7 +313,7 @@ def _search(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: floa
             best[key] = g2
             ins = _in_triangle(tri, nxt)
             h2 = estimate(nxt, ins)
-            heapq.heappush(heap, (h2 if greedy else g2 + h2, h2, counter, g2, nxt, plan + (a,), ins))
+            heapq.heappush(heap, (h2 if greedy else g2 + h2, h2, -counter if greedy else counter, g2, nxt, plan + (a,), ins))
             counter += 1
     return None
 
