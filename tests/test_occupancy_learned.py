@@ -6,8 +6,15 @@ import numpy as np
 import pytest
 from pydrake.systems.sensors import ImageDepth32F
 
-from ms_drake.errors import PerceptionError
-from ms_drake.experiments.occupancy_data import load_dataset, shard_split, write_occupancy_dataset
+from ms_drake.errors import DatasetError, PerceptionError
+from ms_drake.experiments.occupancy_data import (
+    LyingCylinder,
+    insert_target,
+    load_dataset,
+    shard_split,
+    target_shape,
+    write_occupancy_dataset,
+)
 from ms_drake.experiments.occupancy_learning import (
     batch_constraint,
     diagonals,
@@ -18,6 +25,7 @@ from ms_drake.experiments.occupancy_learning import (
 )
 from ms_drake.experiments.rollout import SearchParams, build_search
 from ms_drake.experiments.xray import XRAY_TARGET, xray_heap
+from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.objects import get_object
 from ms_drake.perception.occupancy import OccupancyEstimator, TargetBox
 from ms_drake.perception.occupancy_net import (
@@ -172,7 +180,7 @@ def test_learned_estimator_alone():
 
 
 def test_learned_estimator_in_the_xray_controller_without_privileged_state():
-    heap = xray_heap(5000, occluders=4)
+    heap = xray_heap(5003, occluders=4)  # the target seen and graspable at the start
     assert heap.target == XRAY_TARGET and heap.target_index == 0
     system = build_search(load_scenario(None, "FloatingGripperBin"), heap, SearchParams(policy="xray", horizon=2,
                                                                                         time_step=0.01))
@@ -185,4 +193,25 @@ def test_learned_estimator_in_the_xray_controller_without_privileged_state():
                       system.controller.initial_commands())
     rho = system.output(ctx, "occupancy").distribution
     assert rho.shape == FULL_SHAPE and rho.sum() == pytest.approx(1.0)
-    assert system.output(ctx, "action").kind == "grasp"
+    a = system.output(ctx, "action")
+    assert system.output(ctx, "target").visible
+    assert a.kind == "grasp" and a.grasp.object_id == system.target_id  # X-Ray takes the seen target first
+
+
+def test_flute_target_is_a_lying_cylinder_seen_from_above():
+    scenario = load_scenario(None, "BinHeap15")
+    cam = PinholeCamera.from_config(scenario.cameras[next(iter(scenario.cameras))])
+    ws = Workspace.from_scenario(scenario)
+    shape = target_shape(("cylinder", 0.15, 0.015))
+    assert isinstance(shape, LyingCylinder) and (shape.length, shape.width, shape.thickness) == (0.15, 0.015, 0.015)
+    assert isinstance(target_shape((0.03, 0.06, 0.005)), TargetBox)
+    v, _ = shape.mesh_vertices_faces()
+    assert np.ptp(v, axis=0) == pytest.approx([0.15, 0.015, 0.015], abs=1e-4)  # its axis along x
+    floor = np.full((cam.height, cam.width), cam.X_WC.translation()[2] - ws.floor_z, np.float32)  # the empty floor
+    depth, modal = insert_target(floor, cam, ws, shape, ws.center_xy, 0.0)
+    z_top = cam.X_WC.translation()[2] - ws.floor_z - shape.thickness
+    expected = shape.length * shape.width * (cam.fx / z_top) ** 2  # its footprint seen from the top
+    assert modal.sum() == pytest.approx(expected, rel=0.15)
+    assert np.all(depth[modal] < floor[modal]) and np.array_equal(depth[~modal], floor[~modal])
+    with pytest.raises(DatasetError, match="diameter"):
+        LyingCylinder(0.01, 0.02)
