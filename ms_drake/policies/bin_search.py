@@ -39,6 +39,7 @@ from pydrake.systems.framework import Diagram, DiagramBuilder
 from ms_drake.errors import MsDrakeError
 from ms_drake.execution import FIDELITIES, ActionExecutor, FullBackend, PrimitiveBackend, tcp_offset_of
 from ms_drake.geometry import PinholeCamera, Workspace
+from ms_drake.grasping.meshes import object_mesh
 from ms_drake.grasping.planner import GraspPlanner, LazyGraspPlanner, ObjectGeometrySource
 from ms_drake.objects import get_object
 from ms_drake.perception.masks import TargetAmodalMask, make_amodal_masks, object_labels
@@ -196,8 +197,11 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
     builder.Connect(masks, grasp.GetInputPort("masks"))
     if sim is not None:
         objs = station_objects(sim.plant)
+        # The grasp meshes are the repaired, closed ones (grasping.meshes.object_mesh): the contact
+        # models give every grasp on an open visual mesh quality 0 ("non_watertight_mesh"), which
+        # left most YCB / random_urdfs objects without a grasp.
         geo = builder.AddSystem(ObjectGeometrySource({
-            o.model_name: (sim.plant.get_body(o.body_index), get_object(o.full_name).trimesh(),
+            o.model_name: (sim.plant.get_body(o.body_index), object_mesh(o.full_name),
                            get_object(o.full_name).mass, None) for o in objs}))
         geo.set_name("object_geometry")
         pose_inputs.append(geo.GetInputPort("body_poses"))
