@@ -4,6 +4,7 @@ the bin-search controller."""
 
 import numpy as np
 import pytest
+import trimesh
 from pydrake.systems.sensors import ImageDepth32F
 
 from ms_drake.errors import DatasetError, PerceptionError
@@ -193,6 +194,10 @@ def test_learned_estimator_in_the_xray_controller_without_privileged_state():
                       system.controller.initial_commands())
     rho = system.output(ctx, "occupancy").distribution
     assert rho.shape == FULL_SHAPE and rho.sum() == pytest.approx(1.0)
+    # the grasp planner scores closed meshes (an open visual mesh scores every grasp 0)
+    geo = system.controller.GetSubsystemByName("object_geometry")
+    objs = geo.get_output_port(0).Eval(geo.GetMyContextFromRoot(ctx))
+    assert len(objs) == len(heap.objects) and all(trimesh.Trimesh(o.vertices, o.faces).is_watertight for o in objs)
     a = system.output(ctx, "action")
     assert system.output(ctx, "target").visible
     assert a.kind == "grasp" and a.grasp.object_id == system.target_id  # X-Ray takes the seen target first
