@@ -2,6 +2,8 @@
 station's initial pose and the controller's), and FetchFeasibleSelector chooses the policy's best
 action that the Fetch's planner accepts (alone with fixed inputs, and in the controller Diagram)."""
 
+import json
+
 import cv2
 import numpy as np
 import pytest
@@ -13,6 +15,7 @@ from ms_drake.experiments.shelf_physics import (
     _skipped,
     action_agreement,
     build_shelf_physics,
+    physics_records,
     physics_table,
     set_initial,
     with_time_step,
@@ -156,3 +159,13 @@ def test_action_agreement_counts_what_each_action_toppled():
                                 skipped=2)], ("der3",))
     assert "| all | physics = FOSS per action | 25 % (1/4) |" in table
     assert "| all | physics = FOSS, pushes | 50 % (1/2) |" in table and "| 1 of 5 steps |" in table
+
+
+def test_physics_records_one_per_policy_and_seed(tmp_path):
+    f = tmp_path / "r.jsonl"
+    lines = [{"seed": 1, "policy": "der3", "fidelity": "physics", "steps": 2}, {"seed": 1, "policy": "der3", "fidelity": "physics",
+                                                                             "steps": 5},
+             {"seed": 1, "policy": "bluction_dar", "fidelity": "physics", "steps": 3}, {"seed": 2, "policy": "der3", "fidelity": "foss"}]
+    f.write_text("".join(json.dumps(r) + "\n" for r in lines))
+    recs = physics_records([f])
+    assert [(r["policy"], r["steps"]) for r in recs] == [("der3", 2), ("bluction_dar", 3)]

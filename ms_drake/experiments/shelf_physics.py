@@ -468,5 +468,12 @@ def _observed(res: ShelfPhysicsResult, k: int, scene: ShelfScene) -> ShelfScene:
 
 
 def physics_records(files) -> list[dict]:
-    """The physics shelf records (fidelity "physics") of result files."""
-    return [r for f in files for r in read_records(Path(f)) if r.get("fidelity") == FIDELITY]
+    """The physics shelf records (fidelity "physics") of result files, one per (policy, seed): the
+    first (two runs over overlapping seed ranges into one file may both write a seed)."""
+    out, seen = [], set()
+    for f in files:
+        for r in read_records(Path(f)):
+            if r.get("fidelity") == FIDELITY and (r["policy"], r["seed"]) not in seen:
+                seen.add((r["policy"], r["seed"]))
+                out.append(r)
+    return out
