@@ -18,7 +18,7 @@ s is heap s of held-out objects (the test split of its object set; sets taken in
 m ~ Poisson(7.5) truncated to [1, 10]) seen by one jittered overhead camera
 (occupancy_data.random_camera), as the dataset draws them; the backend segments its depth
 image; COCO mask AP (IoU 0.50:0.95), AP50 and AR@100 by pycocotools over all images
-(segmentation.coco_metrics), and the median seconds per image of the backend alone.
+(segmentation.coco_metrics), and the median wall and CPU seconds per image of the backend alone.
 """
 
 from __future__ import annotations
@@ -156,14 +156,16 @@ class TrainingImages:
 
 def train_segmentation(data, out, epochs: int = 8, batch: int = 16, seed: int = 0, threads: int = 1,
                        config: NetConfig | None = None, max_minutes: float = 60.0, progress=None, command: str = "",
-                       lr: float = 2e-3, max_images: int | None = None, steps_per_epoch: int | None = None) -> dict:
+                       lr: float = 2e-3, max_images: int | None = None, steps_per_epoch: int | None = None,
+                       init=None) -> dict:
     """Train on the train shards of `data` (the first `max_images` if given); write `out` (weights +
     meta) and `out`.ckpt (resume). Stops early (after a whole epoch) when `max_minutes` of wall
     time would be exceeded.
 
     steps_per_epoch None: an epoch is one pass over the images. Given: an epoch is that many
     batches, drawn from the train shards on disk when it starts (training can start while
-    `ms-drake data segmentation` is still writing; each epoch's image count is in the history)."""
+    `ms-drake data segmentation` is still writing; each epoch's image count is in the history).
+    init: a weights file to start from (fine-tuning; its network configuration is used)."""
     torch = torch_setup(seed, threads)
     config = config or NetConfig()
     out = Path(out)
@@ -177,12 +179,18 @@ def train_segmentation(data, out, epochs: int = 8, batch: int = 16, seed: int = 
     if n < batch:
         raise DatasetError(f"{data}: {n} training images, fewer than a batch ({batch}); make more with "
                            "`ms-drake data segmentation --count ...`")
+    if init is not None:
+        ck = torch.load(init, map_location="cpu", weights_only=False)
+        config = NetConfig(**ck["config"])
     net = make_net(config)
+    if init is not None:
+        net.load_state_dict(ck["model"])
     opt = make_optimizer(net, lr)
     steps = steps_per_epoch or n // batch
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs * steps)
     settings = dict(config=asdict(config), epochs=epochs, batch=batch, lr=lr, seed=seed, max_images=max_images,
-                    steps_per_epoch=steps_per_epoch, n=None if steps_per_epoch else n)
+                    steps_per_epoch=steps_per_epoch, n=None if steps_per_epoch else n,
+                    init=None if init is None else str(init))
     start, history, seconds = resume(torch, ckpt, settings, net, opt, sched)
     t0 = time.perf_counter() - seconds
     for epoch in range(start, epochs):
@@ -286,10 +294,10 @@ def bench_job(job: tuple) -> list[dict]:
             seg = learned
         else:
             seg = make_segmenter(backend, cam, ws)
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         pred = gt if backend == "ground_truth" else seg.segment(depth=depth)
-        dt = time.perf_counter() - t
-        out.append(dict(seed=s, gt=encode_masks(gt), dt=encode_masks(pred), seconds=dt))
+        dt, dc = time.perf_counter() - t, time.process_time() - c
+        out.append(dict(seed=s, gt=encode_masks(gt), dt=encode_masks(pred), seconds=dt, cpu_seconds=dc))
     return out
 
 
@@ -317,6 +325,7 @@ def bench_segmentation(backend: str, images: int, seed_start: int, workers: int 
     return dict(backend=backend, ap=m["AP"], ap50=m["AP50"], ar=m["AR100"], images=len(ok), gt=m["gt"], dt=m["dt"],
                 failed_images=[r["seed"] for r in rows if "gt" not in r], seed_start=seed_start, noise=noise,
                 dropout=dropout, seconds_median=statistics.median(secs) if secs else 0.0,
+                cpu_seconds_median=statistics.median([r["cpu_seconds"] for r in ok]) if ok else 0.0,
                 weights=None if weights is None else str(weights))
 
 
