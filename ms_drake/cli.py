@@ -46,10 +46,13 @@ from ms_drake.experiments.occupancy_learning import (
     write_json,
 )
 from ms_drake.experiments.picks import TASKS, run_pick
-from ms_drake.experiments.segmentation_data import write_segmentation_dataset
-from ms_drake.experiments.segmentation_learning import bench_segmentation, train_segmentation
-from ms_drake.experiments.segmentation_learning import write_json as write_seg_json
 from ms_drake.experiments.scene_images import make_scene, write_scene_images
+from ms_drake.experiments.segmentation_data import write_segmentation_dataset
+from ms_drake.experiments.segmentation_learning import (
+    bench_segmentation,
+    train_segmentation,
+)
+from ms_drake.experiments.segmentation_learning import write_json as write_seg_json
 from ms_drake.experiments.shelf import PERCEPTIONS as SHELF_PERCEPTIONS
 from ms_drake.experiments.shelf import (
     bench_shelf_scenes,
