@@ -35,8 +35,9 @@ All three keep the history P'_t = min(P_t, P'_{t-1}) (P'_0 = P_0), renormalised.
   triangle and those in the way of their sweeps to the front, 2 for the others (which may have to
   make room), instead of all 400: the reference's exhaustive trees are out of reach in Python. After
   `oracle_max_nodes` expansions without a plan, A* gives way to a greedy best-first search (fewest
-  occluders in the triangle first, the latest-found state first among equals: depth first, 3 *
-  oracle_max_nodes expansions), which finds a plan, not the cheapest, in most of the rest; if neither does, both run again with the pushes that stop short
+  occluders in the triangle, each counted twice while it can be neither pushed nor picked: not
+  admissible, 3 * oracle_max_nodes expansions), which finds a plan, not the cheapest, in most of
+  the rest; if neither does, both run again with the pushes that stop short
   added (more branches: found to lose plans to the node limits when used from the start). The
   oracle stops once the stages have used `oracle_max_seconds` of CPU time (a bound on the time
   per scene). Plans are cached by scene content, so
@@ -256,6 +257,17 @@ def _oracle_suction(foss: Foss, scene: ShelfScene, tri, movers: np.ndarray, per_
     return out
 
 
+def _stuck(foss: Foss, scene: ShelfScene, ks: np.ndarray, suction: bool) -> np.ndarray:
+    """Bool (len(ks),): occluders ks with no feasible push (and, with suction, no pick) right now."""
+    P, _ = foss._bodies(scene)
+    fits, reach = foss._push_reach(P, np.repeat(ks, 2), np.tile([-1.0, 1.0], len(ks)))
+    movable = (fits & (reach - foss.params.contact_gap >= foss.params.min_push)).reshape(-1, 2).any(axis=1)
+    if suction:
+        for i in np.nonzero(~movable)[0]:
+            movable[i] = foss._lifts_ok(P, int(ks[i]), P.center[ks[i]][None])[0]
+    return ~movable
+
+
 def _key(scene: ShelfScene) -> tuple:
     return tuple((round(o.x, 6), round(o.y, 6)) for o in scene.objects)
 
@@ -263,7 +275,7 @@ def _key(scene: ShelfScene) -> tuple:
 def oracle_plan(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: float = PSI,
                 max_nodes: int = 500, placements: int = 4, max_seconds: float = 8.0) -> tuple[ShelfAction, ...] | None:
     """An action sequence (<= budget actions) after which FOSS sees the target, in stages until one
-    finds it: A* (the cheapest; max_nodes expansions) then greedy best-first (3 * max_nodes) over
+    finds it: A* (the cheapest; max_nodes expansions) then greedy best-first (3 * max_nodes), over
     pushes to the neighbour, then the same two with the pushes that stop short added
     (Foss.push_actions(leave_room=True)); None if none finds one, or once the stages have used
     max_seconds of CPU time (module docstring)."""
@@ -288,7 +300,11 @@ def _search(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: floa
 
     def estimate(sc, inside):
         blockers = int(inside.sum())
-        return blockers if blockers else (0 if foss.revealed(sc) else 1)
+        if not blockers:
+            return 0 if foss.revealed(sc) else 1
+        if greedy:  # not admissible: also count the blockers that cannot be moved at all yet
+            blockers += int(_stuck(foss, sc, np.nonzero(inside)[0], suction).sum())
+        return blockers
 
     inside = _in_triangle(tri, scene)
     h0 = estimate(scene, inside)
@@ -313,7 +329,7 @@ def _search(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: floa
             best[key] = g2
             ins = _in_triangle(tri, nxt)
             h2 = estimate(nxt, ins)
-            heapq.heappush(heap, (h2 if greedy else g2 + h2, h2, -counter if greedy else counter, g2, nxt, plan + (a,), ins))
+            heapq.heappush(heap, (h2 if greedy else g2 + h2, h2, counter, g2, nxt, plan + (a,), ins))
             counter += 1
     return None
 
