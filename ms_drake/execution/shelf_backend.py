@@ -22,7 +22,7 @@ suction (O, dx, dy): blade up. The cup (frame `tcp`) on O's front face (its fron
   the shelf -> translate dx along x -> push in until O's front face is dy behind the front plane ->
   lower onto the floor (3 mm into it: the cup gives) -> vacuum off, hold -> straight out -> park.
 park: the tool level and pointing into the shelf, its tip 15 cm in front of the shelf's front plane
-  at its floor's height (PARK_TIP; IK seeded at the station's SHELF_PARK), the torso at 0.26 m, near
+  at its floor's height (PARK_TIP; IK from PARK_SEED), the torso at 0.26 m, near
   the work poses' heights (the torso is slow: 0.1 m/s), the arm in the branch from which the
   most shelf actions plan (measured over sampled scenes): outside
   the front camera's view, which sees the shelf from above the robot, 30 degrees down (the
@@ -53,7 +53,6 @@ from ms_drake.planning import ik_pose, plan_cartesian_line, plan_joint_motion
 from ms_drake.planning.sequences import Schedule, Timeline, arm_ik, nearest_equivalent
 from ms_drake.robots import BluctionConfig, gripper_port_name
 from ms_drake.shelf_geometry import ShelfGeometry
-from ms_drake.station.robots import SHELF_PARK
 from ms_drake.types import Action, ActionOutcome, ShelfObject, ShelfScene
 
 #: Tool level, pointing into the shelf (+y), body y up: the blade hangs down at angle 0.
@@ -62,6 +61,9 @@ BLADE_DOWN, BLADE_UP = 0.0, 3.14159  # the blade joint's limits are [0, 3.141592
 #: The tool tip when parked, shelf frame: centred, 15 cm in front of the shelf's front plane, at its
 #: floor's height (out of the front camera's view; module docstring).
 PARK_TIP = (0.0, -0.15, 0.0)
+#: The Fetch's arm joints the park IK starts from (torso 0.26 m; the branch from which the most
+#: shelf actions plan).
+PARK_SEED = (0.26, 1.6, 1.0, -0.16, 1.95, -1.63, 1.4, -0.18)
 TOPPLE_DEGREES = 20.0
 
 
@@ -154,7 +156,7 @@ class ShelfBackend:
         self.limits = limits
         self._set_blade(self.cup_ik, BLADE_UP)  # suction IK with the blade up, push IK with it down
         park = self.world([PARK_TIP[0], -self.half[1] + PARK_TIP[1], PARK_TIP[2]])
-        q_seed = np.array(SHELF_PARK.get(scenario.robot.name, q_home), float)
+        q_seed = np.array(PARK_SEED, float)
         res = self.cup_ik.solve(RigidTransform(TOOL_ROTATION, park), q_seed)
         if not res.success:
             raise ExecutionError(f"the Fetch cannot reach its park pose (tool tip at {np.round(park, 3).tolist()}): "

@@ -260,9 +260,9 @@ def add_robot_from_scenario(builder, plant, scene_graph, scenario, parser):
 
 
 #: At a shelf, the Fetch starts parked out of the front camera's view: the bluction tool level and
-#: pointing into the shelf, its tip 15 cm in front of the shelf's front plane at its floor's height,
-#: the torso at 0.26 m, near the work poses' (by IK; ms_drake.execution.shelf_backend parks there).
-SHELF_PARK = {"fetch": (0.26, 1.6, 1.0, -0.16, 1.95, -1.63, 1.4, -0.18)}
+#: pointing into the shelf, its tip 6 cm in front of the shelf's front plane and 6 cm below its
+#: floor, the torso at 0.2 m, every link >= 2 cm from the robot's others (by IK; tests/test_shelf_fetch.py).
+SHELF_PARK = {"fetch": (0.201, 1.453, 1.024, -0.459, 1.873, -1.733, 1.253, -0.204)}
 
 
 def set_home(plant, instance, spec: RobotSpec):
