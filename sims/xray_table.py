@@ -5,7 +5,8 @@
 
 Per policy (ms_drake.experiments.harness.summarize): success with its bootstrap 95 % interval,
 action quartiles over successes, failures; the paired sign test of every pair
-(harness.paired_comparison); the seen fraction of the target at the start splits the heaps
+(harness.paired_comparison) and, on the heaps both solve, a sign test on who needed fewer
+actions; the seen fraction of the target at the start splits the heaps
 (heap.visible_ratios, from --heap-dir) when given; the Fig. 8.6 histogram and the cumulative
 successes (harness.plot) of the common heaps into --out.
 """
@@ -17,6 +18,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import binomtest
 
 from ms_drake.experiments.harness import final_records, format_summary, paired_comparison, plot, read_records, summarize
 from ms_drake.scenes.heaps import load_heap
@@ -36,10 +38,21 @@ def main():
     recs = {f: sorted((r for r in rs if int(r["seed"]) in common), key=lambda r: r["seed"]) for f, rs in recs.items()}
     for f, rs in recs.items():
         print(format_summary(rs[0]["policy"], summarize(rs)))
+        within = {k: np.mean([r["success"] and r["actions"] <= k for r in rs]) for k in (1, 2, 3, 5)}
+        print("  success within k actions: " + ", ".join(f"k = {k}: {100 * v:.1f} %" for k, v in within.items()))
     for fa, fb in itertools.combinations(args.files, 2):
         c = paired_comparison(recs[fa], recs[fb])
         print(f"{recs[fa][0]['policy']} vs {recs[fb][0]['policy']}: only A {len(c['only_a'])}, only B "
               f"{len(c['only_b'])}, both {c['both']}, neither {c['neither']}; sign test p = {c['p']:.3g}")
+        # actions on the heaps both solve: who needed fewer (sign test on the heaps that differ)
+        a = {int(r["seed"]): int(r["actions"]) for r in recs[fa] if r["success"]}
+        b = {int(r["seed"]): int(r["actions"]) for r in recs[fb] if r["success"]}
+        both = sorted(set(a) & set(b))
+        fewer_a = sum(1 for k in both if a[k] < b[k])
+        fewer_b = sum(1 for k in both if b[k] < a[k])
+        p_act = float(binomtest(fewer_a, fewer_a + fewer_b, 0.5).pvalue) if fewer_a + fewer_b else 1.0
+        print(f"  actions on the {len(both)} heaps both solve: mean {np.mean([a[k] for k in both]):.2f} vs "
+              f"{np.mean([b[k] for k in both]):.2f}; fewer: A on {fewer_a}, B on {fewer_b} (sign test p = {p_act:.3g})")
     if args.heap_dir is not None:
         seen = {}
         for k in common:
