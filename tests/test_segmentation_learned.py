@@ -12,7 +12,11 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.sensors import ImageDepth32F
 
 from ms_drake.errors import DatasetError, PerceptionError
-from ms_drake.experiments.segmentation_data import load_working, sensor_model, write_segmentation_dataset
+from ms_drake.experiments.segmentation_data import (
+    load_working,
+    sensor_model,
+    write_segmentation_dataset,
+)
 from ms_drake.experiments.segmentation_learning import (
     bench_image,
     bench_job,
@@ -21,7 +25,7 @@ from ms_drake.experiments.segmentation_learning import (
     train_steps,
 )
 from ms_drake.perception.masks import object_labels
-from ms_drake.perception.segmentation import Segmenter, coco_metrics, coco_mask_metrics
+from ms_drake.perception.segmentation import Segmenter, coco_mask_metrics, coco_metrics
 from ms_drake.perception.segmentation_net import (
     WORK_SHAPE,
     NetConfig,

@@ -255,6 +255,9 @@ class LearnedSegmentation:
         t = time.perf_counter()
         d = np.asarray(depth.data if hasattr(depth, "data") else depth, np.float32)
         d = d[..., 0] if d.ndim == 3 else d
+        if not (np.isfinite(d) & (d > 0)).any():  # no depth return at all: nothing to segment
+            self.last_seconds = time.perf_counter() - t
+            return InstanceMasks.empty(*d.shape)
         labels, scores = instances_from_probabilities(self.probabilities(working_inputs(d)), self.min_seed, self.grow)
         out = full_resolution_masks(labels, scores)
         self.last_seconds = time.perf_counter() - t
