@@ -198,8 +198,8 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
     if sim is not None:
         objs = station_objects(sim.plant)
         # The grasp meshes are the repaired, closed ones (grasping.meshes.object_mesh): the contact
-        # models give every grasp on an open visual mesh quality 0 ("non_watertight_mesh"), which
-        # left most YCB / random_urdfs objects without a grasp.
+        # models give every grasp on an open visual mesh quality 0 ("non_watertight_mesh"), and
+        # most YCB / random_urdfs visual meshes are open.
         geo = builder.AddSystem(ObjectGeometrySource({
             o.model_name: (sim.plant.get_body(o.body_index), object_mesh(o.full_name),
                            get_object(o.full_name).mass, None) for o in objs}))
