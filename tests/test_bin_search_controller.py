@@ -88,8 +88,8 @@ def test_controller_rejects_settings_it_cannot_honour(yumi_images):
         MakeBinSearchController(s, BinSearchParams(policy="xray", fidelity="full", segmentation="euclidean"))
     with pytest.raises(ControllerError, match="camera 'front' is not a camera"):
         MakeBinSearchController(s, BinSearchParams(fidelity="full", segmentation="euclidean", camera="front"))
-    with pytest.raises(ControllerError, match="segmentation 'learned' unknown"):
-        BinSearchParams(segmentation="learned")
+    with pytest.raises(ControllerError, match="segmentation 'sonar' unknown"):
+        BinSearchParams(segmentation="sonar")
 
 
 def test_three_lines_wire_the_controller_to_a_simulated_station(heap4):

@@ -69,7 +69,7 @@ class BinSearchParams:
     grasp_models: the GraspPlanners whose best grasps the selector compares per object (parallel
     jaw with a contact model, and "suction"), as in Ch. 7; grasp_params: GraspEvaluator keywords
     of the jaw models, e.g. {"closing_force": 40.0}.
-    segmentation: "ground_truth" (label image; needs `sim`), "euclidean" or "region_growing"
+    segmentation: "ground_truth" (label image; needs `sim`), "euclidean", "region_growing" or "learned"
     (depth only, run on hardware). occupancy: the OccupancyEstimator backend, "learned" (the
     network of ms_drake.perception.occupancy_net, from the target's size) or "analytic" (the
     ground-truth generator; given a TargetMesh with its pose it reads privileged state).
