@@ -76,7 +76,7 @@ from ms_drake.experiments.shelf_physics import (
     run_shelf_physics_bench,
 )
 from ms_drake.experiments.shelf_segmentation import bench_shelf_segmentation
-from ms_drake.experiments.xray import PROTOCOLS, XRAY_HORIZON, XRAY_OBJECTS
+from ms_drake.experiments.xray import PROTOCOLS, XRAY_HORIZON, XRAY_OBJECTS, XRAY_PROTOCOLS
 from ms_drake.grasping.evaluator import MODELS
 from ms_drake.objects import get_object_set
 from ms_drake.parallel import run_jobs
@@ -305,14 +305,15 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
                      "runs of several policies so they search the same heaps; made on first use"),
                  protocol: str = typer.Option("ch7", "--protocol", help="Heaps: ch7 (N objects of the scenario's "
                                               "set) | xray (Table 8.2: the target dropped first under N = 14 mesh "
-                                              "objects unseen in training; H = 10)")):
+                                              "objects unseen in training; H = 10) | xray_hidden (the same, "
+                                              "target fully hidden at the start)")):
     """Search heaps S..S+K-1 with a policy; one JSON line per rollout (resumable), then a summary."""
     check_policy(policy)
     if protocol not in PROTOCOLS:
         _fail(f"--protocol {protocol!r}: choose one of {', '.join(PROTOCOLS)}")
     if objects is None:
-        objects = XRAY_OBJECTS if protocol == "xray" else 15
-    if protocol == "xray" and horizon is None:
+        objects = XRAY_OBJECTS if protocol in XRAY_PROTOCOLS else 15
+    if protocol in XRAY_PROTOCOLS and horizon is None:
         horizon = XRAY_HORIZON
     if fidelity not in FIDELITIES:
         _fail(f"--fidelity {fidelity!r}: choose one of {', '.join(FIDELITIES)}")

@@ -27,7 +27,7 @@ import numpy as np
 from scipy.stats import binomtest
 
 from ms_drake.experiments.rollout import rollout
-from ms_drake.experiments.xray import PROTOCOLS, xray_heap
+from ms_drake.experiments.xray import PROTOCOLS, XRAY_PROTOCOLS, xray_heap
 from ms_drake.parallel import run_jobs
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap, load_heap, save_heap
@@ -40,14 +40,15 @@ def cached_heap(objects: int, seed: int, heap_dir: str | None, protocol: str = "
     several policies search the very same heaps without regenerating them (a heap is a pure
     function of (protocol, N, seed); the file is written atomically). protocol "ch7": N objects of
     the scenario's set (heap_N<N>_s<seed>.json); "xray": the target dropped first under N unseen
-    mesh objects (ms_drake.experiments.xray; heap_xray_N<N>_s<seed>.json)."""
+    mesh objects (ms_drake.experiments.xray; heap_xray_N<N>_s<seed>.json); "xray_hidden": those
+whose target starts fully hidden (heap_xray_hidden_N<N>_s<seed>.json)."""
     if protocol not in PROTOCOLS:
         raise ValueError(f"protocol {protocol!r} unknown; choose one of {', '.join(PROTOCOLS)}")
     stem = f"heap_N{objects}_s{seed}" if protocol == "ch7" else f"heap_{protocol}_N{objects}_s{seed}"
     path = Path(heap_dir) / f"{stem}.json" if heap_dir else None
     if path is not None and path.exists():
         return load_heap(path)
-    heap = (xray_heap(seed, objects) if protocol == "xray" else
+    heap = (xray_heap(seed, objects, hidden=protocol == "xray_hidden") if protocol in XRAY_PROTOCOLS else
             generate_heap(load_scenario(None, "BinHeap15"), objects, seed, params=SEARCH_HEAPS))
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)

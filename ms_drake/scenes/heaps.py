@@ -130,6 +130,9 @@ class HeapParams:
     # engine="bullet" only: then settle the heap in the compliant Drake drop world for at most this
     # many simulated seconds (0: no polish), so that it is at rest in Drake's contact model too
     polish_time: float = 0.0
+    # target_first only: an attempt counts only if the target's seen fraction from the overhead
+    # camera is at most this (1: any heap; 0: the target starts fully hidden)
+    max_target_seen: float = 1.0
 
 
 #: Heaps of the search benchmarks (ms_drake.experiments): the Drake drop world, whose heaps are
@@ -548,6 +551,10 @@ def generate_heap(scenario: Scenario, num_objects: int, seed: int, object_set: s
             target_k = int(np.argmin(ratios))
         if target_first:
             target_k = present.index(0)
+            if ratios[target_k] > params.max_target_seen:
+                reasons.append(f"attempt {attempt}: the target is {100 * ratios[target_k]:.0f} % seen "
+                               f"(HeapParams.max_target_seen={params.max_target_seen})")
+                continue
         objects = tuple(ObjectPose(names[i], world.free_body_q(i)) for i in present)
         heap = Heap(seed=seed, environment="bin", objects=objects,
                     target=objects[target_k].name if target_k >= 0 else "", target_index=target_k,
