@@ -80,6 +80,8 @@ from ms_drake.experiments.xray import PROTOCOLS, XRAY_HORIZON, XRAY_OBJECTS, XRA
 from ms_drake.grasping.evaluator import MODELS
 from ms_drake.objects import get_object_set
 from ms_drake.parallel import run_jobs
+from ms_drake.perception.segmentation import BACKENDS as SEGMENTATION_BACKENDS
+from ms_drake.perception.target import BACKENDS as DETECTOR_BACKENDS
 from ms_drake.policies.bin_selectors import check_policy
 from ms_drake.policies.shelf import SHELF_POLICIES, check_shelf_policy
 from ms_drake.scenario import load_scenario
@@ -306,9 +308,17 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
                  protocol: str = typer.Option("ch7", "--protocol", help="Heaps: ch7 (N objects of the scenario's "
                                               "set) | xray (Table 8.2: the target dropped first under N = 14 mesh "
                                               "objects unseen in training; H = 10) | xray_hidden (the same, "
-                                              "target fully hidden at the start)")):
+                                              "target fully hidden at the start)"),
+                 segmenter: str = typer.Option("ground_truth", "--segmenter", help="Instance masks: ground_truth "
+                                               "(label image) | euclidean | region_growing | learned (depth)"),
+                 detector: str = typer.Option("color", "--detector", help="Target detector: color (HSV, red "
+                                              "target) | template | learned (siamese matcher on target views)")):
     """Search heaps S..S+K-1 with a policy; one JSON line per rollout (resumable), then a summary."""
     check_policy(policy)
+    if segmenter not in SEGMENTATION_BACKENDS:
+        _fail(f"--segmenter {segmenter!r}: choose one of {', '.join(SEGMENTATION_BACKENDS)}")
+    if detector not in DETECTOR_BACKENDS:
+        _fail(f"--detector {detector!r}: choose one of {', '.join(DETECTOR_BACKENDS)}")
     if protocol not in PROTOCOLS:
         _fail(f"--protocol {protocol!r}: choose one of {', '.join(PROTOCOLS)}")
     if objects is None:
@@ -326,7 +336,8 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
 
     s = run_bench(policy, objects, heaps_, seed_start, out, workers=workers, fidelity=fidelity, horizon=horizon,
                   use_ray=ray or ray_address is not None, ray_address=ray_address, progress=progress,
-                  heap_dir=str(heap_dir) if heap_dir is not None else None, protocol=protocol)
+                  heap_dir=str(heap_dir) if heap_dir is not None else None, protocol=protocol,
+                  segmenter=segmenter, detector=detector)
     if s["resumed"]:
         typer.echo(f"resuming: {s['resumed']} of {heaps_} rollouts already in {out}")
     typer.echo(format_summary(policy, s))

@@ -79,6 +79,12 @@ class SearchParams:
     # 10 ms blew up (non-finite poses) in 10 of 200 Random rollouts of Table C.1's heaps, while
     # "lagged" and "similar" ran those heaps without a blow-up (docs/BENCHMARKS.md).
     contact_approximation: str | None = None
+    # Perception of the controller (BinSearchParams.segmentation / .detector): "ground_truth" masks
+    # from the label image (default) or a depth segmenter ("euclidean", "region_growing",
+    # "learned"); the target detector "color" (default), "template" or "learned" (both of the
+    # latter match templates rendered of the target object).
+    segmenter: str = "ground_truth"
+    detector: str = "color"
 
     def __post_init__(self):
         check_policy(self.policy)
@@ -113,6 +119,8 @@ class RolloutResult:
     cpu_seconds: float  # this process's CPU time (the cost on one core, whatever the machine's load)
     sim_seconds: float
     target: str = ""
+    segmenter: str = "ground_truth"
+    detector: str = "color"
     grasp_successes: int = 0
     objects_present: int = 0  # objects in the heap searched (its budget 2N counts these)
     grasp_plans: int = 0  # object grasp plans (LazyGraspPlanner: only the masks the selector reached)
@@ -148,7 +156,7 @@ def controller_params(params: SearchParams, num_objects: int) -> BinSearchParams
     return BinSearchParams(policy=params.policy, fidelity=params.fidelity, horizon=horizon, seed=params.seed,
                            grasp_models=tuple(params.grasp_models), grasp_samples=params.grasp_samples,
                            robust_samples=params.robust_samples, grasp_params=params.grasp_params,
-                           period=params.period,
+                           period=params.period, segmentation=params.segmenter, detector=params.detector,
                            occupancy="analytic" if params.policy == "oracle" else params.occupancy)
 
 
@@ -273,7 +281,7 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
                         actions=len(history), action_kinds=kinds, failure=failure, stop_reason=reason,
                         seconds=time.perf_counter() - t_wall, cpu_seconds=time.process_time() - t_cpu,
                         sim_seconds=float(context.get_time()),
-                        target=heap.target,
+                        target=heap.target, segmenter=params.segmenter, detector=params.detector,
                         grasp_successes=sum(1 for o in history if o.action.kind == "grasp" and o.success),
                         grasp_plans=grasp_plans,
                         error=msg, frames=frames)

@@ -9,7 +9,7 @@ In simulation, start the robot where the controller expects it (parked out of th
 
 Inside (DESIGN.md "Data flow"; every planner is a system of the diagram):
   <cam>.label_image -> Segmenter("ground_truth")   (simulation)  |  <cam>.depth_image -> Segmenter(params.segmentation)
-  <cam>.rgb_image + masks -> TargetDetector("color") -> target
+  <cam>.rgb_image + masks -> TargetDetector(params.detector) -> target
   <cam>.depth_image + target -> OccupancyEstimator(params.occupancy) -> occupancy (given target_shape; xray reads it)
   depth + masks (+ body_poses: exact meshes in simulation) -> LazyGraspPlanner -> grasps
   depth + masks -> PushPlanner -> pushes                                          (*_push selectors)
@@ -48,7 +48,8 @@ from ms_drake.perception.occupancy import OccupancyEstimator
 from ms_drake.perception.ready import ImagesReady
 from ms_drake.perception.segmentation import BACKENDS as SEGMENTATION_BACKENDS
 from ms_drake.perception.segmentation import Segmenter
-from ms_drake.perception.target import TargetDetector
+from ms_drake.perception.target import BACKENDS as DETECTOR_BACKENDS
+from ms_drake.perception.target import TargetDetector, render_templates
 from ms_drake.policies.bin_selectors import SelectorParams, check_policy
 from ms_drake.policies.selector import PolicySelector
 from ms_drake.pushing import PushPlanner
@@ -70,7 +71,11 @@ class BinSearchParams:
     jaw with a contact model, and "suction"), as in Ch. 7; grasp_params: GraspEvaluator keywords
     of the jaw models, e.g. {"closing_force": 40.0}.
     segmentation: "ground_truth" (label image; needs `sim`), "euclidean", "region_growing" or "learned"
-    (depth only, run on hardware). occupancy: the OccupancyEstimator backend, "learned" (the
+    (depth only, run on hardware). detector: the TargetDetector backend, "color" (HSV, red
+    target), "template" (hue-saturation histograms) or "learned" (the siamese matcher); the last
+    two compare every mask with `templates` views of the target object rendered alone
+    (render_templates; in simulation the target's model comes from `sim`, else pass
+    target_templates= to MakeBinSearchController). occupancy: the OccupancyEstimator backend, "learned" (the
     network of ms_drake.perception.occupancy_net, from the target's size) or "analytic" (the
     ground-truth generator; given a TargetMesh with its pose it reads privileged state).
     period: the executor's update period [s].
@@ -85,6 +90,8 @@ class BinSearchParams:
     robust_samples: int = 4
     grasp_params: dict | None = None
     segmentation: str = "ground_truth"
+    detector: str = "color"
+    templates: int = 5
     occupancy: str = "learned"  # OccupancyEstimator backend: "learned" (target size only) or "analytic"
     camera: str = "overhead"
     period: float = 0.05
@@ -96,6 +103,10 @@ class BinSearchParams:
         if self.segmentation not in SEGMENTATION_BACKENDS:
             raise ControllerError(f"segmentation {self.segmentation!r} unknown; choose one of "
                                   f"{', '.join(SEGMENTATION_BACKENDS)}")
+        if self.detector not in DETECTOR_BACKENDS:
+            raise ControllerError(f"detector {self.detector!r} unknown; choose one of {', '.join(DETECTOR_BACKENDS)}")
+        if int(self.templates) < 1:
+            raise ControllerError(f"templates must be >= 1 view of the target, got {self.templates!r}")
         if int(self.horizon) < 1:
             raise ControllerError(f"horizon must be >= 1 action, got {self.horizon!r}")
         if self.occupancy not in OCCUPANCY_BACKENDS:
@@ -137,11 +148,14 @@ def _backend(scenario, params: BinSearchParams, workspace: Workspace, sim: Simul
 
 
 def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim: SimulationInfo | None = None,
-                            target_shape=None, name: str = "bin_search_controller") -> "BinSearchController":
+                            target_shape=None, name: str = "bin_search_controller",
+                            target_templates=None) -> "BinSearchController":
     """The controller Diagram of a bin search on `scenario`'s station (see the module docstring).
 
     target_shape: the target's TargetMesh / TargetBox: with it the controller holds the occupancy
-    estimator (exported as `occupancy`; the xray and oracle policies need it)."""
+    estimator (exported as `occupancy`; the xray and oracle policies need it).
+    target_templates: list of perception.target.Template for the template / learned detectors
+    (default in simulation: `params.templates` views of the target rendered in the target colour)."""
     params = params or BinSearchParams()
     if params.camera not in scenario.cameras:
         raise ControllerError(f"camera {params.camera!r} is not a camera of the scenario "
@@ -181,7 +195,18 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
         depth_inputs.append(seg.GetInputPort("depth_image"))
     seg.set_name("segmenter")
     masks = seg.GetOutputPort("masks")
-    det = builder.AddSystem(TargetDetector("color", width=camera.width, height=camera.height))
+    templates = None
+    if params.detector != "color":
+        templates = target_templates
+        if templates is None:
+            if sim is None or not sim.target_id:
+                raise ControllerError(f"detector {params.detector!r} matches views of the target: pass "
+                                      "target_templates= (render_templates(scenario, object_name)) or "
+                                      "sim=SimulationInfo.from_station(station, target_index)")
+            full = next(o.full_name for o in station_objects(sim.plant) if o.model_name == sim.target_id)
+            templates = render_templates(scenario, full, int(params.templates), seed=params.seed, camera=cam)
+    det = builder.AddSystem(TargetDetector(params.detector, width=camera.width, height=camera.height,
+                                           templates=templates))
     det.set_name("target_detector")
     rgb_inputs.append(det.GetInputPort("rgb_image"))
     builder.Connect(masks, det.GetInputPort("masks"))
