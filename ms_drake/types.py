@@ -170,13 +170,16 @@ class ShelfOccupancy:
 
 @dataclass(frozen=True)
 class Action:
-    """What the PolicySelector asks the executor to do. kind: grasp | push | shelf | stop."""
+    """What the PolicySelector asks the executor to do. kind: grasp | push | shelf | stop.
+    scene: for a shelf action, the observed ShelfScene it was chosen in (a backend without the
+    objects' true poses, e.g. on the hardware station, plans the action from it); None otherwise."""
 
     kind: str
     grasp: Grasp | None = None
     push: Push | None = None
     shelf: ShelfAction | None = None
     reason: str = ""
+    scene: ShelfScene | None = None
 
 
 @dataclass(frozen=True)
