@@ -782,6 +782,9 @@ def train_segmentation_cmd(
         steps_per_epoch: Optional[int] = typer.Option(None, "--steps-per-epoch", min=1, help="Batches per epoch, "
                                                       "from the shards on disk at its start (default: one pass)"),
         init: Optional[Path] = typer.Option(None, "--init", help="Start from these weights (fine-tuning)"),
+        object_fraction: Optional[float] = typer.Option(None, "--object-fraction", min=0.0, max=1.0,
+                                                        help="Supervise only this fraction of the training "
+                                                        "objects, per object set (the others' pixels carry no loss)"),
         seed: int = typer.Option(0, "--seed", min=0, help="Seed"),
         threads: int = typer.Option(1, "--threads", min=1, help="torch threads"),
         max_minutes: float = typer.Option(60.0, "--max-minutes", help="Stop after the epoch that would end past "
@@ -801,12 +804,13 @@ def train_segmentation_cmd(
                     str(epochs), "--batch", str(batch), "--lr", str(lr), "--seed", str(seed), "--threads",
                     str(threads)] + (["--max-images", str(max_images)] if max_images else [])
                    + (["--steps-per-epoch", str(steps_per_epoch)] if steps_per_epoch else [])
-                   + (["--init", str(init)] if init else []))
+                   + (["--init", str(init)] if init else [])
+                   + (["--object-fraction", str(object_fraction)] if object_fraction is not None else []))
     if init is not None and not init.is_file():
         _fail(f"--init {init}: no such weights file; give one written by `ms-drake train segmentation`")
     meta = train_segmentation(data, out, epochs=epochs, batch=batch, seed=seed, threads=threads, lr=lr,
                               max_minutes=max_minutes, progress=progress, command=cmd, max_images=max_images,
-                              steps_per_epoch=steps_per_epoch, init=init)
+                              steps_per_epoch=steps_per_epoch, init=init, object_fraction=object_fraction)
     bar.close()
     for h in meta["history"]:
         typer.echo(f"epoch {h['epoch']}: loss {h['loss']:.5f} ({h['seconds']:.0f} s)")

@@ -54,6 +54,7 @@ from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.parallel import run_jobs
 from ms_drake.perception.segmentation import Segmenter, coco_metrics, encode_masks
 from ms_drake.perception.segmentation_net import (
+    IGNORE,
     WORK_SHAPE,
     NetConfig,
     class_targets,
@@ -127,15 +128,43 @@ def train_steps(net, opt, x, y, steps: int = 1) -> list[float]:
     return losses
 
 
+def object_subset(names, fraction: float, seed: int = 0) -> set[str]:
+    """The training objects kept by an object subset (Fig. 5.6, right): in each object set (the
+    part of the full name before "/"), the first ceil(fraction x its count) of `names` in an order
+    drawn from `seed`. The order depends only on the names and the seed, so the subsets of one seed
+    are nested (the 25 % subset is inside the 50 % one)."""
+    if not 0 < fraction <= 1:
+        raise DatasetError(f"object fraction {fraction}: give a fraction in (0, 1], e.g. 0.25")
+    by_set: dict[str, list[str]] = {}
+    for n in sorted(set(names)):
+        by_set.setdefault(n.split("/")[0], []).append(n)
+    keep = set()
+    for oset, members in sorted(by_set.items()):
+        rng = np.random.default_rng([seed, 56, len(members)])
+        order = rng.permutation(len(members))
+        keep |= {members[i] for i in order[:int(np.ceil(fraction * len(members)))]}
+    return keep
+
+
 class TrainingImages:
     """The working arrays and class targets of the train shards of `data` (the first `max_images`);
-    `refresh()` adds shards written since (a dataset still being generated)."""
+    `refresh()` adds shards written since (a dataset still being generated).
 
-    def __init__(self, data, max_images: int | None = None):
+    object_fraction: train on a subset of the objects (`object_subset` of the objects in the
+    images loaded, drawn from `object_seed`): the pixels of the other objects, and the boundary
+    band on their side of a contact, become IGNORE (no loss); the images and their backgrounds stay.
+    Images whose objects are all in a 25 % subset are too rare to select (7.5 objects per heap)."""
+
+    def __init__(self, data, max_images: int | None = None, object_fraction: float | None = None,
+                 object_seed: int = 0):
         self.data, self.max_images = Path(data), max_images
+        self.object_fraction, self.object_seed = object_fraction, object_seed
         self.files: list[str] = []
         self.x = np.zeros((0, 2, *WORK_SHAPE), np.float16)
         self.y = np.zeros((0, *WORK_SHAPE), np.uint8)
+        self.lab = np.zeros((0, *WORK_SHAPE), np.uint8)
+        self.objects: list[list[str]] = []
+        self.kept: set[str] = set()
         self.refresh()
 
     def refresh(self) -> int:
@@ -144,20 +173,39 @@ class TrainingImages:
         if self.max_images is not None and len(self.x) >= self.max_images:
             new = []
         if new:
-            xs, ys = [self.x], [self.y]
+            xs, ys, labs = [self.x], [self.y], [self.lab]
             for f in new:
                 with np.load(f) as z:
                     xs.append(z["x"])
                     ys.append(np.stack([class_targets(m) for m in z["lab"]]).astype(np.uint8))
+                    self.objects += [[n for n in str(o).split(",") if n] for o in z["objects"]]
+                    if self.object_fraction is not None:
+                        labs.append(z["lab"])
             self.x, self.y = np.concatenate(xs)[:self.max_images], np.concatenate(ys)[:self.max_images]
             self.files += new
+            self.objects = self.objects[:self.max_images]
+            if self.object_fraction is not None:
+                self.lab = np.concatenate(labs)[:self.max_images]
+                self._ignore_other_objects()
         return len(self.x)
+
+    def _ignore_other_objects(self) -> None:
+        self.kept = object_subset([n for o in self.objects for n in o], self.object_fraction, self.object_seed)
+        for i, (lab, names) in enumerate(zip(self.lab, self.objects)):
+            y = class_targets(lab).astype(np.uint8)  # afresh: a grown pool can change the subset
+            y[np.isin(lab, [k + 1 for k, n in enumerate(names) if n not in self.kept])] = IGNORE
+            self.y[i] = y
+
+    def object_counts(self) -> dict:
+        """Objects in the images loaded and objects trained on (all of them without a subset)."""
+        seen = {n for o in self.objects for n in o}
+        return dict(objects_seen=len(seen), objects_trained=len(self.kept) if self.object_fraction else None)
 
 
 def train_segmentation(data, out, epochs: int = 8, batch: int = 16, seed: int = 0, threads: int = 1,
                        config: NetConfig | None = None, max_minutes: float = 60.0, progress=None, command: str = "",
                        lr: float = 2e-3, max_images: int | None = None, steps_per_epoch: int | None = None,
-                       init=None) -> dict:
+                       init=None, object_fraction: float | None = None) -> dict:
     """Train on the train shards of `data` (the first `max_images` if given); write `out` (weights +
     meta) and `out`.ckpt (resume). Stops early (after a whole epoch) when `max_minutes` of wall
     time would be exceeded.
@@ -165,13 +213,15 @@ def train_segmentation(data, out, epochs: int = 8, batch: int = 16, seed: int = 
     steps_per_epoch None: an epoch is one pass over the images. Given: an epoch is that many
     batches, drawn from the train shards on disk when it starts (training can start while
     `ms-drake data segmentation` is still writing; each epoch's image count is in the history).
-    init: a weights file to start from (fine-tuning; its network configuration is used)."""
+    init: a weights file to start from (fine-tuning; its network configuration is used).
+    object_fraction: supervise only that fraction of the training objects (`TrainingImages`; the
+    subset is drawn from `seed`)."""
     torch = torch_setup(seed, threads)
     config = config or NetConfig()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     ckpt = out.with_suffix(".ckpt")
-    images = TrainingImages(data, max_images)
+    images = TrainingImages(data, max_images, object_fraction, seed)
     n = len(images.x)
     if n == 0:
         raise DatasetError(f"{data}: no train shards (shard_*_train.npz); make them with "
@@ -191,6 +241,8 @@ def train_segmentation(data, out, epochs: int = 8, batch: int = 16, seed: int = 
     settings = dict(config=asdict(config), epochs=epochs, batch=batch, lr=lr, seed=seed, max_images=max_images,
                     steps_per_epoch=steps_per_epoch, n=None if steps_per_epoch else n,
                     init=None if init is None else str(init))
+    if object_fraction is not None:
+        settings["object_fraction"] = object_fraction
     start, history, seconds = resume(torch, ckpt, settings, net, opt, sched)
     t0 = time.perf_counter() - seconds
     for epoch in range(start, epochs):
@@ -216,16 +268,17 @@ def train_segmentation(data, out, epochs: int = 8, batch: int = 16, seed: int = 
         history.append(dict(epoch=epoch + 1, loss=total / steps, images=n, seconds=time.perf_counter() - te))
         save_checkpoint(torch, ckpt, settings, net, opt, sched, epoch + 1, history, time.perf_counter() - t0)
         save_atomically(torch, dict(model=net.state_dict(), config=asdict(config),
-                                    meta=_meta(data, n, history, epochs, batch, seed, lr, t0, command, torch)), out)
-    meta = _meta(data, n, history, epochs, batch, seed, lr, t0, command, torch)
+                                    meta=_meta(data, n, history, epochs, batch, seed, lr, t0, command, torch, images)), out)
+    meta = _meta(data, n, history, epochs, batch, seed, lr, t0, command, torch, images)
     save_atomically(torch, dict(model=net.state_dict(), config=asdict(config), meta=meta), out)
     return meta
 
 
-def _meta(data, n, history, epochs, batch, seed, lr, t0, command, torch) -> dict:
+def _meta(data, n, history, epochs, batch, seed, lr, t0, command, torch, images) -> dict:
     return dict(data=str(data), train_images=n, epochs_done=len(history), epochs=epochs, batch=batch, seed=seed,
                 lr=lr, crop=list(CROP_SHAPE), seconds=time.perf_counter() - t0, history=list(history),
-                command=command, torch=torch.__version__)
+                command=command, torch=torch.__version__, object_fraction=images.object_fraction,
+                **images.object_counts())
 
 
 # ---------------------------------------------------------------------------------------------
@@ -249,6 +302,21 @@ def bench_image(seed: int, noise: float = 0.0, dropout: float = 0.0, scenario=No
     return depth, instance_masks(inst, names), cam
 
 
+def sensor_rng(seed: int, cam: PinholeCamera, scenario=None) -> np.random.Generator:
+    """The Generator of benchmark image `seed` as `bench_image` holds it when it applies the sensor
+    model (after the object count and the camera), so a cached noise-free image gets the same noise
+    and dropout as a rendering with them; `cam` (the image's camera) checks the replay."""
+    scenario = scenario or load_scenario(None, "BinHeap15")
+    rng = np.random.default_rng([seed, 91])
+    truncated_poisson(rng, MEAN_OBJECTS, 1, MAX_OBJECTS)
+    nominal = PinholeCamera.from_config(scenario.cameras[next(iter(scenario.cameras))])
+    replay = random_camera(nominal, rng)
+    if not np.allclose([replay.fx, replay.fy, replay.cx, replay.cy], [cam.fx, cam.fy, cam.cx, cam.cy]):
+        raise DatasetError(f"image {seed}: the cached camera differs from the seed's; delete the cache's "
+                           f"img_{seed}_*.npz files and rerun")
+    return rng
+
+
 def make_segmenter(backend: str, cam: PinholeCamera, workspace: Workspace, weights=None) -> Segmenter:
     if backend == "learned":
         return Segmenter("learned", weights=weights)
@@ -256,12 +324,18 @@ def make_segmenter(backend: str, cam: PinholeCamera, workspace: Workspace, weigh
 
 
 def cached_bench_image(seed: int, noise: float, dropout: float, scenario, cache) -> tuple:
-    """`bench_image`, kept in (or read from) ``cache/img_<seed>_<noise>_<dropout>.npz`` if `cache`."""
+    """`bench_image`, kept in (or read from) ``cache/img_<seed>_<noise>_<dropout>.npz`` if `cache`; with
+    noise or dropout, made from the cached noise-free image when there is one (no rendering, nothing
+    written: the noise costs milliseconds)."""
     f = None if cache is None else Path(cache) / f"img_{seed}_{noise:g}_{dropout:g}.npz"
     if f is not None and f.exists():
         with np.load(f) as z:
             cam = PinholeCamera(640, 480, *[float(v) for v in z["intrinsics"]], RigidTransform(z["X_WC"]))
             return z["depth"], instance_masks(z["inst"], [str(v) for v in z["objects"]]), cam
+    clean = None if cache is None else Path(cache) / f"img_{seed}_0_0.npz"
+    if (noise > 0 or dropout > 0) and clean is not None and clean.exists():
+        depth, gt, cam = cached_bench_image(seed, 0.0, 0.0, scenario, cache)
+        return sensor_model(depth, sensor_rng(seed, cam, scenario), noise, dropout), gt, cam
     depth, gt, cam = bench_image(seed, noise, dropout, scenario)
     if f is not None:
         f.parent.mkdir(parents=True, exist_ok=True)

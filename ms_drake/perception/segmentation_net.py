@@ -52,6 +52,7 @@ BLOCK = 2
 WORK_SHAPE = (CROP[2] // BLOCK, CROP[3] // BLOCK)  # (192, 256)
 CLASSES = ("background", "interior", "boundary")
 MIN_GT_PIXELS = 20  # full-resolution visible pixels for a ground-truth mask
+IGNORE = 255  # target value of pixels that carry no loss (objects left out of a training subset)
 BOUNDARY = 2  # working pixels on either side of a contact between two objects
 
 
@@ -159,11 +160,12 @@ CLASS_WEIGHTS = (1.0, 1.0, 4.0)  # boundaries are few pixels but decide every sp
 
 
 def segmentation_loss(logits, targets):
-    """Pixelwise cross-entropy over the three classes (boundary weighted by CLASS_WEIGHTS)."""
+    """Pixelwise cross-entropy over the three classes (boundary weighted by CLASS_WEIGHTS); pixels
+    whose target is IGNORE carry no loss."""
     import torch  # optional heavy dependency: only the learned backend needs it
 
     w = torch.tensor(CLASS_WEIGHTS, dtype=logits.dtype)
-    return torch.nn.functional.cross_entropy(logits, targets, weight=w)
+    return torch.nn.functional.cross_entropy(logits, targets, weight=w, ignore_index=IGNORE)
 
 
 def instances_from_probabilities(prob: np.ndarray, min_seed: int = 4, grow: float = 4.0,
