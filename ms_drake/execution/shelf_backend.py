@@ -28,6 +28,10 @@ park: the tool level and pointing into the shelf, its tip 15 cm in front of the 
   the front camera's view, which sees the shelf from above the robot, 30 degrees down (the
   reference's Fetch also parks the tool out of view before each image).
 
+The scene an action is planned in: the objects observed in body_poses (simulation: the backend
+knows the shelf bodies), or else the scene the action was chosen in (Action.scene: the controller's
+estimate from the depth image, on the hardware station or a simulated one used as hardware).
+
 Outcome (after the motion and the settle): the scene observed from body_poses (`observe`: each
 object's footprint centre, its footprint from its rotated extents, toppled when tilted by more
 than 20 degrees) against FOSS's prediction for the scene observed when the action was planned
@@ -36,7 +40,8 @@ selector may move on) when the object moved by at least half the commanded displ
 message records whether physics and FOSS agree: `agree=1` when FOSS accepted the action, the moved
 object's footprint centre ended within `tolerance` (2 cm) of FOSS's, no other object moved by more
 than `tolerance`, and the action toppled nothing (`agree=0` otherwise), followed by the measured
-errors (`toppled=`: every object lying toppled after the action).
+errors (`toppled=`: every object lying toppled after the action). Without body_poses (or shelf
+bodies) the outcome is "executed", `agree=nan`.
 """
 
 from __future__ import annotations
@@ -106,7 +111,8 @@ class ShelfBackend:
     """The Fetch's shelf actions (module docstring).
 
     scenario: a shelf scenario with the Fetch and the bluction tool (FetchShelf); bodies: {object
-    id: ShelfBody} of the station's shelf objects (the target among them under `target_id`); foss:
+    id: ShelfBody} of the station's shelf objects (the target among them under `target_id`; empty:
+    plan from each Action's scene, as on hardware); foss:
     the FOSS whose predictions the outcomes are compared with (default: the scenario's geometry).
     speed / push_speed / slow_speed: the tool's Cartesian speed limits [m/s] in free space, while
     pushing, and for the suction cup's contact, pull and placement lines; settle: the longest wait after a
@@ -210,9 +216,14 @@ class ShelfBackend:
         if a is None:
             raise ExecutionError(f"ShelfBackend executes Actions of kind 'shelf' (with a ShelfAction), got "
                                  f"{action.kind!r}")
-        if poses is None:
-            raise ExecutionError("ShelfBackend plans from the objects' poses: connect the executor's body_poses input")
-        scene, toppled = self.observe(poses)
+        if poses is not None and self.bodies:
+            scene, toppled = self.observe(poses)
+        elif action.scene is not None:
+            scene, toppled = action.scene, ()
+        else:
+            raise ExecutionError("ShelfBackend plans from the objects' poses or from the scene the action was chosen in: "
+                                 "connect the executor's body_poses input (simulation, with the shelf bodies) or give "
+                                 "the Action its scene (Action.scene, as the shelf controller's selector does)")
         return self.plan_scene(a, np.asarray(hold[f"{self.arm}.position"], float), scene, step, toppled)
 
     def plan_scene(self, a, q_now, scene: ShelfScene, step: int = 0, toppled=()):
@@ -411,8 +422,10 @@ class ShelfBackend:
     # ------------------------------------------------------------------ outcome
     def outcome(self, action: Action, motion: Motion, poses, step: int, removed):
         a = shelf_action(action)
-        if poses is None:
-            return ActionOutcome(action, True, message="agree=nan no body_poses"), ()
+        if poses is None or not self.bodies:
+            # Nothing but the cameras sees the result: the action counts as executed; the next
+            # observation shows where the objects are.
+            return ActionOutcome(action, True, message="agree=nan executed (no body_poses)"), ()
         after, toppled = self.observe(poses)
         before = motion.info["before"]
         predicted = motion.info["predicted"]

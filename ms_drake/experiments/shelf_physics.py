@@ -3,16 +3,20 @@
 - `build_shelf_physics(scenario, scene, params)`: the FetchShelf station holding the scene's
   occluders and target as free bodies (boxes and cylinders of the drawn sizes, DENSITY kg/m^3,
   compliant hydroelastic; the target in the target colour), the shelf controller
-  (ms_drake.policies.shelf_search) wired in three lines.
+  (ms_drake.policies.shelf_search) wired in three lines. perception "ground_truth": the controller
+  reads the simulation's body poses (ShelfSimulationInfo); "depth": only the station's camera
+  ports, as on the hardware station (ShelfSegmenter + the learned occupancy; the experiment alone
+  knows the bodies, to measure the target's visibility).
 - `run_shelf_physics(system, scene, params)`: simulate; at every idle step (the executor between
   actions, the robot parked) the target's visible fraction is measured in the front camera's label
   image: target pixels / pixels of its silhouette (its eight corners at its current pose projected
   and filled); the search succeeds at v = 80 % (FOSS's threshold), fails at the horizon H = 2n, when
   the policy has no action, or when the simulation fails. Per executed action the backend's
   outcome says whether physics and FOSS agree (ms_drake.execution.shelf_backend: the moved object
-  within 2 cm of FOSS's placement, nothing else moved by more than 2 cm, nothing toppled).
+  within 2 cm of FOSS's placement, nothing else moved by more than 2 cm, nothing toppled; not
+  recorded with perception "depth", whose controller has no body poses).
 - `run_shelf_physics_bench(...)`: `ms-drake bench shelf-physics`: one JSON line per scene (seed,
-  occluders, policy, success, steps, agreement, ...), flushed and fsync'ed, resumable.
+  occluders, policy, perception, success, steps, agreement, ...), flushed and fsync'ed, resumable.
 - `physics_table(records)`: the Table 9.2 analogue.
 - `run_shelf_demo(out, ...)`: `ms-drake demo shelf`: one search with per-step images, a GIF and a
   Meshcat recording.
@@ -103,6 +107,7 @@ class ShelfPhysicsSystem:
     sim: ShelfSimulationInfo
     camera: PinholeCamera
     camera_name: str = "front"
+    perception: str = "ground_truth"
 
     def output(self, context, name):
         return self.controller.GetOutputPort(name).Eval(self.controller.GetMyContextFromRoot(context))
@@ -123,9 +128,10 @@ def with_time_step(scenario, time_step: float | None):
 
 
 def build_shelf_physics(scenario, scene: ShelfScene, params: ShelfSearchParams, meshcat=None,
-                        time_step: float | None = TIME_STEP) -> ShelfPhysicsSystem:
+                        time_step: float | None = TIME_STEP, perception: str = "ground_truth") -> ShelfPhysicsSystem:
     """The station with the scene's objects and the shelf controller, wired (module docstring);
-    time_step: the plant's (None: the scenario's)."""
+    time_step: the plant's (None: the scenario's); perception: the controller's ("ground_truth" or
+    "depth")."""
     if scene.target is None:
         raise ShelfPhysicsError("build_shelf_physics: the scene needs its target (generate_shelf_scene)")
     if scenario.environment.type != "shelf":
@@ -141,11 +147,15 @@ def build_shelf_physics(scenario, scene: ShelfScene, params: ShelfSearchParams, 
     by_name = {so.full_name: so for so in station_objects(plant)}
     bodies = {o.id: ShelfBody(int(by_name[f"shelf/{o.id}"].body_index), o) for o in objs}
     sim = ShelfSimulationInfo(bodies, scene.target.id)
-    controller = builder.AddSystem(MakeShelfSearchController(scenario, params, sim=sim))
+    if perception == "depth":  # the controller sees the cameras only; `sim` stays with the experiment
+        controller = builder.AddSystem(MakeShelfSearchController(scenario, params, perception="depth"))
+    else:
+        controller = builder.AddSystem(MakeShelfSearchController(scenario, params, sim=sim, perception=perception))
     connect_controller(builder, controller, station)
     diagram = builder.Build()
     camera = PinholeCamera.from_config(scenario.cameras[params.camera])
-    return ShelfPhysicsSystem(diagram, station, plant, controller, scenario, sim, camera, params.camera)
+    return ShelfPhysicsSystem(diagram, station, plant, controller, scenario, sim, camera, params.camera,
+                              perception)
 
 
 def set_initial(system: ShelfPhysicsSystem, context, scene: ShelfScene) -> None:
@@ -188,7 +198,7 @@ class ShelfFrame:
     occupancy: object
     action: object
     visible: float
-    scene: ShelfScene | None = None  # observed (simulation ground truth)
+    scene: ShelfScene | None = None  # the controller's observation (ground truth, or estimated from depth)
 
 
 @dataclass
@@ -250,6 +260,7 @@ def run_shelf_physics(system: ShelfPhysicsSystem, scene: ShelfScene, params: She
     agree = [agreement(o) for o in executed]
     kinds = [o.action.shelf.kind for o in executed]
     rec = dict(seed=int(scene.seed), occluders=n, objects=n, policy=params.policy, fidelity=FIDELITY,
+               perception=system.perception,
                success=not failure, steps=len(history), actions=len(history), executed=len(executed),
                pushes=kinds.count("push"), suctions=kinds.count("suction"),
                plan_failures=len(history) - len(executed),
@@ -273,14 +284,16 @@ def _skipped(reason: str) -> int:
 
 def shelf_physics_rollout(policy: str, seed: int, occluders: int | None = None, horizon: int | None = None,
                           scenario_name: str = SCENARIO, meshcat=None, keep_frames: bool = False,
-                          time_step: float | None = TIME_STEP, **params) -> ShelfPhysicsResult:
-    """Generate the scene of `seed` (occluders: None draws 2-12 from the seed) and search it;
-    params: further ShelfSearchParams (e.g. fetch_feasible=False, speed=0.2)."""
+                          time_step: float | None = TIME_STEP, perception: str = "ground_truth",
+                          **params) -> ShelfPhysicsResult:
+    """Generate the scene of `seed` (occluders: None draws 2-12 from the seed) and search it with the
+    controller's `perception`; params: further ShelfSearchParams (e.g. fetch_feasible=False, speed=0.2)."""
     scenario = load_scenario(None, scenario_name)
     geometry = ShelfGeometry.from_scenario(scenario)
     sample = generate_shelf_scene(geometry, seed, occluders, DEFAULT_TARGET)
     params = ShelfSearchParams(policy=policy, horizon=horizon, seed=seed, **params)
-    system = build_shelf_physics(scenario, sample.scene, params, meshcat=meshcat, time_step=time_step)
+    system = build_shelf_physics(scenario, sample.scene, params, meshcat=meshcat, time_step=time_step,
+                                 perception=perception)
     return run_shelf_physics(system, sample.scene, params, keep_frames=keep_frames, meshcat=meshcat)
 
 
@@ -295,10 +308,13 @@ def run_shelf_physics_bench(policy: str, scenes: int, seed_start: int, out, occl
     ends: resumable); occluders cycles through the given counts by seed (None: drawn from the
     seed); workers: local processes (ms_drake.parallel.run_jobs; fresh processes every few
     scenes, as Drake diagrams are never freed); kwargs: shelf_physics_rollout's (e.g.
-    fetch_feasible=False)."""
+    fetch_feasible=False, perception="depth"; a file's records of another perception are not
+    counted as done)."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    done = {(r["seed"], r["policy"]) for r in read_records(out)} if out.exists() else set()
+    perception = kwargs.get("perception", "ground_truth")
+    done = {(r["seed"], r["policy"]) for r in read_records(out)
+            if r.get("perception", "ground_truth") == perception} if out.exists() else set()
     jobs = [(policy, seed, occluders[i % len(occluders)] if occluders else None, dict(kwargs))
             for i, seed in enumerate(range(seed_start, seed_start + scenes)) if (seed, policy) not in done]
     recs = []
@@ -312,7 +328,7 @@ def run_shelf_physics_bench(policy: str, scenes: int, seed_start: int, out, occl
             f.flush()
             os.fsync(f.fileno())
         recs.append(rec)
-        log(f"seed {rec['seed']} ({rec['occluders']} occluders) {policy}: "
+        log(f"seed {rec['seed']} ({rec['occluders']} occluders) {policy} ({perception}): "
             f"{'success' if rec['success'] else rec['failure']} after {rec['steps']} actions "
             f"({rec['plan_failures']} plan failures, {rec['skipped']} Fetch-infeasible skipped), FOSS agrees on "
             f"{rec['agree']}/{rec['compared']}, {rec['sim_seconds']:.0f} s simulated in {rec['cpu_seconds']:.0f} s CPU "
@@ -438,26 +454,28 @@ def _action_panel(rgb: np.ndarray, frame: ShelfFrame, system: ShelfPhysicsSystem
 
 
 def run_shelf_demo(out, seed: int = DEMO_SEED, occluders: int = DEMO_OCCLUDERS, policy: str = "bluction_dar",
-                   horizon: int | None = None, meshcat_html: bool = True, log=print) -> dict:
-    """One search on the Fetch (module docstring): step_kk.png (depth | distribution | action),
-    search.gif, search.json and meshcat_recording.html in `out`."""
+                   horizon: int | None = None, meshcat_html: bool = True, log=print,
+                   perception: str = "ground_truth") -> dict:
+    """One search on the Fetch (module docstring) with the controller's `perception`: step_kk.png
+    (depth | distribution | action on the observed scene), search.gif, search.json and
+    meshcat_recording.html in `out`."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     scenario = load_scenario(None, SCENARIO)
     sample = generate_shelf_scene(ShelfGeometry.from_scenario(scenario), seed, occluders, DEFAULT_TARGET)
     params = ShelfSearchParams(policy=policy, horizon=horizon, seed=seed)
     meshcat = Meshcat() if meshcat_html else None
-    system = build_shelf_physics(scenario, sample.scene, params, meshcat=meshcat)
+    system = build_shelf_physics(scenario, sample.scene, params, meshcat=meshcat, perception=perception)
     res = run_shelf_physics(system, sample.scene, params, keep_frames=True, meshcat=meshcat)
     pictures, scene = [], sample.scene
     for k, fr in enumerate(res.frames):
-        # the scene the action was chosen in: observed from the simulation at that step
+        # the scene the action was chosen in: the controller's observation at that step
         scene = _observed(res, k, sample.scene)
         pictures.append((fr.step, np.concatenate([_depth_panel(fr.depth), _distribution_panel(fr.rgb, fr.occupancy),
                                                   _action_panel(fr.rgb, fr, system, scene)], axis=1)))
     written = write_search_pictures(out, pictures, res.record, meshcat, gif_seconds=1.5)
     r = res.record
-    log(f"  {policy} on seed {seed} ({occluders} occluders): {'success' if r['success'] else r['failure']} after "
+    log(f"  {policy} ({perception} perception) on seed {seed} ({occluders} occluders): {'success' if r['success'] else r['failure']} after "
         f"{r['steps']} actions (visible {100 * r['visible_fraction']:.0f} %), FOSS agrees on {r['agree']}/{r['compared']}, "
         f"{r['sim_seconds']:.0f} s simulated in {r['seconds']:.0f} s")
     return written
@@ -467,13 +485,15 @@ def _observed(res: ShelfPhysicsResult, k: int, scene: ShelfScene) -> ShelfScene:
     return res.frames[k].scene if getattr(res.frames[k], "scene", None) is not None else scene
 
 
-def physics_records(files) -> list[dict]:
-    """The physics shelf records (fidelity "physics") of result files, one per (policy, seed): the
-    first (two runs over overlapping seed ranges into one file may both write a seed)."""
+def physics_records(files, perception: str | None = None) -> list[dict]:
+    """The physics shelf records (fidelity "physics") of result files, one per (policy, perception,
+    seed): the first (two runs over overlapping seed ranges into one file may both write a seed);
+    perception: only that perception's (None: all; records without the field are "ground_truth")."""
     out, seen = [], set()
     for f in files:
         for r in read_records(Path(f)):
-            if r.get("fidelity") == FIDELITY and (r["policy"], r["seed"]) not in seen:
-                seen.add((r["policy"], r["seed"]))
+            key = (r["policy"], r.get("perception", "ground_truth"), r["seed"])
+            if r.get("fidelity") == FIDELITY and key not in seen and perception in (None, key[1]):
+                seen.add(key)
                 out.append(r)
     return out

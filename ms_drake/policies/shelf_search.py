@@ -2,29 +2,36 @@
 station in three lines:
 
     station = builder.AddSystem(MakeStation(scenario, extra_objects=...))   # a shelf scene's objects
-    controller = builder.AddSystem(MakeShelfSearchController(scenario, params, sim=sim))
+    controller = builder.AddSystem(MakeShelfSearchController(scenario, params, perception="depth"))
     connect_controller(builder, controller, station)
 
 In simulation, start the robot where the controller expects it (parked out of the camera's view):
 `set_arm_positions(plant, plant_context, "fetch", controller.initial_commands())`.
 
-Inside:
-  body_poses -> ShelfSceneObserver (simulation: the objects' true footprints) -> scene
+Two perceptions (`perception=`):
+
+"depth" (the hardware station's ports only: front.depth_image, front.rgb_image in):
+  depth + rgb -> ShelfSegmenter -> scene (the estimated occluders, ids seg_<k>; the target's
+            colour left out)
+  depth -> ShelfOccupancyEstimator("learned") -> occupancy
+"ground_truth" (simulation only: body_poses in, and `sim=ShelfSimulationInfo(bodies, target_id)`):
+  body_poses -> ShelfSceneObserver (the objects' true footprints, the target as scene.target) -> scene
   scene -> ShelfOccupancyEstimator("ground_truth") -> occupancy
+Then, in both:
   scene + occupancy + history -> FetchFeasibleSelector(policy) -> action (the policy's best action
-            the Fetch's planner accepts; params.fetch_feasible=False: ShelfPolicySelector, FOSS alone)
+            the Fetch's planner accepts in that scene; params.fetch_feasible=False: the policy's
+            best in FOSS, ShelfSearchSelector); the action carries the scene it was chosen in
+            (Action.scene)
   action -> ActionExecutor(ShelfBackend) -> fetch.position, fetch_bluction.position (blade angle),
-            fetch_bluction.suction; history -> selector
+            fetch_bluction.suction; history -> selector. With perception "depth" the backend has
+            no shelf bodies and plans each action in its Action.scene; its outcomes are
+            "executed" (agree=nan): the next image shows what happened.
   front.rgb_image + front.depth_image -> ImagesReady -> executor.ready (idle until images arrive)
 
-Perception in this build reads the simulation's ground truth through `ShelfSimulationInfo` (the
-shelf objects' bodies and dimensions, and which one is the target): the observed scene is what the
-ShelfOccupancyEstimator's ground-truth backend and the policies' FOSS segmentation take as their
-observation (the policies themselves see only the occluders the camera sees; ms_drake.policies.shelf).
-A shelf segmentation of the depth image and the learned shelf occupancy network do not exist yet,
-so the controller cannot run on the hardware station: asked to without `sim`, it raises
-ControllerError. Its exported ports are the station's names all the same (front.rgb_image,
-front.depth_image, body_poses in; the Fetch's and the bluction tool's commands out).
+The policies see only occluders either way (ms_drake.policies.shelf drops the target). The exported
+ports are the station's names (connect_controller), so the "depth" controller connects unchanged to
+MakeStation(scenario, hardware=True); the "ground_truth" one needs the simulated station's
+body_poses, and raises ControllerError when built without `sim`.
 """
 
 from __future__ import annotations
@@ -42,6 +49,7 @@ from ms_drake.execution.shelf_backend import ShelfBackend, ShelfBody, observe
 from ms_drake.foss import Foss
 from ms_drake.perception.ready import ImagesReady
 from ms_drake.perception.shelf_occupancy import ShelfOccupancyEstimator
+from ms_drake.perception.shelf_segmentation import ShelfSegmentationParams, ShelfSegmenter
 from ms_drake.policies.bin_search import ControllerError, connect_controller  # noqa: F401 (re-exported)
 from ms_drake.policies.shelf import (
     ShelfPolicyParams,
@@ -127,7 +135,8 @@ class FetchFeasibleSelector(ShelfPolicySelector):
     scene) instead of FOSS alone. The policy ranks as it does in FOSS; its choice is planned; an
     infeasible choice is added to the history as refused (so the policy's own rule drops it) and
     the policy chooses again, at most `max_candidates` times (then "stop"). The action's reason
-    ends with the number of candidates skipped. Same ports as ShelfPolicySelector."""
+    ends with the number of candidates skipped; a shelf action carries `scene` (Action.scene), in
+    which the backend plans it. Same ports as ShelfPolicySelector."""
 
     def __init__(self, policy: str, foss: Foss, backend: ShelfBackend, params: ShelfPolicyParams | None = None,
                  period: float = 1.0, max_candidates: int = 60):
@@ -144,7 +153,8 @@ class FetchFeasibleSelector(ShelfPolicySelector):
         for skipped in range(self.max_candidates):
             action = self.rules.select(scene, dist, tried)
             if action.kind != "shelf" or self.backend.feasible(action.shelf, scene) == "ok":
-                return dataclasses.replace(action, reason=f"{action.reason} ({skipped} Fetch-infeasible skipped)")
+                return dataclasses.replace(action, reason=f"{action.reason} ({skipped} Fetch-infeasible skipped)",
+                                           scene=scene if action.kind == "shelf" else None)
             status = self.backend.feasible(action.shelf, scene)
             tried.append(ActionOutcome(action, False, message=f"fetch_infeasible:{status}"))
         return Action("stop", reason=f"{self.policy}: none of the {self.max_candidates} best actions is feasible "
@@ -169,47 +179,87 @@ class FetchFeasibleSelector(ShelfPolicySelector):
         super()._update(context, state)
 
 
+class ShelfSearchSelector(ShelfPolicySelector):
+    """The ShelfPolicySelector (per action) whose shelf action carries the scene it was chosen in
+    (Action.scene), which the backend plans it in. Same ports as ShelfPolicySelector."""
+
+    def __init__(self, policy: str, foss: Foss, params: ShelfPolicyParams | None = None, period: float = 1.0):
+        super().__init__(policy, foss, params, period=period, per_action=True)
+
+    def _calc_action(self, context, output):
+        super()._calc_action(context, output)
+        action = output.get_value()
+        if action.kind == "shelf":
+            output.set_value(dataclasses.replace(action, scene=self.scene_port.Eval(context)))
+
+
+PERCEPTIONS = ("ground_truth", "depth")
+
+
 def MakeShelfSearchController(scenario, params: ShelfSearchParams | None = None,
                               sim: ShelfSimulationInfo | None = None, target_size=None,
-                              name: str = "shelf_search_controller") -> ShelfSearchController:
+                              name: str = "shelf_search_controller", perception: str = "ground_truth",
+                              segmentation: ShelfSegmentationParams | None = None,
+                              weights=None) -> ShelfSearchController:
     """The controller Diagram of a shelf search on `scenario`'s station (FetchShelf; module docstring).
-    target_size: the target's (w, d, h) [m] for the occupancy (None: the observed target's)."""
+    perception: "ground_truth" (needs `sim`) or "depth" (the station's camera ports only; `sim` must
+    be None); target_size: the target's (w, d, h) [m] for the occupancy (None: the observed
+    target's, or the learned estimator's default); segmentation: the ShelfSegmenter's parameters
+    and weights the learned occupancy's file (perception "depth"; None: the defaults)."""
     params = params or ShelfSearchParams()
-    if sim is None:
-        raise ControllerError("the shelf controller observes the scene through the simulation's ground truth "
-                              "(no shelf segmentation of the depth image exists yet): pass "
-                              "sim=ShelfSimulationInfo(bodies, target_id); it cannot drive the hardware station")
+    if perception not in PERCEPTIONS:
+        raise ControllerError(f"perception={perception!r}: choose one of {', '.join(PERCEPTIONS)}")
+    depth = perception == "depth"
+    if depth and sim is not None:
+        raise ControllerError("perception='depth' reads only the station's camera ports (as on hardware): build it "
+                              "without sim= (ShelfSimulationInfo is for perception='ground_truth')")
+    if not depth and sim is None:
+        raise ControllerError("perception='ground_truth' observes the scene through the simulation's ground truth: "
+                              "pass sim=ShelfSimulationInfo(bodies, target_id), or use perception='depth' (the "
+                              "camera images only, e.g. for the hardware station)")
     if params.camera not in scenario.cameras:
         raise ControllerError(f"camera {params.camera!r} is not a camera of the scenario "
                               f"(cameras: {', '.join(scenario.cameras) or 'none'})")
     geometry = ShelfGeometry.from_scenario(scenario, params.camera)
     foss = Foss(geometry)
-    backend = ShelfBackend(scenario, sim.bodies, sim.target_id, foss=foss, seed=params.seed, speed=params.speed,
+    bodies, target_id = ({}, "") if depth else (sim.bodies, sim.target_id)
+    backend = ShelfBackend(scenario, bodies, target_id, foss=foss, seed=params.seed, speed=params.speed,
                            push_speed=params.push_speed, slow_speed=params.slow_speed)
     cam = scenario.cameras[params.camera]
     builder = DiagramBuilder()
-    observer = builder.AddNamedSystem("scene_observer", ShelfSceneObserver(sim, scenario.environment.position))
-    occupancy = builder.AddNamedSystem("occupancy_estimator", ShelfOccupancyEstimator(geometry, target_size))
+    ready = builder.AddNamedSystem("images_ready", ImagesReady(cam.width, cam.height))
+    rgb_name, depth_name = f"{params.camera}.rgb_image", f"{params.camera}.depth_image"
+    builder.ExportInput(ready.GetInputPort("rgb_image"), rgb_name)
+    builder.ExportInput(ready.GetInputPort("depth_image"), depth_name)
+    if depth:
+        segmenter = builder.AddNamedSystem("shelf_segmenter", ShelfSegmenter(geometry, segmentation))
+        occupancy = builder.AddNamedSystem("occupancy_estimator",
+                                           ShelfOccupancyEstimator(geometry, target_size, "learned", weights=weights))
+        builder.ConnectInput(depth_name, segmenter.GetInputPort("depth_image"))
+        builder.ConnectInput(rgb_name, segmenter.GetInputPort("rgb_image"))
+        builder.ConnectInput(depth_name, occupancy.GetInputPort("depth_image"))
+        scene = segmenter.GetOutputPort("scene")
+    else:
+        observer = builder.AddNamedSystem("scene_observer", ShelfSceneObserver(sim, scenario.environment.position))
+        occupancy = builder.AddNamedSystem("occupancy_estimator", ShelfOccupancyEstimator(geometry, target_size))
+        scene = observer.GetOutputPort("scene")
+        builder.Connect(scene, occupancy.GetInputPort("scene"))
     policy_params = ShelfPolicyParams(psi=params.psi, seed=params.seed, horizon=params.horizon)
     if params.fetch_feasible:
         selector = FetchFeasibleSelector(params.policy, foss, backend, policy_params, period=params.period,
                                          max_candidates=params.max_candidates)
     else:
-        selector = ShelfPolicySelector(params.policy, foss, policy_params, period=params.period, per_action=True)
+        selector = ShelfSearchSelector(params.policy, foss, policy_params, period=params.period)
     builder.AddNamedSystem("policy_selector", selector)
     executor = builder.AddNamedSystem("action_executor", ActionExecutor(backend, period=params.period))
-    ready = builder.AddNamedSystem("images_ready", ImagesReady(cam.width, cam.height))
-    scene = observer.GetOutputPort("scene")
-    builder.Connect(scene, occupancy.GetInputPort("scene"))
     builder.Connect(scene, selector.GetInputPort("scene"))
     builder.Connect(occupancy.GetOutputPort("occupancy"), selector.GetInputPort("occupancy"))
     builder.Connect(selector.GetOutputPort("action"), executor.action_port)
     builder.Connect(executor.history_port, selector.GetInputPort("history"))
     builder.Connect(ready.GetOutputPort("ready"), executor.ready_port)
-    builder.ExportInput(ready.GetInputPort("rgb_image"), f"{params.camera}.rgb_image")
-    builder.ExportInput(ready.GetInputPort("depth_image"), f"{params.camera}.depth_image")
-    builder.ExportInput(observer.poses_port, "body_poses")
-    builder.ConnectInput("body_poses", executor.poses_port)
+    if not depth:
+        builder.ExportInput(observer.poses_port, "body_poses")
+        builder.ConnectInput("body_poses", executor.poses_port)
     for port_name, port in executor.command_ports.items():
         builder.ExportOutput(port, port_name)
     for port_name in ("history", "outcome", "removed", "status"):
@@ -218,7 +268,10 @@ def MakeShelfSearchController(scenario, params: ShelfSearchParams | None = None,
     builder.ExportOutput(selector.GetOutputPort("occupancy_history"), "occupancy_history")
     builder.ExportOutput(occupancy.GetOutputPort("occupancy"), "occupancy")
     builder.ExportOutput(scene, "scene")
-    controller = ShelfSearchController(builder, backend, params, sim.target_id)
+    if depth:
+        builder.ExportOutput(segmenter.GetOutputPort("masks"), "masks")
+        builder.ExportOutput(segmenter.GetOutputPort("target_mask"), "target_mask")
+    controller = ShelfSearchController(builder, backend, params, target_id, perception)
     controller.set_name(name)
     return controller
 
@@ -226,12 +279,13 @@ def MakeShelfSearchController(scenario, params: ShelfSearchParams | None = None,
 class ShelfSearchController(Diagram):
     """The Diagram MakeShelfSearchController builds; `initial_commands()`: the station commands it
     starts from (the Fetch parked out of the camera's view, blade up, vacuum off); `backend`: its
-    ShelfBackend."""
+    ShelfBackend; `perception`: "ground_truth" or "depth"."""
 
-    def __init__(self, builder: DiagramBuilder, backend, params: ShelfSearchParams, target_id: str):
+    def __init__(self, builder: DiagramBuilder, backend, params: ShelfSearchParams, target_id: str,
+                 perception: str = "ground_truth"):
         super().__init__()
         builder.BuildInto(self)
-        self.backend, self.params, self.target_id = backend, params, target_id
+        self.backend, self.params, self.target_id, self.perception = backend, params, target_id, perception
 
     def initial_commands(self) -> dict:
         return self.backend.initial_commands()
