@@ -84,6 +84,7 @@ from ms_drake.perception.segmentation import BACKENDS as SEGMENTATION_BACKENDS
 from ms_drake.perception.target import BACKENDS as DETECTOR_BACKENDS
 from ms_drake.policies.bin_selectors import check_policy
 from ms_drake.policies.shelf import SHELF_POLICIES, check_shelf_policy
+from ms_drake.policies.shelf_search import PERCEPTIONS as SHELF_CONTROLLER_PERCEPTIONS
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import HeapParams, generate_heap, heap_to_dict
 from ms_drake.station import MakeStation
@@ -114,7 +115,10 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
          policy: Optional[str] = typer.Option(None, help="Selector (default: X-Ray) / shelf policy "
                                                          "(default: bluction_dar)"),
          horizon: Optional[int] = typer.Option(None, min=1, help="Action budget H (default 10 / 2n)"),
-         meshcat: bool = typer.Option(True, help="Write a Meshcat HTML recording")):
+         meshcat: bool = typer.Option(True, help="Write a Meshcat HTML recording"),
+         perception: str = typer.Option("ground_truth", "--perception",
+                                        help="shelf: the controller's perception, ground_truth (the simulation's "
+                                             "body poses) or depth (the camera images only, as on hardware)")):
     """A full search with per-step PNGs, a GIF and a Meshcat recording: `bin` (heap, X-Ray on the
     floating gripper: masks, occupancy, action) or `shelf` (a shelf scene searched by the Fetch with
     the bluction tool in Drake physics: depth, distribution, action)."""
@@ -126,11 +130,14 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
         objects = SHELF_DEMO_OCCLUDERS if objects is None else objects
         if not 2 <= objects <= 12:
             _fail(f"--objects {objects}: a shelf scene has 2 to 12 occluders")
+        if perception not in SHELF_CONTROLLER_PERCEPTIONS:
+            _fail(f"--perception {perception}: choose one of {', '.join(SHELF_CONTROLLER_PERCEPTIONS)}")
         out = out or Path("out/demo_shelf")
         t = time.perf_counter()
-        typer.echo(f"searching shelf scene {seed} ({objects} occluders) with {policy} on the Fetch ...")
+        typer.echo(f"searching shelf scene {seed} ({objects} occluders) with {policy} on the Fetch "
+                   f"({perception} perception) ...")
         written = run_shelf_demo(out, seed=seed, occluders=objects, policy=policy, horizon=horizon,
-                                 meshcat_html=meshcat, log=typer.echo)
+                                 meshcat_html=meshcat, log=typer.echo, perception=perception)
         for k, v in written.items():
             typer.echo(f"  {k:18s} {v}")
         typer.echo(f"wrote {len(written)} files to {out} in {time.perf_counter() - t:.1f} s")
@@ -450,29 +457,38 @@ def bench_shelf_physics(policy: str = typer.Option(..., "--policy", help=f"Shelf
                         workers: int = typer.Option(1, "--workers", min=1, help="Local worker processes"),
                         foss_choice: bool = typer.Option(False, "--foss-choice",
                                                          help="Choose by FOSS alone (no check on the Fetch's "
-                                                              "planner before acting)")):
+                                                              "planner before acting)"),
+                        perception: str = typer.Option("ground_truth", "--perception",
+                                                       help="The controller's perception: ground_truth (the "
+                                                            "simulation's body poses) or depth (the camera "
+                                                            "images only, as on hardware)")):
     """Shelf search on the Fetch in Drake physics (Table 9.2 analogue): scenes S..S+N-1; one JSON
-    line per scene (seed, occluders, policy, success, steps, physics-FOSS agreement); resumable."""
+    line per scene (seed, occluders, policy, perception, success, steps, physics-FOSS agreement); resumable."""
     check_shelf_policy(policy)
+    if perception not in SHELF_CONTROLLER_PERCEPTIONS:
+        _fail(f"--perception {perception}: choose one of {', '.join(SHELF_CONTROLLER_PERCEPTIONS)}")
     if out.suffix != ".jsonl":
         _fail(f"--out {out}: give a .jsonl file")
     if occluders and any(not 2 <= n <= 12 for n in occluders):
         _fail(f"--occluders {occluders}: shelf scenes have 2 to 12 occluders")
     run_shelf_physics_bench(policy, scenes, seed_start, out, occluders, workers=workers, log=typer.echo,
-                            fetch_feasible=not foss_choice)
-    recs = physics_records([out])
+                            fetch_feasible=not foss_choice, perception=perception)
+    recs = physics_records([out], perception)
     typer.echo(physics_table(recs, tuple(dict.fromkeys(r["policy"] for r in recs))))
     typer.echo(f"results in {out}")
 
 
 @bench_app.command("shelf-physics-table")
 def bench_shelf_physics_table(files: list[Path] = typer.Argument(..., help="Result .jsonl files "
-                                                                         "(ms-drake bench shelf-physics)")):
+                                                                         "(ms-drake bench shelf-physics)"),
+                              perception: str = typer.Option("ground_truth", "--perception",
+                                                             help="The records of this controller perception "
+                                                                  "(ground_truth or depth)")):
     """The Table 9.2 analogue (markdown) from physics shelf result files."""
     missing = [str(f) for f in files if not f.exists()]
     if missing:
         _fail(f"no such result file: {', '.join(missing)}")
-    recs = physics_records(files)
+    recs = physics_records(files, perception)
     typer.echo(physics_table(recs))
 
 
