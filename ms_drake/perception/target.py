@@ -18,6 +18,10 @@ Backends:
   (an occluded target never looks larger than the whole target from the same camera). The mask
   with the best score is the target when the score is >= `threshold`.
   `render_templates(...)` renders k views of an object alone in the scenario's camera.
+- ``learned``: the siamese network of ms_drake.perception.matcher_net (App. C.2's architecture
+  on a small encoder trained from scratch on rendered heaps), scoring every mask against the k
+  template views (maximum over the views); the best mask is the target when its score is >=
+  t_r = 0.9. `weights`: the matcher weights file (default models/weights/matcher.pt).
 
 Output: TargetEstimate(visible, mask (H, W) bool, confidence, instance_index).
 """
@@ -37,10 +41,11 @@ from scipy.spatial.transform import Rotation
 
 from ms_drake.errors import PerceptionError
 from ms_drake.perception.masks import object_labels
+from ms_drake.perception.matcher_net import LearnedMatcher
 from ms_drake.station.station import MakeStation, get_plant, station_objects
 from ms_drake.types import InstanceMasks, TargetEstimate
 
-BACKENDS = ("color", "template")
+BACKENDS = ("color", "template", "learned")
 
 
 @dataclass(frozen=True)
@@ -133,6 +138,17 @@ class TemplateMatcher:
         return TargetEstimate(False, np.zeros((h, w), bool), 0.0, -1)
 
 
+def detect_learned(matcher: LearnedMatcher, rgb, masks: InstanceMasks) -> TargetEstimate:
+    """The learned backend as a function: the best-scoring mask if its score is >= t_r."""
+    img = _rgb_array(rgb)
+    if len(masks):
+        s = matcher.scores(img, masks)
+        k = int(np.argmax(s))
+        if s[k] >= matcher.threshold:
+            return TargetEstimate(True, masks.masks[k].copy(), float(s[k]), k)
+    return TargetEstimate(False, np.zeros(img.shape[:2], bool), 0.0, -1)
+
+
 def render_templates(scenario, object_name: str, k: int = 5, seed: int = 0, red: bool = True,
                      camera: str | None = None) -> list[Template]:
     """k views of `object_name` (full registry name) alone in the scenario's bin, each in a random
@@ -177,13 +193,13 @@ class TargetDetector(LeafSystem):
     """Finds the target among the instance masks (see the module doc for backends).
 
     Inputs ``rgb_image`` (ImageRgba8U) and ``masks`` (InstanceMasks); output ``target``
-    (TargetEstimate). backend: color | template; params: ColorParams (color); templates,
-    threshold (t_r), max_area_ratio (template).
+    (TargetEstimate). backend: color | template | learned; params: ColorParams (color); templates,
+    threshold (t_r): template and learned; max_area_ratio (template); weights (learned).
     """
 
     def __init__(self, backend: str = "color", width: int = 640, height: int = 480,
                  params: ColorParams | None = None, templates: list[Template] | None = None,
-                 threshold: float = 0.9, max_area_ratio: float = 1.5):
+                 threshold: float = 0.9, max_area_ratio: float = 1.5, weights=None):
         super().__init__()
         if backend not in BACKENDS:
             raise PerceptionError(f"TargetDetector backend {backend!r} unknown; choose one of {', '.join(BACKENDS)}")
@@ -196,11 +212,14 @@ class TargetDetector(LeafSystem):
         self.backend = backend
         self.params = params or ColorParams()
         self.matcher = TemplateMatcher(templates or [], threshold, max_area_ratio) if backend == "template" else None
+        self.learned = LearnedMatcher(templates or [], weights, threshold) if backend == "learned" else None
 
     def detect(self, rgb, masks: InstanceMasks) -> TargetEstimate:
         if self.backend == "color":
             return detect_color(rgb, masks, self.params)
-        return self.matcher.detect(rgb, masks)
+        if self.backend == "template":
+            return self.matcher.detect(rgb, masks)
+        return detect_learned(self.learned, rgb, masks)
 
     def _calc(self, context, output):
         if not self.rgb_port.HasValue(context):

@@ -9,6 +9,8 @@ In simulation, start the robot where the controller expects it (parked out of th
 
 Inside (DESIGN.md "Data flow"; every planner is a system of the diagram):
   <cam>.label_image -> Segmenter("ground_truth")   (simulation)  |  <cam>.depth_image -> Segmenter(params.segmentation)
+    (simulation with a depth segmenter: -> MaskAssociation(<cam>.label_image), the masks named
+    after the objects behind them so the simulated executor knows what a grasp lifted)
   <cam>.rgb_image + masks -> TargetDetector(params.detector) -> target
   <cam>.depth_image + target -> OccupancyEstimator(params.occupancy) -> occupancy (given target_shape; xray reads it)
   depth + masks (+ body_poses: exact meshes in simulation) -> LazyGraspPlanner -> grasps
@@ -42,6 +44,7 @@ from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.grasping.meshes import object_mesh
 from ms_drake.grasping.planner import GraspPlanner, LazyGraspPlanner, ObjectGeometrySource
 from ms_drake.objects import get_object
+from ms_drake.perception.association import MaskAssociation
 from ms_drake.perception.masks import TargetAmodalMask, make_amodal_masks, object_labels
 from ms_drake.perception.occupancy import BACKENDS as OCCUPANCY_BACKENDS
 from ms_drake.perception.occupancy import OccupancyEstimator
@@ -195,6 +198,14 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
         depth_inputs.append(seg.GetInputPort("depth_image"))
     seg.set_name("segmenter")
     masks = seg.GetOutputPort("masks")
+    if params.segmentation != "ground_truth" and sim is not None:
+        # Simulation: the segmenter's masks named after the objects behind them, so the simulated
+        # executor knows what a grasp lifted (perception.association; pixels unchanged).
+        assoc = builder.AddSystem(MaskAssociation(object_labels(sim.plant), camera.width, camera.height))
+        assoc.set_name("mask_association")
+        builder.Connect(masks, assoc.GetInputPort("masks"))
+        export_input([assoc.GetInputPort("label_image")], f"{cam}.label_image")
+        masks = assoc.GetOutputPort("masks")
     templates = None
     if params.detector != "color":
         templates = target_templates
