@@ -45,6 +45,8 @@ from ms_drake.experiments.occupancy_learning import (
     train_occupancy,
     write_json,
 )
+from ms_drake.experiments.matcher_data import OCCLUSION, bench_target_detection, write_matcher_dataset
+from ms_drake.experiments.matcher_learning import train_matcher
 from ms_drake.experiments.picks import TASKS, run_pick
 from ms_drake.experiments.scene_images import make_scene, write_scene_images
 from ms_drake.experiments.segmentation_data import write_segmentation_dataset
@@ -856,6 +858,101 @@ def bench_segmentation_cmd(
     if out is not None:
         write_seg_json(out, res)
         typer.echo(f"wrote {out}")
+
+
+# ---------------------------------------------------------------------------------------------
+# Target matching (App. C.2): ms-drake data / train matcher, ms-drake bench target-detection
+
+
+@data_app.command("matcher")
+def data_matcher(heaps: int = typer.Option(..., "--heaps", min=1, help="Heaps, rounded up to whole shards"),
+                 out: Path = typer.Option(..., "--out", help="Output folder (matcher_<k>_<split>.npz; resumes)"),
+                 seed: int = typer.Option(0, "--seed", min=0, help="Dataset seed"),
+                 heaps_per_shard: int = typer.Option(10, "--heaps-per-shard", min=1, help="Heaps per shard"),
+                 workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers")):
+    """Colour heap images with object crops and template views of every object, for the siamese
+    target matcher; split by object; shards already written are kept."""
+    t0 = time.perf_counter()
+    bar = tqdm(total=-(-heaps // heaps_per_shard), desc="shards", unit="shard")
+
+    def progress(r):
+        bar.update(1)
+        if not r.ok:
+            tqdm.write(f"shard {r.job[1]}: {r.error.strip().splitlines()[-1]} (rerun to retry)")
+
+    res = write_matcher_dataset(out, heaps, seed, heaps_per_shard, workers, progress)
+    bar.close()
+    typer.echo(f"{res['written']} shards ({res['crops']} object crops) written, {res['skipped']} already there, "
+               f"{len(res['failed'])} failed, in {out} ({time.perf_counter() - t0:.0f} s, {res['cpu']:.0f} CPU-s)")
+    if res["failed"]:
+        raise typer.Exit(1)
+
+
+@train_app.command("matcher")
+def train_matcher_cmd(
+        data: Path = typer.Option(..., "--data", help="Dataset folder (ms-drake data matcher)"),
+        out: Path = typer.Option(Path("models/weights/matcher.pt"), "--out", help="Weights file"),
+        epochs: int = typer.Option(10, "--epochs", min=1, help="Epochs (cosine schedule over all)"),
+        steps: int = typer.Option(150, "--steps", min=1, help="Batches per epoch"),
+        batch: int = typer.Option(64, "--batch", min=2, help="Pairs per batch (half positive)"),
+        lr: float = typer.Option(1e-3, "--lr", help="Adam learning rate (cosine decay to 0)"),
+        seed: int = typer.Option(0, "--seed", min=0, help="Seed"),
+        threads: int = typer.Option(1, "--threads", min=1, help="torch threads"),
+        max_minutes: float = typer.Option(15.0, "--max-minutes", help="Stop after the epoch that would end past "
+                                          "this wall time")):
+    """Train the siamese target matcher; resumes from OUT.ckpt; writes OUT (weights + meta) after
+    every epoch."""
+    bar = tqdm(desc="training", unit="batch")
+
+    def progress(epoch, b, n, loss):
+        if b == 0:
+            bar.reset(total=n)
+            bar.set_description(f"epoch {epoch + 1}/{epochs}")
+        bar.update(1)
+        bar.set_postfix(loss=f"{loss:.4f}")
+
+    cmd = " ".join(["ms-drake", "train", "matcher", "--data", str(data), "--out", str(out), "--epochs", str(epochs),
+                    "--steps", str(steps), "--batch", str(batch), "--lr", str(lr), "--seed", str(seed),
+                    "--threads", str(threads)])
+    meta = train_matcher(data, out, epochs=epochs, steps=steps, batch=batch, seed=seed, threads=threads, lr=lr,
+                         max_minutes=max_minutes, progress=progress, command=cmd)
+    bar.close()
+    for h in meta["history"]:
+        typer.echo(f"epoch {h['epoch']}: loss {h['loss']:.4f}, held-out loss {h['val_loss']:.4f}, accuracy "
+                   f"{100 * h['val_accuracy']:.1f} %, precision {100 * h['val_precision']:.1f} %, recall "
+                   f"{100 * h['val_recall']:.1f} % at t_r = 0.9 ({h['seconds']:.0f} s)")
+    typer.echo(f"wrote {out} ({meta['epochs_done']} of {epochs} epochs, {meta['seconds'] / 60:.1f} min)")
+
+
+@bench_app.command("target-detection")
+def bench_target_detection_cmd(
+        backend: str = typer.Option(..., "--backend", help="color | template | learned"),
+        images: int = typer.Option(300, "--images", min=1, help="Images (N)"),
+        seed_start: int = typer.Option(0, "--seed-start", min=0, help="First image seed (S)"),
+        out: Path = typer.Option(..., "--out", help="Result .json (per-image lines go to the .jsonl beside it; "
+                                 "resumes)"),
+        workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers"),
+        weights: Optional[Path] = typer.Option(None, "--weights", help="Matcher weights (learned; default: shipped)")):
+    """Target detection on held-out heaps with the target 20-80 % occluded (half of them with a second
+    red object): precision, recall, F1, also on the shared-colour subset."""
+    if backend not in DETECTOR_BACKENDS:
+        _fail(f"--backend {backend!r}: choose one of {', '.join(DETECTOR_BACKENDS)}")
+    if out.suffix != ".json":
+        _fail(f"--out {out}: give a .json file")
+    bar = tqdm(total=images, desc=backend, unit="image")
+
+    def progress(r):
+        bar.update(1)
+        if not r.ok:
+            tqdm.write(f"image {r.job[1]}: {r.error.strip().splitlines()[-1]} (rerun to retry)")
+
+    res = bench_target_detection(backend, images, seed_start, out, workers, weights, progress)
+    bar.close()
+    for name, m in (("all", res), ("shared colour", res["shared_colour"]), ("distinct colours", res["distinct_colour"])):
+        typer.echo(f"{backend}, {name}: {m['images']} images, precision {m['precision']:.3f}, recall "
+                   f"{m['recall']:.3f}, F1 {m['f1']:.3f}")
+    typer.echo(f"target occluded {100 * res['occluded_fraction'][0]:.0f}-{100 * res['occluded_fraction'][1]:.0f} % "
+               f"(drawn in {100 * OCCLUSION[0]:.0f}-{100 * OCCLUSION[1]:.0f} %); wrote {out}")
 
 
 def main():
