@@ -932,7 +932,9 @@ def bench_target_detection_cmd(
         out: Path = typer.Option(..., "--out", help="Result .json (per-image lines go to the .jsonl beside it; "
                                  "resumes)"),
         workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers"),
-        weights: Optional[Path] = typer.Option(None, "--weights", help="Matcher weights (learned; default: shipped)")):
+        weights: Optional[Path] = typer.Option(None, "--weights", help="Matcher weights (learned; default: shipped)"),
+        scene_dir: Optional[Path] = typer.Option(None, "--scene-dir", help="Folder caching the rendered images "
+                                                 "(scene_<seed>.npz), shared by the runs of several backends")):
     """Target detection on held-out heaps with the target 20-80 % occluded (half of them with a second
     red object): precision, recall, F1, also on the shared-colour subset."""
     if backend not in DETECTOR_BACKENDS:
@@ -946,7 +948,7 @@ def bench_target_detection_cmd(
         if not r.ok:
             tqdm.write(f"image {r.job[1]}: {r.error.strip().splitlines()[-1]} (rerun to retry)")
 
-    res = bench_target_detection(backend, images, seed_start, out, workers, weights, progress)
+    res = bench_target_detection(backend, images, seed_start, out, workers, weights, progress, scene_dir)
     bar.close()
     for name, m in (("all", res), ("shared colour", res["shared_colour"]), ("distinct colours", res["distinct_colour"])):
         typer.echo(f"{backend}, {name}: {m['images']} images, precision {m['precision']:.3f}, recall "

@@ -301,10 +301,41 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.logical_and(a, b).sum() / u) if u else 0.0
 
 
+def save_scene(sc: dict, path: Path) -> None:
+    """A bench_scene on disk (atomically), so several backends are scored on the same images."""
+    inst = np.zeros(sc["masks"].masks.shape[1:], np.uint8)
+    for k, m in enumerate(sc["masks"].masks):
+        inst[m] = k + 1
+    tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
+    np.savez_compressed(tmp, rgb=sc["rgb"], inst=inst, ids=np.array(sc["masks"].ids),
+                        t_rgb=np.array([t.rgb for t in sc["templates"]] + [None], dtype=object)[:-1],
+                        t_mask=np.array([t.mask for t in sc["templates"]] + [None], dtype=object)[:-1],
+                        meta=json.dumps({k: sc[k] for k in ("target", "visible", "shared", "objects", "target_name",
+                                                            "set", "other")}))
+    os.replace(tmp, path)
+
+
+def load_scene(path: Path) -> dict:
+    with np.load(path, allow_pickle=True) as z:
+        meta = json.loads(str(z["meta"]))
+        ids = [str(i) for i in z["ids"]]
+        meta.update(rgb=z["rgb"], masks=instance_masks(z["inst"], ids),
+                    templates=[Template(r, m) for r, m in zip(z["t_rgb"], z["t_mask"])])
+    return meta
+
+
 def bench_detection_job(job: tuple) -> dict:
-    """(backend, seed, weights) -> one benchmark record; module-level for pickling."""
-    backend, seed, weights = job
-    sc = bench_scene(seed)
+    """(backend, seed, weights[, scene_dir]) -> one benchmark record; module-level for pickling.
+    scene_dir: images are read from / saved to it (scene_<seed>.npz)."""
+    backend, seed, weights, *rest = job
+    cache = Path(rest[0]) / f"scene_{seed}.npz" if rest and rest[0] else None
+    if cache is not None and cache.exists():
+        sc = load_scene(cache)
+    else:
+        sc = bench_scene(seed)
+        if cache is not None:
+            cache.parent.mkdir(parents=True, exist_ok=True)
+            save_scene(sc, cache)
     h, w = sc["rgb"].shape[:2]
     det = TargetDetector(backend, width=w, height=h, templates=sc["templates"] if backend != "color" else None,
                          weights=weights)
@@ -330,9 +361,10 @@ def detection_metrics(recs: list[dict]) -> dict:
 
 
 def bench_target_detection(backend: str, images: int, seed_start: int, out, workers: int = 1, weights=None,
-                           progress=None) -> dict:
+                           progress=None, scene_dir=None) -> dict:
     """Run the missing images of seeds S..S+N-1 (one JSON line each in OUT.jsonl next to `out`,
-    resumable), then write `out` (JSON: metrics overall and on the shared-colour subset)."""
+    resumable), then write `out` (JSON: metrics overall and on the shared-colour subset).
+    scene_dir: a folder caching the rendered images, shared by the backends' runs."""
     if backend not in DETECTORS:
         raise DatasetError(f"backend {backend!r} unknown; choose one of {', '.join(DETECTORS)}")
     out = Path(out)
@@ -346,7 +378,8 @@ def bench_target_detection(backend: str, images: int, seed_start: int, out, work
             except ValueError:
                 continue
     done = {r["seed"] for r in recs if r.get("backend") == backend}
-    jobs = [(backend, s, None if weights is None else str(weights)) for s in range(seed_start, seed_start + images)
+    jobs = [(backend, s, None if weights is None else str(weights), None if scene_dir is None else str(scene_dir))
+            for s in range(seed_start, seed_start + images)
             if s not in done]
     with open(lines, "a") as f:
         for r in run_jobs(bench_detection_job, jobs, workers=workers):
