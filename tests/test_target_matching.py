@@ -1,0 +1,190 @@
+"""Target matching (App. C.2): the siamese matcher, TargetDetector('learned') alone and in the
+bin-search controller, MaskAssociation alone and wired, the matcher data / training / benchmark."""
+
+import numpy as np
+import pytest
+import torch
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.sensors import ImageLabel16I, ImageRgba8U
+
+from ms_drake.errors import DatasetError, PerceptionError
+from ms_drake.experiments.matcher_data import bench_target_detection, detection_metrics, matcher_shard_job
+from ms_drake.experiments.matcher_learning import PairSampler
+from ms_drake.experiments.rollout import SearchParams, build_search
+from ms_drake.perception.association import MaskAssociation, associate
+from ms_drake.perception.matcher_net import SIZE, crop, default_weights, make_net, occlude
+from ms_drake.perception.target import TargetDetector, Template, render_templates
+from ms_drake.policies.bin_search import BinSearchParams, ControllerError
+from ms_drake.scenario import load_scenario
+from ms_drake.scenes.heaps import set_heap_poses
+from ms_drake.types import InstanceMasks
+
+OBJ_A, OBJ_B = "ycb/010_potted_meat_can", "procedural/box_330"
+
+
+def rgba_image(rgb: np.ndarray) -> ImageRgba8U:
+    img = ImageRgba8U(rgb.shape[1], rgb.shape[0])
+    a = np.array(img.mutable_data, copy=False)
+    a[:, :, :3] = rgb
+    a[:, :, 3] = 255
+    return img
+
+
+def test_crop_keeps_scale_and_blanks_the_background():
+    rgb = np.full((480, 640, 3), 200, np.uint8)
+    mask = np.zeros((480, 640), bool)
+    mask[100:130, 200:260] = True  # 30 x 60 px
+    x = crop(rgb, mask)
+    assert x.shape == (4, SIZE, SIZE) and x.dtype == np.float32
+    assert x[3].sum() == pytest.approx(30 * 60 / 9, rel=0.05)  # fixed 3 x 3 averaging: the size survives
+    assert np.allclose(x[:3][:, x[3] == 0], 0.0)  # outside the mask no colour
+    big = np.zeros_like(mask)
+    big[100:160, 200:320] = True
+    assert crop(rgb, big)[3].sum() > 3.5 * x[3].sum()
+    with pytest.raises(PerceptionError, match="empty"):
+        crop(rgb, np.zeros_like(mask))
+
+
+def test_occlusion_removes_20_to_80_percent():
+    rng = np.random.default_rng(0)
+    m = np.zeros((64, 64), bool)
+    m[10:50, 5:60] = True
+    for _ in range(50):
+        cut = occlude(m, rng)
+        frac = 1 - cut.sum() / m.sum()
+        assert 0.18 <= frac <= 0.82 and not (cut & ~m).any()
+
+
+def test_training_step_lowers_the_loss(tmp_path):
+    torch.manual_seed(0)
+    net = make_net()
+    rng = np.random.default_rng(0)
+    a = torch.from_numpy(rng.random((16, 4, SIZE, SIZE), dtype=np.float32))
+    b = torch.from_numpy(rng.random((16, 4, SIZE, SIZE), dtype=np.float32))
+    y = torch.from_numpy((np.arange(16) % 2).astype(np.float32))
+    opt = torch.optim.Adam(net.parameters(), 1e-3)
+    losses = []
+    for _ in range(15):
+        opt.zero_grad()
+        loss = torch.nn.functional.binary_cross_entropy_with_logits(net(a, b), y)
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert losses[-1] < 0.7 * losses[0]
+
+
+@pytest.fixture(scope="module")
+def red_views():
+    s = load_scenario(None, "BinHeap15")
+    return {name: render_templates(s, name, k=4, seed=3) for name in (OBJ_A, OBJ_B)}
+
+
+def compose(views: list[Template]):
+    """A 480 x 640 dark image with the views side by side, and their masks."""
+    rgb = np.full((480, 640, 3), 25, np.uint8)
+    masks = []
+    x = 40
+    for v in views:
+        h, w = v.mask.shape
+        m = np.zeros((480, 640), bool)
+        m[150:150 + h, x:x + w] = v.mask
+        rgb[m] = v.rgb[v.mask]
+        masks.append(m)
+        x += w + 60
+    return rgb, InstanceMasks(np.stack(masks), tuple(f"m{k}" for k in range(len(masks))), np.ones(len(masks)))
+
+
+@pytest.mark.skipif(not default_weights().is_file(), reason="matcher weights not trained")
+def test_learned_detector_alone_tells_the_target_from_another_red_object(red_views):
+    templates = red_views[OBJ_A][:3]  # three views of A; the fourth is the candidate
+    det = TargetDetector("learned", templates=templates)
+    rgb, masks = compose([red_views[OBJ_B][0], red_views[OBJ_A][3]])
+    ctx = det.CreateDefaultContext()
+    det.GetInputPort("rgb_image").FixValue(ctx, rgba_image(rgb))
+    det.GetInputPort("masks").FixValue(ctx, masks)
+    est = det.GetOutputPort("target").Eval(ctx)
+    assert est.visible and est.instance_index == 1 and est.confidence >= 0.9
+    assert np.array_equal(est.mask, masks.masks[1])
+    s = det.learned.scores(rgb, masks)
+    assert s[1] > s[0]
+    # Only the other red object: not the target.
+    rgb_b, masks_b = compose([red_views[OBJ_B][1]])
+    det.GetInputPort("rgb_image").FixValue(ctx, rgba_image(rgb_b))
+    det.GetInputPort("masks").FixValue(ctx, masks_b)
+    assert not det.GetOutputPort("target").Eval(ctx).visible
+
+
+def test_learned_detector_needs_templates_and_a_known_backend():
+    with pytest.raises(PerceptionError, match="template"):
+        TargetDetector("learned", templates=[])
+    with pytest.raises(PerceptionError, match="color, template, learned"):
+        TargetDetector("siamese")
+    with pytest.raises(ControllerError, match="color, template, learned"):
+        BinSearchParams(detector="sift")
+
+
+def test_mask_association_alone():
+    labels = np.zeros((20, 30), np.int16)
+    labels[:, :10] = 5
+    labels[:, 10:] = 7
+    m = np.zeros((3, 20, 30), bool)
+    m[0, :, :14] = True  # mostly object 5
+    m[1, :, 14:] = True  # object 7
+    m[2, :2, :3] = True  # a smaller piece of object 5
+    masks = InstanceMasks(m, ("seg_0", "seg_1", "seg_2"), np.array([0.9, 0.8, 0.7]))
+    out = associate(masks, labels, {5: "a", 7: "b"})
+    assert out.ids == ("a", "b", "seg_2") and np.array_equal(out.masks, m) and np.allclose(out.scores, masks.scores)
+    sys = MaskAssociation({5: "a", 7: "b"}, width=30, height=20)
+    ctx = sys.CreateDefaultContext()
+    img = ImageLabel16I(30, 20)
+    np.array(img.mutable_data, copy=False)[:, :, 0] = labels
+    sys.GetInputPort("label_image").FixValue(ctx, img)
+    sys.GetInputPort("masks").FixValue(ctx, masks)
+    assert sys.GetOutputPort("masks").Eval(ctx).ids == ("a", "b", "seg_2")
+    with pytest.raises(PerceptionError, match="differ"):
+        associate(masks, labels[:10], {5: "a"})
+
+
+@pytest.mark.skipif(not default_weights().is_file(), reason="matcher weights not trained")
+def test_controller_with_the_learned_detector_and_segmenter_finds_the_target(small_heap):
+    heap = small_heap
+    s = load_scenario(None, "FloatingGripperBin")
+    est = {}
+    for seg, det in (("ground_truth", "color"), ("ground_truth", "learned"), ("learned", "learned")):
+        system = build_search(s, heap, SearchParams(policy="largest", seed=1, time_step=0.01, segmenter=seg,
+                                                    detector=det))
+        assert system.controller.GetSubsystemByName("target_detector").backend == det
+        ctx = system.diagram.CreateDefaultContext()
+        set_heap_poses(system.station, ctx, heap)
+        est[seg, det] = system.output(ctx, "target")
+        masks = system.output(ctx, "masks")
+        if seg == "learned":  # named after the objects behind them (MaskAssociation)
+            assert system.target_id in masks.ids
+            assert system.controller.HasInputPort("overhead.label_image")
+    color, learned = est["ground_truth", "color"], est["ground_truth", "learned"]
+    assert color.visible and learned.visible and learned.confidence >= 0.9
+    assert np.array_equal(color.mask, learned.mask)  # the same (red) target mask
+    both = est["learned", "learned"]
+    assert both.visible and (both.mask & color.mask).sum() > 0.5 * both.mask.sum()
+
+
+def test_matcher_shard_and_pairs(tmp_path):
+    r = matcher_shard_job((str(tmp_path), 0, 3, 2))
+    assert r["crops"] >= 2 and not r["skipped"]
+    z = dict(np.load(tmp_path / "matcher_00000_train.npz"))
+    assert z["heap"].shape[1:] == (4, SIZE, SIZE) and z["templates"].shape[1:] == (2, 4, SIZE, SIZE)
+    assert matcher_shard_job((str(tmp_path), 0, 3, 2))["skipped"]
+    ps = PairSampler(z)
+    a, b, y = ps.pairs(20, np.random.default_rng(0))
+    assert a.shape == b.shape == (20, 4, SIZE, SIZE) and y.sum() == 10
+    neg = [p for p in range(20) if y[p] == 0]
+    for p in neg:  # a negative never pairs an object with itself
+        assert not np.array_equal(b[p], a[p])
+
+
+def test_detection_metrics_and_unknown_backend(tmp_path):
+    recs = [dict(detected=True, correct=True), dict(detected=True, correct=False), dict(detected=False, correct=False)]
+    m = detection_metrics(recs)
+    assert (m["precision"], m["recall"]) == (0.5, pytest.approx(1 / 3)) and m["f1"] == pytest.approx(0.4)
+    with pytest.raises(DatasetError, match="color, template, learned"):
+        bench_target_detection("hsv", 1, 0, tmp_path / "x.json")
