@@ -17,9 +17,12 @@ from pydrake.systems.sensors import ImageDepth32F, ImageRgba8U
 
 from ms_drake.execution import ExecutionError
 from ms_drake.execution.shelf_backend import ShelfBackend, ShelfBody, agreement
+from ms_drake.foss import Foss
 from ms_drake.experiments.scene_images import make_scene
 from ms_drake.experiments.shelf_physics import (
+    action_agreement,
     build_shelf_physics,
+    depth_action_outcome,
     physics_records,
     set_initial,
     target_visibility,
@@ -37,8 +40,9 @@ from ms_drake.policies.shelf_search import (
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import scenario_with_heap, set_heap_poses
 from ms_drake.scenes.shelf_render import render_shelf_scene
+from ms_drake.shelf_geometry import ShelfGeometry
 from ms_drake.station import MakeStation, get_plant, station_objects
-from ms_drake.types import Action, ShelfAction, ShelfObject, ShelfScene
+from ms_drake.types import Action, ActionOutcome, ShelfAction, ShelfObject, ShelfScene
 
 # A tall box in front of the target and a cylinder to its left (the target fully hidden).
 OCC = ShelfObject("occ00", "box", 0.0, -0.12, 0.16, 0.08, 0.20)
@@ -192,6 +196,34 @@ def test_wired_depth_controller_moves_the_object_it_chose(scenario):
     other = ({"occ00", "occ01"} - {chosen}).pop()
     q = poses[system.sim.bodies[other].body_index].translation() - origin
     assert np.hypot(q[0] - SCENE.object(other).x, q[1] - SCENE.object(other).y) < 0.02
+
+
+def test_depth_action_outcome_judges_the_action_with_the_truth(scenario):
+    foss = Foss(ShelfGeometry.from_scenario(scenario))
+    est = ShelfScene((ShelfObject("seg_0", "cylinder", -0.175, -0.10, 0.09, 0.09, 0.10),
+                      ShelfObject("seg_1", "box", 0.005, -0.125, 0.15, 0.07, 0.19)))
+    action = Action("shelf", shelf=ShelfAction("push", "seg_1", 0.10), scene=est)
+    executed = ActionOutcome(action, True, message="agree=nan executed (no body_poses)")
+    before = (SCENE, ())
+    # OCC (the true object behind seg_1) moved 10.5 cm along x: FOSS's push of the estimate agrees
+    after = (ShelfScene((OCC.moved(OCC.x + 0.105, OCC.y), SIDE), TARGET), ())
+    out = depth_action_outcome(executed, before, after, foss)
+    assert out.success and agreement(out) is True and "chose=occ00" in out.message
+    # it moved 3 cm only, and the cylinder toppled: no agreement
+    after = (ShelfScene((OCC.moved(OCC.x + 0.03, OCC.y), SIDE), TARGET), ("occ01",))
+    out = depth_action_outcome(executed, before, after, foss)
+    assert agreement(out) is False and "toppled=occ01" in out.message
+    # an estimate that stands for no occluder
+    ghost = ShelfScene((ShelfObject("seg_0", "box", 0.2, 0.15, 0.05, 0.05, 0.05),))
+    out = depth_action_outcome(ActionOutcome(dataclasses.replace(
+        action, shelf=ShelfAction("push", "seg_0", -0.05), scene=ghost), True), before, before, foss)
+    assert agreement(out) is False and "chose=-" in out.message
+    rec = {"actions_taken": [["push", "seg_1", 0.1, 0.0], ["push", "seg_0", -0.05, 0.0]],
+           "outcomes": [depth_action_outcome(executed, before, (ShelfScene((OCC.moved(0.105, OCC.y), SIDE), TARGET),
+                                                                 ()), foss).message, out.message]}
+    assert action_agreement(rec) == [("push", True), ("push", False)]
+    # not observed after (the run stopped mid-action): no agreement recorded
+    assert agreement(depth_action_outcome(executed, before, None, foss)) is None
 
 
 def test_physics_records_by_perception(tmp_path):

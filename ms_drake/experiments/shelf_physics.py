@@ -13,8 +13,11 @@
   and filled); the search succeeds at v = 80 % (FOSS's threshold), fails at the horizon H = 2n, when
   the policy has no action, or when the simulation fails. Per executed action the backend's
   outcome says whether physics and FOSS agree (ms_drake.execution.shelf_backend: the moved object
-  within 2 cm of FOSS's placement, nothing else moved by more than 2 cm, nothing toppled; not
-  recorded with perception "depth", whose controller has no body poses).
+  within 2 cm of FOSS's placement, nothing else moved by more than 2 cm, nothing toppled). With
+  perception "depth" the controller has no body poses and the experiment judges each action
+  instead (`depth_action_outcome`): the true objects before and after it (observed at the idle
+  steps), the estimate it chose matched to a true occluder (footprint IoU, `associate`), and FOSS's
+  prediction on the estimated scene the action was planned in.
 - `run_shelf_physics_bench(...)`: `ms-drake bench shelf-physics`: one JSON line per scene (seed,
   occluders, policy, perception, success, steps, agreement, ...), flushed and fsync'ed, resumable.
 - `physics_table(records)`: the Table 9.2 analogue.
@@ -42,9 +45,11 @@ from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
 from pydrake.systems.framework import DiagramBuilder
 
 from ms_drake.errors import MsDrakeError
-from ms_drake.execution.shelf_backend import ShelfBody, agreement
+from ms_drake.execution.shelf_backend import ShelfBody, agreement, observe
 from ms_drake.experiments.harness import read_records
 from ms_drake.experiments.scene_images import write_search_pictures
+from ms_drake.experiments.shelf_segmentation import associate
+from ms_drake.foss import Foss
 from ms_drake.geometry import PinholeCamera
 from ms_drake.objects import TARGET_RGBA
 from ms_drake.objects.sdf import OBJECT_MODULUS, Inertia, Shape, object_sdf
@@ -219,6 +224,8 @@ def run_shelf_physics(system: ShelfPhysicsSystem, scene: ShelfScene, params: She
     set_initial(system, context, scene)
     simulator.Initialize()
     frames, visible, last_steps, k, t = [], 0.0, -1, 0, 0.0
+    truths = {}  # perception "depth": the true scene (and toppled ids) at each idle step, by history length
+    origin = np.asarray(system.scenario.environment.position, float)
     failure, reason, error = "", "", ""
     if meshcat is not None:
         meshcat.StartRecording(set_visualizations_while_recording=False)
@@ -230,6 +237,9 @@ def run_shelf_physics(system: ShelfPhysicsSystem, scene: ShelfScene, params: She
                 break
             if not status.busy and status.steps != last_steps:  # idle: observe, then the next action
                 last_steps = status.steps
+                if system.perception == "depth":
+                    truths[status.steps] = observe(system.station_output(context, "body_poses"), system.sim.bodies,
+                                                   origin, system.sim.target_id)
                 visible = target_visibility(system, context)
                 if keep_frames:
                     action = system.output(context, "action") if visible < VISIBILITY and status.steps < horizon \
@@ -256,6 +266,10 @@ def run_shelf_physics(system: ShelfPhysicsSystem, scene: ShelfScene, params: She
             meshcat.StopRecording()
             meshcat.PublishRecording()
     history = system.output(context, "history")
+    if system.perception == "depth":
+        foss = Foss(ShelfGeometry.from_scenario(system.scenario, system.camera_name))
+        history = tuple(depth_action_outcome(o, truths.get(i), truths.get(i + 1), foss)
+                        if not o.message.startswith("plan_failed") else o for i, o in enumerate(history))
     executed = [o for o in history if not o.message.startswith("plan_failed")]
     agree = [agreement(o) for o in executed]
     kinds = [o.action.shelf.kind for o in executed]
@@ -274,6 +288,40 @@ def run_shelf_physics(system: ShelfPhysicsSystem, scene: ShelfScene, params: She
                sim_seconds=float(context.get_time()), seconds=time.perf_counter() - t_wall,
                cpu_seconds=time.process_time() - t_cpu, pid=os.getpid())
     return ShelfPhysicsResult(rec, frames)
+
+
+def depth_action_outcome(outcome, before, after, foss: Foss, tolerance: float = 0.02):
+    """The outcome of an action a depth-perception controller executed, judged with the
+    simulation's truth (module docstring): `before` / `after` are (true ShelfScene, toppled ids)
+    at the idle steps around it (None: not observed, e.g. the run stopped mid-action). The message
+    has ShelfBackend.outcome's fields (agree, err, moved, commanded, others, toppled, foss) and
+    `chose=<true id>` ("-" when the estimate matched no occluder: then agree=0); err compares the
+    true object's displacement with FOSS's displacement of the estimate."""
+    a, est = outcome.action.shelf, outcome.action.scene
+    if before is None or after is None or est is None:
+        return dataclasses.replace(outcome, message=f"{outcome.message} chose=? (not observed)")
+    (b, toppled0), (f, toppled1) = before, after
+    ids = [o.id for o in est.objects]
+    named = associate(est, ShelfScene(b.objects, None, b.seed)).objects[ids.index(a.object_id)].id
+    xy = lambda sc: {o.id: np.array([o.x, o.y]) for o in list(sc.objects) + ([sc.target] if sc.target else [])}
+    p0, p1 = xy(b), xy(f)
+    predicted, fo = foss.step(est, a)
+    e0, e1 = est.object(a.object_id), predicted.object(a.object_id)
+    commanded = float(np.hypot(e1.x - e0.x, e1.y - e0.y))
+    new_toppled = set(toppled1) - set(toppled0)
+    foss_msg = "ok" if fo.success else fo.message
+    if named not in p0:
+        others = max((float(np.linalg.norm(p1[k] - p0[k])) for k in p0), default=0.0)
+        msg = (f"agree=0 err=nan moved=nan commanded={commanded:.3f} others={others:.3f} "
+               f"toppled={','.join(toppled1) or '-'} foss={foss_msg} chose=-")
+        return dataclasses.replace(outcome, message=msg)
+    d_true, d_pred = p1[named] - p0[named], np.array([e1.x - e0.x, e1.y - e0.y])
+    err = float(np.linalg.norm(d_true - d_pred))
+    others = max((float(np.linalg.norm(p1[k] - p0[k])) for k in p0 if k != named), default=0.0)
+    agree = fo.success and err <= tolerance and others <= tolerance and not new_toppled
+    msg = (f"agree={int(agree)} err={err:.3f} moved={float(np.linalg.norm(d_true)):.3f} commanded={commanded:.3f} "
+           f"others={others:.3f} toppled={','.join(toppled1) or '-'} foss={foss_msg} chose={named}")
+    return dataclasses.replace(outcome, message=msg)
 
 
 def _skipped(reason: str) -> int:
