@@ -18,6 +18,8 @@ from pydrake.systems.sensors import ImageDepth32F, ImageRgba8U
 from ms_drake.execution import ExecutionError
 from ms_drake.execution.shelf_backend import ShelfBackend, ShelfBody, agreement
 from ms_drake.foss import Foss
+from ms_drake.perception.shelf_occupancy import ground_truth_occupancy
+from ms_drake.policies.shelf import ShelfPolicyParams
 from ms_drake.experiments.scene_images import make_scene
 from ms_drake.experiments.shelf_physics import (
     action_agreement,
@@ -36,6 +38,8 @@ from ms_drake.policies.shelf_search import (
     ShelfSearchParams,
     ShelfSearchSelector,
     ShelfSimulationInfo,
+    same_scene,
+    seen_outcomes,
 )
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import scenario_with_heap, set_heap_poses
@@ -133,6 +137,33 @@ def test_depth_controller_alone_fixed_inputs(scenario, images):
     c2.GetInputPort("front.rgb_image").FixValue(ctx2, rgb)
     a2 = c2.GetOutputPort("action").Eval(ctx2)
     assert a2.kind == "shelf" and a2.scene == c2.GetOutputPort("scene").Eval(ctx2)
+
+
+def test_an_action_after_which_the_camera_sees_no_change_is_not_repeated(scenario, backend):
+    seen = ShelfScene((OCC, SIDE))  # what a segmenter reports: the occluders, no target
+    nudged = ShelfScene((OCC.moved(OCC.x + 0.004, OCC.y), SIDE))
+    assert same_scene(seen, nudged) and not same_scene(seen, ShelfScene((OCC.moved(OCC.x + 0.05, OCC.y), SIDE)))
+    assert not same_scene(seen, ShelfScene((OCC,)))
+    geometry = ShelfGeometry.from_scenario(scenario)
+    occupancy = ground_truth_occupancy(geometry, SCENE)
+    for judge in (True, False):
+        sel = FetchFeasibleSelector("bluction_dar", Foss(geometry), backend, ShelfPolicyParams(), judge_by_scene=judge)
+        ctx = sel.CreateDefaultContext()
+        sel.GetInputPort("scene").FixValue(ctx, seen)
+        sel.GetInputPort("occupancy").FixValue(ctx, occupancy)
+        sel.GetInputPort("history").FixValue(ctx, ())
+        first = sel.GetOutputPort("action").Eval(ctx)
+        assert first.kind == "shelf" and first.scene == seen
+        done = ActionOutcome(first, True, message="agree=nan executed (no body_poses)")
+        # executed, and the camera sees the same scene: with judge_by_scene the policy moves on
+        sel.GetInputPort("history").FixValue(ctx, (done,))
+        again = sel.GetOutputPort("action").Eval(ctx)
+        assert (again.shelf != first.shelf) == judge
+        # the scene changed after it: the action counts as done, nothing is refused
+        (o,) = seen_outcomes((done,), ShelfScene((OCC.moved(OCC.x + 0.1, OCC.y), SIDE)))
+        assert o.success
+    (o,) = seen_outcomes((done,), nudged)
+    assert not o.success and o.message.startswith("no_change_seen")
 
 
 def test_depth_controller_bad_inputs(scenario):

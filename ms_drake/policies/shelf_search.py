@@ -25,7 +25,9 @@ Then, in both:
   action -> ActionExecutor(ShelfBackend) -> fetch.position, fetch_bluction.position (blade angle),
             fetch_bluction.suction; history -> selector. With perception "depth" the backend has
             no shelf bodies and plans each action in its Action.scene; its outcomes are
-            "executed" (agree=nan): the next image shows what happened.
+            "executed" (agree=nan), and the selector reads them through the next image: an
+            action after which the camera sees the same scene failed (`seen_outcomes`), so the
+            policy does not repeat it while nothing changes.
   front.rgb_image + front.depth_image -> ImagesReady -> executor.ready (idle until images arrive)
 
 The policies see only occluders either way (ms_drake.policies.shelf drops the target). The exported
@@ -128,6 +130,35 @@ class ShelfSceneObserver(LeafSystem):
         output.set_value(scene)
 
 
+def same_scene(a: ShelfScene, b: ShelfScene, tolerance: float = 0.01) -> bool:
+    """Whether two observed scenes show the same objects: as many, in x order, each of the same
+    kind with centre and size within `tolerance` [m]."""
+    if len(a.objects) != len(b.objects):
+        return False
+    key = lambda o: o.x  # noqa: E731
+    for p, q in zip(sorted(a.objects, key=key), sorted(b.objects, key=key)):
+        if p.kind != q.kind or max(abs(p.x - q.x), abs(p.y - q.y), abs(p.width - q.width), abs(p.depth - q.depth),
+                                   abs(p.height - q.height)) > tolerance:
+            return False
+    return True
+
+
+def seen_outcomes(history, scene: ShelfScene, tolerance: float = 0.01) -> tuple:
+    """The history as the camera saw it (perception "depth": the backend cannot tell whether an
+    action moved anything): an executed shelf action after which the observed scene (the next
+    action's Action.scene, or `scene` after the last one) is the same (`same_scene`) changed
+    nothing, and its outcome becomes unsuccessful ("no_change_seen"), so the policy's rule drops it
+    until something changes, as it drops a refused action."""
+    out = list(history)
+    for i, o in enumerate(out):
+        if not o.success or o.action.scene is None:
+            continue
+        after = next((h.action.scene for h in out[i + 1:] if h.action.scene is not None), scene)
+        if same_scene(o.action.scene, after, tolerance):
+            out[i] = dataclasses.replace(o, success=False, message=f"no_change_seen {o.message}")
+    return tuple(out)
+
+
 class FetchFeasibleSelector(ShelfPolicySelector):
     """The ShelfPolicySelector (per action) whose action is the policy's best one that the Fetch can
     execute: the reference's "first kinematically feasible action" (lines 1643-1672) checked with
@@ -136,11 +167,14 @@ class FetchFeasibleSelector(ShelfPolicySelector):
     infeasible choice is added to the history as refused (so the policy's own rule drops it) and
     the policy chooses again, at most `max_candidates` times (then "stop"). The action's reason
     ends with the number of candidates skipped; a shelf action carries `scene` (Action.scene), in
-    which the backend plans it. Same ports as ShelfPolicySelector."""
+    which the backend plans it. judge_by_scene: read the history through `seen_outcomes` (an
+    action after which the camera sees the same scene failed; perception "depth"). Same ports as
+    ShelfPolicySelector."""
 
     def __init__(self, policy: str, foss: Foss, backend: ShelfBackend, params: ShelfPolicyParams | None = None,
-                 period: float = 1.0, max_candidates: int = 60):
+                 period: float = 1.0, max_candidates: int = 60, judge_by_scene: bool = False):
         super().__init__(policy, foss, params, period=period, per_action=True)
+        self.judge_by_scene = bool(judge_by_scene)
         if int(max_candidates) < 1:
             raise ControllerError(f"FetchFeasibleSelector: max_candidates must be >= 1, got {max_candidates!r}")
         self.backend = backend
@@ -165,6 +199,8 @@ class FetchFeasibleSelector(ShelfPolicySelector):
             raise ControllerError(f"FetchFeasibleSelector({self.policy!r}): connect the scene input")
         scene = self.scene_port.Eval(context)
         history = tuple(self.history_port.Eval(context)) if self.history_port.HasValue(context) else ()
+        if self.judge_by_scene:
+            history = seen_outcomes(history, scene)
         dist = None if self.rules.policy.startswith("oracle") else self._current(context).image_x
         key = (tuple((b.id, round(b.x, 4), round(b.y, 4)) for b in scene.objects), len(history),
                None if dist is None else np.asarray(dist).tobytes())
@@ -181,16 +217,24 @@ class FetchFeasibleSelector(ShelfPolicySelector):
 
 class ShelfSearchSelector(ShelfPolicySelector):
     """The ShelfPolicySelector (per action) whose shelf action carries the scene it was chosen in
-    (Action.scene), which the backend plans it in. Same ports as ShelfPolicySelector."""
+    (Action.scene), which the backend plans it in; judge_by_scene as FetchFeasibleSelector's.
+    Same ports as ShelfPolicySelector."""
 
-    def __init__(self, policy: str, foss: Foss, params: ShelfPolicyParams | None = None, period: float = 1.0):
+    def __init__(self, policy: str, foss: Foss, params: ShelfPolicyParams | None = None, period: float = 1.0,
+                 judge_by_scene: bool = False):
         super().__init__(policy, foss, params, period=period, per_action=True)
+        self.judge_by_scene = bool(judge_by_scene)
 
     def _calc_action(self, context, output):
-        super()._calc_action(context, output)
-        action = output.get_value()
-        if action.kind == "shelf":
-            output.set_value(dataclasses.replace(action, scene=self.scene_port.Eval(context)))
+        if not self.scene_port.HasValue(context):
+            raise ControllerError(f"ShelfSearchSelector({self.policy!r}): connect the scene input")
+        scene = self.scene_port.Eval(context)
+        history = tuple(self.history_port.Eval(context)) if self.history_port.HasValue(context) else ()
+        if self.judge_by_scene:
+            history = seen_outcomes(history, scene)
+        dist = None if self.rules.policy.startswith("oracle") else self._current(context).image_x
+        action = self.rules.select(scene, dist, history)
+        output.set_value(dataclasses.replace(action, scene=scene) if action.kind == "shelf" else action)
 
 
 PERCEPTIONS = ("ground_truth", "depth")
@@ -247,9 +291,9 @@ def MakeShelfSearchController(scenario, params: ShelfSearchParams | None = None,
     policy_params = ShelfPolicyParams(psi=params.psi, seed=params.seed, horizon=params.horizon)
     if params.fetch_feasible:
         selector = FetchFeasibleSelector(params.policy, foss, backend, policy_params, period=params.period,
-                                         max_candidates=params.max_candidates)
+                                         max_candidates=params.max_candidates, judge_by_scene=depth)
     else:
-        selector = ShelfSearchSelector(params.policy, foss, policy_params, period=params.period)
+        selector = ShelfSearchSelector(params.policy, foss, policy_params, period=params.period, judge_by_scene=depth)
     builder.AddNamedSystem("policy_selector", selector)
     executor = builder.AddNamedSystem("action_executor", ActionExecutor(backend, period=params.period))
     builder.Connect(scene, selector.GetInputPort("scene"))
