@@ -38,6 +38,8 @@ from ms_drake.policies.shelf_search import (
     ShelfSearchParams,
     ShelfSearchSelector,
     ShelfSimulationInfo,
+    _unchanged_key,
+    refuse_like_unchanged,
     same_scene,
     seen_outcomes,
 )
@@ -159,11 +161,18 @@ def test_an_action_after_which_the_camera_sees_no_change_is_not_repeated(scenari
         sel.GetInputPort("history").FixValue(ctx, (done,))
         again = sel.GetOutputPort("action").Eval(ctx)
         assert (again.shelf != first.shelf) == judge
+        # nor an action like it (the same object, kind and push direction: the estimate jitters)
+        assert (_unchanged_key(again.shelf) != _unchanged_key(first.shelf)) == judge
         # the scene changed after it: the action counts as done, nothing is refused
         (o,) = seen_outcomes((done,), ShelfScene((OCC.moved(OCC.x + 0.1, OCC.y), SIDE)))
         assert o.success
     (o,) = seen_outcomes((done,), nudged)
     assert not o.success and o.message.startswith("no_change_seen")
+    foss = Foss(geometry)
+    like = refuse_like_unchanged(foss, seen, (o,))
+    assert like and {_unchanged_key(r.action.shelf) for r in like} == {_unchanged_key(first.shelf)}
+    assert first.shelf.object_id in {r.action.shelf.object_id for r in like}
+    assert refuse_like_unchanged(foss, seen, (o, done)) == []  # something changed since
 
 
 def test_depth_controller_bad_inputs(scenario):

@@ -27,7 +27,8 @@ Then, in both:
             no shelf bodies and plans each action in its Action.scene; its outcomes are
             "executed" (agree=nan), and the selector reads them through the next image: an
             action after which the camera sees the same scene failed (`seen_outcomes`), so the
-            policy does not repeat it while nothing changes.
+            policy does not repeat it, nor one like it (`refuse_like_unchanged`), while nothing
+            changes.
   front.rgb_image + front.depth_image -> ImagesReady -> executor.ready (idle until images arrive)
 
 The policies see only occluders either way (ms_drake.policies.shelf drops the target). The exported
@@ -57,6 +58,7 @@ from ms_drake.policies.shelf import (
     ShelfPolicyParams,
     ShelfPolicySelector,
     check_shelf_policy,
+    segment,
 )
 from ms_drake.shelf_geometry import ShelfGeometry
 from ms_drake.types import Action, ActionOutcome, ShelfScene
@@ -159,6 +161,30 @@ def seen_outcomes(history, scene: ShelfScene, tolerance: float = 0.01) -> tuple:
     return tuple(out)
 
 
+def _unchanged_key(a) -> tuple:
+    """What an action that changed nothing rules out: a suction of the object (the same grasp,
+    whatever the placement) or a push of it in the same direction."""
+    return a.kind, a.object_id, float(np.sign(a.dx)) if a.kind == "push" else 0.0
+
+
+def refuse_like_unchanged(foss: Foss, scene: ShelfScene, history) -> list:
+    """Refused outcomes ("no_change_seen:like") for every FOSS candidate action in `scene` like
+    (`_unchanged_key`) one that changed nothing since the scene last changed (seen_outcomes), to add
+    to the history the policy reads: the camera's estimate of an unchanged scene jitters by
+    millimetres, so the same failed grasp comes back with a slightly different placement."""
+    like = set()
+    for o in reversed(tuple(history)):
+        if o.success:
+            break
+        if o.message.startswith("no_change_seen") and o.action.shelf is not None:
+            like.add(_unchanged_key(o.action.shelf))
+    if not like:
+        return []
+    candidates = foss.actions(segment(foss.geometry, scene).known, suction=True)
+    return [ActionOutcome(Action("shelf", shelf=a), False, message="no_change_seen:like")
+            for a in candidates if _unchanged_key(a) in like]
+
+
 class FetchFeasibleSelector(ShelfPolicySelector):
     """The ShelfPolicySelector (per action) whose action is the policy's best one that the Fetch can
     execute: the reference's "first kinematically feasible action" (lines 1643-1672) checked with
@@ -168,8 +194,9 @@ class FetchFeasibleSelector(ShelfPolicySelector):
     the policy chooses again, at most `max_candidates` times (then "stop"). The action's reason
     ends with the number of candidates skipped; a shelf action carries `scene` (Action.scene), in
     which the backend plans it. judge_by_scene: read the history through `seen_outcomes` (an
-    action after which the camera sees the same scene failed; perception "depth"). Same ports as
-    ShelfPolicySelector."""
+    action after which the camera sees the same scene failed; perception "depth") and refuse the
+    actions like one that changed nothing until the scene changes (`refuse_like_unchanged`). Same
+    ports as ShelfPolicySelector."""
 
     def __init__(self, policy: str, foss: Foss, backend: ShelfBackend, params: ShelfPolicyParams | None = None,
                  period: float = 1.0, max_candidates: int = 60, judge_by_scene: bool = False):
@@ -201,6 +228,7 @@ class FetchFeasibleSelector(ShelfPolicySelector):
         history = tuple(self.history_port.Eval(context)) if self.history_port.HasValue(context) else ()
         if self.judge_by_scene:
             history = seen_outcomes(history, scene)
+            history = history + tuple(refuse_like_unchanged(self.rules.foss, scene, history))
         dist = None if self.rules.policy.startswith("oracle") else self._current(context).image_x
         key = (tuple((b.id, round(b.x, 4), round(b.y, 4)) for b in scene.objects), len(history),
                None if dist is None else np.asarray(dist).tobytes())
@@ -232,6 +260,7 @@ class ShelfSearchSelector(ShelfPolicySelector):
         history = tuple(self.history_port.Eval(context)) if self.history_port.HasValue(context) else ()
         if self.judge_by_scene:
             history = seen_outcomes(history, scene)
+            history = history + tuple(refuse_like_unchanged(self.rules.foss, scene, history))
         dist = None if self.rules.policy.startswith("oracle") else self._current(context).image_x
         action = self.rules.select(scene, dist, history)
         output.set_value(dataclasses.replace(action, scene=scene) if action.kind == "shelf" else action)
