@@ -803,6 +803,10 @@ def train_segmentation_cmd(
         object_fraction: Optional[float] = typer.Option(None, "--object-fraction", min=0.0, max=1.0,
                                                         help="Supervise only this fraction of the training "
                                                         "objects, per object set (the others' pixels carry no loss)"),
+        noise: float = typer.Option(0.0, "--noise", min=0.0, help="Augmentation: Gaussian depth noise sigma, m, on "
+                                    "half the images of a batch (the writer's sensor model)"),
+        dropout: float = typer.Option(0.0, "--dropout", min=0.0, max=0.99, help="Augmentation: missing-pixel rate "
+                                      "on the same images"),
         seed: int = typer.Option(0, "--seed", min=0, help="Seed"),
         threads: int = typer.Option(1, "--threads", min=1, help="torch threads"),
         max_minutes: float = typer.Option(60.0, "--max-minutes", help="Stop after the epoch that would end past "
@@ -823,12 +827,14 @@ def train_segmentation_cmd(
                     str(threads)] + (["--max-images", str(max_images)] if max_images else [])
                    + (["--steps-per-epoch", str(steps_per_epoch)] if steps_per_epoch else [])
                    + (["--init", str(init)] if init else [])
-                   + (["--object-fraction", str(object_fraction)] if object_fraction is not None else []))
+                   + (["--object-fraction", str(object_fraction)] if object_fraction is not None else [])
+                   + (["--noise", str(noise), "--dropout", str(dropout)] if noise > 0 or dropout > 0 else []))
     if init is not None and not init.is_file():
         _fail(f"--init {init}: no such weights file; give one written by `ms-drake train segmentation`")
     meta = train_segmentation(data, out, epochs=epochs, batch=batch, seed=seed, threads=threads, lr=lr,
                               max_minutes=max_minutes, progress=progress, command=cmd, max_images=max_images,
-                              steps_per_epoch=steps_per_epoch, init=init, object_fraction=object_fraction)
+                              steps_per_epoch=steps_per_epoch, init=init, object_fraction=object_fraction,
+                              noise=noise, dropout=dropout)
     bar.close()
     for h in meta["history"]:
         typer.echo(f"epoch {h['epoch']}: loss {h['loss']:.5f} ({h['seconds']:.0f} s)")

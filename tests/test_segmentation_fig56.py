@@ -89,3 +89,22 @@ def test_training_on_an_object_subset_records_it(tiny_dataset, tmp_path):
                               object_fraction=0.5, max_minutes=5)
     assert meta["object_fraction"] == 0.5 and 0 < meta["objects_trained"] < meta["objects_seen"]
     assert (tmp_path / "w.pt").exists() and np.isfinite(meta["history"][0]["loss"])
+
+
+def test_sensor_augmentation_remakes_half_the_inputs_from_depth(tiny_dataset):
+    from ms_drake.experiments.segmentation_learning import augmented_inputs
+
+    images = TrainingImages(tiny_dataset, depth=True)
+    assert images.depth.shape == (len(images.x), 480, 640)
+    idx = np.arange(len(images.x))
+    x = augmented_inputs(images, idx, np.random.default_rng(0), 0.002, 0.05)
+    changed = [not np.allclose(x[j], images.x[j].astype(np.float32), atol=1e-2) for j in idx]
+    assert 0 < sum(changed) < len(idx)
+    for j in np.flatnonzero(changed):
+        assert (x[j, 1] < 1).mean() > 0.05  # blocks with a missing pixel
+
+
+def test_training_with_sensor_augmentation_records_it(tiny_dataset, tmp_path):
+    meta = train_segmentation(tiny_dataset, tmp_path / "w.pt", epochs=1, batch=2, steps_per_epoch=2,
+                              noise=0.002, dropout=0.05, max_minutes=5)
+    assert meta["noise"] == 0.002 and meta["dropout"] == 0.05 and np.isfinite(meta["history"][0]["loss"])

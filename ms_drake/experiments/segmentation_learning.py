@@ -60,6 +60,7 @@ from ms_drake.perception.segmentation_net import (
     class_targets,
     make_net,
     segmentation_loss,
+    working_inputs,
 )
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import HeapParams, generate_heap
@@ -156,8 +157,9 @@ class TrainingImages:
     Images whose objects are all in a 25 % subset are too rare to select (7.5 objects per heap)."""
 
     def __init__(self, data, max_images: int | None = None, object_fraction: float | None = None,
-                 object_seed: int = 0):
-        self.data, self.max_images = Path(data), max_images
+                 object_seed: int = 0, depth: bool = False):
+        self.data, self.max_images, self.keep_depth = Path(data), max_images, depth
+        self.depth = np.zeros((0, 480, 640), np.float16)
         self.object_fraction, self.object_seed = object_fraction, object_seed
         self.files: list[str] = []
         self.x = np.zeros((0, 2, *WORK_SHAPE), np.float16)
@@ -173,10 +175,12 @@ class TrainingImages:
         if self.max_images is not None and len(self.x) >= self.max_images:
             new = []
         if new:
-            xs, ys, labs = [self.x], [self.y], [self.lab]
+            xs, ys, labs, depths = [self.x], [self.y], [self.lab], [self.depth]
             for f in new:
                 with np.load(f) as z:
                     xs.append(z["x"])
+                    if self.keep_depth:
+                        depths.append(z["depth"])
                     ys.append(np.stack([class_targets(m) for m in z["lab"]]).astype(np.uint8))
                     self.objects += [[n for n in str(o).split(",") if n] for o in z["objects"]]
                     if self.object_fraction is not None:
@@ -184,6 +188,8 @@ class TrainingImages:
             self.x, self.y = np.concatenate(xs)[:self.max_images], np.concatenate(ys)[:self.max_images]
             self.files += new
             self.objects = self.objects[:self.max_images]
+            if self.keep_depth:
+                self.depth = np.concatenate(depths)[:self.max_images]
             if self.object_fraction is not None:
                 self.lab = np.concatenate(labs)[:self.max_images]
                 self._ignore_other_objects()
@@ -202,10 +208,22 @@ class TrainingImages:
         return dict(objects_seen=len(seen), objects_trained=len(self.kept) if self.object_fraction else None)
 
 
+def augmented_inputs(images: TrainingImages, idx, rng: np.random.Generator, noise: float,
+                     dropout: float) -> np.ndarray:
+    """The working inputs of images `idx`, each with probability 1/2 remade from its depth image
+    with sensor noise and dropout (`sensor_model`)."""
+    x = images.x[idx].astype(np.float32)
+    for j, i in enumerate(idx):
+        if rng.random() < 0.5:
+            x[j] = working_inputs(sensor_model(images.depth[i], rng, noise, dropout))
+    return x
+
+
 def train_segmentation(data, out, epochs: int = 8, batch: int = 16, seed: int = 0, threads: int = 1,
                        config: NetConfig | None = None, max_minutes: float = 60.0, progress=None, command: str = "",
                        lr: float = 2e-3, max_images: int | None = None, steps_per_epoch: int | None = None,
-                       init=None, object_fraction: float | None = None) -> dict:
+                       init=None, object_fraction: float | None = None, noise: float = 0.0,
+                       dropout: float = 0.0) -> dict:
     """Train on the train shards of `data` (the first `max_images` if given); write `out` (weights +
     meta) and `out`.ckpt (resume). Stops early (after a whole epoch) when `max_minutes` of wall
     time would be exceeded.
@@ -215,13 +233,17 @@ def train_segmentation(data, out, epochs: int = 8, batch: int = 16, seed: int = 
     `ms-drake data segmentation` is still writing; each epoch's image count is in the history).
     init: a weights file to start from (fine-tuning; its network configuration is used).
     object_fraction: supervise only that fraction of the training objects (`TrainingImages`; the
-    subset is drawn from `seed`)."""
+    subset is drawn from `seed`).
+    noise, dropout: sensor augmentation: each image of a batch, with probability 1/2, is made again
+    from its full-resolution depth through `sensor_model(depth, rng, noise, dropout)` (the writer's
+    sensor model) before its window is cut."""
     torch = torch_setup(seed, threads)
     config = config or NetConfig()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     ckpt = out.with_suffix(".ckpt")
-    images = TrainingImages(data, max_images, object_fraction, seed)
+    augment = noise > 0 or dropout > 0
+    images = TrainingImages(data, max_images, object_fraction, seed, depth=augment)
     n = len(images.x)
     if n == 0:
         raise DatasetError(f"{data}: no train shards (shard_*_train.npz); make them with "
@@ -243,6 +265,8 @@ def train_segmentation(data, out, epochs: int = 8, batch: int = 16, seed: int = 
                     init=None if init is None else str(init))
     if object_fraction is not None:
         settings["object_fraction"] = object_fraction
+    if augment:
+        settings.update(noise=noise, dropout=dropout)
     start, history, seconds = resume(torch, ckpt, settings, net, opt, sched)
     t0 = time.perf_counter() - seconds
     for epoch in range(start, epochs):
@@ -256,7 +280,12 @@ def train_segmentation(data, out, epochs: int = 8, batch: int = 16, seed: int = 
         net.train()
         total = 0.0
         for b in range(steps):
-            xb, yb = make_batch(images.x, images.y, np.sort(order[b * batch:(b + 1) * batch]), rng)
+            idx = np.sort(order[b * batch:(b + 1) * batch])
+            if augment:
+                xb, yb = make_batch(augmented_inputs(images, idx, rng, noise, dropout), images.y[idx],
+                                    np.arange(len(idx)), rng)
+            else:
+                xb, yb = make_batch(images.x, images.y, idx, rng)
             opt.zero_grad()
             loss = segmentation_loss(net(torch.from_numpy(xb)), torch.from_numpy(yb))
             loss.backward()
@@ -268,16 +297,19 @@ def train_segmentation(data, out, epochs: int = 8, batch: int = 16, seed: int = 
         history.append(dict(epoch=epoch + 1, loss=total / steps, images=n, seconds=time.perf_counter() - te))
         save_checkpoint(torch, ckpt, settings, net, opt, sched, epoch + 1, history, time.perf_counter() - t0)
         save_atomically(torch, dict(model=net.state_dict(), config=asdict(config),
-                                    meta=_meta(data, n, history, epochs, batch, seed, lr, t0, command, torch, images)), out)
-    meta = _meta(data, n, history, epochs, batch, seed, lr, t0, command, torch, images)
+                                    meta=_meta(data, n, history, epochs, batch, seed, lr, t0, command, torch,
+                                               images, noise, dropout)), out)
+    meta = _meta(data, n, history, epochs, batch, seed, lr, t0, command, torch, images, noise, dropout)
     save_atomically(torch, dict(model=net.state_dict(), config=asdict(config), meta=meta), out)
     return meta
 
 
-def _meta(data, n, history, epochs, batch, seed, lr, t0, command, torch, images) -> dict:
+def _meta(data, n, history, epochs, batch, seed, lr, t0, command, torch, images, noise=0.0,
+          dropout=0.0) -> dict:
     return dict(data=str(data), train_images=n, epochs_done=len(history), epochs=epochs, batch=batch, seed=seed,
                 lr=lr, crop=list(CROP_SHAPE), seconds=time.perf_counter() - t0, history=list(history),
                 command=command, torch=torch.__version__, object_fraction=images.object_fraction,
+                noise=noise, dropout=dropout,
                 **images.object_counts())
 
 
