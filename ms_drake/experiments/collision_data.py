@@ -47,6 +47,7 @@ import trimesh
 from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 from scipy.spatial.transform import Rotation, Slerp
 
+from ms_drake.collision.scene_net import SCENE_BOUNDS
 from ms_drake.errors import DatasetError, HeapError
 from ms_drake.experiments.occupancy_data import HeapRenderer, shard_split
 from ms_drake.geometry import PinholeCamera
@@ -65,7 +66,6 @@ SCENE_POINTS = 8192
 OBJECT_POINTS = 1024
 TRAJECTORIES, POSES_PER_TRAJECTORY = 64, 32
 QUERY_HEIGHT = 0.25  # m above the table top
-SCENE_BOUNDS = ((-0.5, 0.5), (-0.4, 0.4), (0.0, 0.5))  # m, world frame: the table's volume
 
 
 def jitter_camera(nominal: PinholeCamera, rng: np.random.Generator) -> PinholeCamera:

@@ -1,0 +1,1 @@
+"""Learned collision checking (Ch. 6): SceneCollisionNet (scene_net)."""

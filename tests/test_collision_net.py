@@ -1,0 +1,115 @@
+"""SceneCollisionNet (ms_drake.collision.scene_net): encoders, queries, mined loss, a training step."""
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from ms_drake.collision.scene_net import (
+    SCENE_BOUNDS,
+    CollisionNetError,
+    NetConfig,
+    farthest_points,
+    grid_shape,
+    make_net,
+    mined_loss,
+    voxel_centres,
+)
+from ms_drake.experiments.collision_data import SceneCollisions, query_poses
+
+
+def test_voxel_grid_covers_the_table_volume():
+    cfg = NetConfig()
+    assert grid_shape(cfg) == (10, 8, 5)
+    c = voxel_centres(cfg)
+    assert c.shape == (400, 3)
+    lo, hi = np.array(SCENE_BOUNDS).T
+    assert np.all(c > lo) and np.all(c < hi)
+
+
+def test_points_go_to_the_voxel_that_holds_them():
+    torch.manual_seed(0)
+    net = make_net()
+    lo, hi = np.array(SCENE_BOUNDS).T
+    p = torch.tensor(np.random.default_rng(0).uniform(lo, hi, (500, 3)), dtype=torch.float32)
+    idx = net.voxel_index(p)
+    assert torch.all((p - net.centres[idx]).abs() <= 0.05 + 1e-6)
+    # outside the grid: clamped to the nearest border voxel
+    far = torch.tensor([[5.0, 5.0, 5.0]])
+    assert torch.allclose(net.centres[net.voxel_index(far)], torch.tensor([[0.45, 0.35, 0.45]]))
+
+
+def test_scene_features_pool_per_voxel_and_ignore_point_order():
+    torch.manual_seed(0)
+    net = make_net().eval()
+    pts = torch.tensor(np.random.default_rng(1).uniform([-0.3, -0.3, 0], [0.3, 0.3, 0.2], (800, 3)), dtype=torch.float32)
+    with torch.no_grad():
+        a = net.scene_features(pts)
+        b = net.scene_features(pts[torch.randperm(len(pts))])
+    assert a.shape == (400, NetConfig().voxel_features)
+    assert torch.allclose(a, b, atol=1e-5)
+
+
+def test_farthest_points_spread_out():
+    pts = torch.cat([torch.randn(200, 3) * 0.001, torch.tensor([[1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0]])])
+    chosen = set(farthest_points(pts, 4).tolist())
+    assert {200, 201, 202} <= chosen
+    with pytest.raises(CollisionNetError):
+        farthest_points(torch.zeros(0, 3), 4)
+
+
+def test_queries_in_a_batch_equal_queries_one_by_one():
+    torch.manual_seed(0)
+    net = make_net().eval()
+    rng = np.random.default_rng(2)
+    scene = torch.tensor(rng.uniform([-0.4, -0.3, 0], [0.4, 0.3, 0.2], (1000, 3)), dtype=torch.float32)
+    obj = torch.tensor(rng.normal(0, 0.03, (300, 3)), dtype=torch.float32)
+    poses = torch.tensor(query_poses(rng, 0.0, np.array([0.5, 0.4]), trajectories=2, per=8), dtype=torch.float32)
+    with torch.no_grad():
+        code = net.encode(scene, obj)
+        batch = net.query(code, poses)
+        single = torch.stack([net.query(code, poses[i:i + 1])[0] for i in range(len(poses))])
+        full = net(scene, obj, poses)
+    assert torch.allclose(batch, single, atol=1e-5) and torch.allclose(batch, full, atol=1e-5)
+
+
+def test_mined_loss_takes_the_hardest_queries():
+    logits = torch.tensor([5.0, -5.0, 0.0, 3.0, -3.0, 0.5, 1.0, -1.0, 2.0, -2.0])
+    labels = torch.tensor([0, 1, 1, 1, 0, 0, 1, 0, 1, 0])
+    per = torch.nn.functional.binary_cross_entropy_with_logits(logits, labels.float(), reduction="none")
+    assert mined_loss(logits, labels, hard=0.2, random=0.0).item() == pytest.approx(per.topk(2).values.mean().item())
+    full = mined_loss(logits, labels, hard=1.0, random=0.0).item()
+    assert full == pytest.approx(per.mean().item())
+    with pytest.raises(CollisionNetError):
+        mined_loss(logits, labels, hard=0.0)
+
+
+def test_a_training_step_lowers_the_loss_on_a_fixed_scene():
+    torch.manual_seed(0)
+    rng = np.random.default_rng(3)
+    box = trimesh.creation.box([0.2, 0.2, 0.15])
+    X = np.eye(4)
+    X[:3, 3] = [0.0, 0.0, 0.075]
+    scene = SceneCollisions([box], [X], (np.array([0.0, 0.0, -0.025]), np.array([1.0, 0.8, 0.05])))
+    query = trimesh.creation.box([0.06, 0.04, 0.04])
+    poses = query_poses(rng, 0.0, np.array([0.3, 0.3]), trajectories=16, per=16)
+    labels = torch.tensor(scene.labels(query, poses))
+    assert 0.1 < labels.float().mean() < 0.9
+    scene_pts = torch.tensor(trimesh.sample.sample_surface(box, 2000, seed=1)[0] + X[:3, 3], dtype=torch.float32)
+    obj_pts = torch.tensor(trimesh.sample.sample_surface(query, 256, seed=2)[0], dtype=torch.float32)
+    P = torch.tensor(poses, dtype=torch.float32)
+    net = make_net()
+    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+
+    def loss():
+        return torch.nn.functional.binary_cross_entropy_with_logits(net(scene_pts, obj_pts, P), labels.float())
+
+    with torch.no_grad():
+        before = loss().item()
+    for _ in range(40):
+        opt.zero_grad()
+        mined_loss(net(scene_pts, obj_pts, P), labels).backward()
+        opt.step()
+    with torch.no_grad():
+        after = loss().item()
+    assert after < 0.7 * before
