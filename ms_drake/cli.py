@@ -32,6 +32,7 @@ from ms_drake.errors import MsDrakeError
 from ms_drake.execution import FIDELITIES
 from ms_drake.experiments.collision_data import SCENES_PER_SHARD as COLLISION_SCENES_PER_SHARD
 from ms_drake.experiments.collision_data import write_collision_dataset
+from ms_drake.experiments.collision_learning import train_collision
 from ms_drake.experiments.demo import DEMO_SEED, run_demo
 from ms_drake.experiments.grasp_figure import grasp_figure
 from ms_drake.experiments.harness import (
@@ -922,6 +923,37 @@ def data_matcher(heaps: int = typer.Option(..., "--heaps", min=1, help="Heaps, r
                f"{len(res['failed'])} failed, in {out} ({time.perf_counter() - t0:.0f} s, {res['cpu']:.0f} CPU-s)")
     if res["failed"]:
         raise typer.Exit(1)
+
+
+@train_app.command("collision")
+def train_collision_cmd(
+        data: Path = typer.Option(..., "--data", help="Dataset folder (ms-drake data collision)"),
+        out: Path = typer.Option(Path("models/weights/collision.pt"), "--out", help="Weights file"),
+        epochs: int = typer.Option(20, "--epochs", min=1, help="Passes over the training scenes"),
+        seed: int = typer.Option(0, "--seed", min=0, help="Seed"),
+        threads: int = typer.Option(1, "--threads", min=1, help="torch threads"),
+        lr: float = typer.Option(1e-3, "--lr", min=0.0, help="Adam learning rate"),
+        max_minutes: float = typer.Option(90.0, "--max-minutes", min=0.1, help="Stop after the epoch that "
+                                          "would pass this wall time")):
+    """Train SceneCollisionNet (Ch. 6); resumes from OUT.ckpt; writes OUT (weights + meta)."""
+    cmd = " ".join(["ms-drake", "train", "collision", "--data", str(data), "--out", str(out), "--epochs", str(epochs),
+                    "--seed", str(seed), "--threads", str(threads), "--lr", str(lr)])
+    bar = tqdm(desc="training", unit="scene")
+
+    def progress(epoch, b, n, loss):
+        if bar.total != n:
+            bar.reset(total=n)
+        bar.set_description(f"epoch {epoch + 1}/{epochs}")
+        bar.update(1)
+        bar.set_postfix(loss=f"{loss:.4f}")
+
+    meta = train_collision(data, out, epochs=epochs, seed=seed, threads=threads, lr=lr, max_minutes=max_minutes,
+                           progress=progress, command=cmd)
+    bar.close()
+    last = meta["history"][-1] if meta["history"] else {}
+    typer.echo(f"{meta['epochs_done']} epochs on {meta['train_scenes']} scenes in {meta['seconds'] / 60:.1f} min; "
+               f"last loss {last.get('loss', float('nan')):.4f}, train accuracy "
+               f"{100 * last.get('train_accuracy', float('nan')):.1f} %; weights {out}")
 
 
 @train_app.command("matcher")

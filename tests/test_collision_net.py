@@ -113,3 +113,43 @@ def test_a_training_step_lowers_the_loss_on_a_fixed_scene():
     with torch.no_grad():
         after = loss().item()
     assert after < 0.7 * before
+
+
+def _synthetic_shard(path, seed):
+    """A shard in `ms-drake data collision`'s format: one box on the table, a small box query."""
+    rng = np.random.default_rng(seed)
+    box = trimesh.creation.box([0.2, 0.2, 0.15])
+    X = np.eye(4)
+    X[:3, :3] = trimesh.transformations.rotation_matrix(rng.uniform(0, np.pi), [0, 0, 1])[:3, :3]
+    X[:3, 3] = [rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2), 0.075]
+    scene = SceneCollisions([box], [X], (np.array([0.0, 0.0, -0.025]), np.array([1.0, 0.8, 0.05])))
+    query = trimesh.creation.box([0.06, 0.04, 0.04])
+    poses = query_poses(rng, 0.0, np.array([0.3, 0.3]), trajectories=8, per=16)
+    pts = trimesh.sample.sample_surface(box, 1000, seed=seed)[0] @ X[:3, :3].T + X[:3, 3]
+    np.savez_compressed(path, scene_points=pts[None].astype(np.float32),
+                        object_points=trimesh.sample.sample_surface(query, 128, seed=seed)[0][None].astype(np.float32),
+                        poses=poses[None].astype(np.float32), labels=scene.labels(query, poses)[None],
+                        objects=np.array(["box"]), query=np.array(["small_box"]), seed=np.array([seed]))
+
+
+def test_training_resumes_and_evaluation_reports_the_table_keys(tmp_path):
+    from ms_drake.experiments.collision_learning import (  # noqa: PLC0415 - keeps torch-free imports above
+        evaluate_collision,
+        load_collision_net,
+        train_collision,
+    )
+
+    for k in range(3):
+        _synthetic_shard(tmp_path / f"shard_{k:05d}_train.npz", k)
+    _synthetic_shard(tmp_path / "shard_00004_test.npz", 9)
+    out = tmp_path / "w.pt"
+    meta = train_collision(tmp_path, out, epochs=2, seed=0, lr=3e-3)
+    assert meta["epochs_done"] == 2 and meta["train_scenes"] == 3 and out.exists()
+    assert out.with_suffix(".ckpt").exists()
+    again = train_collision(tmp_path, out, epochs=2, seed=0, lr=3e-3)  # resumes: nothing left to do
+    assert again["epochs_done"] == 2 and again["history"] == meta["history"]
+    net, ck = load_collision_net(out)
+    assert ck["meta"]["train_queries"] == 3 * 128
+    r = evaluate_collision(net, tmp_path)
+    assert r["queries"] == 128 and 0.0 <= r["accuracy"] <= 1.0 and r["us_per_query"] > 0
+    assert {"accuracy", "ap", "us_per_query", "queries"} <= set(r)

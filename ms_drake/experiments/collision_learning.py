@@ -1,0 +1,123 @@
+"""Training and evaluation of SceneCollisionNet (Ch. 6.3.1): `ms-drake train collision`.
+
+A step is one scene of the train shards (ms-drake data collision): its point cloud and query
+object are encoded once and all its 2,048 queries classified, the loss mined (10 % hardest + 10 %
+random, line 1061); Adam with a cosine schedule; the scenes of an epoch in a seeded random order.
+`FILE.ckpt` holds the state a killed run resumes from (experiments.training); the weights file
+holds the model, its NetConfig and the run's metadata.
+
+`evaluate_collision` scores a network on the test shards (held-out scenes and objects):
+accuracy at P = 0.5, average precision (scikit-learn), and the CPU time per query of the batched
+query pass on one thread (the scene and object encoding reported apart, per scene).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+from sklearn.metrics import average_precision_score
+
+from ms_drake.collision.scene_net import NetConfig, make_net, mined_loss
+from ms_drake.errors import DatasetError
+from ms_drake.experiments.collision_data import load_collision_shards
+from ms_drake.experiments.training import resume, save_atomically, save_checkpoint, torch_setup
+
+
+def _tensors(torch, d: dict, i: int):
+    return (torch.from_numpy(np.asarray(d["scene_points"][i], np.float32)),
+            torch.from_numpy(np.asarray(d["object_points"][i], np.float32)),
+            torch.from_numpy(np.asarray(d["poses"][i], np.float32)),
+            torch.from_numpy(np.asarray(d["labels"][i])))
+
+
+def train_collision(data, out, epochs: int = 20, seed: int = 0, threads: int = 1, lr: float = 1e-3,
+                    config: NetConfig = NetConfig(), max_minutes: float = 90.0, hard: float = 0.1,
+                    random: float = 0.1, progress=None, command: str = "") -> dict:
+    """Train on the train shards of `data`; write `out` (weights + meta) and `out`.ckpt (resume).
+    Stops early (after a whole epoch) when `max_minutes` of wall time would be exceeded."""
+    torch = torch_setup(seed, threads)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    ckpt = out.with_suffix(".ckpt")
+    d = load_collision_shards(data, "train")
+    n = len(d["labels"])
+    if n < 1:
+        raise DatasetError(f"{data}: no training scenes; write them with `ms-drake data collision`")
+    net = make_net(config)
+    opt = torch.optim.Adam(net.parameters(), lr=lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs * n)
+    settings = dict(config=asdict(config), epochs=epochs, n=n, lr=lr, hard=hard, random=random)
+    start, history, seconds = resume(torch, ckpt, settings, net, opt, sched)
+    t0 = time.perf_counter() - seconds
+    gen = torch.Generator().manual_seed(seed)
+    for epoch in range(start, epochs):
+        te = time.perf_counter()
+        if epoch > start and (te - t0) / epoch * (epoch + 1) > 60.0 * max_minutes:
+            break
+        gen.manual_seed(seed * 100003 + epoch)
+        order = np.random.default_rng([seed, epoch]).permutation(n)
+        net.train()
+        total, right = 0.0, 0.0
+        for b, i in enumerate(order):
+            scene, obj, poses, labels = _tensors(torch, d, i)
+            opt.zero_grad()
+            logits = net(scene, obj, poses)
+            loss = mined_loss(logits, labels, hard, random, generator=gen)
+            loss.backward()
+            opt.step()
+            sched.step()
+            total += loss.item()
+            right += ((logits.detach() > 0) == labels).float().mean().item()
+            if progress is not None:
+                progress(epoch, b, n, loss.item())
+        history.append(dict(epoch=epoch + 1, loss=total / n, train_accuracy=right / n,
+                            seconds=time.perf_counter() - te))
+        save_checkpoint(torch, ckpt, settings, net, opt, sched, epoch + 1, history, time.perf_counter() - t0)
+    meta = dict(data=str(data), train_scenes=n, train_queries=int(d["labels"].size), epochs_done=len(history),
+                epochs=epochs, seed=seed, lr=lr, hard=hard, random=random, seconds=time.perf_counter() - t0,
+                history=history, command=command, torch=torch.__version__)
+    save_atomically(torch, dict(model=net.state_dict(), config=asdict(config), meta=meta), out)
+    return meta
+
+
+def load_collision_net(path):
+    """(network in eval mode, checkpoint dict) from a weights file written by `train_collision`."""
+    import torch  # optional heavy dependency: only the learned collision checker needs it
+
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"collision weights {path} not found: train them with `ms-drake train collision`")
+    ck = torch.load(path, map_location="cpu", weights_only=False)
+    net = make_net(NetConfig(**ck["config"]))
+    net.load_state_dict(ck["model"])
+    return net.eval(), ck
+
+
+def evaluate_collision(net, data, split: str = "test", max_scenes: int | None = None, threads: int = 1) -> dict:
+    """Accuracy, AP and CPU time per query of `net` on the `split` shards of `data` (module doc)."""
+    import torch  # optional heavy dependency
+
+    torch.set_num_threads(threads)
+    d = load_collision_shards(data, split)
+    n = len(d["labels"]) if max_scenes is None else min(max_scenes, len(d["labels"]))
+    scores, labels = [], []
+    encode_s, query_s = 0.0, 0.0
+    with torch.inference_mode():
+        for i in range(n):
+            scene, obj, poses, lab = _tensors(torch, d, i)
+            t = time.process_time()
+            code = net.encode(scene, obj)
+            t1 = time.process_time()
+            logits = net.query(code, poses)
+            t2 = time.process_time()
+            encode_s += t1 - t
+            query_s += t2 - t1
+            scores.append(torch.sigmoid(logits).numpy())
+            labels.append(lab.numpy())
+    s, y = np.concatenate(scores), np.concatenate(labels)
+    return dict(scenes=n, queries=int(len(y)), positive=float(y.mean()), accuracy=float(((s > 0.5) == y).mean()),
+                ap=float(average_precision_score(y, s)) if 0 < y.sum() < len(y) else float("nan"),
+                us_per_query=1e6 * query_s / len(y), ms_encode_per_scene=1e3 * encode_s / n)
