@@ -32,7 +32,8 @@ from ms_drake.errors import MsDrakeError
 from ms_drake.execution import FIDELITIES
 from ms_drake.experiments.collision_data import SCENES_PER_SHARD as COLLISION_SCENES_PER_SHARD
 from ms_drake.experiments.collision_data import write_collision_dataset
-from ms_drake.experiments.collision_learning import train_collision
+from ms_drake.experiments.collision_learning import METHODS as COLLISION_METHODS
+from ms_drake.experiments.collision_learning import bench_collision, train_collision
 from ms_drake.experiments.demo import DEMO_SEED, run_demo
 from ms_drake.experiments.grasp_figure import grasp_figure
 from ms_drake.experiments.harness import (
@@ -842,6 +843,31 @@ def train_segmentation_cmd(
     for h in meta["history"]:
         typer.echo(f"epoch {h['epoch']}: loss {h['loss']:.5f} ({h['seconds']:.0f} s)")
     typer.echo(f"wrote {out} ({meta['epochs_done']} of {epochs} epochs, {meta['seconds'] / 60:.1f} min)")
+
+
+@bench_app.command("collision")
+def bench_collision_cmd(
+        method: str = typer.Option(..., "--method", help="net | coal_reconstruction | sdf"),
+        scenes: int = typer.Option(50, "--scenes", min=1, help="Held-out scenes (2,048 queries each)"),
+        seed_start: int = typer.Option(100000, "--seed-start", min=0, help="Seed of the first scene"),
+        out: Optional[Path] = typer.Option(None, "--out", help="Write the result (method, accuracy, ap, "
+                                           "us_per_query, queries) as JSON"),
+        cache: Optional[Path] = typer.Option(None, "--cache", help="Keep / reuse the scenes in this folder"),
+        weights: Optional[Path] = typer.Option(None, "--weights", help="Network weights (default "
+                                               "models/weights/collision.pt)"),
+        threads: int = typer.Option(1, "--threads", min=1, help="torch threads (net)")):
+    """Table 6.1: collision accuracy, AP and CPU time per query of one method on held-out scenes."""
+    if method not in COLLISION_METHODS:
+        _fail(f"--method {method!r}: choose one of {', '.join(COLLISION_METHODS)}")
+    bar = tqdm(total=scenes, desc=method, unit="scene")
+    res = bench_collision(method, scenes, seed_start, cache, weights, threads, progress=lambda k: bar.update(1))
+    bar.close()
+    typer.echo(f"{method}: {res['queries']} queries ({100 * res['positive']:.1f} % in collision): accuracy "
+               f"{100 * res['accuracy']:.1f} %, AP {res['ap']:.3f}, {res['us_per_query']:.1f} us CPU per query, "
+               f"{res['setup_ms_per_scene']:.1f} ms set-up per scene")
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(res, indent=1))
 
 
 @bench_app.command("segmentation")

@@ -153,3 +153,25 @@ def test_training_resumes_and_evaluation_reports_the_table_keys(tmp_path):
     r = evaluate_collision(net, tmp_path)
     assert r["queries"] == 128 and 0.0 <= r["accuracy"] <= 1.0 and r["us_per_query"] > 0
     assert {"accuracy", "ap", "us_per_query", "queries"} <= set(r)
+
+
+def test_point_cloud_baselines_on_a_known_scene():
+    from ms_drake.collision.baselines import BASELINES, clusters, make_baseline  # noqa: PLC0415
+
+    box = trimesh.creation.box([0.2, 0.2, 0.15])
+    X = np.eye(4)
+    X[:3, 3] = [0.0, 0.0, 0.075]
+    scene_pts = trimesh.sample.sample_surface(box, 4000, seed=1)[0] + X[:3, 3]
+    assert len(clusters(scene_pts[scene_pts[:, 2] > 0.003], 0.02)) == 1
+    obj = trimesh.sample.sample_surface(trimesh.creation.box([0.04, 0.04, 0.04]), 300, seed=2)[0]
+    poses = np.stack([_at(0.3, 0.0, 0.1), _at(0.08, 0.0, 0.1), _at(0.0, 0.0, 0.3), _at(0.3, 0.2, 0.0)])
+    for method in BASELINES:
+        assert make_baseline(method, scene_pts, obj).query(poses).tolist() == [False, True, False, True], method
+    with pytest.raises(CollisionNetError, match="coal_reconstruction"):
+        make_baseline("voxblox", scene_pts, obj)
+
+
+def _at(x, y, z):
+    X = np.eye(4)
+    X[:3, 3] = [x, y, z]
+    return X

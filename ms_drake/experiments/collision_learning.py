@@ -9,6 +9,10 @@ holds the model, its NetConfig and the run's metadata.
 `evaluate_collision` scores a network on the test shards (held-out scenes and objects):
 accuracy at P = 0.5, average precision (scikit-learn), and the CPU time per query of the batched
 query pass on one thread (the scene and object encoding reported apart, per scene).
+
+`bench_collision` (`ms-drake bench collision`, Table 6.1): one method -- the network or a
+point-cloud baseline of ms_drake.collision.baselines -- on held-out scenes made from seeds (test
+objects only; cached as npz so every method sees the same scenes): accuracy, AP, CPU time per query.
 """
 
 from __future__ import annotations
@@ -20,9 +24,10 @@ from pathlib import Path
 import numpy as np
 from sklearn.metrics import average_precision_score
 
+from ms_drake.collision.baselines import make_baseline
 from ms_drake.collision.scene_net import NetConfig, make_net, mined_loss
 from ms_drake.errors import DatasetError
-from ms_drake.experiments.collision_data import load_collision_shards
+from ms_drake.experiments.collision_data import load_collision_shards, make_scene
 from ms_drake.experiments.training import resume, save_atomically, save_checkpoint, torch_setup
 
 
@@ -121,3 +126,62 @@ def evaluate_collision(net, data, split: str = "test", max_scenes: int | None = 
     return dict(scenes=n, queries=int(len(y)), positive=float(y.mean()), accuracy=float(((s > 0.5) == y).mean()),
                 ap=float(average_precision_score(y, s)) if 0 < y.sum() < len(y) else float("nan"),
                 us_per_query=1e6 * query_s / len(y), ms_encode_per_scene=1e3 * encode_s / n)
+
+
+METHODS = ("net", "coal_reconstruction", "sdf")
+
+
+def bench_scene(seed: int, cache=None) -> dict:
+    """Held-out scene `seed` (test objects; collision_data.make_scene), read from / saved to `cache`."""
+    path = Path(cache) / f"scene_{seed}.npz" if cache is not None else None
+    if path is not None and path.exists():
+        return dict(np.load(path))
+    s = make_scene(seed, 0, 0, "test")
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez_compressed(tmp, **s)
+        tmp.replace(path)
+    return s
+
+
+def bench_collision(method: str, scenes: int, seed_start: int = 0, cache=None, weights=None, threads: int = 1,
+                    progress=None) -> dict:
+    """Table 6.1: one method on held-out scenes seed_start.. (module doc); accuracy at 0.5, AP, CPU
+    microseconds per query (one thread; the per-scene set-up -- encoding, reconstruction --
+    reported apart as ms per scene)."""
+    if method not in METHODS:
+        raise DatasetError(f"collision method {method!r} unknown; choose one of {', '.join(METHODS)}")
+    net = None
+    if method == "net":
+        import torch  # optional heavy dependency
+
+        torch.set_num_threads(threads)
+        net, _ = load_collision_net(weights or Path("models/weights/collision.pt"))
+    scores, labels = [], []
+    setup_s = query_s = 0.0
+    for k in range(scenes):
+        s = bench_scene(seed_start + k, cache)
+        t = time.process_time()
+        if net is not None:
+            with torch.inference_mode():
+                code = net.encode(torch.from_numpy(s["scene_points"]), torch.from_numpy(s["object_points"]))
+                t1 = time.process_time()
+                score = torch.sigmoid(net.query(code, torch.from_numpy(s["poses"]))).numpy()
+        else:
+            checker = make_baseline(method, s["scene_points"], s["object_points"])
+            t1 = time.process_time()
+            score = checker.query(s["poses"]).astype(float)
+        t2 = time.process_time()
+        setup_s += t1 - t
+        query_s += t2 - t1
+        scores.append(score)
+        labels.append(np.asarray(s["labels"], bool))
+        if progress is not None:
+            progress(k)
+    sc, y = np.concatenate(scores), np.concatenate(labels)
+    return dict(method=method, scenes=scenes, seed_start=seed_start, queries=int(len(y)), positive=float(y.mean()),
+                accuracy=float(((sc > 0.5) == y).mean()),
+                ap=float(average_precision_score(y, sc)) if 0 < y.sum() < len(y) else float("nan"),
+                us_per_query=1e6 * query_s / len(y), setup_ms_per_scene=1e3 * setup_s / scenes,
+                weights=str(weights) if method == "net" else None)
