@@ -32,6 +32,7 @@ from ms_drake.errors import MsDrakeError
 from ms_drake.execution import FIDELITIES
 from ms_drake.experiments.collision_data import SCENES_PER_SHARD as COLLISION_SCENES_PER_SHARD
 from ms_drake.experiments.collision_data import write_collision_dataset
+from ms_drake.collision.scene_net import NetConfig as CollisionNetConfig
 from ms_drake.experiments.collision_learning import METHODS as COLLISION_METHODS
 from ms_drake.experiments.collision_learning import bench_collision, train_collision
 from ms_drake.experiments.demo import DEMO_SEED, run_demo
@@ -847,14 +848,15 @@ def train_segmentation_cmd(
 
 @bench_app.command("collision")
 def bench_collision_cmd(
-        method: str = typer.Option(..., "--method", help="net | coal_reconstruction | sdf"),
+        method: str = typer.Option(..., "--method", help="net | pointnet_grid | coal_reconstruction | sdf"),
         scenes: int = typer.Option(50, "--scenes", min=1, help="Held-out scenes (2,048 queries each)"),
         seed_start: int = typer.Option(100000, "--seed-start", min=0, help="Seed of the first scene"),
         out: Optional[Path] = typer.Option(None, "--out", help="Write the result (method, accuracy, ap, "
                                            "us_per_query, queries) as JSON"),
         cache: Optional[Path] = typer.Option(None, "--cache", help="Keep / reuse the scenes in this folder"),
         weights: Optional[Path] = typer.Option(None, "--weights", help="Network weights (default "
-                                               "models/weights/collision.pt)"),
+                                               "models/weights/collision.pt; pointnet_grid: "
+                                               "collision_pointnet_grid.pt)"),
         threads: int = typer.Option(1, "--threads", min=1, help="torch threads (net)")):
     """Table 6.1: collision accuracy, AP and CPU time per query of one method on held-out scenes."""
     if method not in COLLISION_METHODS:
@@ -960,10 +962,13 @@ def train_collision_cmd(
         threads: int = typer.Option(1, "--threads", min=1, help="torch threads"),
         lr: float = typer.Option(1e-3, "--lr", min=0.0, help="Adam learning rate"),
         max_minutes: float = typer.Option(90.0, "--max-minutes", min=0.1, help="Stop after the epoch that "
-                                          "would pass this wall time")):
+                                          "would pass this wall time"),
+        pointnet_grid: bool = typer.Option(False, "--pointnet-grid", help="Train the PointNet-grid ablation "
+                                           "(no 3D convolutions)")):
     """Train SceneCollisionNet (Ch. 6); resumes from OUT.ckpt; writes OUT (weights + meta)."""
     cmd = " ".join(["ms-drake", "train", "collision", "--data", str(data), "--out", str(out), "--epochs", str(epochs),
-                    "--seed", str(seed), "--threads", str(threads), "--lr", str(lr)])
+                    "--seed", str(seed), "--threads", str(threads), "--lr", str(lr)]
+                   + (["--pointnet-grid"] if pointnet_grid else []))
     bar = tqdm(desc="training", unit="scene")
 
     def progress(epoch, b, n, loss):
@@ -974,6 +979,7 @@ def train_collision_cmd(
         bar.set_postfix(loss=f"{loss:.4f}")
 
     meta = train_collision(data, out, epochs=epochs, seed=seed, threads=threads, lr=lr, max_minutes=max_minutes,
+                           config=CollisionNetConfig(conv_layers=0) if pointnet_grid else CollisionNetConfig(),
                            progress=progress, command=cmd)
     bar.close()
     last = meta["history"][-1] if meta["history"] else {}

@@ -175,3 +175,17 @@ def _at(x, y, z):
     X = np.eye(4)
     X[:3, 3] = [x, y, z]
     return X
+
+
+def test_pointnet_grid_ablation_has_no_3d_convolutions():
+    torch.manual_seed(0)
+    net = make_net(NetConfig(conv_layers=0)).eval()
+    assert not any(isinstance(m, torch.nn.Conv3d) for m in net.modules())
+    pts = torch.tensor(np.random.default_rng(4).uniform([-0.3, -0.3, 0], [0.3, 0.3, 0.2], (500, 3)), dtype=torch.float32)
+    with torch.no_grad():
+        f = net.scene_features(pts)
+    empty = torch.ones(400, dtype=torch.bool)
+    empty[net.voxel_index(pts)] = False
+    assert torch.all(f[empty] == 0)  # a voxel without points sees nothing of its neighbours
+    with pytest.raises(CollisionNetError, match="conv_layers=0"):
+        make_net(NetConfig(conv_layers=0, point_features=32))

@@ -8,6 +8,8 @@
 - Object encoder: PointNet++-style set abstraction in pure torch: farthest-point sampling of
   `NetConfig.centroids` centroids, the k nearest points of each (relative to it) through a shared
   MLP and a max, then a global MLP and a max: one feature vector per object.
+- PointNet-grid (the ablation of Table 6.1): `NetConfig(conv_layers=0)`, the pooled voxel
+  features without the 3D convolutions, so no voxel sees its neighbours.
 - Query classifier: for a pose X_WO of the object, the voxel nearest to its position, the pose
   relative to that voxel's centre (translation in voxel units, rotation as its first two columns,
   the 6D representation) and the two feature vectors -> MLP -> logit of P(collision).
@@ -48,6 +50,7 @@ class NetConfig:
     neighbours: int = 16
     object_features: int = 128
     hidden: int = 128
+    conv_layers: int = 3  # 0: the PointNet-grid ablation of Table 6.1 (voxel features straight from the pooling)
 
 
 def grid_shape(cfg: NetConfig = NetConfig()) -> tuple[int, int, int]:
@@ -84,10 +87,13 @@ def make_net(cfg: NetConfig = NetConfig()):
             self.register_buffer("centres", torch.tensor(voxel_centres(cfg), dtype=torch.float32))
             self.point_mlp = mlp(3, 32, cfg.point_features)
             c = cfg.voxel_features
-            self.convs = nn.Sequential(
-                nn.Conv3d(cfg.point_features, c, 3, padding=1), nn.ReLU(inplace=True),
-                nn.Conv3d(c, c, 3, padding=1), nn.ReLU(inplace=True),
-                nn.Conv3d(c, c, 3, padding=1), nn.ReLU(inplace=True))
+            if cfg.conv_layers == 0 and cfg.point_features != c:
+                raise CollisionNetError(f"conv_layers=0 needs point_features == voxel_features, got "
+                                        f"{cfg.point_features} and {c}")
+            convs = []
+            for i in range(cfg.conv_layers):
+                convs += [nn.Conv3d(cfg.point_features if i == 0 else c, c, 3, padding=1), nn.ReLU(inplace=True)]
+            self.convs = nn.Sequential(*convs)  # empty: identity
             self.group_mlp = mlp(3, 32, 64)
             self.object_mlp = mlp(64 + 3, 128, cfg.object_features)
             h = cfg.hidden

@@ -128,7 +128,9 @@ def evaluate_collision(net, data, split: str = "test", max_scenes: int | None = 
                 us_per_query=1e6 * query_s / len(y), ms_encode_per_scene=1e3 * encode_s / n)
 
 
-METHODS = ("net", "coal_reconstruction", "sdf")
+METHODS = ("net", "pointnet_grid", "coal_reconstruction", "sdf")
+DEFAULT_WEIGHTS = {"net": Path("models/weights/collision.pt"),
+                   "pointnet_grid": Path("models/weights/collision_pointnet_grid.pt")}
 
 
 def bench_scene(seed: int, cache=None) -> dict:
@@ -153,11 +155,14 @@ def bench_collision(method: str, scenes: int, seed_start: int = 0, cache=None, w
     if method not in METHODS:
         raise DatasetError(f"collision method {method!r} unknown; choose one of {', '.join(METHODS)}")
     net = None
-    if method == "net":
+    if method in DEFAULT_WEIGHTS:
         import torch  # optional heavy dependency
 
         torch.set_num_threads(threads)
-        net, _ = load_collision_net(weights or Path("models/weights/collision.pt"))
+        net, ck = load_collision_net(weights or DEFAULT_WEIGHTS[method])
+        if (ck["config"].get("conv_layers", 3) == 0) != (method == "pointnet_grid"):
+            raise DatasetError(f"weights {weights or DEFAULT_WEIGHTS[method]} hold a network with conv_layers="
+                               f"{ck['config'].get('conv_layers')}: not a {method!r} network")
     scores, labels = [], []
     setup_s = query_s = 0.0
     for k in range(scenes):
@@ -184,4 +189,4 @@ def bench_collision(method: str, scenes: int, seed_start: int = 0, cache=None, w
                 accuracy=float(((sc > 0.5) == y).mean()),
                 ap=float(average_precision_score(y, sc)) if 0 < y.sum() < len(y) else float("nan"),
                 us_per_query=1e6 * query_s / len(y), setup_ms_per_scene=1e3 * setup_s / scenes,
-                weights=str(weights) if method == "net" else None)
+                weights=str(weights or DEFAULT_WEIGHTS[method]) if method in DEFAULT_WEIGHTS else None)
