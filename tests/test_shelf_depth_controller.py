@@ -17,9 +17,6 @@ from pydrake.systems.sensors import ImageDepth32F, ImageRgba8U
 
 from ms_drake.execution import ExecutionError
 from ms_drake.execution.shelf_backend import ShelfBackend, ShelfBody, agreement
-from ms_drake.foss import Foss
-from ms_drake.perception.shelf_occupancy import ground_truth_occupancy
-from ms_drake.policies.shelf import ShelfPolicyParams
 from ms_drake.experiments.scene_images import make_scene
 from ms_drake.experiments.shelf_physics import (
     action_agreement,
@@ -30,8 +27,11 @@ from ms_drake.experiments.shelf_physics import (
     target_visibility,
 )
 from ms_drake.experiments.shelf_segmentation import associate
+from ms_drake.foss import Foss
+from ms_drake.perception.shelf_occupancy import ground_truth_occupancy
 from ms_drake.planning import ik_pose
 from ms_drake.policies.bin_search import ControllerError, connect_controller
+from ms_drake.policies.shelf import ShelfPolicyParams
 from ms_drake.policies.shelf_search import (
     FetchFeasibleSelector,
     MakeShelfSearchController,

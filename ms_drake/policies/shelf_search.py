@@ -52,8 +52,11 @@ from ms_drake.execution.shelf_backend import ShelfBackend, ShelfBody, observe
 from ms_drake.foss import Foss
 from ms_drake.perception.ready import ImagesReady
 from ms_drake.perception.shelf_occupancy import ShelfOccupancyEstimator
-from ms_drake.perception.shelf_segmentation import ShelfSegmentationParams, ShelfSegmenter
-from ms_drake.policies.bin_search import ControllerError, connect_controller  # noqa: F401 (re-exported)
+from ms_drake.perception.shelf_segmentation import (
+    ShelfSegmentationParams,
+    ShelfSegmenter,
+)
+from ms_drake.policies.bin_search import ControllerError, connect_controller  # connect_controller: re-exported
 from ms_drake.policies.shelf import (
     ShelfPolicyParams,
     ShelfPolicySelector,
@@ -137,7 +140,7 @@ def same_scene(a: ShelfScene, b: ShelfScene, tolerance: float = 0.01) -> bool:
     kind with centre and size within `tolerance` [m]."""
     if len(a.objects) != len(b.objects):
         return False
-    key = lambda o: o.x  # noqa: E731
+    key = lambda o: o.x
     for p, q in zip(sorted(a.objects, key=key), sorted(b.objects, key=key)):
         if p.kind != q.kind or max(abs(p.x - q.x), abs(p.y - q.y), abs(p.width - q.width), abs(p.depth - q.depth),
                                    abs(p.height - q.height)) > tolerance:
