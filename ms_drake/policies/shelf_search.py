@@ -56,7 +56,7 @@ from ms_drake.perception.shelf_segmentation import (
     ShelfSegmentationParams,
     ShelfSegmenter,
 )
-from ms_drake.policies.bin_search import ControllerError, connect_controller  # connect_controller: re-exported
+from ms_drake.policies.bin_search import ControllerError, connect_controller  # noqa: F401 (re-exported)
 from ms_drake.policies.shelf import (
     ShelfPolicyParams,
     ShelfPolicySelector,
