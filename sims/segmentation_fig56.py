@@ -17,7 +17,8 @@ Each run's weights are benchmarked on the same held-out images (`ms-drake bench 
 --backend learned --images --seed-start --weights`). Weights and benchmark files go under --root
 (not in git); a run whose weights are complete and whose benchmark file exists is skipped, and a
 killed training resumes from its checkpoint, so rerunning the command resumes. --out gets the
-curve data, --plot the figure (matplotlib).
+curve data, --plot the figure (matplotlib; dotted: the shipped net on the same images, from
+docs/data/segmentation_bench_learned.json).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.ticker  # noqa: E402
 import torch  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -78,7 +80,8 @@ def bench(args, weights: Path, out: Path) -> None:
     subprocess.run(cmd, check=True)
 
 
-def plot(rows: list[dict], path: Path) -> None:
+def plot(rows: list[dict], path: Path, shipped: dict | None = None) -> None:
+    """Both curves; `shipped`: the shipped net's benchmark on the same images (dotted lines)."""
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), sharey=True)
     img = sorted((r for r in rows if r["object_fraction"] is None), key=lambda r: r["train_images"])
     obj = sorted((r for r in rows if r["train_images"] == max(x["train_images"] for x in rows)),
@@ -88,10 +91,16 @@ def plot(rows: list[dict], path: Path) -> None:
         for m, style in (("ap", "o-"), ("ar", "s--")):
             ax.plot([p[key] for p in pts], [p[m] for p in pts], style, label=m.upper() if m == "ap" else "AR@100")
         ax.set_xscale("log")
+        ax.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
+        ax.set_xticks(sorted({p[key] for p in pts}))
+        ax.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+        if shipped is not None:
+            ax.axhline(shipped["ap"], color="C0", ls=":", lw=1, label="shipped net AP (2,000 steps)")
+            ax.axhline(shipped["ar"], color="C1", ls=":", lw=1, label="shipped net AR@100")
         ax.set_xlabel(label)
         ax.grid(True, alpha=0.3)
     axes[0].set_ylabel("COCO mask AP / AR@100 (held-out)")
-    axes[0].legend()
+    axes[0].legend(fontsize=7)
     n = rows[0]["bench_images"] if rows else 0
     fig.suptitle(f"Learned depth segmentation, {rows[0]['steps'] if rows else 0} steps per run, "
                  f"{n} held-out images", fontsize=10)
@@ -142,8 +151,12 @@ def main(argv=None) -> int:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(dict(runs=rows, steps=args.steps, batch=16, epochs=EPOCHS, seed=args.seed,
                                         data=str(args.data), command=" ".join(sys.argv)), indent=1))
+    shipped_file = ROOT / "docs" / "data" / "segmentation_bench_learned.json"
+    shipped = json.loads(shipped_file.read_text()) if shipped_file.exists() else None
+    if shipped is not None and (shipped["images"], shipped["seed_start"]) != (args.images, args.seed_start):
+        shipped = None
     if rows:
-        plot(rows, args.plot)
+        plot(rows, args.plot, shipped)
     print(f"wrote {args.out} and {args.plot} ({len(rows)} runs)")
     return 0
 
