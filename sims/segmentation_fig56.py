@@ -32,9 +32,9 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import matplotlib.ticker  # noqa: E402
-import torch  # noqa: E402
+import matplotlib.pyplot as plt
+import matplotlib.ticker
+import torch
 
 ROOT = Path(__file__).resolve().parent.parent
 CLI = str(ROOT / ".venv" / "bin" / "ms-drake")

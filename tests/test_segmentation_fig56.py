@@ -13,7 +13,11 @@ from ms_drake.experiments.segmentation_learning import (
     object_subset,
     train_segmentation,
 )
-from ms_drake.perception.segmentation_net import IGNORE, class_targets, segmentation_loss
+from ms_drake.perception.segmentation_net import (
+    IGNORE,
+    class_targets,
+    segmentation_loss,
+)
 from ms_drake.scenario import load_scenario
 
 SEED = 900_100  # outside the benchmark's seeds
@@ -21,9 +25,9 @@ SEED = 900_100  # outside the benchmark's seeds
 
 def test_noisy_image_from_the_clean_cache_equals_a_noisy_rendering(tmp_path):
     scenario = load_scenario(None, "BinHeap15")
-    d0, gt0, cam0 = cached_bench_image(SEED, 0.0, 0.0, scenario, tmp_path)  # renders and caches
+    d0, gt0, _ = cached_bench_image(SEED, 0.0, 0.0, scenario, tmp_path)  # renders and caches
     assert (tmp_path / f"img_{SEED}_0_0.npz").exists()
-    d1, gt1, cam1 = cached_bench_image(SEED, 0.002, 0.05, scenario, tmp_path)  # from the cache
+    d1, gt1, _ = cached_bench_image(SEED, 0.002, 0.05, scenario, tmp_path)  # from the cache
     assert not (tmp_path / f"img_{SEED}_0.002_0.05.npz").exists()
     d2, gt2, _ = bench_image(SEED, 0.002, 0.05, scenario)  # rendered with the sensor model
     np.testing.assert_array_equal(d1, d2)
