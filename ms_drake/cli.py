@@ -33,7 +33,7 @@ from ms_drake.execution import FIDELITIES
 from ms_drake.experiments.collision_data import SCENES_PER_SHARD as COLLISION_SCENES_PER_SHARD
 from ms_drake.experiments.collision_data import write_collision_dataset
 from ms_drake.collision.scene_net import NetConfig as CollisionNetConfig
-from ms_drake.experiments.collision_learning import METHODS as COLLISION_METHODS
+from ms_drake.collision.checker import METHODS as COLLISION_METHODS
 from ms_drake.experiments.collision_learning import bench_collision, train_collision
 from ms_drake.experiments.demo import DEMO_SEED, run_demo
 from ms_drake.experiments.grasp_figure import grasp_figure

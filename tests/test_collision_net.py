@@ -135,9 +135,9 @@ def _synthetic_shard(path, seed):
 def test_training_resumes_and_evaluation_reports_the_table_keys(tmp_path):
     from ms_drake.experiments.collision_learning import (  # noqa: PLC0415 - keeps torch-free imports above
         evaluate_collision,
-        load_collision_net,
         train_collision,
     )
+    from ms_drake.collision.checker import load_collision_net  # noqa: PLC0415
 
     for k in range(3):
         _synthetic_shard(tmp_path / f"shard_{k:05d}_train.npz", k)
@@ -169,6 +169,42 @@ def test_point_cloud_baselines_on_a_known_scene():
         assert make_baseline(method, scene_pts, obj).query(poses).tolist() == [False, True, False, True], method
     with pytest.raises(CollisionNetError, match="coal_reconstruction"):
         make_baseline("voxblox", scene_pts, obj)
+
+
+def test_scene_checker_answers_for_every_method_and_named_point_set(tmp_path):
+    from ms_drake.collision.checker import METHODS, SceneChecker, load_collision_net  # noqa: PLC0415
+
+    box = trimesh.creation.box([0.2, 0.2, 0.15])
+    scene_pts = trimesh.sample.sample_surface(box, 4000, seed=1)[0] + [0.0, 0.0, 0.075]
+    small = trimesh.sample.sample_surface(trimesh.creation.box([0.04, 0.04, 0.04]), 300, seed=2)[0]
+    poses = np.stack([_at(0.3, 0.0, 0.1), _at(0.08, 0.0, 0.1), _at(0.0, 0.0, 0.3), _at(0.3, 0.2, 0.0)])
+    for method in ("coal_reconstruction", "sdf"):
+        checker = SceneChecker(method, scene_pts)
+        checker.add("small", small)
+        assert checker.collides("small", poses).tolist() == [False, True, False, True], method
+    torch.manual_seed(0)
+    net = make_net(NetConfig()).eval()
+    checker = SceneChecker("net", scene_pts, net=net)
+    checker.add("small", small)
+    checker.add("big", small * 3.0)
+    p_small, p_big = checker.query("small", poses), checker.query("big", poses)
+    assert p_small.shape == (4,) and np.all((p_small >= 0) & (p_small <= 1))
+    with torch.inference_mode():  # the checker's cached codes give the network's own answer
+        direct = torch.sigmoid(net(torch.from_numpy(scene_pts.astype(np.float32)),
+                                   torch.from_numpy(small.astype(np.float32)),
+                                   torch.from_numpy(poses.astype(np.float32)))).numpy()
+    assert np.allclose(p_small, direct, atol=1e-6) and not np.allclose(p_small, p_big)
+    assert set(METHODS) == {"net", "pointnet_grid", "coal_reconstruction", "sdf"}
+    with pytest.raises(CollisionNetError, match="not added; added: small, big"):
+        checker.query("mug", poses)
+    with pytest.raises(CollisionNetError, match="choose one of net, pointnet_grid"):
+        SceneChecker("voxblox", scene_pts)
+    with pytest.raises(CollisionNetError, match="not found: train them"):
+        load_collision_net(tmp_path / "missing.pt")
+    path = tmp_path / "grid.pt"
+    torch.save(dict(model=net.state_dict(), config=dict(NetConfig().__dict__)), path)
+    with pytest.raises(CollisionNetError, match="not a 'pointnet_grid' network"):
+        load_collision_net(path, "pointnet_grid")
 
 
 def _at(x, y, z):

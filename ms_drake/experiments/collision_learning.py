@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from sklearn.metrics import average_precision_score
 
-from ms_drake.collision.baselines import make_baseline
+from ms_drake.collision.checker import METHODS, NETWORKS, SceneChecker, default_weights, load_collision_net
 from ms_drake.collision.scene_net import NetConfig, make_net, mined_loss
 from ms_drake.errors import DatasetError
 from ms_drake.experiments.collision_data import load_collision_shards, make_scene
@@ -88,19 +88,6 @@ def train_collision(data, out, epochs: int = 20, seed: int = 0, threads: int = 1
     return meta
 
 
-def load_collision_net(path):
-    """(network in eval mode, checkpoint dict) from a weights file written by `train_collision`."""
-    import torch  # optional heavy dependency: only the learned collision checker needs it
-
-    path = Path(path)
-    if not path.is_file():
-        raise DatasetError(f"collision weights {path} not found: train them with `ms-drake train collision`")
-    ck = torch.load(path, map_location="cpu", weights_only=False)
-    net = make_net(NetConfig(**ck["config"]))
-    net.load_state_dict(ck["model"])
-    return net.eval(), ck
-
-
 def evaluate_collision(net, data, split: str = "test", max_scenes: int | None = None, threads: int = 1) -> dict:
     """Accuracy, AP and CPU time per query of `net` on the `split` shards of `data` (module doc)."""
     import torch  # optional heavy dependency
@@ -128,11 +115,6 @@ def evaluate_collision(net, data, split: str = "test", max_scenes: int | None = 
                 us_per_query=1e6 * query_s / len(y), ms_encode_per_scene=1e3 * encode_s / n)
 
 
-METHODS = ("net", "pointnet_grid", "coal_reconstruction", "sdf")
-DEFAULT_WEIGHTS = {"net": Path("models/weights/collision.pt"),
-                   "pointnet_grid": Path("models/weights/collision_pointnet_grid.pt")}
-
-
 def bench_scene(seed: int, cache=None) -> dict:
     """Held-out scene `seed` (test objects; collision_data.make_scene), read from / saved to `cache`."""
     path = Path(cache) / f"scene_{seed}.npz" if cache is not None else None
@@ -155,28 +137,21 @@ def bench_collision(method: str, scenes: int, seed_start: int = 0, cache=None, w
     if method not in METHODS:
         raise DatasetError(f"collision method {method!r} unknown; choose one of {', '.join(METHODS)}")
     net = None
-    if method in DEFAULT_WEIGHTS:
+    if method in NETWORKS:
         import torch  # optional heavy dependency
 
         torch.set_num_threads(threads)
-        net, ck = load_collision_net(weights or DEFAULT_WEIGHTS[method])
-        if (ck["config"].get("conv_layers", 3) == 0) != (method == "pointnet_grid"):
-            raise DatasetError(f"weights {weights or DEFAULT_WEIGHTS[method]} hold a network with conv_layers="
-                               f"{ck['config'].get('conv_layers')}: not a {method!r} network")
+        weights = weights or default_weights(method)
+        net = load_collision_net(weights, method)[0]
     scores, labels = [], []
     setup_s = query_s = 0.0
     for k in range(scenes):
         s = bench_scene(seed_start + k, cache)
         t = time.process_time()
-        if net is not None:
-            with torch.inference_mode():
-                code = net.encode(torch.from_numpy(s["scene_points"]), torch.from_numpy(s["object_points"]))
-                t1 = time.process_time()
-                score = torch.sigmoid(net.query(code, torch.from_numpy(s["poses"]))).numpy()
-        else:
-            checker = make_baseline(method, s["scene_points"], s["object_points"])
-            t1 = time.process_time()
-            score = checker.query(s["poses"]).astype(float)
+        checker = SceneChecker(method, s["scene_points"], net=net)
+        checker.add("query", s["object_points"])
+        t1 = time.process_time()
+        score = checker.query("query", s["poses"])
         t2 = time.process_time()
         setup_s += t1 - t
         query_s += t2 - t1
@@ -189,4 +164,4 @@ def bench_collision(method: str, scenes: int, seed_start: int = 0, cache=None, w
                 accuracy=float(((sc > 0.5) == y).mean()),
                 ap=float(average_precision_score(y, sc)) if 0 < y.sum() < len(y) else float("nan"),
                 us_per_query=1e6 * query_s / len(y), setup_ms_per_scene=1e3 * setup_s / scenes,
-                weights=str(weights or DEFAULT_WEIGHTS[method]) if method in DEFAULT_WEIGHTS else None)
+                weights=str(weights) if net is not None else None)
