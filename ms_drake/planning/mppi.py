@@ -9,7 +9,8 @@ One call (`mppi_step`) from configuration q towards a goal g, with d = g - q:
    every step;
 3. every waypoint is collision-checked (`collides`: a batch of configurations -> bool, e.g. the
    scene network for the robot's links and the object in hand plus Drake's geometry for the robot
-   itself and the table; any callable), and each trajectory is cut before its first colliding
+   itself and the table; any callable; ms_drake.planning.batch_fk.BatchFK gives the link poses
+   of all waypoints in one batched pass), and each trajectory is cut before its first colliding
    waypoint;
 4. the cost of a waypoint is its joint-space distance to the goal (the final-state cost); the
    returned waypoint is the lowest-cost one over all kept waypoints (the reference executes the
