@@ -18,7 +18,9 @@ LAYERS = [  # lowest first
     ("objects", "robots"),
     ("scenario",),
     ("station",),
-    ("perception", "grasping", "pushing", "planning", "collision", "scenes", "foss"),
+    ("perception", "grasping", "pushing", "planning", "scenes", "foss"),
+    # Point-cloud collision checking uses planning's batched kinematics for the robot's links.
+    ("collision",),
     # The controller Diagrams that policies/ builds hold the ActionExecutor and its motion
     # backends, so execution sits below policies.
     ("execution",),
