@@ -50,14 +50,14 @@ def test_links_collide_with_a_cloud_where_the_hand_is_and_not_elsewhere():
     p_hand = plant.EvalBodyPoseInWorld(pctx, link7).translation()
     for cloud, expect in ((_cube_cloud(p_hand), True), (_cube_cloud(p_hand + [0.0, 0.6, 0.0]), False)):
         checker = SceneChecker("sdf", cloud)
-        robot = RobotSceneCollision(plant, sg, pctx, arm, LINKS, checker, inst, table_top=-0.5)
+        robot = RobotSceneCollision(plant, sg.model_inspector(), pctx, arm, LINKS, checker, inst, table_top=-0.5)
         assert robot.collides(HOME[None]).tolist() == [expect]
     # a batch: HOME free, and the first joint turned so that the arm sweeps into a cube beside it
     q2 = HOME.copy()
     q2[0] = np.pi / 2
     plant.SetPositions(pctx, inst, q2)  # where link7 is then
     p2 = plant.EvalBodyPoseInWorld(pctx, link7).translation()
-    robot = RobotSceneCollision(plant, sg, pctx, arm, LINKS, SceneChecker("sdf", _cube_cloud(p2)), inst, table_top=-0.5)
+    robot = RobotSceneCollision(plant, sg.model_inspector(), pctx, arm, LINKS, SceneChecker("sdf", _cube_cloud(p2)), inst, table_top=-0.5)
     assert robot.collides(np.stack([HOME, q2])).tolist() == [False, True]
 
 
@@ -66,14 +66,14 @@ def test_table_and_object_in_hand():
     far = _cube_cloud(np.array([2.0, 2.0, 0.3]))
     link7 = plant.GetBodyByName("panda_link7", inst)
     z_hand = plant.EvalBodyPoseInWorld(pctx, link7).translation()[2]
-    robot = RobotSceneCollision(plant, sg, pctx, arm, LINKS, SceneChecker("sdf", far), inst, table_top=z_hand - 0.02)
+    robot = RobotSceneCollision(plant, sg.model_inspector(), pctx, arm, LINKS, SceneChecker("sdf", far), inst, table_top=z_hand - 0.02)
     assert robot.collides(HOME[None]).tolist() == [True]  # link7's points reach below that "table"
-    robot = RobotSceneCollision(plant, sg, pctx, arm, LINKS, SceneChecker("sdf", far), inst, table_top=0.0)
+    robot = RobotSceneCollision(plant, sg.model_inspector(), pctx, arm, LINKS, SceneChecker("sdf", far), inst, table_top=0.0)
     assert robot.collides(HOME[None]).tolist() == [False]
     # an object held 0.5 m below link7 meets a cube there
     X_WL = plant.EvalBodyPoseInWorld(pctx, link7).GetAsMatrix4()
     target = X_WL[:3, 3] + [0.0, 0.0, -0.5]
-    robot = RobotSceneCollision(plant, sg, pctx, arm, LINKS, SceneChecker("sdf", _cube_cloud(target)), inst)
+    robot = RobotSceneCollision(plant, sg.model_inspector(), pctx, arm, LINKS, SceneChecker("sdf", _cube_cloud(target)), inst)
     assert robot.collides(HOME[None]).tolist() == [False]
     X_LO = np.linalg.inv(X_WL) @ np.block([[np.eye(3), target[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]])
     robot.attach("bar", _cube_cloud(np.zeros(3), 0.085, 500), link7, X_LO)  # its faces 2.5 mm off the cube's

@@ -61,17 +61,17 @@ def body_points(plant, inspector, body, count: int = 256, seed: int = 0) -> np.n
 class RobotSceneCollision:
     """P(collision) of a robot's links (+ an object in hand) with a scene cloud, per configuration.
 
-    plant, scene_graph: a finalized plant registered with its SceneGraph; context: the plant's
+    plant: a finalized plant registered with a SceneGraph; inspector: that SceneGraph's inspector
+    (`scene_graph.model_inspector()`, or the plant's geometry query port's `inspector()`); context: the plant's
     context holding the positions a batch does not supply; positions: the plant position indices a
     configuration gives (the arm's joints); bodies: the bodies to check (names with
     `model_instance`, or Body objects); checker: a SceneChecker on the scene cloud.
     """
 
-    def __init__(self, plant, scene_graph, context, positions, bodies, checker: SceneChecker,
+    def __init__(self, plant, inspector, context, positions, bodies, checker: SceneChecker,
                  model_instance=None, table_top: float | None = 0.0, points_per_body: int = 256, seed: int = 0,
                  threshold: float = 0.5):
         self.bodies = [plant.GetBodyByName(b, model_instance) if isinstance(b, str) else b for b in bodies]
-        inspector = scene_graph.model_inspector()
         self.checker, self.table_top, self.threshold = checker, table_top, threshold
         self.names = []
         self.points = []
