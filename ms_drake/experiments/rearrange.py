@@ -1,0 +1,335 @@
+"""Rearrangement on the Panda in Drake physics (Ch. 6.4 / 6.6.1): the controller of
+ms_drake.policies.rearrange wired to the PandaTable station.
+
+- `barrier_scene()`: the demo's scene: the target box on the near side of the table (y < 0), a
+  row of tall cylinders across the table between it and the placement zone (y > 0).
+- `table_scene(seed, objects)`: a Table 6.3 scene: `objects` procedural objects in stable poses,
+  without collision, in the Panda's reach on the table (ms_drake.scenes.tabletop.place_objects on
+  the reachable part), in a seeded random order.
+- `build_rearrange(scenario, scene, params)`: station + controller (three lines) + the robot at
+  home; `run_rearrange(system, ...)`: simulate until the controller is done (or a time limit),
+  judging each attempt with the simulation's truth: grasped = the target rose by more than half
+  the lift while the attempt ran; placed = it ends at rest in the zone (its centre within it),
+  at least 5 cm from where it started, below 5 cm above the table's or an object's top (not held,
+  not thrown away).
+- `run_rearrange_bench(...)`: `ms-drake bench rearrange`: one JSON line per scene (seed, method,
+  grasps attempted / successful, placements successful, sim seconds, cpu seconds, minutes),
+  flushed, resumable; `rearrange_table(records)`: the Table 6.3 analogue.
+- `run_rearrange_demo(out, ...)`: `ms-drake demo rearrange`: the barrier scene, a GIF of the
+  camera's view and a Meshcat recording.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import imageio
+import numpy as np
+from pydrake.geometry import Meshcat
+from pydrake.math import RotationMatrix
+from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
+from pydrake.systems.framework import DiagramBuilder
+
+from ms_drake.errors import MsDrakeError
+from ms_drake.experiments.harness import read_records
+from ms_drake.objects import get_object
+from ms_drake.objects.registry import get_object_set
+from ms_drake.parallel import run_jobs
+from ms_drake.policies.rearrange import (
+    METHODS,
+    MakeRearrangementController,
+    RearrangeParams,
+    connect_controller,
+    sim_info,
+)
+from ms_drake.scenario import load_scenario
+from ms_drake.scenes.heaps import scenario_with_heap, set_heap_poses
+from ms_drake.scenes.tabletop import place_objects
+from ms_drake.station import MakeStation, get_plant, station_objects
+from ms_drake.types import Heap, ObjectPose
+
+SCENARIO = "PandaTable"
+#: The part of the table the Panda (base at x = -0.6) reaches from above: x, y bounds [m].
+REACH = (-0.45, 0.15, -0.32, 0.32)
+#: Table 6.3's placement zone: the whole reachable table (the reference's default, "the entire workspace").
+BENCH_ZONE = REACH
+#: The demo's zone: beyond the barrier.
+DEMO_ZONE = (-0.40, 0.0, 0.06, 0.28)
+DEMO_SEED = 0
+
+
+class RearrangeError(MsDrakeError, ValueError):
+    """A rearrangement run was asked for with settings it cannot honour."""
+
+
+def _pose(name: str, x: float, y: float, yaw: float = 0.0) -> ObjectPose:
+    ext = get_object(name).extents
+    q = RotationMatrix.MakeZRotation(yaw).ToQuaternion()
+    return ObjectPose(name, (q.w(), q.x(), q.y(), q.z(), x, y, ext[2] / 2 + 1e-4))
+
+
+def barrier_scene() -> Heap:
+    """The demo scene (module doc): the target procedural/box_048 at (-0.22, -0.20), cylinders
+    15-20 cm tall along y = -0.06 from x = -0.42 to 0.06."""
+    target = _pose("procedural/box_048", -0.22, -0.20, np.pi / 2)
+    row = ["procedural/cylinder_004", "procedural/cylinder_037", "procedural/cylinder_118",
+           "procedural/cylinder_127", "procedural/cylinder_133", "procedural/cylinder_073"]
+    xs = np.linspace(-0.40, 0.06, len(row))
+    return Heap(seed=DEMO_SEED, environment="table",
+                objects=(target,) + tuple(_pose(n, float(x), -0.06) for n, x in zip(row, xs)),
+                target="procedural/box_048", target_index=0)
+
+
+def table_scene(scenario, seed: int, objects: int = 10) -> Heap:
+    """A Table 6.3 scene (module doc): objects drawn from the procedural set's test split."""
+    names = [f"procedural/{o.name}" for o in get_object_set("procedural").objects if o.split == "test"
+             and min(o.extents) < 0.08 and max(o.extents) < 0.20]
+    rng = np.random.default_rng([seed, 6063])
+    chosen = [names[i] for i in rng.choice(len(names), objects, replace=False)]
+    x0, x1, y0, y1 = REACH
+    env = dataclasses.replace(scenario.environment, size=[x1 - x0, y1 - y0, scenario.environment.size[2]],
+                              position=[(x0 + x1) / 2, (y0 + y1) / 2, scenario.environment.position[2]])
+    heap = place_objects(dataclasses.replace(scenario, environment=env), chosen, seed, margin=0.01)
+    return dataclasses.replace(heap, environment="table")
+
+
+@dataclass
+class RearrangeSystem:
+    diagram: object
+    station: object
+    controller: object
+    plant: object
+    scenario: object
+    heap: Heap
+    targets: tuple  # model names in order
+    bodies: dict  # model name -> body index
+
+    def station_output(self, context, name):
+        return self.station.GetOutputPort(name).Eval(self.station.GetMyContextFromRoot(context))
+
+    def output(self, context, name):
+        return self.controller.GetOutputPort(name).Eval(self.controller.GetMyContextFromRoot(context))
+
+
+def build_rearrange(scenario, heap: Heap, params: RearrangeParams, order=None, meshcat=None,
+                    targets: int | None = None, net=None) -> RearrangeSystem:
+    """The station holding the heap's objects and the controller moving them in `order` (indices
+    into heap.objects; default all, in order)."""
+    scn = scenario_with_heap(scenario, heap)
+    builder = DiagramBuilder()
+    station = builder.AddSystem(MakeStation(scn, meshcat=meshcat))
+    plant = get_plant(station)
+    objs = station_objects(plant)
+    order = list(range(len(objs))) if order is None else list(order)
+    names = tuple(objs[i].model_name for i in order)
+    controller = builder.AddSystem(MakeRearrangementController(
+        scn, params, sim=sim_info(plant, names), targets=targets or len(names), net=net))
+    connect_controller(builder, controller, station)
+    diagram = builder.Build()
+    return RearrangeSystem(diagram, station, controller, plant, scn, heap, names,
+                           {o.model_name: int(o.body_index) for o in objs})
+
+
+def set_initial(system: RearrangeSystem, context) -> None:
+    """The heap's objects at their poses, the Panda at the controller's home."""
+    set_heap_poses(system.station, context, system.heap)
+    pc = system.plant.GetMyMutableContextFromRoot(context)
+    robot = system.plant.GetModelInstanceByName("panda")
+    system.plant.SetPositions(pc, robot, system.controller.planner.q_home)
+
+
+@dataclass
+class RearrangeResult:
+    record: dict
+    frames: list = field(default_factory=list)
+
+
+def _in_zone(p, zone, margin: float = 0.0) -> bool:
+    x0, x1, y0, y1 = zone
+    return x0 - margin <= p[0] <= x1 + margin and y0 - margin <= p[1] <= y1 + margin
+
+
+def run_rearrange(system: RearrangeSystem, params: RearrangeParams, seed: int = 0, max_sim: float = 600.0,
+                  frame_every: float | None = None, meshcat=None, log=None) -> RearrangeResult:
+    """Simulate until the controller is done or `max_sim` s (module doc); frame_every: keep the
+    camera's rgb image every so many simulated seconds (the demo's GIF)."""
+    sim = Simulator(system.diagram)
+    ApplySimulatorConfig(system.scenario.simulator_config, sim)
+    ctx = sim.get_mutable_context()
+    set_initial(system, ctx)
+    sim.Initialize()
+    if meshcat is not None:
+        meshcat.StartRecording(set_visualizations_while_recording=False)
+    start = {k: system.station_output(ctx, "body_poses")[b].translation() for k, b in system.bodies.items()}
+    peak = {k: -np.inf for k in system.bodies}
+    frames, t, dt = [], 0.0, 0.1
+    wall, cpu = time.perf_counter(), time.process_time()
+    next_frame = 0.0
+    failure = ""
+    seen = 0
+    while t < max_sim:
+        t += dt
+        try:
+            sim.AdvanceTo(t)
+        except RuntimeError as e:  # a simulation failure ends the run; its record says so
+            failure = f"simulation: {str(e).splitlines()[0][:120]}"
+            break
+        poses = system.station_output(ctx, "body_poses")
+        status = system.output(ctx, "status")
+        if status.target in peak:
+            peak[status.target] = max(peak[status.target], poses[system.bodies[status.target]].translation()[2])
+        hist = system.output(ctx, "history")
+        if log is not None and len(hist) > seen:
+            for o in hist[seen:]:
+                log(f"    t={t:6.1f} s {o.target} attempt {o.attempt}: {o.status} (mppi calls {o.mppi_calls}, "
+                    f"planning {o.plan_seconds:.1f} s cpu)")
+            seen = len(hist)
+        if frame_every is not None and t >= next_frame:
+            rgb = np.asarray(system.station_output(ctx, "front.rgb_image").data)[:, :, :3].copy()
+            frames.append((t, status.phase, rgb))
+            next_frame = t + frame_every
+        if status.done:
+            # let the scene come to rest
+            sim.AdvanceTo(t + 0.5)
+            break
+    if meshcat is not None:
+        meshcat.StopRecording()
+        meshcat.PublishRecording()
+    poses = system.station_output(ctx, "body_poses")
+    hist = tuple(system.output(ctx, "history"))
+    lift = params.lift
+    objects = []
+    for k in system.targets:
+        b = system.bodies[k]
+        p0, p1 = start[k], poses[b].translation()
+        tries = [o for o in hist if o.target == k]
+        grasped = peak[k] - p0[2] > 0.5 * lift
+        placed = bool(any(o.placed for o in tries) and _in_zone(p1, params.zone, 0.02)
+                      and np.linalg.norm(p1[:2] - p0[:2]) > 0.05 and p1[2] < p0[2] + 0.25)
+        objects.append({"id": k, "attempts": len(tries), "grasped": bool(grasped), "placed": placed,
+                        "statuses": [o.status for o in tries],
+                        "start": [round(float(v), 4) for v in p0], "end": [round(float(v), 4) for v in p1]})
+    rec = {
+        "method": params.method,
+        "grasps_attempted": sum(o["attempts"] for o in objects),
+        "grasps": sum(o["grasped"] for o in objects),
+        "placements": sum(o["placed"] for o in objects),
+        "objects": len(objects),
+        "sim_seconds": round(float(ctx.get_time()), 2),
+        "minutes": round(float(ctx.get_time()) / 60.0, 3),
+        "cpu_seconds": round(time.process_time() - cpu, 1),
+        "wall_seconds": round(time.perf_counter() - wall, 1),
+        "plan_cpu_seconds": round(sum(o.plan_seconds for o in hist), 1),
+        "mppi_calls": int(sum(o.mppi_calls for o in hist)),
+        "failure": failure,
+        "per_object": objects,
+    }
+    return RearrangeResult(rec, frames)
+
+
+# --------------------------------------------------------------------------------- bench
+def bench_params(method: str, seed: int, **overrides) -> RearrangeParams:
+    """The Table 6.3 setting: the reachable table as the zone, the reference's T and H."""
+    return RearrangeParams(method=method, zone=BENCH_ZONE, seed=seed, **overrides)
+
+
+def rearrange_rollout(method: str, seed: int, objects: int = 10, max_sim: float = 900.0, **overrides) -> dict:
+    scenario = load_scenario(None, SCENARIO)
+    heap = table_scene(scenario, seed, objects)
+    order = list(np.random.default_rng([seed, 31]).permutation(len(heap.objects)))
+    params = bench_params(method, seed, **overrides)
+    system = build_rearrange(scenario, heap, params, order=order)
+    res = run_rearrange(system, params, seed, max_sim=max_sim)
+    return {"seed": int(seed), **res.record, "order": [system.targets[i] for i in range(len(order))]}
+
+
+def _bench_job(job: tuple) -> dict:
+    method, seed, objects, overrides = job
+    return rearrange_rollout(method, seed, objects, **overrides)
+
+
+def run_rearrange_bench(method: str, scenes: int, seed_start: int, out, objects: int = 10, workers: int = 1,
+                        log=print, **overrides) -> list[dict]:
+    """`ms-drake bench rearrange`: one JSON line per scene in `out`; seeds already there are skipped."""
+    if method not in METHODS:
+        raise RearrangeError(f"method {method!r} unknown; choose one of {', '.join(METHODS)}")
+    if scenes < 1 or objects < 1:
+        raise RearrangeError(f"scenes and objects must be >= 1, got {scenes}, {objects}")
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    done = {(r["method"], int(r["seed"]), r.get("objects")) for r in read_records(out)}
+    jobs = [(method, s, objects, overrides) for s in range(seed_start, seed_start + scenes)
+            if (method, s, objects) not in done]
+    recs = []
+    for res in run_jobs(_bench_job, jobs, workers=workers):
+        if res.error:
+            log(f"  seed {res.job[1]}: error {res.error.splitlines()[-1] if res.error else ''}")
+            continue
+        r = res.value
+        with out.open("a") as f:
+            f.write(json.dumps(r) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+        recs.append(r)
+        log(f"  {method} seed {r['seed']}: grasps {r['grasps']}/{r['grasps_attempted']}, placements "
+            f"{r['placements']}/{r['objects']}, {r['minutes']:.1f} sim min, cpu {r['cpu_seconds']:.0f} s")
+    return recs
+
+
+def rearrange_table(records: list[dict]) -> str:
+    """The Table 6.3 analogue: per method, scenes, objects, grasps (successful / attempted),
+    placements, simulated minutes, planning and total CPU seconds."""
+    rows = [("| method | scenes | objects | grasps (successful / attempted) | placements | time (sim min) | "
+             "planning cpu s | total cpu s |"), "|---|---|---|---|---|---|---|---|"]
+    by = {}
+    for r in records:
+        by.setdefault(r["method"], []).append(r)
+    for m, rs in by.items():
+        rows.append(f"| {m} | {len(rs)} | {sum(r['objects'] for r in rs)} | {sum(r['grasps'] for r in rs)} / "
+                    f"{sum(r['grasps_attempted'] for r in rs)} | {sum(r['placements'] for r in rs)} | "
+                    f"{sum(r['minutes'] for r in rs):.1f} | {sum(r['plan_cpu_seconds'] for r in rs):.0f} | "
+                    f"{sum(r['cpu_seconds'] for r in rs):.0f} |")
+    return "\n".join(rows)
+
+
+# --------------------------------------------------------------------------------- demo
+def run_rearrange_demo(out, method: str = "coal_reconstruction", seed: int = DEMO_SEED, meshcat_html: bool = True,
+                       log=print, **overrides) -> dict:
+    """`ms-drake demo rearrange`: the barrier scene; rearrange.gif (the front camera, one frame per
+    simulated second, the FSM's state written on it), rearrange.json and meshcat_recording.html
+    in `out`. Returns {name: path} and the record under "record"."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    scenario = load_scenario(None, SCENARIO)
+    heap = barrier_scene()
+    params = RearrangeParams(method=method, zone=DEMO_ZONE, seed=seed, **overrides)
+    meshcat = Meshcat() if meshcat_html else None
+    system = build_rearrange(scenario, heap, params, order=[0], meshcat=meshcat)
+    res = run_rearrange(system, params, seed, max_sim=240.0, frame_every=1.0, meshcat=meshcat, log=log)
+    images = []
+    for t, phase, rgb in res.frames:
+        img = np.ascontiguousarray(rgb)
+        cv2.putText(img, f"t={t:5.1f} s  {phase}", (12, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (255, 255, 255), 2)
+        images.append(cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA))
+    written = {}
+    if images:
+        gif = out / "rearrange.gif"
+        imageio.mimsave(gif, images, duration=0.25, loop=0)
+        written["gif"] = str(gif)
+    (out / "rearrange.json").write_text(json.dumps(res.record, indent=1))
+    written["record"] = str(out / "rearrange.json")
+    if meshcat is not None:
+        html = out / "meshcat_recording.html"
+        html.write_text(meshcat.StaticHtml())
+        written["meshcat"] = str(html)
+    r = res.record
+    log(f"  {method} on the barrier scene: grasped {r['grasps']}/{r['grasps_attempted']}, placed "
+        f"{r['placements']}/{r['objects']} in {r['sim_seconds']:.0f} s simulated ({r['mppi_calls']} MPPI calls, "
+        f"planning {r['plan_cpu_seconds']:.0f} s cpu, total {r['cpu_seconds']:.0f} s cpu)")
+    return written | {"success": bool(r["placements"] == r["objects"])}
