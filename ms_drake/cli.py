@@ -25,15 +25,18 @@ import time
 from pathlib import Path
 from typing import Optional
 
+import numpy as np
 import typer
 from tqdm import tqdm
 
+from ms_drake.collision.checker import METHODS as COLLISION_METHODS
+from ms_drake.collision.scene_net import NetConfig as CollisionNetConfig
 from ms_drake.errors import MsDrakeError
 from ms_drake.execution import FIDELITIES
-from ms_drake.experiments.collision_data import SCENES_PER_SHARD as COLLISION_SCENES_PER_SHARD
+from ms_drake.experiments.collision_data import (
+    SCENES_PER_SHARD as COLLISION_SCENES_PER_SHARD,
+)
 from ms_drake.experiments.collision_data import write_collision_dataset
-from ms_drake.collision.scene_net import NetConfig as CollisionNetConfig
-from ms_drake.collision.checker import METHODS as COLLISION_METHODS
 from ms_drake.experiments.collision_learning import bench_collision, train_collision
 from ms_drake.experiments.demo import DEMO_SEED, run_demo
 from ms_drake.experiments.grasp_figure import grasp_figure
@@ -44,14 +47,20 @@ from ms_drake.experiments.harness import (
     read_records,
     run_bench,
 )
+from ms_drake.experiments.matcher_data import (
+    OCCLUSION,
+    bench_target_detection,
+    write_matcher_dataset,
+)
+from ms_drake.experiments.matcher_learning import train_matcher
+from ms_drake.experiments.mppi_bench import PLANNERS as MPPI_PLANNERS
+from ms_drake.experiments.mppi_bench import bench_mppi
 from ms_drake.experiments.occupancy_data import write_occupancy_dataset
 from ms_drake.experiments.occupancy_learning import (
     bench_occupancy,
     train_occupancy,
     write_json,
 )
-from ms_drake.experiments.matcher_data import OCCLUSION, bench_target_detection, write_matcher_dataset
-from ms_drake.experiments.matcher_learning import train_matcher
 from ms_drake.experiments.picks import TASKS, run_pick
 from ms_drake.experiments.scene_images import make_scene, write_scene_images
 from ms_drake.experiments.segmentation_data import write_segmentation_dataset
@@ -83,7 +92,12 @@ from ms_drake.experiments.shelf_physics import (
     run_shelf_physics_bench,
 )
 from ms_drake.experiments.shelf_segmentation import bench_shelf_segmentation
-from ms_drake.experiments.xray import PROTOCOLS, XRAY_HORIZON, XRAY_OBJECTS, XRAY_PROTOCOLS
+from ms_drake.experiments.xray import (
+    PROTOCOLS,
+    XRAY_HORIZON,
+    XRAY_OBJECTS,
+    XRAY_PROTOCOLS,
+)
 from ms_drake.grasping.evaluator import MODELS
 from ms_drake.objects import get_object_set
 from ms_drake.parallel import run_jobs
@@ -870,6 +884,40 @@ def bench_collision_cmd(
     if out is not None:
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(res, indent=1))
+
+
+@bench_app.command("mppi")
+def bench_mppi_cmd(
+        method: str = typer.Option("net", "--method", help="Collision checker: net | pointnet_grid | "
+                                   "coal_reconstruction | sdf"),
+        planner: str = typer.Option("ours", "--planner", help="ours | pytorch_mppi (the `bench` extra)"),
+        scenes: int = typer.Option(5, "--scenes", min=1, help="Held-out tabletop scenes"),
+        seed_start: int = typer.Option(100000, "--seed-start", min=0, help="Seed of the first scene"),
+        trajectories: int = typer.Option(300, "--trajectories", min=1, help="T (the reference: 300)"),
+        horizon: int = typer.Option(40, "--horizon", min=1, help="H (the reference: 40)"),
+        steps: int = typer.Option(5, "--steps", min=1, help="MPPI calls per scene (fewer when the goal is reached)"),
+        out: Optional[Path] = typer.Option(None, "--out", help="Write the records (one per scene) as JSON"),
+        cache: Optional[Path] = typer.Option(None, "--cache", help="Keep / reuse the scenes in this folder"),
+        weights: Optional[Path] = typer.Option(None, "--weights", help="Network weights (default: shipped)"),
+        threads: int = typer.Option(1, "--threads", min=1, help="torch threads")):
+    """Speed of one MPPI call on the Panda (T x H waypoints, every link and the gripper checked
+    against the scene cloud): CPU ms per call and rate, ours or pytorch_mppi's."""
+    if method not in COLLISION_METHODS:
+        _fail(f"--method {method!r}: choose one of {', '.join(COLLISION_METHODS)}")
+    if planner not in MPPI_PLANNERS:
+        _fail(f"--planner {planner!r}: choose one of {', '.join(MPPI_PLANNERS)}")
+    bar = tqdm(total=scenes, desc=f"{planner} {method}", unit="scene")
+    recs = bench_mppi(method, scenes, seed_start, trajectories, horizon, steps, planner, cache, weights, threads,
+                      progress=lambda r: bar.update(1))
+    bar.close()
+    ms = np.median([r["ms_per_step"] for r in recs])
+    typer.echo(f"{planner} with {method}, T = {trajectories}, H = {horizon}: median {ms:.0f} ms CPU per call "
+               f"({1e3 / ms:.2f} Hz), {np.median([r['checks_per_s'] for r in recs]):.0f} waypoints checked per s; "
+               f"goal reached in {sum(r['reached'] for r in recs)}/{len(recs)} scenes")
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(recs, indent=1))
+        typer.echo(f"wrote {out}")
 
 
 @bench_app.command("segmentation")

@@ -29,7 +29,7 @@ LAYERS = [  # lowest first
     ("cli",),
 ]
 LEVEL = {name: k for k, names in enumerate(LAYERS) for name in names}
-FUNCTION_LEVEL_ALLOWED = {"ray", "torch"}  # optional or heavy; imported where used
+FUNCTION_LEVEL_ALLOWED = {"ray", "torch", "pytorch_mppi"}  # optional or heavy; imported where used
 
 
 def _modules():

@@ -104,8 +104,8 @@ class RobotSceneCollision:
         for k, name in enumerate(self.names):
             p = np.maximum(p, self.checker.query(name, X[:, k]))
             if self.table_top is not None:
-                z = np.einsum("nij,mj->nmi", X[:, k, :3, :3], self.points[k])[..., 2] + X[:, k, None, 2, 3]
-                p[z.min(axis=1) < self.table_top] = 1.0
+                z_min = (X[:, k, 2, :3] @ self.points[k].T.astype(float)).min(axis=1) + X[:, k, 2, 3]
+                p[z_min < self.table_top] = 1.0
         for name, (k, X_BO, pts) in self.attached.items():
             XO = X[:, k] @ X_BO
             p = np.maximum(p, self.checker.query(f"held:{name}", XO))

@@ -1,0 +1,143 @@
+"""Speed of one MPPI call on the Panda with a point-cloud collision checker (issue 13's speed goals):
+`ms-drake bench mppi`.
+
+Setup per scene seed: the PandaTable robot (Panda + jaw at its base, the table as environment),
+the held-out tabletop scene `seed` of the Table 6.1 benchmark (collision_learning.bench_scene: its
+camera point cloud, table points removed), a `RobotSceneCollision` over the arm's links and the
+gripper with the chosen checker, a start (the arm's home) and a goal configuration (IK to a
+tool pose above the table's far side, seeded). A run makes `steps` MPPI calls from the start, each
+moving to the returned waypoint (the reference executes the minimal-cost trajectory up to it), and
+reports the CPU time per call (one thread; link FK, the network's queries, sampling, selection),
+the waypoints checked per second, and whether the goal was reached (joint distance < 0.05 rad).
+
+`--against pytorch_mppi` runs pytorch_mppi's MPPI (the `bench` extra) on the same problem: the
+same dynamics (the joint step x + u, clipped to the limits), the same cost (joint distance to the
+goal, plus 1000 for a colliding configuration from the same checker), the same number of samples
+T and horizon H; its running cost is evaluated once per horizon step on all samples, as its API
+prescribes. The per-step noise is Sigma / H per joint, so its H-step rollouts spread like ours.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from pydrake.math import RigidTransform, RollPitchYaw
+
+from ms_drake.collision.checker import (
+    NETWORKS,
+    SceneChecker,
+    default_weights,
+    load_collision_net,
+)
+from ms_drake.collision.robot import RobotSceneCollision
+from ms_drake.errors import MsDrakeError
+from ms_drake.experiments.collision_learning import bench_scene
+from ms_drake.planning.mppi import MppiParams, mppi_step
+from ms_drake.planning.sequences import arm_ik
+from ms_drake.scenario import load_scenario
+
+ARM = "panda"
+LINKS = tuple(f"panda_link{k}" for k in range(1, 8))  # link0 is welded to the world: it cannot move into anything
+GOAL_TOLERANCE = 0.05  # rad
+PLANNERS = ("ours", "pytorch_mppi")
+
+
+def mppi_problem(seed: int, method: str, cache=None, net=None):
+    """(robot collision, start q, goal q, lower, upper, keep_alive) for scene `seed` (module doc)."""
+    scenario = load_scenario(None, "PandaTable")
+    ik, _, q_home, keep = arm_ik(scenario, ARM)
+    plant, pc = ik.plant, ik.context
+    inspector = plant.get_geometry_query_input_port().Eval(pc).inspector()
+    s = bench_scene(seed, cache)
+    top = float(scenario.environment.position[2])
+    cloud = s["scene_points"][s["scene_points"][:, 2] > top + 0.005]
+    checker = SceneChecker(method, cloud, net=net)
+    gripper = [plant.get_body(b) for b in plant.GetBodyIndices(plant.GetModelInstanceByName(f"{ARM}_gripper"))]
+    bodies = [plant.GetBodyByName(n) for n in LINKS] + gripper
+    robot = RobotSceneCollision(plant, inspector, pc, ik.idx, bodies, checker, table_top=top, seed=seed)
+    rng = np.random.default_rng(seed)
+    for _ in range(20):  # a reachable goal above the table's far half
+        X = RigidTransform(RollPitchYaw(np.pi, 0.0, rng.uniform(-1, 1)),
+                           [rng.uniform(0.0, 0.3), rng.uniform(-0.3, 0.3), top + rng.uniform(0.15, 0.3)])
+        res = ik.solve(X, q_seed=q_home)
+        if res.success:
+            return robot, q_home, np.asarray(res.q, float), ik.lower, ik.upper, (keep, ik)
+    raise MsDrakeError(f"scene {seed}: no reachable goal pose in 20 tries")
+
+
+def run_ours(robot, q0, goal, lower, upper, params: MppiParams, steps: int) -> dict:
+    q, times, checks = np.array(q0, float), [], 0
+    for k in range(steps):
+        t = time.process_time()
+        best, info = mppi_step(q, goal, robot.collides, lower, upper, params, np.random.default_rng([params.seed, k]))
+        times.append(time.process_time() - t)
+        checks += info["checks"]
+        if best is None:
+            break
+        q = best
+        if np.linalg.norm(q - goal) < GOAL_TOLERANCE:
+            break
+    return dict(ms_per_step=1e3 * float(np.median(times)), steps=len(times), checks_per_s=checks / sum(times),
+                reached=bool(np.linalg.norm(q - goal) < GOAL_TOLERANCE), final_distance=float(np.linalg.norm(q - goal)))
+
+
+def run_pytorch_mppi(robot, q0, goal, lower, upper, params: MppiParams, steps: int) -> dict:
+    import torch  # optional heavy dependency
+    from pytorch_mppi import MPPI  # the `bench` extra
+
+    torch.manual_seed(params.seed)
+    lo, hi = torch.tensor(lower), torch.tensor(upper)
+    g = torch.tensor(goal)
+    H = params.horizon
+
+    def dynamics(x, u):
+        return torch.clamp(x + u, lo, hi)
+
+    def running_cost(x, u):
+        hit = torch.from_numpy(robot.collides(x.numpy()).astype(np.float64))
+        return torch.linalg.norm(x - g, dim=1) + 1000.0 * hit
+
+    n = len(q0)
+    sigma = (params.sigma / H) ** 2 * torch.eye(n, dtype=torch.float64)
+    step = np.linalg.norm(goal - q0) / H
+    mppi = MPPI(dynamics, running_cost, n, noise_sigma=sigma, num_samples=params.trajectories, horizon=H,
+                lambda_=params.temperature, u_min=-torch.full((n,), 3 * step), u_max=torch.full((n,), 3 * step),
+                device="cpu")
+    q, times = torch.tensor(q0), []
+    for _ in range(steps):
+        t = time.process_time()
+        u = mppi.command(q)
+        times.append(time.process_time() - t)
+        q = dynamics(q, u)
+        if float(torch.linalg.norm(q - g)) < GOAL_TOLERANCE:
+            break
+    d = float(torch.linalg.norm(q - g))
+    return dict(ms_per_step=1e3 * float(np.median(times)), steps=len(times),
+                checks_per_s=params.trajectories * H * len(times) / sum(times), reached=d < GOAL_TOLERANCE,
+                final_distance=d)
+
+
+def bench_mppi(method: str, scenes: int, seed_start: int = 0, trajectories: int = 300, horizon: int = 40,
+               steps: int = 5, planner: str = "ours", cache=None, weights=None, threads: int = 1, progress=None) -> list[dict]:
+    """One record per scene (module doc)."""
+    if planner not in PLANNERS:
+        raise MsDrakeError(f"planner {planner!r} unknown; choose one of {', '.join(PLANNERS)}")
+    net = None
+    if method in NETWORKS:
+        import torch  # optional heavy dependency
+
+        torch.set_num_threads(threads)
+        net = load_collision_net(weights or default_weights(method), method)[0]
+    run = run_ours if planner == "ours" else run_pytorch_mppi
+    out = []
+    for k in range(scenes):
+        seed = seed_start + k
+        robot, q0, goal, lo, hi, keep = mppi_problem(seed, method, cache, net)
+        r = run(robot, q0, goal, lo, hi, MppiParams(trajectories=trajectories, horizon=horizon, seed=seed), steps)
+        out.append(dict(seed=seed, method=method, planner=planner, trajectories=trajectories, horizon=horizon,
+                        threads=threads, hz=1e3 / r["ms_per_step"], **r))
+        del keep
+        if progress is not None:
+            progress(out[-1])
+    return out
