@@ -62,6 +62,14 @@ from ms_drake.experiments.occupancy_learning import (
     write_json,
 )
 from ms_drake.experiments.picks import TASKS, run_pick
+from ms_drake.experiments.rearrange import DEMO_SEED as REARRANGE_DEMO_SEED
+from ms_drake.experiments.rearrange import METHODS as REARRANGE_METHODS
+from ms_drake.experiments.rearrange import (
+    rearrange_records,
+    rearrange_table,
+    run_rearrange_bench,
+    run_rearrange_demo,
+)
 from ms_drake.experiments.scene_images import make_scene, write_scene_images
 from ms_drake.experiments.segmentation_data import write_segmentation_dataset
 from ms_drake.experiments.segmentation_learning import (
@@ -126,8 +134,9 @@ def _scenario(file: Optional[Path], name: str):
 
 
 @app.command()
-def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating gripper) or shelf (the Fetch "
-                                                "with the bluction tool, in physics)"),
+def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating gripper), shelf (the Fetch "
+                                                "with the bluction tool, in physics) or rearrange (the Panda "
+                                                "moves a target past a barrier, MPPI, in physics)"),
          out: Optional[Path] = typer.Option(None, help="Output folder (default out/demo, out/demo_shelf)"),
          seed: Optional[int] = typer.Option(None, help=f"Heap seed (default {DEMO_SEED}: a Table 8.2 heap) / shelf scene seed "
                                                         f"(default {SHELF_DEMO_SEED})"),
@@ -139,12 +148,26 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
          meshcat: bool = typer.Option(True, help="Write a Meshcat HTML recording"),
          perception: str = typer.Option("ground_truth", "--perception",
                                         help="shelf: the controller's perception, ground_truth (the simulation's "
-                                             "body poses) or depth (the camera images only, as on hardware)")):
+                                             "body poses) or depth (the camera images only, as on hardware)"),
+         method: str = typer.Option("coal_reconstruction", "--method",
+                                    help=f"rearrange: the collision checker, {', '.join(REARRANGE_METHODS)}")):
     """A full search with per-step PNGs, a GIF and a Meshcat recording: `bin` (heap, X-Ray on the
     floating gripper: masks, occupancy, action) or `shelf` (a shelf scene searched by the Fetch with
     the bluction tool in Drake physics: depth, distribution, action)."""
-    if kind not in ("bin", "shelf"):
-        _fail(f"demo {kind!r}: choose bin or shelf")
+    if kind not in ("bin", "shelf", "rearrange"):
+        _fail(f"demo {kind!r}: choose bin, shelf or rearrange")
+    if kind == "rearrange":
+        if method not in REARRANGE_METHODS:
+            _fail(f"--method {method}: choose one of {', '.join(REARRANGE_METHODS)}")
+        out = out or Path("out/demo_rearrange")
+        t = time.perf_counter()
+        typer.echo(f"moving the target past the barrier with MPPI ({method}) on the Panda ...")
+        written = run_rearrange_demo(out, method=method, seed=REARRANGE_DEMO_SEED if seed is None else seed,
+                                     meshcat_html=meshcat, log=typer.echo)
+        for k, v in written.items():
+            typer.echo(f"  {k:18s} {v}")
+        typer.echo(f"done in {time.perf_counter() - t:.1f} s")
+        return
     if kind == "shelf":
         policy = check_shelf_policy(policy or "bluction_dar")
         seed = SHELF_DEMO_SEED if seed is None else seed
@@ -496,6 +519,32 @@ def bench_shelf_physics(policy: str = typer.Option(..., "--policy", help=f"Shelf
                             fetch_feasible=not foss_choice, perception=perception)
     recs = physics_records([out], perception)
     typer.echo(physics_table(recs, tuple(dict.fromkeys(r["policy"] for r in recs))))
+    typer.echo(f"results in {out}")
+
+
+@bench_app.command("rearrange")
+def bench_rearrange(method: Optional[str] = typer.Option(None, "--method",
+                                                         help=f"Collision checker: {', '.join(REARRANGE_METHODS)}"),
+                    scenes: int = typer.Option(10, "--scenes", min=1, help="Scenes (N)"),
+                    objects: int = typer.Option(10, "--objects", min=1, max=20, help="Objects per scene (K)"),
+                    seed_start: int = typer.Option(0, "--seed-start", min=0, help="First scene seed (S)"),
+                    out: Path = typer.Option(..., "--out", help="Output .jsonl (appended to; resumes)"),
+                    workers: int = typer.Option(1, "--workers", min=1, help="Local worker processes"),
+                    trajectories: int = typer.Option(300, "--trajectories", min=1, help="MPPI samples T"),
+                    horizon: int = typer.Option(40, "--horizon", min=1, help="MPPI horizon H"),
+                    table: bool = typer.Option(False, "--table", help="Only print the table of --out")):
+    """Rearrangement on the Panda in Drake physics (Table 6.3 analogue): scenes S..S+N-1 of K objects,
+    each moved (two attempts) to elsewhere on the table by the MPPI controller with the given collision
+    checker; one JSON line per scene (grasps attempted / successful, placements, sim minutes, cpu
+    seconds); resumable. --table: the table of every method in --out."""
+    if not table and method not in REARRANGE_METHODS:
+        _fail(f"--method {method}: choose one of {', '.join(REARRANGE_METHODS)}")
+    if out.suffix != ".jsonl":
+        _fail(f"--out {out}: give a .jsonl file")
+    if not table:
+        run_rearrange_bench(method, scenes, seed_start, out, objects=objects, workers=workers, log=typer.echo,
+                            trajectories=trajectories, horizon=horizon)
+    typer.echo(rearrange_table(rearrange_records([out])))
     typer.echo(f"results in {out}")
 
 

@@ -231,6 +231,6 @@ def test_table_scene_and_bench_records(scenario, tmp_path):
     f.write_text(json.dumps(rec) + "\n")
     assert run_rearrange_bench("sdf", 1, 0, f, objects=10, log=lambda *a: None) == []  # already there
     table = rearrange_table([rec, dict(rec, seed=1)])
-    assert "| sdf | 2 | 20 | 16 / 24 | 12 | 6.0 |" in table
+    assert "| sdf (T=300, H=40) | 2 | 20 | 16 / 24 | 12 | 6.0 |" in table
     with pytest.raises(ValueError, match="method 'fcl' unknown"):
         run_rearrange_bench("fcl", 1, 0, f)

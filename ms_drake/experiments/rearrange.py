@@ -246,7 +246,12 @@ def rearrange_rollout(method: str, seed: int, objects: int = 10, max_sim: float 
     params = bench_params(method, seed, **overrides)
     system = build_rearrange(scenario, heap, params, order=order)
     res = run_rearrange(system, params, seed, max_sim=max_sim)
-    return {"seed": int(seed), **res.record, "order": [system.targets[i] for i in range(len(order))]}
+    return {"seed": int(seed), **res.record, "trajectories": params.trajectories, "horizon": params.horizon,
+            "order": list(system.targets)}
+
+
+def _key(r: dict) -> tuple:
+    return r["method"], int(r["seed"]), r.get("objects"), r.get("trajectories", 300), r.get("horizon", 40)
 
 
 def _bench_job(job: tuple) -> dict:
@@ -263,9 +268,10 @@ def run_rearrange_bench(method: str, scenes: int, seed_start: int, out, objects:
         raise RearrangeError(f"scenes and objects must be >= 1, got {scenes}, {objects}")
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    done = {(r["method"], int(r["seed"]), r.get("objects")) for r in read_records(out)}
+    done = {_key(r) for r in read_records(out)}
+    T, H = overrides.get("trajectories", 300), overrides.get("horizon", 40)
     jobs = [(method, s, objects, overrides) for s in range(seed_start, seed_start + scenes)
-            if (method, s, objects) not in done]
+            if (method, s, objects, T, H) not in done]
     recs = []
     for res in run_jobs(_bench_job, jobs, workers=workers):
         if res.error:
@@ -282,6 +288,17 @@ def run_rearrange_bench(method: str, scenes: int, seed_start: int, out, objects:
     return recs
 
 
+def rearrange_records(files) -> list[dict]:
+    """The records of result files, one per (method, seed, objects, T, H): the first."""
+    out, seen = [], set()
+    for f in files:
+        for r in read_records(Path(f)):
+            if _key(r) not in seen:
+                seen.add(_key(r))
+                out.append(r)
+    return out
+
+
 def rearrange_table(records: list[dict]) -> str:
     """The Table 6.3 analogue: per method, scenes, objects, grasps (successful / attempted),
     placements, simulated minutes, planning and total CPU seconds."""
@@ -289,9 +306,10 @@ def rearrange_table(records: list[dict]) -> str:
              "planning cpu s | total cpu s |"), "|---|---|---|---|---|---|---|---|"]
     by = {}
     for r in records:
-        by.setdefault(r["method"], []).append(r)
-    for m, rs in by.items():
-        rows.append(f"| {m} | {len(rs)} | {sum(r['objects'] for r in rs)} | {sum(r['grasps'] for r in rs)} / "
+        by.setdefault((r["method"], r.get("trajectories", 300), r.get("horizon", 40)), []).append(r)
+    for (m, T, H), rs in by.items():
+        name = m if m == "ik_line" else f"{m} (T={T}, H={H})"
+        rows.append(f"| {name} | {len(rs)} | {sum(r['objects'] for r in rs)} | {sum(r['grasps'] for r in rs)} / "
                     f"{sum(r['grasps_attempted'] for r in rs)} | {sum(r['placements'] for r in rs)} | "
                     f"{sum(r['minutes'] for r in rs):.1f} | {sum(r['plan_cpu_seconds'] for r in rs):.0f} | "
                     f"{sum(r['cpu_seconds'] for r in rs):.0f} |")
