@@ -60,14 +60,14 @@ def test_holds_when_sealed_on_flat_face():
     on_box = next(f for f in forces if int(f.body_index) == box)
     f = on_box.F_Bq_W.translational()
     assert f[2] > 0 and np.linalg.norm(f[:2]) < 1e-9  # pulls the box up, towards the cup
-    assert np.linalg.norm(f) == pytest.approx(40.0 * (1 - 0.002 / 0.008))
+    assert np.linalg.norm(f) == pytest.approx(40.0)  # the full vacuum pull: the lip reaches the face all round
     total = sum(x.F_Bq_W.translational() for x in forces)
     np.testing.assert_allclose(total, 0, atol=1e-9)  # action = reaction
 
 
 @pytest.mark.parametrize("case", ["off", "too_far", "tilted", "over_edge"])
 def test_no_hold(case):
-    X = {"off": _cup_above(0.001), "too_far": _cup_above(0.02), "tilted": _cup_above(0.001, tilt=0.5),
+    X = {"off": _cup_above(0.001), "too_far": _cup_above(0.02), "tilted": _cup_above(0.001, tilt=0.6),
          "over_edge": _cup_above(0.001, dx=0.03)}[case]
     system, poses, query, _ = _scene(X)
     state, forces = _eval(system, poses, query, on=case != "off")

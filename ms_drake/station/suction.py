@@ -1,18 +1,39 @@
 """SuctionCup: a vacuum cup as externally applied forces (the idea of Drake's suction-gripper
-example: a pulling force that is a function of the gap between the cup and an object).
+example: a pulling force between the cup and the object it is sealed on).
 
 Model (choices recorded here; the reference gives none beyond "seal feasibility"):
-  * The cup is a disc of radius r at frame C (the gripper's `tcp`, z = approach) on body B.
+  * The cup is a disc of radius r (its lip) at frame C (the gripper's `tcp`, z = approach) on
+    body B.
   * With vacuum on, the candidate object is the nearest geometry within `max_gap` of the cup
     centre that belongs to a body that is not welded to the world and not in `exclude_bodies`.
-  * Seal: the signed distances from the centre and `rim_samples` rim points to that object all lie
-    within `max_gap + seal_tolerance`, their spread (max - min) is at most `seal_tolerance` (a flat
-    enough surface, square to the cup), and the surface normal is within `max_tilt` of the cup axis.
-  * When sealed, the object is pulled along -z_C (towards the cup) with magnitude
-    f(gap) = max_force * (1 - gap / max_gap), applied at the object's point nearest to the cup
-    centre; the opposite force acts on the cup body at the same point.
+  * Lip opening s: the largest signed distance from `rim_samples` lip points to that object: how
+    far the lip stands off the face where it is farthest from it (a face tilted by t against the
+    cup, pressed in at one side, stands off about 2 r sin(t) minus that press at the other).
+  * Seal: the surface normal is within `max_tilt` of the cup axis and s <= max_gap +
+    seal_tolerance. max_gap is the lip's reach (the bellows' travel: a cup whose lip stays within
+    8 mm of the face all round keeps its vacuum, as the bellows follow the face); over the next
+    seal_tolerance the lip leaks, and beyond it the seal is lost.
+  * Pull: the vacuum's resultant f = max_force * clip((max_gap + seal_tolerance - s) /
+    seal_tolerance, 0, 1) -- the full force while the lip reaches the face all round, fading to 0
+    as it leaks -- along -z_C, at the object's point nearest to the cup centre (the pressure's
+    resultant acts at the centre of the sealed disc); the opposite force acts on the cup body at
+    the same point. The pull does not depend on the gap inside the seal: a sealed cup pulls with
+    the pressure difference times its area whatever the lip's deflection.
+  * Moment: the cup resists a moment about its lip as a real cup does. A load that peels the
+    face off (e.g. an object held by a vertical face, its weight acting behind the cup) turns it
+    about the lip point on the loaded side, where the cup's own compliant contact geometry
+    presses on the face; about that point the pull at the centre gives a restoring moment up to
+    f * r (0.6 N m at 40 N and r = 15 mm). Below that the face tilts on the compliant lip and
+    stays sealed (on the bluction tool's cup, hydroelastic modulus 2e5 Pa: about 8 degrees at
+    0.12 N m, 18-20 degrees at 0.44-0.6 N m, docs/BENCHMARKS.md); beyond it the face turns until
+    the far lip leaks (s > max_gap + seal_tolerance, a tilt of about 25 degrees) and the object
+    falls.
+    There is no stiffness of its own in this model: the lip's resistance is the contact's, which
+    Drake solves implicitly (stable at the station's 10 ms step for any held mass).
   * Stateless: releasing is turning the vacuum off (the force vanishes at once).
-Default max_force 40 N ~ 60 kPa vacuum over a 0.03 m diameter cup.
+Defaults: max_force 40 N ~ 57 kPa vacuum over the 0.03 m diameter cup (the reference's bluction
+cup, line 1608; typical of a small vacuum pump); max_gap 8 mm, the bellows' travel (as
+max_deflection of ms_drake.grasping.suction); seal_tolerance 4 mm of leaking lip; max_tilt 30 degrees.
 """
 
 from __future__ import annotations
@@ -56,8 +77,9 @@ class SuctionCup(LeafSystem):
                                        self._calc_forces)
         self.DeclareVectorOutputPort("suction_state", 3, self._calc_state)
 
-        if radius <= 0 or max_gap <= 0 or max_force < 0:
-            raise ValueError("SuctionCup: radius and max_gap must be > 0 and max_force >= 0")
+        if radius <= 0 or max_gap <= 0 or max_force < 0 or seal_tolerance <= 0:
+            raise ValueError(f"SuctionCup: radius ({radius}), max_gap ({max_gap}) and seal_tolerance "
+                             f"({seal_tolerance}) must be > 0 m and max_force ({max_force}) >= 0 N")
         self._plant = plant
         self._cup = cup_body.index()
         self._X_BC = as_rigid_transform(X_BC, "X_BC")
@@ -85,6 +107,10 @@ class SuctionCup(LeafSystem):
         return self._query
 
     # -- model
+    def pull_fraction(self, opening: float) -> float:
+        """The vacuum's pull as a fraction of max_force at lip opening `opening` [m] (module docstring)."""
+        return float(np.clip((self._max_gap + self._seal_tol - opening) / self._seal_tol, 0.0, 1.0))
+
     def _body_of(self, inspector, geometry_id) -> int:
         return int(self._plant.GetBodyFromFrameId(inspector.GetFrameId(geometry_id)).index())
 
@@ -122,11 +148,12 @@ class SuctionCup(LeafSystem):
             if h is None:
                 return None
             rim.append(h[0].distance)
-        d = np.array([res.distance, *rim])
-        if d.max() > self._max_gap + self._seal_tol or d.max() - d.min() > self._seal_tol:
+        rim = np.array(rim)
+        opening = float(rim.max())
+        force = self._max_force * self.pull_fraction(opening)
+        if force <= 0:
             return None
         gap = max(float(res.distance), 0.0)
-        force = self._max_force * float(np.clip(1.0 - gap / self._max_gap, 0.0, 1.0))
         X_WG = query.GetPoseInWorld(res.id_G)
         p_WN = X_WG @ res.p_GN
         return force, body, gap, p_WN, z
