@@ -303,10 +303,9 @@ def box_corners(center: np.ndarray, size) -> np.ndarray:
     return c[..., None, :] + s
 
 
-def visible_fraction(geometry: ShelfGeometry, target: ShelfObject, occluders: Prisms, samples: int = 8) -> float:
-    """Fraction of the target's image area (its amodal silhouette) that the camera sees: points on
-    each camera-facing face, weighted by the face's projected area, ray cast against the occluders
-    (points out of view count as hidden). The target must be a box."""
+def target_view_points(geometry: ShelfGeometry, target: ShelfObject, samples: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """The points visible_fraction casts rays to: `samples` x `samples` on each camera-facing face
+    of the target box (P, 3), and their weights (P,), each face's projected area shared by its points."""
     if target.kind != "box":
         raise ValueError(f"visible_fraction: target {target.id!r} is a {target.kind}; targets are boxes")
     eye = geometry.eye
@@ -330,9 +329,15 @@ def visible_fraction(geometry: ShelfGeometry, target: ShelfObject, occluders: Pr
             p = fc + gu.reshape(-1, 1) * eu + gv.reshape(-1, 1) * ev
             pts.append(p)
             weights.append(np.full(len(p), area / len(p)))
-    p = np.concatenate(pts)
-    w = np.concatenate(weights)
-    seen = geometry.in_view(p) & ~occluded(eye, p, occluders)
+    return np.concatenate(pts), np.concatenate(weights)
+
+
+def visible_fraction(geometry: ShelfGeometry, target: ShelfObject, occluders: Prisms, samples: int = 8) -> float:
+    """Fraction of the target's image area (its amodal silhouette) that the camera sees: points on
+    each camera-facing face, weighted by the face's projected area (target_view_points), ray cast
+    against the occluders (points out of view count as hidden). The target must be a box."""
+    p, w = target_view_points(geometry, target, samples)
+    seen = geometry.in_view(p) & ~occluded(geometry.eye, p, occluders)
     return float(np.dot(w, seen) / w.sum()) if w.sum() > 0 else 0.0
 
 

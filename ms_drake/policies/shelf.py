@@ -22,26 +22,34 @@ projecting back"), occlusions unchanged.
   the first of the sorted list (every candidate is kinematically feasible in FOSS).
 All three keep the history P'_t = min(P_t, P'_{t-1}) (P'_0 = P_0), renormalised.
 - oracle_p / oracle_ps: full state. A* over action sequences of at most the remaining budget (cost
-  n_p + psi * n_s) to a state where FOSS sees the target (visibility v). Its heuristic is the
-  reference's visibility triangle (overhead: from the camera's floor point to the target's front
-  face): the number of occluders still in it, each needing an action of cost >= 1 (1 once it is
-  clear while the target is still not seen: objects beside it may hide the target's top).
+  n_p + psi * n_s) to a state where FOSS sees the target (visibility v). The target's view is
+  scored as FOSS scores it: rays from the camera to visible_fraction's points on the target, in 3D
+  (the reference's oracles clear the overhead visibility triangle, equivalent to 3D visibility for
+  a camera level with the objects (Ch. 9.4.4); FetchShelf's camera looks 30 degrees down from
+  0.75 m, so an object in the overhead triangle that is low or near the camera often hides
+  nothing). A*'s estimate is the least number of occluders whose removal alone (every other one
+  where it is) lets FOSS see the target: a plan must move each of one such set at least once, at
+  cost >= 1 each, so it is admissible, and A* returns a cheapest plan (fewest actions, suction
+  weighted by psi) among the actions it branches on.
   oracle_p branches on every feasible push (to the neighbour; in the later stages below also
   stopped short so the blade still fits between, Foss.push_actions(leave_room=True): d_x is any
   real number in Ch. 9.2, and a push to contact leaves the neighbour unpushable from that side);
-  oracle_ps also on suction actions of the
-  occluders, each taken to grid placements outside the triangle (per side of the target, the
-  ones farthest from it, in distinct grid rows): up to `oracle_placements` for the occluders in the
-  triangle and those in the way of their sweeps to the front, 2 for the others (which may have to
-  make room), instead of all 400: the reference's exhaustive trees are out of reach in Python. After
-  `oracle_max_nodes` expansions without a plan, A* gives way to a greedy best-first search (fewest
-  occluders in the triangle, each counted twice while it can be neither pushed nor picked: not
-  admissible, 3 * oracle_max_nodes expansions), which finds a plan, not the cheapest, in most of
-  the rest; if neither does, both run again with the pushes that stop short
-  added (more branches: found to lose plans to the node limits when used from the start). The
-  oracle stops once the stages have used `oracle_max_seconds` of CPU time (a bound on the time
-  per scene). Plans are cached by scene content, so
-  executing one re-plans nothing.
+  oracle_ps also on suction actions of the occluders, each taken to grid placements where it
+  blocks none of the target's view rays (per side of the target, the ones farthest from the
+  overhead triangle, in distinct grid rows): up to `oracle_placements` for the occluders that
+  block the view and those in the way of their sweeps to the front, 2 for the others (which may
+  have to make room), instead of all 400: the reference's exhaustive trees are out of reach in
+  Python. So "cheapest" holds within that branching, not over every real d_x and grid placement.
+  After `oracle_max_nodes` expansions without a plan, A* gives way to a greedy best-first search
+  (3 * oracle_max_nodes expansions; finds a plan, not the cheapest) whose estimate also counts,
+  for each occluder of a removal set, the objects that must move before it can leave the view: in
+  its cheapest way out (push left, push right, pick), the objects in the blade's corridor, in the
+  push's path over the travel that clears the view, in the shaft's way, or 1 when no free grid
+  placement clears the view; and theirs, two levels down (not admissible: a relaxed plan count).
+  If neither finds a plan, both run again with the pushes that stop short added (more branches:
+  found to lose plans to the node limits when used from the start). The oracle stops once the
+  stages have used `oracle_max_seconds` of CPU time (a bound on the time per scene). Plans are
+  cached by scene content, so executing one re-plans nothing.
 """
 
 from __future__ import annotations
@@ -57,8 +65,16 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 
 from ms_drake.foss import Foss, shelf_action
+from ms_drake.foss.simulator import OUTSIDE
 from ms_drake.policies.bin_selectors import PolicyError
-from ms_drake.shelf_geometry import Prisms, ShelfGeometry, overlap, visible_surface
+from ms_drake.shelf_geometry import (
+    Prisms,
+    ShelfGeometry,
+    occlusion_matrix,
+    overlap,
+    target_view_points,
+    visible_surface,
+)
 from ms_drake.types import Action, ShelfAction, ShelfOccupancy, ShelfScene
 
 SHELF_POLICIES = ("random", "dar", "der3", "bluction_dar", "oracle_p", "oracle_ps")
@@ -211,11 +227,30 @@ def visibility_triangle(geometry: ShelfGeometry, target) -> shapely.Polygon:
     return shapely.Polygon(pts)
 
 
-def _in_triangle(tri, scene: ShelfScene) -> np.ndarray:
-    """Bool (n,): the occluders whose footprints overlap the triangle."""
-    feet = Prisms.of(scene.objects).footprints()
-    return shapely.area(shapely.intersection(tri, feet)) > 1e-7
+class _View:
+    """The target's view as FOSS scores it (visible_fraction's ray-cast points and weights) and, for a
+    state, the least number of occluders whose removal alone would let the camera see the target."""
 
+    def __init__(self, foss: Foss, target):
+        p, w = target_view_points(foss.geometry, target)
+        inview = foss.geometry.in_view(p)
+        self.eye = foss.geometry.eye
+        self.points, self.weights = p[inview], w[inview]
+        self.need = foss.params.visibility_threshold * w.sum() - 1e-12
+
+    def blockers(self, scene: ShelfScene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(indices of the occluders that block some ray (m,), every removal set as a bit mask over
+        those m): the sets of them whose removal alone (every other occluder where it is) lets FOSS
+        see the target. A plan ends in such a state only if it moves every object of one of them."""
+        B = occlusion_matrix(self.eye, self.points, Prisms.of(scene.objects))  # (P, n)
+        cols = np.nonzero(B.any(axis=0))[0]
+        if len(cols) > 16:
+            raise PolicyError(f"oracle: {len(cols)} occluders block the target; at most 16 supported")
+        masks = (B[:, cols].astype(np.int64) << np.arange(len(cols))).sum(axis=1)  # (P,)
+        subsets = np.arange(1 << len(cols), dtype=np.int64)
+        seen = (masks[None, :] & ~subsets[:, None]) == 0
+        ok = subsets[seen.astype(float) @ self.weights >= self.need]
+        return cols, ok
 
 def _movers(scene: ShelfScene, inside: np.ndarray) -> np.ndarray:
     """Bool (n,): the occluders in the triangle and those in the way of their sweeps to the front."""
@@ -229,10 +264,11 @@ def _movers(scene: ShelfScene, inside: np.ndarray) -> np.ndarray:
     return out
 
 
-def _oracle_suction(foss: Foss, scene: ShelfScene, tri, movers: np.ndarray, per_object: int) -> list[ShelfAction]:
-    """Suction actions to grid placements outside the triangle, per side of the target the ones
-    farthest from it in distinct grid rows: up to `per_object` for the movers, 2 for the others
-    (which may need to make room)."""
+def _oracle_suction(foss: Foss, scene: ShelfScene, tri, movers: np.ndarray, per_object: int,
+                    view: _View) -> list[ShelfAction]:
+    """Suction actions to grid placements where the object blocks none of the target's view rays,
+    per side of the target the ones farthest from the visibility triangle in distinct grid rows: up
+    to `per_object` for the movers, 2 for the others (which may need to make room)."""
     hy = foss.geometry.half[1]
     out = []
     tx = scene.target.x
@@ -240,8 +276,12 @@ def _oracle_suction(foss: Foss, scene: ShelfScene, tri, movers: np.ndarray, per_
         xy = foss.suction_placements(scene, o.id)
         if len(xy) == 0:
             continue
-        moved = Prisms.of([o.moved(x, y) for x, y in xy]).footprints()
-        xy = xy[~shapely.intersects(tri, moved)]
+        one = Prisms.of([o])
+        m = len(xy)
+        at = Prisms(xy, np.repeat(one.half, m, axis=0), np.repeat(one.radius, m), np.repeat(one.height, m))
+        xy = xy[~occlusion_matrix(view.eye, view.points, at).any(axis=0)]
+        if len(xy) == 0:
+            continue
         dist = shapely.distance(tri, shapely.points(xy))
         per_side = max(1, (per_object if mover else 2) // 2)
         for side in (xy[:, 0] < tx, xy[:, 0] >= tx):
@@ -257,15 +297,94 @@ def _oracle_suction(foss: Foss, scene: ShelfScene, tri, movers: np.ndarray, per_
     return out
 
 
-def _stuck(foss: Foss, scene: ShelfScene, ks: np.ndarray, suction: bool) -> np.ndarray:
-    """Bool (len(ks),): occluders ks with no feasible push (and, with suction, no pick) right now."""
-    P, _ = foss._bodies(scene)
-    fits, reach = foss._push_reach(P, np.repeat(ks, 2), np.tile([-1.0, 1.0], len(ks)))
-    movable = (fits & (reach - foss.params.contact_gap >= foss.params.min_push)).reshape(-1, 2).any(axis=1)
-    if suction:
-        for i in np.nonzero(~movable)[0]:
-            movable[i] = foss._lifts_ok(P, int(ks[i]), P.center[ks[i]][None])[0]
-    return ~movable
+_SHIFTS = np.arange(1, 61) * 0.01  # m: the travels tried when asking how far an object must go
+_NO_WAY = 3  # the estimate's count for an object with no way out yet
+
+
+def _ways(foss: Foss, P: Prisms, n: int, k: int, clear, suction: bool) -> list[tuple[int, list]]:
+    """The ways of taking object k (of bodies P, the first n movable) out of what `clear` asks
+    (clear(centres (m, 2)) -> bool (m,): k placed there is out of the way): push left, push right,
+    and with suction pick. Each as (bit mask of the objects that must move first: in the blade's
+    corridor, in the push's path over the travel that satisfies `clear`, in the shaft's way;
+    the regions (centre, half-extents) those objects must then leave; 1 if a pick has no free grid
+    placement that satisfies `clear`, so something else must make room, else 0). Ways that cannot
+    work whatever moves first (the wall or the target in the way, too tall to lift) are left out."""
+    p = foss.params
+    hx, hy = foss.geometry.half
+    c, ext = P.center[k], P.extent[k]
+    others = np.arange(len(P)) != k
+    bits = np.where(np.arange(len(P)) < n, 1 << np.arange(len(P)), 0)  # the target: no bit (never moves)
+    out = []
+    for s in (-1.0, 1.0):
+        bx = c[0] - s * (ext[0] + p.blade_thickness / 2)
+        if abs(bx) + p.blade_thickness / 2 > hx + 1e-9:
+            continue
+        cs = np.repeat(c[None], len(_SHIFTS), axis=0)
+        cs[:, 0] += s * _SHIFTS
+        ok = (np.abs(cs[:, 0]) + ext[0] <= hx + 1e-9) & clear(cs)
+        if not ok.any():
+            continue
+        d = _SHIFTS[np.argmax(ok)]
+        by = c[1] - ext[1] + p.blade_width / 2
+        y0, y1 = -hy - OUTSIDE - p.blade_width, by + p.blade_width / 2
+        regions = [(np.array([bx, (y0 + y1) / 2]), np.array([p.blade_thickness / 2, (y1 - y0) / 2])),
+                   (np.array([c[0] + s * d / 2, c[1]]), np.array([ext[0] + d / 2, ext[1]]))]
+        way = others & np.any([overlap(rc, rh, 0.0, P.center, P.half, P.radius) for rc, rh in regions], axis=0)
+        if not way[n:].any():
+            out.append((int(bits[way].sum()), regions, 0))
+    z_cup = max(P.height[k] - p.shaft_radius, p.shaft_radius)
+    if suction and P.height[k] + p.lift <= foss.geometry.size[2] - p.top_clearance + 1e-9:
+        y_out = -hy - ext[1] - OUTSIDE
+        face = c[1] - ext[1]
+        region = (np.array([c[0], (face + y_out) / 2]), np.array([p.shaft_radius, max(face - y_out, 0.0) / 2]))
+        way = others & (P.height > z_cup - p.shaft_radius) & overlap(*region, 0.0, P.center, P.half, P.radius, tol=0.0)
+        if not way[n:].any():
+            gx, gy = np.meshgrid(foss.grid_x, -hy + foss.grid_dy + ext[1], indexing="ij")
+            xy = np.stack([gx.ravel(), gy.ravel()], axis=1)
+            room = foss._landing_ok(P, k, xy) & clear(xy)
+            out.append((int(bits[way].sum()), [region], 0 if room.any() else 1))
+    return out
+
+
+def _view_clear(P: Prisms, k: int, view: _View):
+    """clear() for _ways: object k placed at the centres blocks none of the target's view rays."""
+    def clear(cs):
+        m = len(cs)
+        at = Prisms(cs, np.repeat(P.half[k][None], m, axis=0), np.full(m, P.radius[k]), np.full(m, P.height[k]))
+        return ~occlusion_matrix(view.eye, view.points, at).any(axis=0)
+    return clear
+
+
+def _regions_clear(P: Prisms, k: int, regions: list):
+    """clear() for _ways: object k placed at the centres overlaps none of the regions."""
+    def clear(cs):
+        hit = np.zeros(len(cs), bool)
+        for rc, rh in regions:
+            hit |= overlap(cs, P.half[k], P.radius[k], rc, rh, 0.0)
+        return ~hit
+    return clear
+
+
+def _cost_out(foss: Foss, P: Prisms, n: int, k: int, clear, skip: int, suction: bool, depth: int) -> int:
+    """Relaxed count of the other actions object k needs before it can leave (`clear`): over k's
+    ways, the objects that must move first and are not in the bit mask `skip` (each 1, plus its own
+    count, `depth` levels down); _NO_WAY when k has no way."""
+    ways = _ways(foss, P, n, k, clear, suction)
+    if not ways:
+        return _NO_WAY
+    best = _NO_WAY
+    for mask, regions, extra in ways:
+        total = extra
+        for j in range(n):
+            if mask >> j & 1 and not skip >> j & 1:
+                total += 1
+                if depth > 0:
+                    total += _cost_out(foss, P, n, j, _regions_clear(P, j, regions), skip | (1 << k), suction,
+                                       depth - 1)
+            if total >= best:
+                break
+        best = min(best, total)
+    return best
 
 
 def _key(scene: ShelfScene) -> tuple:
@@ -275,7 +394,8 @@ def _key(scene: ShelfScene) -> tuple:
 def oracle_plan(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: float = PSI,
                 max_nodes: int = 500, placements: int = 4, max_seconds: float = 8.0) -> tuple[ShelfAction, ...] | None:
     """An action sequence (<= budget actions) after which FOSS sees the target, in stages until one
-    finds it: A* (the cheapest; max_nodes expansions) then greedy best-first (3 * max_nodes), over
+    finds it: A* (the cheapest within its branching; admissible estimate; max_nodes expansions)
+    then greedy best-first (relaxed estimate; 3 * max_nodes), over
     pushes to the neighbour, then the same two with the pushes that stop short added
     (Foss.push_actions(leave_room=True)); None if none finds one, or once the stages have used
     max_seconds of CPU time (module docstring)."""
@@ -291,44 +411,74 @@ def oracle_plan(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: 
     return None
 
 
+def _greedy_estimate(foss: Foss, sc: ShelfScene, cols: np.ndarray, sets: np.ndarray, size: np.ndarray,
+                     suction: bool, view: _View, depth: int = 2) -> int:
+    """Over the removal sets of at most one more object than the least: the set's objects plus, for
+    each, the relaxed count of the actions it needs first (_cost_out: the objects in its cheapest way
+    out, and theirs, `depth` levels)."""
+    P, n = foss._bodies(sc)
+    cost = {}
+    best = np.inf
+    for m in sets[size <= size.min() + 1].tolist():
+        members = [int(cols[i]) for i in range(len(cols)) if m >> i & 1]
+        skip = sum(1 << j for j in members)
+        total = len(members)
+        for j in members:
+            if (j, skip) not in cost:
+                cost[(j, skip)] = _cost_out(foss, P, n, j, _view_clear(P, j, view), skip, suction, depth)
+            total += cost[(j, skip)]
+        best = min(best, total)
+    return int(best)
+
+
 def _search(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: float, max_nodes: int,
             placements: int, greedy: bool, deadline: float = np.inf,
             leave_room: bool = False) -> tuple[ShelfAction, ...] | None:
     if scene.target is None:
         raise PolicyError("the oracles need the full state: connect a scene with its target")
     tri = visibility_triangle(foss.geometry, scene.target)
+    view = _View(foss, scene.target)
+    n = len(scene.objects)
 
-    def estimate(sc, inside):
-        blockers = int(inside.sum())
-        if not blockers:
-            return 0 if foss.revealed(sc) else 1
-        if greedy:  # not admissible: also count the blockers that cannot be moved at all yet
-            blockers += int(_stuck(foss, sc, np.nonzero(inside)[0], suction).sum())
-        return blockers
+    def evaluate(sc):
+        """(estimate, least objects to move, the occluders blocking the view (n,) bool) of a state;
+        (None, None, None) when no plan can reveal the target."""
+        cols, sets = view.blockers(sc)
+        if len(sets) == 0:
+            return None, None, None
+        size = np.bitwise_count(sets).astype(int)
+        h = least = int(size.min())
+        if greedy and h:  # not admissible: add the objects that must move first (_obstructors)
+            h = _greedy_estimate(foss, sc, cols, sets, size, suction, view)
+        inside = np.zeros(n, bool)
+        inside[cols] = True
+        return h, least, inside
 
-    inside = _in_triangle(tri, scene)
-    h0 = estimate(scene, inside)
-    heap = [(float(h0), h0, 0, 0.0, scene, (), inside)]  # (priority, h, tie, g, scene, plan, in triangle)
+    h0, _, inside = evaluate(scene)
+    if h0 is None:
+        return None
+    heap = [(float(h0), h0, 0, 0.0, scene, (), inside)]  # (priority, h, tie, g, scene, plan, blockers)
     best = {_key(scene): 0.0}
     counter, expanded = 1, 0
     while heap and expanded < max_nodes and time.process_time() < deadline:
         _, h, _, g, sc, plan, inside = heapq.heappop(heap)
-        if h == 0 or foss.revealed(sc):
+        if h == 0:
             return plan
         if len(plan) >= budget or (not greedy and g > best.get(_key(sc), np.inf) + 1e-9):
             continue
         expanded += 1
         actions = [(a, 1.0) for a in foss.push_actions(sc, leave_room=leave_room)]
         if suction:
-            actions += [(a, psi) for a in _oracle_suction(foss, sc, tri, _movers(sc, inside), placements)]
+            actions += [(a, psi) for a in _oracle_suction(foss, sc, tri, _movers(sc, inside), placements, view)]
         for a, cost in actions:
             nxt = foss.moved(sc, a)
             key, g2 = _key(nxt), g + cost
             if best.get(key, np.inf) <= g2 + 1e-9:
                 continue
             best[key] = g2
-            ins = _in_triangle(tri, nxt)
-            h2 = estimate(nxt, ins)
+            h2, least, ins = evaluate(nxt)
+            if h2 is None or len(plan) + 1 + least > budget:  # each action moves one object
+                continue
             heapq.heappush(heap, (h2 if greedy else g2 + h2, h2, counter, g2, nxt, plan + (a,), ins))
             counter += 1
     return None
