@@ -25,8 +25,10 @@ five states, once per object, the objects in order:
   place      placements sampled uniformly in the zone (a box on the table, `params.zone`), sorted
              by the scene's height there (lowest first); the first whose object-in-hand pose is
              collision-free (SceneChecker, the scene minus the robot and the target) and whose
-             tool pose has an IK solution is the goal; MPPI to it with the object in hand checked
-             too;
+             tool pose, and the pose `params.descent` above it, have IK solutions is the goal;
+             MPPI to the pose above it with the object in hand checked too, then a preset straight
+             descent (the object's last centimetres are next to the table, where a padded check
+             would call every waypoint a collision);
   release    preset: the jaw opens, the tool retreats straight up, MPPI back to the home
              configuration, the robot's links checked against the scene as seen before the grasp
              without the target (the placed object is not in it: the tool leaves it upwards).
@@ -91,6 +93,8 @@ class RearrangeParams:
     motion before it counts as blocked; placements: candidates sampled in the zone; max_ik:
     IK solves tried on the collision-free candidates; approach / lift / retreat: the preset straight
     motions [m]; place_above: the object's bottom above the scene's height at the placement [m];
+    min_move: placements at least this far (xy) from where the object was [m] (a different place);
+    descent: MPPI brings the object this far above its placement, a preset straight line lowers it [m];
     attempts: tries per object; min_opening: the jaw's measured opening below which it holds
     nothing [m]; speed: Cartesian speed of the preset lines [m/s]; period: FSM update [s];
     camera: the station camera; points: points per robot link; padding: the robot's and the held
@@ -111,6 +115,8 @@ class RearrangeParams:
     lift: float = 0.12
     retreat: float = 0.10
     place_above: float = 0.015
+    min_move: float = 0.10
+    descent: float = 0.06
     attempts: int = 2
     min_opening: float = 0.004
     force_limit: float = 40.0
@@ -534,7 +540,8 @@ class RearrangementPlanner(LeafSystem):
         return status
 
     def _place_goal(self, s: _Fsm, held: np.ndarray):
-        """(placement point, goal configuration, checker) or (None, status, None) (module doc)."""
+        """(placement point, pre-place configuration `descent` above it, checker, the straight
+        descent's joint path) or (None, status, None, None) (module doc)."""
         p = self.params
         scene = s.scene
         # the scene without the target's points (it is in the jaw)
@@ -546,6 +553,9 @@ class RearrangementPlanner(LeafSystem):
         checker = None if p.method == "ik_line" else self.checker(scene, held)
         rng = np.random.default_rng([p.seed, 7, s.attempt, len(s.history)])
         cands = sample_placements(p.zone, scene, held, p.placements, rng, self.table_top)
+        if len(s.target_points):
+            was = np.asarray(s.target_points, float)[:, :2].mean(axis=0)
+            cands = cands[np.linalg.norm(cands[:, :2] - was, axis=1) >= p.min_move]
         X_grasp = self.model.tool_pose(s.grasp_q)
         R = X_grasp[:3, :3]
         held_W = held @ R.T  # the object's points in world orientation, tool at the origin
@@ -557,12 +567,17 @@ class RearrangementPlanner(LeafSystem):
         poses[:, 2, 3] = cands[:, 2] - bottom + p.place_above
         free = np.ones(len(cands), bool) if checker is None else ~checker.collides("held", poses)
         for i in np.nonzero(free)[0][:p.max_ik]:
-            res = self.ik.solve(RigidTransform(poses[i]), q_seed=s.q_cmd)
-            if res.success:
-                q = nearest_equivalent(self.ik, res.q, s.q_cmd)
-                if not self.model.self_collides(q[None])[0]:
-                    return tuple(float(v) for v in cands[i]), q, checker
-        return None, "no_placement" if free.any() else "no_free_placement", None
+            above = poses[i].copy()
+            above[2, 3] += p.descent
+            res = self.ik.solve(RigidTransform(above), q_seed=s.q_cmd)
+            if not res.success:
+                continue
+            q_above = nearest_equivalent(self.ik, res.q, s.q_cmd)
+            down = plan_cartesian_line(self.ik, RigidTransform(above), [0, 0, -p.descent], q_above, self.limits,
+                                       max_speed=p.speed)
+            if down.success and not self.model.self_collides(down.qs).any():
+                return tuple(float(v) for v in cands[i]), q_above, checker, down.qs
+        return None, "no_placement" if free.any() else "no_free_placement", None, None
 
     # ------------------------------------------------------------------ the update
     def _update(self, context, state):
@@ -597,12 +612,15 @@ class RearrangementPlanner(LeafSystem):
                 return self._fail(dataclasses.replace(s, grasped=False), t, "dropped")
             held = self._held(s)
             start = time.process_time()
-            where, goal, checker = self._place_goal(s, held)
+            where, goal, checker, down = self._place_goal(s, held)
             s = dataclasses.replace(s, plan_seconds=s.plan_seconds + time.process_time() - start)
             if where is None:
                 return self._fail(s, t, goal)
-            return dataclasses.replace(s, phase="place", goal=goal, after="release", steps=0, checker=checker,
-                                       placement=where, busy_until=t)
+            return dataclasses.replace(s, phase="place", goal=goal, after="descend", steps=0, checker=checker,
+                                       placement=where, busy_until=t, lines={**s.lines, "descend": down})
+        if s.phase == "descend":  # preset: straight down onto the placement
+            s = self._play(s, t, s.lines["descend"], speed=p.speed, length=p.descent)
+            return dataclasses.replace(s, phase="release")
         if s.phase == "release":
             s = self._record(s, t, True, "placed")
             s = dataclasses.replace(s, jaw=OPEN, tries={**s.tries, s.target: p.attempts})
