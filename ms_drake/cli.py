@@ -939,7 +939,7 @@ def bench_collision_cmd(
 def bench_mppi_cmd(
         method: str = typer.Option("net", "--method", help="Collision checker: net | pointnet_grid | "
                                    "coal_reconstruction | sdf"),
-        planner: str = typer.Option("ours", "--planner", help="ours | pytorch_mppi (the `bench` extra)"),
+        planner: str = typer.Option("ours", "--planner", help="ours | ours_lazy | pytorch_mppi (the `bench` extra)"),
         scenes: int = typer.Option(5, "--scenes", min=1, help="Held-out tabletop scenes"),
         seed_start: int = typer.Option(100000, "--seed-start", min=0, help="Seed of the first scene"),
         trajectories: int = typer.Option(300, "--trajectories", min=1, help="T (the reference: 300)"),
