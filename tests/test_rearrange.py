@@ -234,3 +234,21 @@ def test_table_scene_and_bench_records(scenario, tmp_path):
     assert "| sdf (T=300, H=40) | 2 | 20 | 16 / 24 | 12 | 6.0 |" in table
     with pytest.raises(ValueError, match="method 'fcl' unknown"):
         run_rearrange_bench("fcl", 1, 0, f)
+
+
+def test_planner_without_labels_picks_an_object_cluster(scenario, barrier):
+    """As on the hardware station (no label image): the target is a Euclidean cluster over the
+    table, not the robot, the one nearest the robot outside the zone (here the barrier's first
+    cylinder, too tall for a top-down grasp: the attempt ends with an IK status)."""
+    scn, _, depth, _ = barrier
+    params = RearrangeParams(method="sdf", zone=DEMO_ZONE, trajectories=40, horizon=10)
+    planner = RearrangementPlanner(scn, params)
+    ctx = planner.CreateDefaultContext()
+    planner.GetInputPort("depth_image").FixValue(ctx, depth)
+    planner.GetInputPort("arm_state").FixValue(ctx, np.concatenate([planner.q_home, np.zeros(7)]))
+    planner.GetInputPort("jaw_state").FixValue(ctx, [0.1, 0.0])
+    s = planner.step(planner._fsm(ctx), 0.0, ctx)
+    assert s.target.startswith("cluster_") and len(s.target_points) > 500
+    c = s.target_points.mean(axis=0)
+    assert np.hypot(c[0] + 0.40, c[1] + 0.06) < 0.05  # the barrier's first cylinder (x = -0.40, y = -0.06)
+    assert s.history[-1].target == s.target and s.tries[s.target] == 1

@@ -334,7 +334,10 @@ class RearrangementPlanner(LeafSystem):
         self.scene_links = tuple(n for n in self.model.points if n != "panda_link1")
         self.X_body_tool = np.linalg.inv(self.model.link_poses(self.q_home[None])["body"][0]) @ \
             self.model.tool_pose(self.q_home)
-        self.table_top = float(scenario.environment.position[2])
+        env = scenario.environment
+        self.table_top = float(env.position[2])
+        self.table_xy = np.asarray(env.position[:2], float)
+        self.table_half = 0.5 * np.asarray(env.resolved_size()[:2], float)
         self.max_targets = int(targets)
         color, _ = scenario.cameras[params.camera].MakeCameras()
         self.grasps = GraspPlanner(color.core().intrinsics(), self.camera.X_WC, model="soft_point",
@@ -468,8 +471,8 @@ class RearrangementPlanner(LeafSystem):
             robot = np.concatenate([self.model.points[n] @ poses[n][0, :3, :3].T + poses[n][0, :3, 3]
                                     for n in self.model.points])
         ids = segment_scene(P_W, label, self.sim, robot, self.table_top)
-        # the target: the next object not done (sim: the given order; else the cluster nearest the
-        # robot outside the zone)
+        # the target: the next object not done (sim: the given order; else the cluster of >= 100
+        # points over the table, outside the zone, nearest the robot)
         tries = dict(s.tries)
         target = ""
         if self.sim is not None:
@@ -478,9 +481,12 @@ class RearrangementPlanner(LeafSystem):
         else:
             x0, x1, y0, y1 = p.zone
             cands = []
+            tx, ty = self.table_half
             for oid in np.unique(ids[(ids != "") & (ids != "robot")]):
                 c = np.nanmean(P_W[ids == oid], axis=0)
-                if not (x0 <= c[0] <= x1 and y0 <= c[1] <= y1) and tries.get(oid, 0) < p.attempts:
+                on_table = abs(c[0] - self.table_xy[0]) < tx and abs(c[1] - self.table_xy[1]) < ty
+                if on_table and (ids == oid).sum() >= 100 and not (x0 <= c[0] <= x1 and y0 <= c[1] <= y1) \
+                        and tries.get(oid, 0) < p.attempts:
                     cands.append((float(np.hypot(c[0] + 0.6, c[1])), oid))
             target = min(cands)[1] if cands else ""
         done_count = len({o.target for o in s.history})
