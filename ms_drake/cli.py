@@ -1061,11 +1061,19 @@ def train_collision_cmd(
         max_minutes: float = typer.Option(90.0, "--max-minutes", min=0.1, help="Stop after the epoch that "
                                           "would pass this wall time"),
         pointnet_grid: bool = typer.Option(False, "--pointnet-grid", help="Train the PointNet-grid ablation "
-                                           "(no 3D convolutions)")):
+                                           "(no 3D convolutions)"),
+        hidden: int = typer.Option(128, "--hidden", min=8, help="Width of the query classifier"),
+        query_layers: int = typer.Option(1, "--query-layers", min=0, help="Hidden layers of the query classifier "
+                                         "after its first"),
+        voxel_features: int = typer.Option(64, "--voxel-features", min=8, help="Voxel feature channels (the "
+                                           "PointNet-grid needs 64, the point features' width)")):
     """Train SceneCollisionNet (Ch. 6); resumes from OUT.ckpt; writes OUT (weights + meta)."""
     cmd = " ".join(["ms-drake", "train", "collision", "--data", str(data), "--out", str(out), "--epochs", str(epochs),
-                    "--seed", str(seed), "--threads", str(threads), "--lr", str(lr)]
+                    "--seed", str(seed), "--threads", str(threads), "--lr", str(lr), "--hidden", str(hidden),
+                    "--query-layers", str(query_layers), "--voxel-features", str(voxel_features)]
                    + (["--pointnet-grid"] if pointnet_grid else []))
+    config = CollisionNetConfig(hidden=hidden, query_layers=query_layers, voxel_features=voxel_features,
+                                conv_layers=0 if pointnet_grid else 3)
     bar = tqdm(desc="training", unit="scene")
 
     def progress(epoch, b, n, loss):
@@ -1076,7 +1084,7 @@ def train_collision_cmd(
         bar.set_postfix(loss=f"{loss:.4f}")
 
     meta = train_collision(data, out, epochs=epochs, seed=seed, threads=threads, lr=lr, max_minutes=max_minutes,
-                           config=CollisionNetConfig(conv_layers=0) if pointnet_grid else CollisionNetConfig(),
+                           config=config,
                            progress=progress, command=cmd)
     bar.close()
     last = meta["history"][-1] if meta["history"] else {}

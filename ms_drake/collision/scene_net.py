@@ -50,6 +50,7 @@ class NetConfig:
     neighbours: int = 16
     object_features: int = 128
     hidden: int = 128
+    query_layers: int = 1  # hidden -> hidden layers of the query classifier after its first layer
     conv_layers: int = 3  # 0: the PointNet-grid ablation of Table 6.1 (voxel features straight from the pooling)
 
 
@@ -100,7 +101,7 @@ def make_net(cfg: NetConfig = NetConfig()):
             self.first_voxel = nn.Linear(c, h)
             self.first_object = nn.Linear(cfg.object_features, h, bias=False)
             self.first_pose = nn.Linear(9, h, bias=False)
-            self.rest = mlp(h, h, 1, last_relu=False)
+            self.rest = mlp(*([h] * (cfg.query_layers + 1)), 1, last_relu=False)
 
         # -- encoders ---------------------------------------------------------------------------
         def voxel_index(self, p):
