@@ -1,5 +1,7 @@
 """SuctionCup: holds a box when sealed on a flat face within the gap, not when tilted / far /
-off, and releases on command (unit: FixValue + Eval; diagram: pick and release with a floating cup)."""
+off, keeps its full pull while the lip reaches a tilted face and leaks beyond, and releases on
+command (unit: FixValue + Eval; diagram: pick and release with a floating cup). A box held by its
+vertical face on the Fetch: tests/test_shelf_suction.py."""
 
 import numpy as np
 import pytest
@@ -75,6 +77,30 @@ def test_no_hold(case):
     assert len(forces) == 0
 
 
+@pytest.mark.parametrize("gap, tilt, fraction", [(0.001, 0.2, 1.0), (0.007, 0.2, 0.5), (0.009, 0.2, 0.0)])
+def test_pull_while_the_lip_reaches_a_tilted_face(gap, tilt, fraction):
+    """A face tilted 11.5 degrees against the cup: the far lip stands off gap + r sin(tilt); the full
+    40 N while that is within max_gap (8 mm), half at 10 mm, none beyond 12 mm (the seal leaks)."""
+    system, poses, query, box = _scene(_cup_above(gap, tilt=tilt))
+    state, forces = _eval(system, poses, query, on=True)
+    far = gap + 0.015 * np.sin(tilt)
+    assert system.pull_fraction(far) == pytest.approx(fraction, abs=0.02)
+    if fraction == 0.0:
+        assert state[HOLDING] == 0 and len(forces) == 0
+        return
+    on_box = next(f for f in forces if int(f.body_index) == box)
+    assert state[HOLDING] == 1 and np.linalg.norm(on_box.F_Bq_W.translational()) == pytest.approx(40.0 * fraction, rel=0.03)
+
+
+def test_bad_parameters_name_the_value():
+    plant, _ = AddMultibodyPlant(MultibodyPlantConfig(time_step=1e-3), DiagramBuilder())
+    cup = add_gripper(plant, make_parser(plant), "suction_cup", plant.world_frame(), RigidTransform())
+    plant.Finalize()
+    frame = plant.GetFrameByName("tcp", cup)
+    with pytest.raises(ValueError, match="seal_tolerance"):
+        SuctionCup(plant, frame.body(), frame.GetFixedPoseInBodyFrame(), radius=0.015, seal_tolerance=0.0)
+
+
 def test_pick_and_release_in_diagram():
     builder = DiagramBuilder()
     plant, sg = AddMultibodyPlant(MultibodyPlantConfig(time_step=2e-3, discrete_contact_approximation="sap",
@@ -112,3 +138,4 @@ def test_pick_and_release_in_diagram():
     sim.AdvanceTo(4.0)  # vacuum off at t = 3: the box falls back to the ground
     assert plant.GetFreeBodyPose(pc, body).translation()[2] < 0.03
     assert state.Eval(cup.GetMyContextFromRoot(ctx))[HOLDING] == 0
+

@@ -21,6 +21,9 @@
 - `run_shelf_physics_bench(...)`: `ms-drake bench shelf-physics`: one JSON line per scene (seed,
   occluders, policy, perception, success, steps, agreement, ...), flushed and fsync'ed, resumable.
 - `physics_table(records)`: the Table 9.2 analogue.
+- `replay_shelf_action(scene, action, density)`: one shelf action planned from the park pose and
+  played open loop on the station (no controller), with a log of the acted-on object (sealed,
+  tilt, position): checks of single actions, e.g. a suction grip of a given box.
 - `run_shelf_demo(out, ...)`: `ms-drake demo shelf`: one search with per-step images, a GIF and a
   Meshcat recording.
 """
@@ -43,9 +46,11 @@ from pydrake.math import RigidTransform
 from pydrake.multibody.tree import BodyIndex
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
 from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.primitives import TrajectorySource
+from pydrake.trajectories import PiecewisePolynomial
 
 from ms_drake.errors import MsDrakeError
-from ms_drake.execution.shelf_backend import ShelfBody, agreement, observe
+from ms_drake.execution.shelf_backend import BLADE_UP, ShelfBackend, ShelfBody, agreement, observe
 from ms_drake.experiments.harness import read_records
 from ms_drake.experiments.scene_images import write_search_pictures
 from ms_drake.experiments.shelf_segmentation import associate
@@ -66,7 +71,7 @@ from ms_drake.scenes.shelf_render import OCCLUDER_RGBA
 from ms_drake.shelf_geometry import ShelfGeometry
 from ms_drake.station import MakeStation, get_plant, station_objects
 from ms_drake.station.robots import set_arm_positions
-from ms_drake.types import ShelfObject, ShelfScene
+from ms_drake.types import Action, ShelfObject, ShelfScene
 
 SCENARIO = "FetchShelf"
 FIDELITY = "physics"
@@ -85,18 +90,21 @@ class ShelfPhysicsError(MsDrakeError, ValueError):
     """A physics shelf run asked for with settings it cannot honour."""
 
 
-def shelf_object_sdf(o: ShelfObject, rgba):
-    """sdf(model_name) -> SDF text of a free box / upright cylinder of o's size (DENSITY, compliant)."""
+def shelf_object_sdf(o: ShelfObject, rgba, density: float = DENSITY):
+    """sdf(model_name) -> SDF text of a free box / upright cylinder of o's size (`density` kg/m^3,
+    compliant)."""
+    if not density > 0:
+        raise ShelfPhysicsError(f"density={density!r}: give the objects' density in kg/m^3 (> 0; default {DENSITY})")
     w, d, h = o.width, o.depth, o.height
     if o.kind == "box":
         shape = Shape("box", (w, d, h))
-        m = DENSITY * w * d * h
+        m = density * w * d * h
         inertia = Inertia(m, (0.0, 0.0, 0.0), m * (d * d + h * h) / 12, m * (w * w + h * h) / 12,
                           m * (w * w + d * d) / 12)
     else:
         r = w / 2
         shape = Shape("cylinder", (r, h))
-        m = DENSITY * np.pi * r * r * h
+        m = density * np.pi * r * r * h
         inertia = Inertia(m, (0.0, 0.0, 0.0), m * (3 * r * r + h * h) / 12, m * (3 * r * r + h * h) / 12, m * r * r / 2)
     return lambda name: object_sdf(name, inertia, [(shape, rgba)], [shape], compliance="compliant",
                                    modulus=OBJECT_MODULUS, contact_spheres=False)
@@ -343,6 +351,85 @@ def shelf_physics_rollout(policy: str, seed: int, occluders: int | None = None, 
     system = build_shelf_physics(scenario, sample.scene, params, meshcat=meshcat, time_step=time_step,
                                  perception=perception)
     return run_shelf_physics(system, sample.scene, params, keep_frames=keep_frames, meshcat=meshcat)
+
+
+@dataclass
+class ShelfActionReplay:
+    """One shelf action played open loop on the station (replay_shelf_action): the backend's
+    outcome (ActionOutcome; its message as in the searches' records) and, every `log_period`, the
+    acted-on object: rows (t [s], vacuum on, sealed, tilt [deg], x, y, z in the shelf frame [m])."""
+
+    outcome: object
+    log: np.ndarray
+
+    def sealed_span(self) -> tuple[float, float] | None:
+        """(first, last) time the cup held the object (None: never)."""
+        t = self.log[self.log[:, 2] > 0.5, 0]
+        return (float(t[0]), float(t[-1])) if t.size else None
+
+    def max_tilt_sealed(self) -> float:
+        rows = self.log[self.log[:, 2] > 0.5]
+        return float(rows[:, 3].max()) if len(rows) else float("nan")
+
+
+def replay_shelf_action(scene: ShelfScene, action, density: float = DENSITY, scenario_name: str = SCENARIO,
+                        time_step: float | None = TIME_STEP, log_period: float = 0.1) -> ShelfActionReplay:
+    """ShelfAction `action` planned by ShelfBackend from the park pose in `scene` and played open
+    loop (the Motion's commands sampled every 10 ms into TrajectorySources, no controller) on the
+    FetchShelf station holding the scene's objects at `density`; for checking one action's physics
+    (e.g. a suction grip of a given box) without a search. Raises ShelfPhysicsError when the action
+    does not plan."""
+    scenario = load_scenario(None, scenario_name)
+    scenario = dataclasses.replace(with_time_step(scenario, time_step),
+                                   objects=dataclasses.replace(scenario.objects, count=0, names=[]))
+    objs = list(scene.objects) + ([scene.target] if scene.target is not None else [])
+    extra = [(f"shelf/{o.id}", shelf_object_sdf(o, TARGET_RGBA if o is scene.target else OCCLUDER_RGBA, density))
+             for o in objs]
+    builder = DiagramBuilder()
+    station = builder.AddSystem(MakeStation(scenario, extra_objects=extra))
+    plant = get_plant(station)
+    by_name = {so.full_name: so for so in station_objects(plant)}
+    bodies = {o.id: ShelfBody(int(by_name[f"shelf/{o.id}"].body_index), o) for o in objs}
+    backend = ShelfBackend(scenario, bodies, scene.target.id if scene.target is not None else "")
+    motion = backend.plan_scene(action, backend.q_park, scene)
+    if isinstance(motion, str):
+        raise ShelfPhysicsError(f"replay_shelf_action: {action} does not plan on the Fetch ({motion})")
+    hold = backend.initial_commands()
+    times = np.arange(0.0, motion.duration + 0.01, 0.01)
+    for port in (f"{backend.arm}.position", f"{backend.tool}.suction", f"{backend.tool}.position"):
+        values = np.array([motion.values(t, hold)[port] for t in times]).T
+        traj = (PiecewisePolynomial.FirstOrderHold if port.startswith(backend.arm + ".") else
+                PiecewisePolynomial.ZeroOrderHold)(times, values)
+        src = builder.AddSystem(TrajectorySource(traj))
+        builder.Connect(src.get_output_port(), station.GetInputPort(port))
+    diagram = builder.Build()
+    sim = Simulator(diagram)
+    ApplySimulatorConfig(scenario.simulator_config, sim)
+    ctx = sim.get_mutable_context()
+    pc = plant.GetMyMutableContextFromRoot(ctx)
+    origin = np.asarray(scenario.environment.position, float)
+    for b in bodies.values():
+        o = b.shape
+        plant.SetFreeBodyPose(pc, plant.get_body(BodyIndex(b.body_index)), RigidTransform(origin + [o.x, o.y, o.height / 2 + 1e-4]))
+    set_arm_positions(plant, pc, backend.arm, {f"{backend.arm}.position": backend.q_park})
+    q = plant.GetPositions(pc)
+    q[plant.GetJointByName("blade_joint").position_start()] = BLADE_UP
+    plant.SetPositions(pc, q)
+    sim.Initialize()
+    sc = station.GetMyContextFromRoot(ctx)
+    body = bodies[action.object_id].body_index
+    rows, t = [], 0.0
+    while t < motion.duration - 1e-9:
+        t = min(t + log_period, motion.duration)
+        sim.AdvanceTo(t)
+        X = station.GetOutputPort("body_poses").Eval(sc)[body]
+        tilt = float(np.degrees(np.arccos(np.clip(X.rotation().matrix()[2, 2], -1.0, 1.0))))
+        sealed = station.GetOutputPort(f"{backend.tool}.suction_state").Eval(sc)[0]
+        vacuum = motion.values(t, hold)[f"{backend.tool}.suction"][0]
+        rows.append([t, vacuum, sealed, tilt, *(X.translation() - origin)])
+    outcome, _ = backend.outcome(Action("shelf", shelf=action), motion, station.GetOutputPort("body_poses").Eval(sc),
+                                 0, ())
+    return ShelfActionReplay(outcome, np.array(rows))
 
 
 def _bench_job(job: tuple) -> dict:
