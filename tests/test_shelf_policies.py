@@ -18,6 +18,7 @@ from ms_drake.policies.shelf import (
     history_min,
     mask_extents,
     oracle_plan,
+    push_locked,
     segment,
     support_reduction,
 )
@@ -138,7 +139,7 @@ def test_oracles_on_hand_made_scenes(foss):
     plan = oracle_plan(foss, squeezed, suction=True, budget=6)
     assert [(a.kind, a.object_id) for a in plan] == [("suction", "b")]
     stop = ShelfPolicies("oracle_p", foss).select(squeezed, None)
-    assert stop.kind == "stop" and "no plan" in stop.reason
+    assert stop.kind == "stop" and "no push sequence can take b out of the view" in stop.reason
 
 
 def test_oracle_estimate_counts_only_what_hides_the_target(foss):
@@ -168,6 +169,27 @@ def test_oracle_solves_a_scene_the_triangle_search_lost(foss):
         s, outcome = foss.step(s, a)
         assert outcome.success, outcome.message
     assert foss.revealed(s)
+
+
+def test_push_locked(foss):
+    target = box("target", 0.0, 0.12, 0.06, 0.06, 0.06)
+    # b's row is full from wall to wall: b cannot leave the middle, whatever moves first.
+    full = ShelfScene((box("b", 0.0, 0.0, w=0.2, h=0.2), box("l", -0.1995, 0.0, w=0.198),
+                       box("r", 0.1995, 0.0, w=0.198)), target, 0)
+    assert not foss.revealed(full) and push_locked(foss, full) == ["b"]
+    t = time.process_time()
+    assert oracle_plan(foss, full, suction=False, budget=6) is None
+    assert time.process_time() - t < 0.5  # no search
+    stop = ShelfPolicies("oracle_p", foss).select(full, None)
+    assert stop.kind == "stop" and "no push sequence can take b out of the view" in stop.reason
+    # r 10.1 cm nearer the front no longer shares b's row (it can pass b): b may go right, out of the view.
+    free = ShelfScene(full.objects[:2] + (box("r", 0.1995, -0.101, w=0.198),), target, 0)
+    assert push_locked(foss, free) == []
+    # Generated: 6 occluders, seed 0: the 16.5 cm box in front of the target can reach x in
+    # [0.104, 0.218] m only (the wall; the 19 cm cylinder of its row, itself held by the others).
+    scene = generate_shelf_scene(foss.geometry, 0, num_objects=6).scene
+    assert push_locked(foss, scene) == ["occ05"]
+    assert oracle_plan(foss, scene, suction=True, budget=12) is not None
 
 
 def test_oracle_time_bound(foss):

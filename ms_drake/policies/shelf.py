@@ -46,7 +46,9 @@ All three keep the history P'_t = min(P_t, P'_{t-1}) (P'_0 = P_0), renormalised.
   its cheapest way out (push left, push right, pick), the objects in the blade's corridor, in the
   push's path over the travel that clears the view, in the shaft's way, or 1 when no free grid
   placement clears the view; and theirs, two levels down (not admissible: a relaxed plan count).
-  If neither finds a plan, both run again with the pushes that stop short added (more branches:
+  oracle_p first asks push_locked whether some occluder cannot leave the view by pushes at all
+  (pushes keep every object's y and nobody passes anybody, so rows keep their order) and stops at
+  once if so. If neither finds a plan, both run again with the pushes that stop short added (more branches:
   found to lose plans to the node limits when used from the start). The oracle stops once the
   stages have used `oracle_max_seconds` of CPU time (a bound on the time per scene). Plans are
   cached by scene content, so executing one re-plans nothing.
@@ -387,6 +389,51 @@ def _cost_out(foss: Foss, P: Prisms, n: int, k: int, clear, skip: int, suction: 
     return best
 
 
+def push_locked(foss: Foss, scene: ShelfScene, step: float = 0.001) -> list[str]:
+    """The occluders that no sequence of pushes can take out of the target's view. Pushes move one
+    object along x and nothing passes another: two bodies that overlap when aligned in x (at their
+    y) keep their x order, and the target never moves. So an object's centre stays between the
+    wall (or the target) plus the least separations along the longest chain of such bodies to its
+    left, and likewise on its right (contact gaps and the blade ignored: the interval is, if
+    anything, too wide). If with every other occluder gone the camera sees less than v of the
+    target at every x of that interval (`step` apart), no push plan exists."""
+    if scene.target is None:
+        raise PolicyError("push_locked needs the full state: a scene with its target")
+    P, n = foss._bodies(scene)
+    hx = foss.geometry.half[0]
+    c = P.center
+    dy = np.abs(c[:, None, 1] - c[None, :, 1])
+    B = P.half[:, None, 1] + P.half[None, :, 1]
+    R = P.radius[:, None] + P.radius[None, :]
+    over = np.clip(dy - B, 0.0, None)
+    reach = np.where(dy <= B, R, np.sqrt(np.clip(R * R - over * over, 0.0, None)))
+    blocks = (dy < B - 1e-6) | (over < R - 1e-6)  # would overlap when aligned in x
+    sep = P.half[:, None, 0] + P.half[None, :, 0] + reach  # least centre distance along x
+    lo, hi = -hx + P.extent[:, 0], hx - P.extent[:, 0]
+    lo[n] = hi[n] = c[n, 0]
+    order = np.argsort(c[:, 0], kind="stable")
+    for i, k in enumerate(order):
+        if k != n:
+            for j in order[:i]:
+                if blocks[j, k]:
+                    lo[k] = max(lo[k], lo[j] + sep[j, k])
+    for i, k in enumerate(order[::-1]):
+        if k != n:
+            for j in order[::-1][:i]:
+                if blocks[j, k]:
+                    hi[k] = min(hi[k], hi[j] - sep[j, k])
+    view = _View(foss, scene.target)
+    out = []
+    for k in range(n):
+        xs = np.arange(lo[k], hi[k] + 1e-9, step) if hi[k] >= lo[k] else c[k:k + 1, 0]
+        m = len(xs)
+        at = Prisms(np.stack([xs, np.full(m, c[k, 1])], axis=1), np.repeat(P.half[k][None], m, axis=0),
+                    np.full(m, P.radius[k]), np.full(m, P.height[k]))
+        if not np.any(view.weights @ ~occlusion_matrix(view.eye, view.points, at) >= view.need):
+            out.append(scene.objects[k].id)
+    return out
+
+
 def _key(scene: ShelfScene) -> tuple:
     return tuple((round(o.x, 6), round(o.y, 6)) for o in scene.objects)
 
@@ -397,11 +444,14 @@ def oracle_plan(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: 
     finds it: A* (the cheapest within its branching; admissible estimate; max_nodes expansions)
     then greedy best-first (relaxed estimate; 3 * max_nodes), over
     pushes to the neighbour, then the same two with the pushes that stop short added
-    (Foss.push_actions(leave_room=True)); None if none finds one, or once the stages have used
-    max_seconds of CPU time (module docstring)."""
+    (Foss.push_actions(leave_room=True)); None if none finds one, once the stages have used
+    max_seconds of CPU time, or at once when pushes alone cannot do it (push_locked) (module
+    docstring)."""
     if not max_seconds > 0:
         raise PolicyError(f"oracle max_seconds={max_seconds}: must be > 0 (e.g. 8.0)")
     deadline = time.process_time() + max_seconds
+    if not suction and push_locked(foss, scene):
+        return None
     for leave_room in (False, True):
         for greedy, nodes in ((False, max_nodes), (True, 3 * max_nodes)):
             plan = _search(foss, scene, suction, budget, psi, nodes, placements, greedy=greedy, deadline=deadline,
@@ -553,7 +603,10 @@ class ShelfPolicies:
                                self.params.oracle_max_nodes, self.params.oracle_placements,
                                self.params.oracle_max_seconds)
             if plan is None:
-                return Action("stop", reason=f"{self.policy}: no plan clears the view within the budget")
+                locked = push_locked(self.foss, scene) if not suction else []
+                why = (f"no push sequence can take {', '.join(locked)} out of the view" if locked
+                       else "no plan clears the view within the budget")
+                return Action("stop", reason=f"{self.policy}: {why}")
             sc = scene
             for k in range(len(plan)):  # every state along the plan knows the rest of it
                 self._remember((suction, _key(sc)), plan[k:])
