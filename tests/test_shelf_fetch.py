@@ -167,10 +167,12 @@ def test_action_agreement_counts_what_each_action_toppled():
                         "plan_failed:unreachable",
                         "agree=0 err=0.001 moved=0.1 commanded=0.1 others=0.000 toppled=b,e foss=ok"]}
     assert action_agreement(rec) == [("push", False), ("push", True), ("suction", False), ("suction", False)]
+    assert action_agreement(rec, min_commanded=0.2) == [("suction", False)]  # the 0.3 m suction only
     table = physics_table([dict(rec, policy="der3", occluders=8, success=True, steps=5, plan_failures=1,
                                 skipped=2)], ("der3",))
     assert "| all | physics = FOSS per action | 25 % (1/4) |" in table
     assert "| all | physics = FOSS, pushes | 50 % (1/2) |" in table and "| 1 of 5 steps |" in table
+    assert "| all | physics = FOSS, suction moving >= 5 cm | 0 % (0/2) |" in table
 
 
 def test_physics_records_one_per_policy_and_seed(tmp_path):
