@@ -3,8 +3,8 @@
 
 Setup per scene seed: the PandaTable robot (Panda + jaw at its base, the table as environment),
 the held-out tabletop scene `seed` of the Table 6.1 benchmark (collision_learning.bench_scene: its
-camera point cloud, table points removed), a `RobotSceneCollision` over the arm's links and the
-gripper with the chosen checker, a start and a goal configuration (IK to tool poses 3-8 cm over
+camera point cloud, table points removed), a `RobotSceneCollision` over the arm's moving links and
+the gripper (its ArmModel's points) with the chosen checker, a start and a goal configuration (IK to tool poses 3-8 cm over
 the table, the start on its left half, the goal on its right, both free by the checker; seeded),
 so the way between them passes over or around the scene's objects. A run makes `steps` MPPI calls from the start, each
 moving to the returned waypoint (the reference executes the minimal-cost trajectory up to it), and
@@ -39,12 +39,12 @@ from ms_drake.collision.checker import (
 from ms_drake.collision.robot import RobotSceneCollision
 from ms_drake.errors import MsDrakeError
 from ms_drake.experiments.collision_learning import bench_scene
+from ms_drake.planning.arm_model import ArmModel
 from ms_drake.planning.mppi import MppiParams, mppi_step
 from ms_drake.planning.sequences import arm_ik
 from ms_drake.scenario import load_scenario
 
 ARM = "panda"
-LINKS = tuple(f"panda_link{k}" for k in range(1, 8))  # link0 is welded to the world: it cannot move into anything
 GOAL_TOLERANCE = 0.05  # rad
 PLANNERS = ("ours", "ours_lazy", "pytorch_mppi")
 
@@ -53,15 +53,11 @@ def mppi_problem(seed: int, method: str, cache=None, net=None):
     """(robot collision, start q, goal q, lower, upper, keep_alive) for scene `seed` (module doc)."""
     scenario = load_scenario(None, "PandaTable")
     ik, _, q_home, keep = arm_ik(scenario, ARM)
-    plant, pc = ik.plant, ik.context
-    inspector = plant.get_geometry_query_input_port().Eval(pc).inspector()
     s = bench_scene(seed, cache)
     top = float(scenario.environment.position[2])
     cloud = s["scene_points"][s["scene_points"][:, 2] > top + 0.005]
-    checker = SceneChecker(method, cloud, net=net)
-    gripper = [plant.get_body(b) for b in plant.GetBodyIndices(plant.GetModelInstanceByName(f"{ARM}_gripper"))]
-    bodies = [plant.GetBodyByName(n) for n in LINKS] + gripper
-    robot = RobotSceneCollision(plant, inspector, pc, ik.idx, bodies, checker, table_top=top, seed=seed)
+    model = ArmModel(ik, points_per_body=256, seed=seed)
+    robot = RobotSceneCollision(model, SceneChecker(method, cloud, net=net), table_top=top)
     rng = np.random.default_rng(seed)
     ends = []
     for _ in range(60):  # start on one side of the table, goal on the other, both low over it

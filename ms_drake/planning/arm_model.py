@@ -10,11 +10,10 @@ of the robot against itself and the environment, for sampling planners (MPPI, Ch
   every body that the arm's joints move (meshes / convex meshes read with trimesh, boxes,
   cylinders and spheres from trimesh primitives), in the body frame: the reference's "points
   pre-sampled from the 3D mesh of each link", featurised once per robot by the scene checker.
-- Forward kinematics: numpy over a batch. The chain is read once from the plant: for each moving
-  body, its parent body, the fixed transform parent -> child at zero joint angle, and (for the
-  arm's revolute joints) the axis; bodies welded or held by a joint that is not one of the arm's
-  (the gripper's fingers) keep the relative pose they have in the plant's context. Matches
-  `plant.EvalBodyPoseInWorld` to 1e-9 (tests/test_rearrange.py).
+- Forward kinematics: numpy over a batch (ms_drake.planning.batch_fk.BatchFK over the moving
+  bodies); bodies held by a joint that is not one of the arm's (the gripper's fingers) keep the
+  positions they have in the plant's context. Matches `plant.EvalBodyPoseInWorld` to 1e-9
+  (tests/test_rearrange.py).
 - `self_collides`: the plant's geometry on its own context (SceneGraph's `HasCollisions`: robot
   against itself with adjacent links filtered, and against the environment's table), one
   configuration at a time; callers check lazily (few configurations).
@@ -25,21 +24,14 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 from pydrake.geometry import Box, Convex, Cylinder, Mesh, Sphere
-from pydrake.multibody.tree import BodyIndex, RevoluteJoint
+from pydrake.multibody.tree import RevoluteJoint
 
 from ms_drake.errors import MsDrakeError
+from ms_drake.planning.batch_fk import BatchFK
 
 
 class ArmModelError(MsDrakeError, ValueError):
     """The arm model cannot be built from the given plant (names what is missing)."""
-
-
-def _rot(axis: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """(n, 3, 3) rotations by angles q about the unit `axis` (Rodrigues)."""
-    k = np.asarray(axis, float) / np.linalg.norm(axis)
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    s, c = np.sin(q)[:, None, None], np.cos(q)[:, None, None]
-    return np.eye(3)[None] + s * K[None] + (1 - c) * (K @ K)[None]
 
 
 def _shape_points(shape, n: int, rng: np.random.Generator) -> np.ndarray | None:
@@ -69,44 +61,31 @@ class ArmModel:
         self.plant, self.context = plant, ctx
         self.idx = np.asarray(ik.idx)
         self.q_fixed = plant.GetPositions(ctx).copy()  # the other joints (gripper open) as in the context
-        arm_joints = {j.index(): k for k, j in enumerate(ik.joints)}
         first = ik.joints[0].parent_body()
         self.base_name = first.name()
         self.X_W_base = plant.EvalBodyPoseInWorld(ctx, first).GetAsMatrix4()
-        # Moving bodies in topological order (each after its parent).
-        self.chain = []  # (name, parent name, X_PC0 (4x4), axis or None, arm joint position or -1)
-        known = {first.name()}
-        frontier = [first]
+        # Moving bodies: everything outboard of the first arm joint's parent (arm links, gripper).
+        children = {}
+        for joint_index in plant.GetJointIndices():
+            joint = plant.get_joint(joint_index)
+            children.setdefault(int(joint.parent_body().index()), []).append(joint.child_body())
+        moving, frontier = [], [first]
         while frontier:
-            parent = frontier.pop(0)
-            for joint_index in plant.GetJointIndices():
-                joint = plant.get_joint(joint_index)
-                if joint.parent_body().index() != parent.index() or joint.child_body().name() in known:
-                    continue
-                child = joint.child_body()
-                X_PC = plant.CalcRelativeTransform(ctx, parent.body_frame(), child.body_frame()).GetAsMatrix4()
-                if joint.index() in arm_joints and isinstance(joint, RevoluteJoint):
-                    k = arm_joints[joint.index()]
-                    X_PF = joint.frame_on_parent().GetFixedPoseInBodyFrame().GetAsMatrix4()
-                    X_CM = joint.frame_on_child().GetFixedPoseInBodyFrame().GetAsMatrix4()
-                    self.chain.append((child.name(), parent.name(), (X_PF, np.linalg.inv(X_CM)),
-                                       np.asarray(joint.revolute_axis(), float), k))
-                else:
-                    self.chain.append((child.name(), parent.name(), X_PC, None, -1))
-                known.add(child.name())
+            for child in children.get(int(frontier.pop(0).index()), []):
+                moving.append(child)
                 frontier.append(child)
-        if len([c for c in self.chain if c[4] >= 0]) != len(ik.joints):
-            raise ArmModelError(f"ArmModel: {len(ik.joints)} arm joints but only "
-                                f"{len([c for c in self.chain if c[4] >= 0])} revolute joints found below "
-                                f"{self.base_name!r}")
-        self.body_names = tuple(c[0] for c in self.chain)
+        moving_ids = {b.index() for b in moving}
+        found = [j for j in ik.joints if isinstance(j, RevoluteJoint) and j.child_body().index() in moving_ids]
+        if len(found) != len(ik.joints):
+            raise ArmModelError(f"ArmModel: {len(ik.joints)} arm joints but only {len(found)} revolute joints "
+                                f"found below {self.base_name!r}")
+        self._fk = BatchFK(plant, ctx, self.idx, moving)
+        self.body_names = tuple(b.name() for b in moving)
         # Points on each moving body's collision geometry.
         rng = np.random.default_rng(seed)
         inspector = plant.get_geometry_query_input_port().Eval(ctx).inspector()
         self.points = {}
-        for name in self.body_names:
-            body = next(plant.get_body(BodyIndex(b)) for b in range(plant.num_bodies())
-                        if plant.get_body(BodyIndex(b)).name() == name)
+        for name, body in zip(self.body_names, moving):
             sets = []
             for gid in plant.GetCollisionGeometriesForBody(body):
                 pts = _shape_points(inspector.GetShape(gid), points_per_body, rng)
@@ -130,17 +109,9 @@ class ArmModel:
         qs = np.atleast_2d(np.asarray(qs, float))
         if qs.shape[1] != self.num_positions:
             raise ArmModelError(f"configurations must have {self.num_positions} joints, got shape {qs.shape}")
-        n = len(qs)
-        poses = {self.base_name: np.broadcast_to(self.X_W_base, (n, 4, 4))}
-        for name, parent, X, axis, k in self.chain:
-            P = poses[parent]
-            if axis is None:
-                poses[name] = P @ X
-            else:
-                X_PF, X_MC = X
-                J = np.tile(np.eye(4), (n, 1, 1))
-                J[:, :3, :3] = _rot(axis, qs[:, k])
-                poses[name] = P @ X_PF @ J @ X_MC
+        X = self._fk(qs)
+        poses = {self.base_name: np.broadcast_to(self.X_W_base, (len(qs), 4, 4))}
+        poses.update({name: X[:, k] for k, name in enumerate(self.body_names)})
         return poses
 
     def tool_pose(self, q) -> np.ndarray:
