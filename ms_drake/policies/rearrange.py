@@ -142,7 +142,7 @@ class RearrangeParams:
         if not self.period > 0 or self.sigma < 0:
             raise ControllerError(f"period must be > 0 and sigma >= 0, got {self.period!r}, {self.sigma!r}")
 
-    def mppi(self, call: int = 0) -> MppiParams:
+    def mppi(self) -> MppiParams:
         return MppiParams(int(self.trajectories), int(self.horizon), float(self.sigma), bool(self.weighted),
                           seed=int(self.seed))
 
