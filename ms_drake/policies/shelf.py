@@ -40,7 +40,8 @@ All three keep the history P'_t = min(P_t, P'_{t-1}) (P'_0 = P_0), renormalised.
   block the view and those in the way of their sweeps to the front, 2 for the others (which may
   have to make room), instead of all 400: the reference's exhaustive trees are out of reach in
   Python. So "cheapest" holds within that branching, not over every real d_x and grid placement.
-  After `oracle_max_nodes` expansions without a plan, A* gives way to a greedy best-first search
+  After `oracle_max_nodes` expansions (or a quarter of `oracle_max_seconds`) without a plan, A*
+  gives way to a greedy best-first search
   (3 * oracle_max_nodes expansions; finds a plan, not the cheapest) whose estimate also counts,
   for each occluder of a removal set, the objects that must move before it can leave the view: in
   its cheapest way out (push left, push right, pick), the objects in the blade's corridor, in the
@@ -274,26 +275,35 @@ def _oracle_suction(foss: Foss, scene: ShelfScene, tri, movers: np.ndarray, per_
     hy = foss.geometry.half[1]
     out = []
     tx = scene.target.x
-    for o, mover in zip(scene.objects, movers):
-        xy = foss.suction_placements(scene, o.id)
-        if len(xy) == 0:
+    P, _ = foss._bodies(scene)
+    for k, (o, mover) in enumerate(zip(scene.objects, movers)):
+        # Foss.suction_placements, with the (costly) sweep check only for the candidates ranked first.
+        if not foss._lifts_ok(P, k, P.center[k][None])[0]:
             continue
-        one = Prisms.of([o])
+        gx, gy = np.meshgrid(foss.grid_x, -hy + foss.grid_dy + o.depth / 2, indexing="ij")
+        xy = np.stack([gx.ravel(), gy.ravel()], axis=1)
+        xy = xy[foss._landing_ok(P, k, xy) & (np.hypot(*(xy - P.center[k]).T) > 1e-9)]
         m = len(xy)
-        at = Prisms(xy, np.repeat(one.half, m, axis=0), np.repeat(one.radius, m), np.repeat(one.height, m))
+        if m == 0:
+            continue
+        at = Prisms(xy, np.repeat(P.half[k][None], m, axis=0), np.full(m, P.radius[k]), np.full(m, P.height[k]))
         xy = xy[~occlusion_matrix(view.eye, view.points, at).any(axis=0)]
         if len(xy) == 0:
             continue
         dist = shapely.distance(tri, shapely.points(xy))
         per_side = max(1, (per_object if mover else 2) // 2)
         for side in (xy[:, 0] < tx, xy[:, 0] >= tx):
+            ranked = xy[side][np.argsort(-dist[side], kind="stable")]
             rows = set()
-            for i in np.argsort(-dist[side], kind="stable"):
-                x, y = xy[side][i]
-                if round(y, 6) in rows:
-                    continue
-                rows.add(round(y, 6))
-                out.append(ShelfAction("suction", o.id, float(x - o.x), float(y - o.depth / 2 + hy)))
+            for start in range(0, len(ranked), 16):
+                chunk = ranked[start:start + 16]
+                for (x, y), ok in zip(chunk.tolist(), foss._lifts_ok(P, k, chunk)):
+                    if not ok or round(y, 6) in rows:
+                        continue
+                    rows.add(round(y, 6))
+                    out.append(ShelfAction("suction", o.id, float(x - o.x), float(y - o.depth / 2 + hy)))
+                    if len(rows) >= per_side:
+                        break
                 if len(rows) >= per_side:
                     break
     return out
@@ -343,8 +353,9 @@ def _ways(foss: Foss, P: Prisms, n: int, k: int, clear, suction: bool) -> list[t
         if not way[n:].any():
             gx, gy = np.meshgrid(foss.grid_x, -hy + foss.grid_dy + ext[1], indexing="ij")
             xy = np.stack([gx.ravel(), gy.ravel()], axis=1)
-            room = foss._landing_ok(P, k, xy) & clear(xy)
-            out.append((int(bits[way].sum()), [region], 0 if room.any() else 1))
+            land = xy[foss._landing_ok(P, k, xy)]
+            room = len(land) > 0 and bool(clear(land).any())
+            out.append((int(bits[way].sum()), [region], 0 if room else 1))
     return out
 
 
@@ -441,8 +452,8 @@ def _key(scene: ShelfScene) -> tuple:
 def oracle_plan(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: float = PSI,
                 max_nodes: int = 500, placements: int = 4, max_seconds: float = 8.0) -> tuple[ShelfAction, ...] | None:
     """An action sequence (<= budget actions) after which FOSS sees the target, in stages until one
-    finds it: A* (the cheapest within its branching; admissible estimate; max_nodes expansions)
-    then greedy best-first (relaxed estimate; 3 * max_nodes), over
+    finds it: A* (the cheapest within its branching; admissible estimate; max_nodes expansions and
+    at most max_seconds / 4) then greedy best-first (relaxed estimate; 3 * max_nodes), over
     pushes to the neighbour, then the same two with the pushes that stop short added
     (Foss.push_actions(leave_room=True)); None if none finds one, once the stages have used
     max_seconds of CPU time, or at once when pushes alone cannot do it (push_locked) (module
@@ -454,7 +465,9 @@ def oracle_plan(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: 
         return None
     for leave_room in (False, True):
         for greedy, nodes in ((False, max_nodes), (True, 3 * max_nodes)):
-            plan = _search(foss, scene, suction, budget, psi, nodes, placements, greedy=greedy, deadline=deadline,
+            # A* gets at most a quarter of the bound: when it needs more it rarely finishes at all.
+            until = deadline if greedy else min(deadline, time.process_time() + max_seconds / 4)
+            plan = _search(foss, scene, suction, budget, psi, nodes, placements, greedy=greedy, deadline=until,
                            leave_room=leave_room)
             if plan is not None:
                 return plan
