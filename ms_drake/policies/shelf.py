@@ -47,12 +47,12 @@ All three keep the history P'_t = min(P_t, P'_{t-1}) (P'_0 = P_0), renormalised.
   its cheapest way out (push left, push right, pick), the objects in the blade's corridor, in the
   push's path over the travel that clears the view, in the shaft's way, or 1 when no free grid
   placement clears the view; and theirs, two levels down (not admissible: a relaxed plan count).
-  oracle_p first asks push_locked whether some occluder cannot leave the view by pushes at all
-  (pushes keep every object's y and nobody passes anybody, so rows keep their order) and stops at
-  once if so. If neither finds a plan, both run again with the pushes that stop short added (more branches:
+  If neither finds a plan, both run again with the pushes that stop short added (more branches:
   found to lose plans to the node limits when used from the start). The oracle stops once the
-  stages have used `oracle_max_seconds` of CPU time (a bound on the time per scene). Plans are
-  cached by scene content, so executing one re-plans nothing.
+  stages have used `oracle_max_seconds` of CPU time (a bound on the time per scene). oracle_p
+  first asks push_locked whether some occluder cannot leave the view by pushes at all (pushes
+  keep every object's y and nothing passes anything, so rows keep their order) and stops at once
+  if so. Plans are cached by scene content, so executing one re-plans nothing.
 """
 
 from __future__ import annotations
