@@ -124,6 +124,11 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
 ScenarioFile = typer.Option(None, "--scenario-file", help="Scenario YAML (default: diagrams/scenarios.yaml)")
 
 
+def _write_json(out: Path, value) -> None:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(value, indent=1))
+
+
 def _fail(msg: str, code: int = 2):
     typer.echo(f"error: {msg}", err=True)
     raise typer.Exit(code)
@@ -931,8 +936,7 @@ def bench_collision_cmd(
                f"{100 * res['accuracy']:.1f} %, AP {res['ap']:.3f}, {res['us_per_query']:.1f} us CPU per query, "
                f"{res['setup_ms_per_scene']:.1f} ms set-up per scene")
     if out is not None:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(res, indent=1))
+        _write_json(out, res)
 
 
 @bench_app.command("mppi")
@@ -964,8 +968,7 @@ def bench_mppi_cmd(
                f"({1e3 / ms:.2f} Hz), {np.median([r['checks_per_s'] for r in recs]):.0f} waypoints checked per s; "
                f"goal reached in {sum(r['reached'] for r in recs)}/{len(recs)} scenes")
     if out is not None:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(recs, indent=1))
+        _write_json(out, recs)
         typer.echo(f"wrote {out}")
 
 
