@@ -40,6 +40,7 @@ from ms_drake.experiments.collision_data import write_collision_dataset
 from ms_drake.experiments.collision_learning import bench_collision, train_collision
 from ms_drake.experiments.demo import DEMO_SEED, run_demo
 from ms_drake.experiments.grasp_figure import grasp_figure
+from ms_drake.experiments.grasp_set_data import write_grasp_sets
 from ms_drake.experiments.harness import (
     format_summary,
     paired_comparison,
@@ -107,7 +108,7 @@ from ms_drake.experiments.xray import (
     XRAY_PROTOCOLS,
 )
 from ms_drake.grasping.evaluator import MODELS
-from ms_drake.objects import get_object_set
+from ms_drake.objects import available_sets, get_object_set
 from ms_drake.parallel import run_jobs
 from ms_drake.perception.segmentation import BACKENDS as SEGMENTATION_BACKENDS
 from ms_drake.perception.target import BACKENDS as DETECTOR_BACKENDS
@@ -635,6 +636,48 @@ def data_shelf(count: int = typer.Option(..., "--count", min=1, help="Scenes (N)
     typer.echo(f"{res['written']} shards written, {res['skipped']} already there, {len(res['failed'])} failed, "
                f"in {out} ({time.perf_counter() - t0:.1f} s)")
     if res["failed"]:
+        raise typer.Exit(1)
+
+
+# ---------------------------------------------------------------------------------------------
+# Grasp sets (issue #15): ms-drake data grasps
+
+
+@data_app.command("grasps")
+def data_grasps(objects: str = typer.Option(..., "--objects", help="Object set: procedural, ycb, random_urdfs"),
+                out: Optional[Path] = typer.Option(None, "--out", help="Folder (default: models/objects/<set>/grasps)"),
+                model: str = typer.Option("soft_point", "--model", help="Jaw contact model: soft_point, reach, 6dfc, ..."),
+                jaw: int = typer.Option(200, "--jaw", min=0, help="Antipodal jaw grasps per object"),
+                suction: int = typer.Option(200, "--suction", min=0, help="Suction grasps per object"),
+                robust: int = typer.Option(4, "--robust", min=1, help="Robust trials per grasp (and approach)"),
+                seed: int = typer.Option(0, "--seed", min=0, help="Sampling seed"),
+                limit: Optional[int] = typer.Option(None, "--limit", min=1, help="Only the first K objects"),
+                workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers")):
+    """Pre-computed jaw and suction grasps with their robust quality, one npz per object;
+    objects already done with the same parameters are kept (resume)."""
+    if objects not in available_sets():
+        _fail(f"--objects {objects!r}: choose one of {', '.join(available_sets())}")
+    cmd = " ".join(["ms-drake", "data", "grasps", "--objects", objects, "--model", model, "--jaw", str(jaw),
+                    "--suction", str(suction), "--robust", str(robust), "--seed", str(seed)]
+                   + (["--limit", str(limit)] if limit else []) + (["--out", str(out)] if out else []))
+    n = len(get_object_set(objects).objects[:limit])
+    bar = tqdm(total=n, desc=f"{objects} grasp sets", unit="object")
+
+    def progress(r):
+        bar.update(1)
+        if not r.ok:
+            tqdm.write(f"{r.job[0]}: {r.error.strip().splitlines()[-1]} (rerun to retry)")
+
+    try:
+        man = write_grasp_sets(objects, out, workers, limit, cmd, progress, model=model, jaw=jaw, suction=suction,
+                               robust_samples=robust, seed=seed)
+    except MsDrakeError as e:
+        _fail(str(e))
+    bar.close()
+    cpu = man.get("cpu_s_per_object", {})
+    typer.echo(f"{len(man['objects'])} objects in the manifest, {len(man['errors'])} failed; CPU per object "
+               f"median {cpu.get('median', 0):.2f} s, max {cpu.get('max', 0):.2f} s; {man['wall_s']:.0f} s wall")
+    if man["errors"]:
         raise typer.Exit(1)
 
 
