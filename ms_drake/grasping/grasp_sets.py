@@ -84,7 +84,7 @@ class GraspSet:
 
     def jaw_approaches(self) -> np.ndarray:
         """(n, APPROACHES, 3) approach directions."""
-        k = self.jaw_quality.shape[1] if self.jaw_quality.ndim == 2 else APPROACHES
+        k = self.jaw_quality.shape[1]
         return np.stack([_turn(self.jaw_ref, self.jaw_axis, 2 * np.pi * j / k) for j in range(k)], axis=1)
 
     def save(self, path) -> None:
@@ -113,7 +113,7 @@ class GraspSet:
             ref = unit(ref - np.sum(ref * axis, axis=1, keepdims=True) * axis)  # orthogonal again after float16
             return GraspSet(str(z["object"]), str(z["model"]), np.asarray(z["jaw_center"], float).reshape(-1, 3),
                             axis, ref, np.asarray(z["jaw_width"], float),
-                            np.asarray(z["jaw_quality"], float).reshape(len(axis), -1) / 100.0,
+                            np.asarray(z["jaw_quality"], float).reshape(len(axis), APPROACHES) / 100.0,
                             np.asarray(z["suction_point"], float).reshape(-1, 3), unit(z["suction_normal"]),
                             np.asarray(z["suction_quality"], float) / 100.0, json.loads(str(z["params"])))
 

@@ -1,0 +1,295 @@
+"""IndexedGraspPlanner: the grasp planner of the bin search on pre-computed grasp sets (the
+reference's simulations index Dex-Net 1.0 grasps per object, lines 1262-1264).
+
+Ports (declared first; those of LazyGraspPlanner, so the selector is unchanged):
+  inputs  depth_image (ImageDepth32F), masks (InstanceMasks), objects (tuple[ObjectGeometry])
+  output  grasps: LazyGrasps (object id -> its best Grasp over the jaw and the suction cup)
+
+Per object looked up (on demand, as LazyGraspPlanner): its grasp set (ms_drake.grasping.grasp_sets)
+moved to the object's current pose; candidates out of reach dropped (approach tilted more than
+`max_tilt` from world -z, grasp point outside the bin's inner box or below its floor);
+the rest taken best quality first (ties: the less tilted), and the first whose gripper is free
+of the scene is the object's grasp of that kind. Free: the gripper's geometry -- the jaw's palm
+and two fingers (with their pads) opened to the grasp's width, or the suction cup and its shaft
+lifted `suction_clearance` off the surface -- does not intersect (coal, shrunk by `margin`) any
+object's collision shapes (the grasped object's included) or the bin. At most `max_checks`
+candidates per kind and object are checked (candidates are sorted; the cap bounds a buried
+object's cost). Objects without a grasp set go to `fallback` (a LazyGraspPlanner: the
+image-based planners) when given, else get no grasp.
+
+Broad phase: each shape carries a bounding sphere; coal.collide runs only on gripper-part /
+shape pairs whose spheres overlap.
+"""
+
+from __future__ import annotations
+
+import functools
+import zlib
+
+import coal
+import numpy as np
+import trimesh
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import LeafSystem
+from pydrake.systems.sensors import ImageDepth32F
+from scipy.spatial.transform import Rotation
+
+from ms_drake.geometry import Workspace, as_matrix4
+from ms_drake.grasping.grasp import GraspError, ParallelJawGrasp, SuctionGrasp
+from ms_drake.grasping.grasp_sets import GraspSet
+from ms_drake.grasping.planner import LazyGraspPlanner, LazyGrasps
+from ms_drake.objects import get_object
+from ms_drake.paths import PACKAGE_NAME, models_dir
+from ms_drake.robots import ParallelJawConfig, SuctionCupConfig
+from ms_drake.station.environments import _boxes
+from ms_drake.types import Grasp, InstanceMasks
+
+# (coal shape, 4x4 pose in the owner's frame, bounding-sphere centre in that frame, radius)
+Part = tuple
+
+
+def _pose(pose) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", pose[3:]).as_matrix()
+    T[:3, 3] = pose[:3]
+    return T
+
+
+def _convex(points: np.ndarray):
+    hull = trimesh.convex.convex_hull(np.asarray(points, float))
+    verts = coal.StdVec_Vec3s()
+    for v in np.asarray(hull.vertices, float):
+        verts.append(v)
+    tris = coal.StdVec_Triangle()
+    for f in np.asarray(hull.faces, int):
+        tris.append(coal.Triangle(int(f[0]), int(f[1]), int(f[2])))
+    v = np.asarray(hull.vertices, float)
+    c = 0.5 * (v.min(axis=0) + v.max(axis=0))
+    return coal.Convex(verts, tris), c, float(np.linalg.norm(v - c, axis=1).max())
+
+
+def _primitive(kind: str, size) -> tuple:
+    if kind == "box":
+        return coal.Box(*(float(s) for s in size)), 0.5 * float(np.linalg.norm(size))
+    if kind == "cylinder":
+        return coal.Cylinder(float(size[0]), float(size[1])), float(np.hypot(size[0], 0.5 * size[1]))
+    if kind == "sphere":
+        return coal.Sphere(float(size[0])), float(size[0])
+    raise GraspError(f"no collision shape for kind {kind!r}")
+
+
+@functools.lru_cache(maxsize=2048)
+def object_parts(full_name: str) -> tuple[Part, ...]:
+    """The collision shapes of a registry object (object frame), as coal parts."""
+    out = []
+    for s in get_object(full_name).collisions:
+        T = _pose(s.pose)
+        if s.kind in ("convex", "mesh"):
+            rel = s.uri.split(f"package://{PACKAGE_NAME}/", 1)[-1]
+            pts = np.asarray(trimesh.load(models_dir() / rel, force="mesh", process=False).vertices, float)
+            shape, c, r = _convex(pts)
+            out.append((shape, T, (T[:3, :3] @ c + T[:3, 3]), r))
+        else:
+            shape, r = _primitive(s.kind, s.size)
+            out.append((shape, T, T[:3, 3].copy(), r))
+    return tuple(out)
+
+
+def environment_parts(scenario) -> tuple[Part, ...]:
+    """The bin's floor, walls and support as coal parts in the world frame."""
+    env = scenario.environment
+    X = np.eye(4)
+    X[:3, 3] = np.asarray(env.position, float)
+    out = []
+    for _, sh, _ in _boxes(env.type, env.resolved_size(), env.wall_thickness):
+        shape, r = _primitive(sh.kind, sh.size)
+        T = X @ _pose(sh.pose)
+        out.append((shape, T, T[:3, 3].copy(), r))
+    return tuple(out)
+
+
+def jaw_parts(center, axis, approach, width, config: ParallelJawConfig, margin: float) -> list:
+    """(coal box, 4x4 world pose, centre, radius) of the jaw's palm and fingers opened to `width`,
+    tool point (the pads' centre) at `center`; boxes shrunk by `margin` on every side."""
+    p = config.pads
+    ax, ap = np.asarray(axis, float), np.asarray(approach, float)
+    R = np.column_stack([ax, np.cross(ap, ax), ap])  # x = axis, y = across, z = approach
+    pz, flen = config.palm_size[2], config.finger_length
+    tcp_z = pz + flen - p.length / 2
+    thick = p.thickness + config.finger_thickness
+    w = 0.5 * float(width)
+    out = []
+    for size, c in ((config.palm_size, (0.0, 0.0, pz / 2)),
+                    ((thick, config.finger_depth, flen), (-(w + thick / 2), 0.0, pz + flen / 2)),
+                    ((thick, config.finger_depth, flen), (w + thick / 2, 0.0, pz + flen / 2))):
+        size = (np.asarray(size, float) - 2 * margin).clip(1e-6)
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = np.asarray(center, float) + R @ (np.asarray(c) - [0.0, 0.0, tcp_z])
+        out.append((coal.Box(*size), T, T[:3, 3].copy(), 0.5 * float(np.linalg.norm(size))))
+    return out
+
+
+def suction_parts(point, approach, config: SuctionCupConfig, clearance: float, margin: float) -> list:
+    """The suction cup and its shaft (cylinders along the approach) with the lip `clearance` off
+    the surface point, shrunk by `margin`."""
+    ap = np.asarray(approach, float)
+    R, _ = Rotation.align_vectors([ap], [[0.0, 0.0, 1.0]])
+    R = R.as_matrix()
+    out = []
+    start = np.asarray(point, float) - clearance * ap
+    for radius, length, back in ((config.cup_radius, config.cup_height, 0.0),
+                                 (config.stem_radius, config.stem_length, config.cup_height)):
+        r, h = max(radius - margin, 1e-6), max(length - 2 * margin, 1e-6)
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = start - (back + 0.5 * length) * ap
+        out.append((coal.Cylinder(r, h), T, T[:3, 3].copy(), float(np.hypot(r, 0.5 * h))))
+    return out
+
+
+class Scene:
+    """Every collision part of the objects at their current poses and of the environment, with
+    their bounding spheres for the broad phase."""
+
+    def __init__(self, parts: list):
+        self.shapes = [p[0] for p in parts]
+        self.transforms = [coal.Transform3s(p[1][:3, :3], p[1][:3, 3]) for p in parts]
+        self.centers = np.array([p[2] for p in parts], float).reshape(-1, 3)
+        self.radii = np.array([p[3] for p in parts], float)
+        self.request = coal.CollisionRequest()
+
+    def hits(self, gripper: list) -> bool:
+        """True when any gripper part intersects any scene part."""
+        for shape, T, c, r in gripper:
+            near = np.nonzero(np.linalg.norm(self.centers - c, axis=1) < self.radii + r)[0]
+            if len(near) == 0:
+                continue
+            Tg = coal.Transform3s(T[:3, :3], T[:3, 3])
+            for j in near:
+                res = coal.CollisionResult()
+                if coal.collide(shape, Tg, self.shapes[j], self.transforms[j], self.request, res):
+                    return True
+        return False
+
+
+def _world_parts(parts, X: np.ndarray) -> list:
+    return [(s, X @ T, X[:3, :3] @ c + X[:3, 3], r) for s, T, c, r in parts]
+
+
+class IndexedGraspPlanner(LeafSystem):
+    """Best collision-free, reachable grasp per object from its grasp set (module docstring).
+
+    names: object id -> registry full name ("procedural/box_003"), for the collision shapes;
+    grasp_sets: object id -> GraspSet (ids without one go to `fallback`); environment: coal parts
+    of the static scene (environment_parts(scenario)); workspace: the bin's inner box (reach);
+    kinds: the grasp kinds the robot can execute ("parallel_jaw", "suction")."""
+
+    def __init__(self, names: dict, grasp_sets: dict, environment, workspace: Workspace, width: int, height: int,
+                 kinds=("parallel_jaw", "suction"), fallback: LazyGraspPlanner | None = None,
+                 max_tilt: float = np.radians(45.0), min_quality: float = 0.05, max_checks: int = 48,
+                 margin: float = 0.001, suction_clearance: float = 0.003,
+                 jaw: ParallelJawConfig | None = None, cup: SuctionCupConfig | None = None, jaw_model: str = ""):
+        super().__init__()
+        self.depth_port = self.DeclareAbstractInputPort("depth_image", AbstractValue.Make(ImageDepth32F(width, height)))
+        self.masks_port = self.DeclareAbstractInputPort("masks", AbstractValue.Make(InstanceMasks.empty(height, width)))
+        self.objects_port = self.DeclareAbstractInputPort("objects", AbstractValue.Make(()))
+        self.grasps_port = self.DeclareAbstractOutputPort(
+            "grasps", lambda: AbstractValue.Make(LazyGrasps(lambda oid: (), ())), self._calc,
+            prerequisites_of_calc={self.all_input_ports_ticket()})
+        bad = [k for k in kinds if k not in ("parallel_jaw", "suction")]
+        if bad or not kinds:
+            raise GraspError(f"IndexedGraspPlanner kinds {tuple(kinds)!r}: use 'parallel_jaw' and / or 'suction'")
+        if not (0 < max_tilt <= np.pi / 2):
+            raise GraspError(f"IndexedGraspPlanner max_tilt must be in (0, pi/2] rad, got {max_tilt!r}")
+        if int(max_checks) < 1:
+            raise GraspError(f"IndexedGraspPlanner max_checks must be >= 1, got {max_checks!r}")
+        for oid, gs in grasp_sets.items():
+            if not isinstance(gs, GraspSet):
+                raise GraspError(f"grasp_sets[{oid!r}] must be a GraspSet, got {type(gs).__name__}")
+        self.names, self.sets = dict(names), dict(grasp_sets)
+        self.environment = tuple(environment)
+        self.workspace, self.kinds, self.fallback = workspace, tuple(kinds), fallback
+        self.cos_tilt, self.min_quality, self.max_checks = float(np.cos(max_tilt)), float(min_quality), int(max_checks)
+        self.margin, self.suction_clearance = float(margin), float(suction_clearance)
+        self.jaw, self.cup = jaw or ParallelJawConfig(), cup or SuctionCupConfig()
+        self.jaw_model = jaw_model or next((gs.model for gs in self.sets.values()), "soft_point")
+        self._hull_cache: dict = {}
+
+    # ------------------------------------------------------------------ scene
+    def _parts_of(self, geom) -> tuple:
+        name = self.names.get(geom.id)
+        if name is not None:
+            return object_parts(name)
+        v = np.ascontiguousarray(geom.vertices, float)
+        key = (geom.id, v.shape, zlib.crc32(v.tobytes()))
+        if key not in self._hull_cache:  # an object not in the registry: its mesh's convex hull
+            shape, c, r = _convex(v)
+            self._hull_cache[key] = ((shape, np.eye(4), c, r),)
+        return self._hull_cache[key]
+
+    def scene(self, objects) -> Scene:
+        parts = list(self.environment)
+        for g in objects:
+            parts.extend(_world_parts(self._parts_of(g), as_matrix4(g.X_WO, f"objects[{g.id!r}].X_WO")))
+        return Scene(parts)
+
+    def _reachable(self, p_W: np.ndarray) -> np.ndarray:
+        return self.workspace.inside_xy(p_W) & (p_W[:, 2] > self.workspace.floor_z)
+
+    # ------------------------------------------------------------------ planning
+    def plan_object(self, oid: str, geoms: dict, scene: Scene) -> tuple[Grasp, ...]:
+        """The best free jaw and suction grasps of object `oid` from its grasp set (world frame)."""
+        gs, geom = self.sets.get(oid), geoms.get(oid)
+        if gs is None or geom is None:
+            return ()
+        X = as_matrix4(geom.X_WO, f"objects[{oid!r}].X_WO")
+        R, t = X[:3, :3], X[:3, 3]
+        out = []
+        if "parallel_jaw" in self.kinds and len(gs.jaw_center):
+            c = gs.jaw_center @ R.T + t
+            a = gs.jaw_axis @ R.T
+            ap = gs.jaw_approaches() @ R.T  # (n, A, 3)
+            q = gs.jaw_quality
+            down = -ap[..., 2]
+            ok = (down >= self.cos_tilt) & (q >= self.min_quality) & self._reachable(c)[:, None]
+            i, k = np.nonzero(ok)
+            order = np.lexsort((-down[i, k], -q[i, k]))[: self.max_checks]
+            for j in order:
+                n, m = i[j], k[j]
+                if not scene.hits(jaw_parts(c[n], a[n], ap[n, m], gs.jaw_width[n], self.jaw, self.margin)):
+                    out.append(ParallelJawGrasp(c[n], a[n], ap[n, m], gs.jaw_width[n]).to_grasp(
+                        float(q[n, m]), self.jaw_model, oid))
+                    break
+        if "suction" in self.kinds and len(gs.suction_point):
+            p = gs.suction_point @ R.T + t
+            ap = -(gs.suction_normal @ R.T)
+            q = gs.suction_quality
+            down = -ap[:, 2]
+            ok = (down >= self.cos_tilt) & (q >= self.min_quality) & self._reachable(p)
+            idx = np.nonzero(ok)[0]
+            order = idx[np.lexsort((-down[idx], -q[idx]))][: self.max_checks]
+            for n in order:
+                if not scene.hits(suction_parts(p[n], ap[n], self.cup, self.suction_clearance, self.margin)):
+                    out.append(SuctionGrasp(p[n], ap[n]).to_grasp(float(q[n]), "suction", oid))
+                    break
+        return tuple(out)
+
+    def _calc(self, context, output):
+        masks = self.masks_port.Eval(context)
+        objects = self.objects_port.Eval(context) if self.objects_port.HasValue(context) else ()
+        geoms = {o.id: o for o in objects}
+        state = {}
+        if self.fallback is not None and any(oid not in self.sets for oid in masks.ids):
+            state["depth"] = np.asarray(self.depth_port.Eval(context).data, float)[..., 0]
+
+        def plan_one(oid):
+            if oid in self.sets:
+                if "scene" not in state:  # built once per step, on the first lookup
+                    state["scene"] = self.scene(objects)
+                return self.plan_object(oid, geoms, state["scene"])
+            if self.fallback is None:
+                return ()
+            return self.fallback.plan_object(state["depth"], masks, geoms, oid)
+
+        output.set_value(LazyGrasps(plan_one, masks.ids))
