@@ -98,7 +98,7 @@ def test_three_lines_wire_the_controller_to_a_simulated_station(heap4):
     builder = DiagramBuilder()
     station = builder.AddSystem(MakeStation(s, target_index=heap4.target_index))
     controller = builder.AddSystem(MakeBinSearchController(
-        s, BinSearchParams(policy="largest", horizon=8, seed=5), sim=SimulationInfo.from_station(station,
+        s, BinSearchParams(policy="largest", horizon=8, seed=5, grasp_planner="image"), sim=SimulationInfo.from_station(station,
                                                                                         heap4.target_index)))
     connect_controller(builder, controller, station)
     diagram = builder.Build()

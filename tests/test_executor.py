@@ -139,7 +139,7 @@ def test_one_search_step_primitive(heap5):
     from ms_drake.experiments.rollout import SearchParams, build_search, run_search
     from ms_drake.scenario import load_scenario
 
-    params = SearchParams(policy="largest", fidelity="primitive", horizon=1, seed=0)
+    params = SearchParams(policy="largest", fidelity="primitive", horizon=1, seed=0, grasp_planner="image")
     system = build_search(load_scenario(None, "FloatingGripperBin"), heap5, params)
     res = run_search(system, heap5, params)
     # one grasp lifts an object other than the target; the horizon of 1 action ends the search

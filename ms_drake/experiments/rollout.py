@@ -85,6 +85,9 @@ class SearchParams:
     # latter match templates rendered of the target object).
     segmenter: str = "ground_truth"
     detector: str = "color"
+    # BinSearchParams.grasp_planner: "indexed" (the objects' grasp sets) or "image"; "" (default):
+    # indexed for the primitive fidelity, image for the full one
+    grasp_planner: str = ""
 
     def __post_init__(self):
         check_policy(self.policy)
@@ -124,6 +127,7 @@ class RolloutResult:
     grasp_successes: int = 0
     objects_present: int = 0  # objects in the heap searched (its budget 2N counts these)
     grasp_plans: int = 0  # object grasp plans (LazyGraspPlanner: only the masks the selector reached)
+    grasp_planner: str = ""
     error: str = ""
     frames: list = field(default_factory=list, repr=False)
 
@@ -157,7 +161,8 @@ def controller_params(params: SearchParams, num_objects: int) -> BinSearchParams
                            grasp_models=tuple(params.grasp_models), grasp_samples=params.grasp_samples,
                            robust_samples=params.robust_samples, grasp_params=params.grasp_params,
                            period=params.period, segmentation=params.segmenter, detector=params.detector,
-                           occupancy="analytic" if params.policy == "oracle" else params.occupancy)
+                           occupancy="analytic" if params.policy == "oracle" else params.occupancy,
+                           grasp_planner=params.grasp_planner)
 
 
 def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSystem:
@@ -283,7 +288,7 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
                         sim_seconds=float(context.get_time()),
                         target=heap.target, segmenter=params.segmenter, detector=params.detector,
                         grasp_successes=sum(1 for o in history if o.action.kind == "grasp" and o.success),
-                        grasp_plans=grasp_plans,
+                        grasp_plans=grasp_plans, grasp_planner=system.controller.params.grasp_planner,
                         error=msg, frames=frames)
     return res
 

@@ -14,6 +14,8 @@ Inside (DESIGN.md "Data flow"; every planner is a system of the diagram):
   <cam>.rgb_image + masks -> TargetDetector(params.detector) -> target
   <cam>.depth_image + target -> OccupancyEstimator(params.occupancy) -> occupancy (given target_shape; xray reads it)
   depth + masks (+ body_poses: exact meshes in simulation) -> LazyGraspPlanner -> grasps
+    (simulation, params.grasp_planner "indexed": IndexedGraspPlanner on the objects' grasp sets,
+    the LazyGraspPlanner for objects without one)
   depth + masks -> PushPlanner -> pushes                                          (*_push selectors)
   body_poses -> AmodalMasks -> TargetAmodalMask -> target_amodal                 (oracle, simulation)
   -> PolicySelector(policy) -> action -> ActionExecutor(backend) -> station commands; history -> selector
@@ -41,6 +43,8 @@ from pydrake.systems.framework import Diagram, DiagramBuilder
 from ms_drake.errors import MsDrakeError
 from ms_drake.execution import FIDELITIES, ActionExecutor, FullBackend, PrimitiveBackend, tcp_offset_of
 from ms_drake.geometry import PinholeCamera, Workspace
+from ms_drake.grasping.grasp_sets import load_grasp_set
+from ms_drake.grasping.indexed import IndexedGraspPlanner, environment_parts
 from ms_drake.grasping.meshes import object_mesh
 from ms_drake.grasping.planner import GraspPlanner, LazyGraspPlanner, ObjectGeometrySource
 from ms_drake.objects import get_object
@@ -57,6 +61,9 @@ from ms_drake.policies.bin_selectors import SelectorParams, check_policy
 from ms_drake.policies.selector import PolicySelector
 from ms_drake.pushing import PushPlanner
 from ms_drake.station import get_plant, station_objects
+
+
+GRASP_PLANNERS = ("indexed", "image")
 
 
 class ControllerError(MsDrakeError, ValueError):
@@ -82,6 +89,10 @@ class BinSearchParams:
     network of ms_drake.perception.occupancy_net, from the target's size) or "analytic" (the
     ground-truth generator; given a TargetMesh with its pose it reads privileged state).
     period: the executor's update period [s].
+    grasp_planner: "indexed" (in simulation: each object's pre-computed grasp set at its current
+    pose, checked against the scene, ms_drake.grasping.indexed; objects without a set, or
+    without `sim`, are planned on the image) or "image" (the image-based planners only); ""
+    (default): "indexed" for the primitive fidelity, "image" for the full one.
     """
 
     policy: str = "largest"
@@ -98,6 +109,7 @@ class BinSearchParams:
     occupancy: str = "learned"  # OccupancyEstimator backend: "learned" (target size only) or "analytic"
     camera: str = "overhead"
     period: float = 0.05
+    grasp_planner: str = ""
 
     def __post_init__(self):
         check_policy(self.policy)
@@ -112,6 +124,11 @@ class BinSearchParams:
             raise ControllerError(f"templates must be >= 1 view of the target, got {self.templates!r}")
         if int(self.horizon) < 1:
             raise ControllerError(f"horizon must be >= 1 action, got {self.horizon!r}")
+        if not self.grasp_planner:
+            self.grasp_planner = "indexed" if self.fidelity == "primitive" else "image"
+        if self.grasp_planner not in GRASP_PLANNERS:
+            raise ControllerError(f"grasp_planner {self.grasp_planner!r} unknown; choose one of "
+                                  f"{', '.join(GRASP_PLANNERS)}")
         if self.occupancy not in OCCUPANCY_BACKENDS:
             raise ControllerError(f"occupancy {self.occupancy!r} unknown; choose one of {', '.join(OCCUPANCY_BACKENDS)}")
 
@@ -227,7 +244,17 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
                              robust_samples=params.robust_samples, seed=params.seed,
                              evaluator_params=params.grasp_params if m != "suction" else None)
                 for m in models]
-    grasp = builder.AddSystem(LazyGraspPlanner(planners, camera.width, camera.height, seed=params.seed))
+    grasp = LazyGraspPlanner(planners, camera.width, camera.height, seed=params.seed)
+    if params.grasp_planner == "indexed" and sim is not None:
+        # Pre-computed grasp sets of the jaw model planned here (objects without one: the image planners)
+        jaw_model = next((m for m in models if m != "suction"), "")
+        names = {o.model_name: o.full_name for o in station_objects(sim.plant)}
+        sets = {oid: gs for oid, name in names.items()
+                if (gs := load_grasp_set(name)) is not None and (not jaw_model or gs.model == jaw_model)}
+        grasp_kinds = tuple(sorted({"suction" if m == "suction" else "parallel_jaw" for m in models}))
+        grasp = IndexedGraspPlanner(names, sets, environment_parts(scenario), workspace, camera.width, camera.height,
+                                    kinds=grasp_kinds, fallback=grasp, jaw_model=jaw_model)
+    grasp = builder.AddSystem(grasp)
     grasp.set_name("grasp_planner")
     depth_inputs.append(grasp.GetInputPort("depth_image"))
     builder.Connect(masks, grasp.GetInputPort("masks"))
