@@ -17,7 +17,7 @@ objects, bin, support table and their dimensions have one source: the Drake mode
 
 Bodies are created when released and removed when they leave the bin (`take_out`); objects
 that wait are not in the Bullet world at all. The interface is the one `_drop_in_waves` uses
-(pose, set_pose, park, velocities, max_speeds, advance_to, take_out, left), so both engines run
+(pose, set_pose, park, velocities, max_speeds, advance_to, take_out, put_back, left), so both engines run
 the same drop plan, waves and settle tests.
 
 Choices where the reference is silent (measured in docs/BENCHMARKS.md, "Heaps with Bullet"):
@@ -198,6 +198,10 @@ class BulletDropWorld:
     def take_out(self, i: int) -> None:
         self.park(i)
         self.left.append(i)
+
+    def put_back(self, i: int) -> None:
+        """Object i (taken out) may be dropped again (set_pose creates its body)."""
+        self.left.remove(i)
 
     def pose(self, i: int) -> RigidTransform:
         """X_WB of object i (a parked object: far below the world)."""

@@ -23,7 +23,11 @@ Generation of heap `seed` with N objects:
    1.6 x 1.2 m support table and keep falling, and the heap does not "settle" (3 of 200
    seeds). An object below the bin
    floor (or the support) has tunnelled: the attempt stops at once;
-5. objects that left the bin are removed from the heap; a heap whose state is not finite,
+5. objects that left the bin (taken out, or resting with their origin outside the bin's inner
+   box) are dropped again, each with a new orientation and planar position from step 2's
+   distributions, released on top of the heap as in step 3 and settled, for at most
+   `refill_rounds` rounds; an attempt that still misses objects is rejected (with
+   refill_rounds = 0 they are removed from the heap instead); a heap whose state is not finite,
    that did not settle, or in which an object tunnelled is rejected and the seed is resampled
    (attempt k uses the RNG stream (seed, k)); the reason names the object still moving;
 6. the target is the object with the smallest visible / amodal mask ratio: the modal mask is
@@ -133,6 +137,10 @@ class HeapParams:
     # target_first only: an attempt counts only if the target's seen fraction from the overhead
     # camera is at most this (1: any heap; 0: the target starts fully hidden)
     max_target_seen: float = 1.0
+    # Objects that left the bin are dropped again (a new pose from step 2's distributions, released
+    # on top of the heap) for at most this many rounds; an attempt that still misses one is
+    # rejected and resampled, so a heap of N objects holds N (0: objects that leave are removed)
+    refill_rounds: int = 5
 
 
 #: Heaps of the search benchmarks (ms_drake.experiments): the Drake drop world, whose heaps are
@@ -148,6 +156,8 @@ class HeapDiagnostics:
     settle_time: float
     rejected_reasons: list
     phases: dict = dataclasses.field(default_factory=dict)  # CPU s and simulated s per phase (last attempt)
+    refills: int = 0  # re-drop rounds of the last attempt
+    redropped: int = 0  # objects dropped again in them
 
 
 @functools.lru_cache(maxsize=4096)
@@ -249,6 +259,11 @@ class _DropWorld:
         self.joints[i].Lock(self.plant_context)
         self.left.append(i)
 
+    def put_back(self, i: int) -> None:
+        """Object i (taken out) joins the simulation again, parked until it is dropped."""
+        self.joints[i].Unlock(self.plant_context)
+        self.left.remove(i)
+
     def set_poses(self, poses):
         for b, X in zip(self.bodies, poses):
             self.plant.SetFreeBodyPose(self.plant_context, b, X)
@@ -344,6 +359,16 @@ def _tunnelled(rel: np.ndarray, size: np.ndarray, wall: float) -> np.ndarray:
     return (over_bin & (rel[:, 2] < -0.02)) | (rel[:, 2] < -wall - 0.06)
 
 
+def _outside(world, n: int, origin: np.ndarray, size: np.ndarray) -> list[int]:
+    """Objects taken out of the simulation or whose origin is not over the bin's inner box."""
+    out = []
+    for i in range(n):
+        p = world.pose(i).translation() - origin
+        if i in world.left or not np.all(np.abs(p[:2]) <= 0.5 * size[:2] + 1e-3):
+            out.append(i)
+    return out
+
+
 def _take_out_leavers(world: _DropWorld, placed: list[int], origin: np.ndarray, size: np.ndarray,
                       wall: float) -> bool:
     """Objects whose origin is beyond the bin's outer walls have left it for good: take them out
@@ -378,18 +403,19 @@ def _mean_speeds(before: list[RigidTransform], after: list[RigidTransform], dt: 
 
 def _drop_in_waves(world: _DropWorld, names: list[str], plan: list[DropItem], origin: np.ndarray,
                    size: np.ndarray, wall: float, params: HeapParams,
-                   phases: dict | None = None) -> tuple[bool, float, str]:
+                   phases: dict | None = None, drop: list[int] | None = None) -> tuple[bool, float, str]:
     """Steps 3-4. Objects are dropped in drop order, each released `drop_gap` above the top of
     whatever already lies under its footprint, so impacts are slow and nothing tunnels.
     Objects whose footprints overlap no earlier object still waiting are released together
     in one "wave" (equivalent to dropping them one by one, in a fraction of the simulated
     time); objects that wait are parked far away. `phases` (if given) receives the CPU and
-    simulated seconds of the waves and of the final settle."""
+    simulated seconds of the waves and of the final settle. drop: the objects to drop (default all);
+    the others lie where they are (a re-drop onto a heap)."""
     phases = {} if phases is None else phases
     cpu0 = time.process_time()
     t = world.time()
-    placed: list[int] = []
-    waiting = list(range(len(plan)))
+    waiting = list(range(len(plan))) if drop is None else list(drop)
+    placed: list[int] = [i for i in range(len(plan)) if i not in waiting and i not in world.left]
     for j in waiting:
         world.park(j)
     blocked_since: dict[int, float] = {}
@@ -513,6 +539,23 @@ def generate_heap(scenario: Scenario, num_objects: int, seed: int, object_set: s
         else:
             engine = world
         ok, settle_t, reason = _drop_in_waves(engine, names, plan, origin, size, wall, params, phases)
+        refills = redropped = 0
+        while ok and refills < params.refill_rounds:
+            out = _outside(engine, len(names), origin, size)
+            if target_first and 0 in out:
+                break  # the flat target is not dropped again: the attempt is rejected below
+            if not out:
+                break
+            refills, redropped = refills + 1, redropped + len(out)
+            for i in out:
+                if i not in engine.left:
+                    engine.take_out(i)
+                engine.put_back(i)
+            for i, it in zip(out, sample_drop_plan([names[i] for i in out], scenario, rng, params)):
+                plan[i] = it
+            ok, settle_t, reason = _drop_in_waves(engine, names, plan, origin, size, wall, params, phases, drop=out)
+        if ok and params.refill_rounds > 0 and _outside(engine, len(names), origin, size):
+            ok, reason = False, f"objects still outside the bin after {refills} re-drop rounds"
         if engine is not world:  # the settled poses into the Drake world (rendering, saving)
             for i in range(len(names)):
                 if i in engine.left:
@@ -560,7 +603,7 @@ def generate_heap(scenario: Scenario, num_objects: int, seed: int, object_set: s
                     target=objects[target_k].name if target_k >= 0 else "", target_index=target_k,
                     visible_ratios=tuple(float(r) for r in ratios), seconds=time.perf_counter() - t0)
         if return_diagnostics:
-            return heap, HeapDiagnostics(attempt + 1, removed, settle_t, reasons, phases)
+            return heap, HeapDiagnostics(attempt + 1, removed, settle_t, reasons, phases, refills, redropped)
         return heap
     raise HeapError(f"heap seed {seed}: no valid heap in {params.max_attempts} attempts ({'; '.join(reasons)})")
 
