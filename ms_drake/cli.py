@@ -644,7 +644,7 @@ def data_shelf(count: int = typer.Option(..., "--count", min=1, help="Scenes (N)
 
 
 @data_app.command("grasps")
-def data_grasps(objects: str = typer.Option(..., "--objects", help="Object set: procedural, ycb, random_urdfs"),
+def data_grasps(objects: str = typer.Option(..., "--objects", help="Object set: procedural, ycb, random_urdfs, targets"),
                 out: Optional[Path] = typer.Option(None, "--out", help="Folder (default: models/objects/<set>/grasps)"),
                 model: str = typer.Option("soft_point", "--model", help="Jaw contact model: soft_point, reach, 6dfc, ..."),
                 jaw: int = typer.Option(200, "--jaw", min=0, help="Antipodal jaw grasps per object"),
@@ -655,8 +655,8 @@ def data_grasps(objects: str = typer.Option(..., "--objects", help="Object set: 
                 workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers")):
     """Pre-computed jaw and suction grasps with their robust quality, one npz per object;
     objects already done with the same parameters are kept (resume)."""
-    if objects not in available_sets():
-        _fail(f"--objects {objects!r}: choose one of {', '.join(available_sets())}")
+    if objects not in [*available_sets(), "targets"]:
+        _fail(f"--objects {objects!r}: choose one of {', '.join(available_sets())}, targets")
     cmd = " ".join(["ms-drake", "data", "grasps", "--objects", objects, "--model", model, "--jaw", str(jaw),
                     "--suction", str(suction), "--robust", str(robust), "--seed", str(seed)]
                    + (["--limit", str(limit)] if limit else []) + (["--out", str(out)] if out else []))
