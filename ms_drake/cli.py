@@ -63,6 +63,14 @@ from ms_drake.experiments.occupancy_learning import (
     write_json,
 )
 from ms_drake.experiments.picks import TASKS, run_pick
+from ms_drake.experiments.push_study import (
+    format_push_table,
+    plot_push,
+    read_jsonl,
+    run_push_bench,
+    summarize_push,
+    write_push_heaps,
+)
 from ms_drake.experiments.rearrange import DEMO_SEED as REARRANGE_DEMO_SEED
 from ms_drake.experiments.rearrange import METHODS as REARRANGE_METHODS
 from ms_drake.experiments.rearrange import (
@@ -113,6 +121,7 @@ from ms_drake.parallel import run_jobs
 from ms_drake.perception.segmentation import BACKENDS as SEGMENTATION_BACKENDS
 from ms_drake.perception.target import BACKENDS as DETECTOR_BACKENDS
 from ms_drake.policies.bin_selectors import check_policy
+from ms_drake.pushing import POLICIES as PUSH_POLICIES
 from ms_drake.policies.shelf import SHELF_POLICIES, check_shelf_policy
 from ms_drake.policies.shelf_search import PERCEPTIONS as SHELF_CONTROLLER_PERCEPTIONS
 from ms_drake.scenario import load_scenario
@@ -439,6 +448,77 @@ def pick(task: str = typer.Argument(..., help=f"Pick task: {', '.join(TASKS)}"),
 
 data_app = typer.Typer(add_completion=False, no_args_is_help=True, help="Datasets made by the simulator.")
 app.add_typer(data_app, name="data")
+
+
+# -- Linear push policies (Ch. 4): ms-drake data push-heaps, bench push / push-table ---------------------
+
+
+@data_app.command("push-heaps")
+def data_push_heaps(count: int = typer.Option(..., "--count", min=1, help="Heaps to drop (seeds S..S+N-1)"),
+                    out: Path = typer.Option(..., "--out", help="Output folder (heaps.jsonl; resumes)"),
+                    seed_start: int = typer.Option(0, "--seed-start", min=0, help="First heap seed (S)"),
+                    workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers"),
+                    ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
+                    ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address")):
+    """Improvable heaps (Ch. 4, Algorithm 1): drop, grasp until stuck, run the five push policies;
+    one record per heap, `improvable` when some policy raises the overall grasp quality."""
+    with tqdm(total=count, desc="push heaps", unit="heap") as bar:
+        def tick(r):
+            if not r.ok:
+                tqdm.write(f"seed {r.job[0]}: {r.error.splitlines()[-1] if r.error else 'failed'}")
+            bar.update(1)
+        s = write_push_heaps(count, out, seed_start, workers=workers, use_ray=ray or ray_address is not None,
+                             ray_address=ray_address, bar=tick)
+    if s["resumed"]:
+        typer.echo(f"resumed: {s['resumed']} of {count} heaps already in {s['path']}")
+    typer.echo(f"{s['dropped']} heaps dropped, {s['recorded']} stuck (recorded), {s['improvable']} improvable "
+               f"-> {s['path']}" + (f"; {len(s['failed'])} failed (rerun to retry)" if s["failed"] else ""))
+    if s["failed"]:
+        raise typer.Exit(1)
+
+
+@bench_app.command("push")
+def bench_push(policy: str = typer.Option(..., "--policy", help=f"Push policy: {' | '.join(PUSH_POLICIES)}"),
+               heaps_: int = typer.Option(400, "--heaps", min=1, help="Improvable heaps (the first N, by seed)"),
+               seed_start: int = typer.Option(0, "--seed-start", min=0, help="Lowest heap seed (S)"),
+               out: Path = typer.Option(..., "--out", help="Output .jsonl (appended to; resumes)"),
+               heap_dir: Path = typer.Option(Path("out/push_heaps"), "--heap-dir",
+                                             help="Folder of `ms-drake data push-heaps`"),
+               workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers (--rerun)"),
+               rerun: bool = typer.Option(False, "--rerun", help="Execute the push again instead of taking "
+                                          "the data step's execution of the policy on the heap")):
+    """One JSON line per improvable heap: seed, policy, separation / jaw / suction / overall gain."""
+    if policy not in PUSH_POLICIES:
+        _fail(f"--policy {policy!r}: choose one of {', '.join(PUSH_POLICIES)}")
+    if out.suffix != ".jsonl":
+        _fail(f"--out {out}: give a .jsonl file")
+    if not (heap_dir / "heaps.jsonl").exists():
+        _fail(f"--heap-dir {heap_dir}: no heaps.jsonl; run `ms-drake data push-heaps --out {heap_dir}` first")
+    s = run_push_bench(policy, heaps_, seed_start, out, heap_dir, workers=workers, rerun=rerun)
+    typer.echo(f"{policy}: {s['rows']} heaps in {out} ({s['new']} added; {s['available']} improvable heaps "
+               f"available from seed {seed_start})")
+    if s["available"] < heaps_:
+        typer.echo(f"only {s['available']} improvable heaps in {heap_dir}: drop more with "
+                   f"`ms-drake data push-heaps`")
+
+
+@bench_app.command("push-table")
+def bench_push_table(files: list[Path] = typer.Argument(..., help="Result .jsonl files (ms-drake bench push)"),
+                     figures: Optional[Path] = typer.Option(None, "--figures", help="Write Fig. 4.2 / 4.3 "
+                                                            "analogues (PNG) into this folder"),
+                     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the summary as JSON")):
+    """Mean +- standard error per policy and metric on the heaps every policy has, one-way ANOVA per metric."""
+    missing = [str(f) for f in files if not f.exists()]
+    if missing:
+        _fail(f"no such result file: {', '.join(missing)}; run `ms-drake bench push ... --out FILE.jsonl` first")
+    rows = [r for f in files for r in read_jsonl(f)]
+    s = summarize_push(rows)
+    typer.echo(format_push_table(s))
+    if json_out is not None:
+        _write_json(json_out, s)
+    if figures is not None:
+        for p in plot_push(s, figures):
+            typer.echo(f"wrote {p}")
 
 
 def _occluder_counts(first: list[int], extra: list[str]) -> list[int]:

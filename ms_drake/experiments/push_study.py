@@ -1,0 +1,665 @@
+"""The linear push policies study of Ch. 4: metrics, improvable heaps (Algorithm 1), the benchmark.
+
+Physics: the primitive mode's floating closed jaw (FloatingGripperBin, PrimitiveBackend) moves
+along the push segment in Drake (10 ms steps, the primitive mode's); the jaw starts parked above
+the push's start at the backend's travel height (instead of beside the bin: the legs from and back
+to the park pose touch nothing); then `settle` s. Objects that leave the bin are out of the after
+state.
+
+Metrics (lines 590-642), on the objects in the bin before and after the push:
+  separation gain  Delta D = (D1 - D0) / max(D0, D1), D the mean of the pairwise distances of the
+                   objects' centres of mass and of each centre's distance to the nearest bin wall
+                   (both in the bin's plane: our choice; the reference writes ||o_i - o_j||);
+  jaw / suction / overall gain  Q*_1 - Q*_0, Q*_j = max over every object's `grasps` sampled
+                   parallel-jaw grasps (antipodal pairs, approach within `max_approach` of straight
+                   down) of the robust soft-point quality (GraspEvaluator("soft_point"),
+                   `robust_samples` trials), Q*_s the same for suction grasps (surface points along
+                   minus the normal, SuctionEvaluator), Q*_o = max(Q*_j, Q*_s). The max runs over
+                   the grasps whose gripper is collision-free (coal: the opened jaw's palm and
+                   fingers, or the cup's stem as a cylinder along the approach, against the other
+                   objects' collision shapes and the bin): best per object, then the best object.
+A grasp's quality depends only on where gravity points in the object's frame, so an object's
+sampled grasps and qualities are kept (object frame) and reused while its tilt stays within
+`retilt_deg`; the collision check is redone in every state.
+
+Algorithm 1 (lines 704-720), `improvable_heap(seed)`: a heap of N objects, N uniform in
+[`min_objects`, `max_objects`] (our choice: small heaps, as the reference's final heaps mostly
+were), dropped (ms_drake.scenes.heaps) and settled in the station; while objects remain: Q*_o of
+the state; below `threshold` -> record the state; else execute the best grasp (primitive mode:
+success with probability = its quality, from (seed, t)); `max_failures` consecutive failures ->
+record the state. A recorded state is improvable when at least one of the five policies'
+pushes, executed in physics, gives an overall quality gain > 0 (the reference's rejection step).
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+import json
+import os
+import time
+import zlib
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import coal
+import matplotlib
+import matplotlib.pyplot as plt
+import numpy as np
+from pydrake.math import RigidTransform
+from pydrake.systems.analysis import Simulator
+from scipy.stats import f_oneway
+
+from ms_drake.execution import PrimitiveBackend, remove_objects
+from ms_drake.execution.backends import tcp_offset_of
+from ms_drake.experiments.heap_grasps import _coal_shape, _shape_pose, gripper_boxes
+from ms_drake.geometry import Workspace
+from ms_drake.grasping.evaluator import GraspEvaluator
+from ms_drake.grasping.samplers import sample_antipodal_grasps, sample_suction_grasps
+from ms_drake.grasping.grasp import SuctionGrasp
+from ms_drake.grasping.suction import SuctionEvaluator
+from ms_drake.objects import get_object
+from ms_drake.parallel import run_jobs
+from ms_drake.pushing.policies import POLICIES, PolicyParams, check_push_policy, plan_policy_push, state_scene
+from ms_drake.scenario import load_scenario
+from ms_drake.scenes.heaps import generate_heap, heap_to_dict, scenario_with_heap, set_heap_poses
+from ms_drake.station import MakeStation, get_plant, station_objects
+from ms_drake.station.environments import _boxes
+from ms_drake.station.robots import set_arm_positions
+from ms_drake.types import Action, ObjectGeometry, ObjectPose, Heap
+
+METRICS = ("separation_gain", "jaw_gain", "suction_gain", "overall_gain")
+
+
+@functools.lru_cache(maxsize=512)
+def _mesh(name: str):
+    """An object's trimesh (built once per process: the registry builds it anew on every call)."""
+    return get_object(name).trimesh()
+
+
+@functools.lru_cache(maxsize=4)
+def _scenario(name: str):
+    return load_scenario(None, name)
+
+
+@dataclass(frozen=True)
+class StudyParams:
+    grasps: int = 100  # per object and gripper (the reference's)
+    robust_samples: int = 4
+    max_approach: float = np.radians(60.0)
+    retilt_deg: float = 5.0
+    cup_length: float = 0.10  # the suction stem checked for collisions along the approach
+    cup_radius: float = 0.015
+    threshold: float = 0.5
+    max_failures: int = 3
+    min_objects: int = 4
+    max_objects: int = 10
+    settle: float = 0.5
+    time_step: float = 0.01
+
+
+# --------------------------------------------------------------------------- physics
+class PushWorld:
+    """FloatingGripperBin holding a heap (cameras off unless asked): states, grasps, pushes."""
+
+    def __init__(self, heap: Heap, params: StudyParams = StudyParams(), cameras: bool = False):
+        s = scenario_with_heap(_scenario("FloatingGripperBin"), heap)
+        s.plant_config.time_step = params.time_step
+        if not cameras:
+            s.cameras = {}
+        self.scenario, self.params = s, params
+        self.station = MakeStation(s, target_index=-1)
+        self.plant = get_plant(self.station)
+        self.sim = Simulator(self.station)
+        self.context = self.sim.get_mutable_context()
+        self.pc = self.plant.GetMyMutableContextFromRoot(self.context)
+        self.objects = station_objects(self.plant)
+        self.ids = [o.model_name for o in self.objects]
+        self.names = {o.model_name: o.full_name for o in self.objects}
+        self.workspace = Workspace.from_scenario(s)
+        self.backend = PrimitiveBackend({o.model_name: int(o.body_index) for o in self.objects}, self.workspace,
+                                        tcp_offset_of(self.plant))
+        self.removed: set = set()
+        cmds = self.backend.initial_commands()
+        for port, v in cmds.items():
+            self.station.GetInputPort(port).FixValue(self.context, np.asarray(v, float))
+        set_heap_poses(self.station, self.context, heap)
+        set_arm_positions(self.plant, self.pc, "floating", cmds)
+        self._cmd = self.station.GetInputPort("floating.position")
+        self.sim.Initialize()
+
+    # state --------------------------------------------------------------------------------
+    def snapshot(self):
+        return self.context.Clone(), set(self.removed)
+
+    def restore(self, snap):
+        ctx, removed = snap
+        self.context.SetTimeStateAndParametersFrom(ctx)
+        self.removed = set(removed)
+        self.sim.Initialize()
+
+    def pose(self, oid: str) -> np.ndarray:
+        o = self.objects[self.ids.index(oid)]
+        return self.plant.EvalBodyPoseInWorld(self.pc, self.plant.get_body(o.body_index)).GetAsMatrix4()
+
+    def present(self) -> list[str]:
+        """Objects in the bin (not grasped, not fallen out)."""
+        ws = self.workspace
+        out = []
+        for oid in self.ids:
+            if oid in self.removed:
+                continue
+            p = self.pose(oid)[:3, 3]
+            if p[2] < ws.floor_z - 0.03 or not ws.inside_xy(p, margin=-0.02):
+                continue
+            out.append(oid)
+        return out
+
+    def geometry(self, ids=None) -> tuple:
+        out = []
+        for oid in ids if ids is not None else self.present():
+            spec = get_object(self.names[oid])
+            m = _mesh(self.names[oid])
+            out.append(ObjectGeometry(oid, np.asarray(m.vertices, float), np.asarray(m.faces), self.pose(oid),
+                                      float(spec.mass)))
+        return tuple(out)
+
+    def poses_record(self) -> dict:
+        """{id: 4x4 as nested lists} of the objects present."""
+        return {oid: np.round(self.pose(oid), 6).tolist() for oid in self.present()}
+
+    # actions ------------------------------------------------------------------------------
+    def advance(self, dt: float, command=None):
+        t0 = self.context.get_time()
+        steps = max(1, int(round(dt / self.params.time_step)))
+        for k in range(1, steps + 1):
+            t = t0 + k * self.params.time_step
+            if command is not None:
+                self._cmd.FixValue(self.context, np.asarray(command(t - t0), float))
+            self.sim.AdvanceTo(t)
+        q = self.plant.GetPositions(self.pc)
+        if not np.all(np.isfinite(q)):
+            raise RuntimeError("non-finite plant state")
+
+    def remove(self, oid: str):
+        o = self.objects[self.ids.index(oid)]
+        remove_objects(self.plant, self.pc, [int(o.body_index)])
+        self.removed.add(oid)
+
+    def execute_push(self, push) -> float:
+        """The closed jaw along the push (PrimitiveBackend's legs from above the start), then the
+        settle time. Returns the simulated seconds."""
+        b = self.backend
+        a, e = np.asarray(push.start, float), np.asarray(push.end, float)
+        yaw = float(np.arctan2(*(e - a)[1::-1])) + np.pi / 2
+        above = b._q([a[0], a[1], b.travel_z], yaw)
+        # Jump the jaw above the start (nothing there: it is above the walls), then the backend's legs.
+        q = self.plant.GetPositions(self.pc)
+        set_arm_positions(self.plant, self.pc, "floating", {"floating.position": above})
+        del q
+        self._cmd.FixValue(self.context, above)
+        motion = b.plan(Action("push", push=push), {"floating.position": above}, 0)
+        path = motion.commands["floating.position"]
+        t_up = float(path.t[4])  # above the end: the leg back to the park pose is skipped
+        self.advance(t_up, command=path)
+        park = b.park
+        set_arm_positions(self.plant, self.pc, "floating", {"floating.position": park})
+        self._cmd.FixValue(self.context, park)
+        self.advance(self.params.settle)
+        return t_up + self.params.settle
+
+
+# --------------------------------------------------------------------------- metrics
+def mean_separation(centers_xy: np.ndarray, workspace: Workspace) -> float:
+    """D of line 600: pairwise centre distances and each centre's distance to the nearest wall,
+    averaged over C(n, 2) + n terms."""
+    C = np.asarray(centers_xy, float).reshape(-1, 2)
+    n = len(C)
+    if n == 0:
+        return 0.0
+    half = 0.5 * np.asarray(workspace.size_xy)
+    rel = np.abs(C - np.asarray(workspace.center_xy))
+    wall = np.maximum(np.min(half - rel, axis=1), 0.0)
+    iu = np.triu_indices(n, 1)
+    pair = np.linalg.norm(C[:, None] - C[None], axis=-1)[iu]
+    return float((pair.sum() + wall.sum()) / (len(pair) + n))
+
+
+def separation_gain(d0: float, d1: float) -> float:
+    m = max(d0, d1)
+    return 0.0 if m <= 0 else float((d1 - d0) / m)
+
+
+def _center(geom: ObjectGeometry) -> np.ndarray:
+    X = np.asarray(geom.X_WO, float)
+    v, f = np.asarray(geom.vertices, float), np.asarray(geom.faces, int)
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    vol = np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
+    com = v.mean(axis=0) if abs(vol.sum()) < 1e-12 else ((a + b + c) / 4.0 * vol[:, None]).sum(axis=0) / vol.sum()
+    return X[:3, :3] @ com + X[:3, 3]
+
+
+def _bin_shapes(scenario) -> list:
+    env = scenario.environment
+    X_env = np.eye(4)
+    X_env[:3, 3] = np.asarray(env.position, float)
+    return [("bin", _coal_shape(sh), _shape_pose(X_env, sh.pose))
+            for _, sh, _ in _boxes(env.type, env.resolved_size(), env.wall_thickness)]
+
+
+def _object_shapes(oid: str, name: str, X: np.ndarray) -> list:
+    return [(oid, _coal_shape(sh), _shape_pose(X, sh.pose)) for sh in get_object(name).collisions]
+
+
+def _collides(boxes, shapes) -> bool:
+    req = coal.CollisionRequest()
+    for shape1, T1 in boxes:
+        for _, shape, Xs in shapes:
+            res = coal.CollisionResult()
+            if coal.collide(shape1, T1, shape, coal.Transform3s(Xs[:3, :3], Xs[:3, 3]), req, res):
+                return True
+    return False
+
+
+def _jaw_boxes(g):
+    return [(coal.Box(*np.maximum(size - 0.002, 1e-6)), coal.Transform3s(X[:3, :3], X[:3, 3]))
+            for _, size, X in gripper_boxes(g)]
+
+
+def _cup_boxes(point, approach, params: StudyParams):
+    z = -np.asarray(approach, float)  # out of the surface
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [1.0, 0.0, 0.0])
+    if np.linalg.norm(x) < 1e-6:
+        x = np.cross(z, [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    R = np.column_stack([x, np.cross(z, x), z])
+    c = np.asarray(point, float) + z * (0.003 + 0.5 * params.cup_length)
+    return [(coal.Cylinder(params.cup_radius, params.cup_length), coal.Transform3s(R, c))]
+
+
+class GraspSets:
+    """Sampled grasps per object, kept in the object frame while the object's tilt is unchanged
+    (module docstring); a grasp's robust quality is evaluated when it is first found
+    collision-free and kept with it. Per state and object the grasps are checked in sampled order
+    and the search stops at a quality of 1 (nothing beats it), so the maxima are exact."""
+
+    def __init__(self, params: StudyParams = StudyParams(), seed: int = 0):
+        self.params, self.seed = params, int(seed)
+        self.jaw_eval = GraspEvaluator("soft_point")
+        self.suction_eval = SuctionEvaluator()
+        self._cache: dict = {}  # id -> [gravity in object frame, jaw [[g_O, q]], suction [[p_O, a_O, q]], version, seed]
+        self.evaluations = 0
+
+    def _sets(self, oid: str, name: str, X: np.ndarray):
+        g_O = X[:3, :3].T @ np.array([0.0, 0.0, -1.0])
+        hit = self._cache.get(oid)
+        if hit is not None and np.degrees(np.arccos(np.clip(hit[0] @ g_O, -1, 1))) <= self.params.retilt_deg:
+            return hit
+        p = self.params
+        mesh = _mesh(name)
+        version = 0 if hit is None else hit[3] + 1
+        rng_seed = int(np.random.default_rng([self.seed, zlib.crc32(oid.encode()), version]).integers(2**31))
+        X_inv = np.linalg.inv(X)
+        jaw = [[g.transformed(X_inv), None] for g in sample_antipodal_grasps(mesh, X, p.grasps, seed=rng_seed)
+               if -g.approach[2] >= np.cos(p.max_approach)]
+        suc = [[X_inv[:3, :3] @ g.point + X_inv[:3, 3], X_inv[:3, :3] @ g.approach, None]
+               for g in sample_suction_grasps(mesh, X, p.grasps, seed=rng_seed + 1, max_approach_angle=p.max_approach)]
+        entry = [g_O, jaw, suc, version, rng_seed]
+        self._cache[oid] = entry
+        return entry
+
+    def _best(self, oid, name, X, others, kind):
+        entry = self._sets(oid, name, X)
+        spec = get_object(name)
+        best, best_g = 0.0, None
+        for item in (entry[1] if kind == "jaw" else entry[2]):
+            if kind == "jaw":
+                g = item[0].transformed(X)
+                boxes = _jaw_boxes(g)
+            else:
+                g = (X[:3, :3] @ item[0] + X[:3, 3], X[:3, :3] @ item[1])
+                boxes = _cup_boxes(g[0], g[1], self.params)
+            if item[-1] is not None and item[-1] <= best:
+                continue  # cannot beat the best so far
+            if _collides(boxes, others):
+                continue
+            if item[-1] is None:
+                mesh = _mesh(name)
+                if kind == "jaw":
+                    item[-1] = float(self.jaw_eval.quality(mesh, X, g, spec.mass, self.params.robust_samples,
+                                                           seed=entry[4]))
+                else:
+                    item[-1] = float(self.suction_eval.quality(mesh, X, SuctionGrasp(*g), spec.mass,
+                                                               self.params.robust_samples, seed=entry[4]))
+                self.evaluations += 1
+            if item[-1] > best:
+                best, best_g = item[-1], g
+                if best >= 1.0:
+                    break
+        return best, best_g
+
+    def qualities(self, world: PushWorld, ids=None) -> dict:
+        """{"jaw": Q*_j, "suction": Q*_s, "overall": Q*_o, "per_object": {id: [best jaw, best suction]},
+        "best": (kind, id, grasp, quality) of the best grasp}."""
+        ids = world.present() if ids is None else ids
+        X = {oid: world.pose(oid) for oid in ids}
+        shapes = {oid: _object_shapes(oid, world.names[oid], X[oid]) for oid in ids}
+        bin_shapes = _bin_shapes(world.scenario)
+        per, best = {}, ("", "", None, 0.0)
+        for oid in ids:
+            others = [s for k, v in shapes.items() if k != oid for s in v] + bin_shapes
+            bj, gj = self._best(oid, world.names[oid], X[oid], others, "jaw")
+            bs, gs = self._best(oid, world.names[oid], X[oid], others, "suction")
+            if bj > best[3]:
+                best = ("parallel_jaw", oid, gj, bj)
+            if bs > best[3]:
+                best = ("suction", oid, gs, bs)
+            per[oid] = [bj, bs]
+        qj = max((v[0] for v in per.values()), default=0.0)
+        qs = max((v[1] for v in per.values()), default=0.0)
+        return {"jaw": qj, "suction": qs, "overall": max(qj, qs), "per_object": per, "best": best}
+
+
+def state_metrics(world: PushWorld, sets: GraspSets) -> dict:
+    ids = world.present()
+    geoms = world.geometry(ids)
+    D = mean_separation(np.array([_center(g)[:2] for g in geoms]), world.workspace)
+    q = sets.qualities(world, ids)
+    return {"D": D, "jaw": q["jaw"], "suction": q["suction"], "overall": q["overall"],
+            "per_object": q["per_object"], "objects": len(ids), "_best": q["best"]}
+
+
+def gains(before: dict, after: dict) -> dict:
+    return {"separation_gain": separation_gain(before["D"], after["D"]),
+            "jaw_gain": after["jaw"] - before["jaw"], "suction_gain": after["suction"] - before["suction"],
+            "overall_gain": after["overall"] - before["overall"]}
+
+
+def run_policy(world: PushWorld, snap, before: dict, sets: GraspSets, policy: str, seed: int,
+               policy_params: PolicyParams = PolicyParams()) -> dict:
+    """Plan `policy`'s push on the full state of `snap`, execute it in physics, the four gains."""
+    check_push_policy(policy)
+    world.restore(snap)
+    geoms = world.geometry()
+    t0 = time.perf_counter()
+    cpu0 = time.process_time()
+    push = plan_policy_push(policy, state_scene(geoms, world.workspace), policy_params,
+                            seed=[int(seed), POLICIES.index(policy)])
+    plan_ms = 1000 * (time.process_time() - cpu0)
+    del t0
+    rec = {"policy": policy, "pushed": push is not None, "plan_ms": plan_ms, "push": None}
+    if push is None:  # no collision-free push: the state is unchanged
+        rec.update({k: 0.0 for k in METRICS}, left_bin=0, after={k: before[k] for k in ("D", "jaw", "suction",
+                                                                                        "overall")})
+        return rec
+    rec["push"] = {"start": list(push.start), "end": list(push.end), "object": push.object_id}
+    cpu1 = time.process_time()
+    try:
+        world.execute_push(push)
+    except RuntimeError as e:
+        rec.update({k: 0.0 for k in METRICS}, error=str(e).splitlines()[0] if str(e) else "RuntimeError")
+        return rec
+    rec["sim_cpu_s"] = time.process_time() - cpu1
+    after = state_metrics(world, sets)
+    rec.update(gains(before, after))
+    rec["left_bin"] = before["objects"] - after["objects"]
+    rec["after"] = {k: after[k] for k in ("D", "jaw", "suction", "overall")}
+    rec["after_per_object"] = after["per_object"]
+    return rec
+
+
+# --------------------------------------------------------------------------- Algorithm 1
+def _heap_size(seed: int, params: StudyParams) -> int:
+    return int(np.random.default_rng([seed, 17]).integers(params.min_objects, params.max_objects + 1))
+
+
+def grasp_until_stuck(world: PushWorld, sets: GraspSets, seed: int, params: StudyParams) -> tuple[str, dict, int]:
+    """Algorithm 1's loop: ("low_quality" | "failures" | "cleared", metrics of the final state, grasps)."""
+    failures, t = 0, 0
+    while True:
+        m = state_metrics(world, sets)
+        if m["objects"] == 0:
+            return "cleared", m, t
+        if m["overall"] < params.threshold:
+            return "low_quality", m, t
+        kind, oid, _, q = m["_best"]
+        ok = bool(np.random.default_rng([seed, t, 4242]).random() < q)
+        t += 1
+        if ok:
+            world.remove(oid)
+            failures = 0
+        else:
+            failures += 1
+            if failures >= params.max_failures:
+                return "failures", m, t
+        world.advance(params.settle)
+
+
+def improvable_heap(seed: int, params: StudyParams = StudyParams(), policies=POLICIES) -> dict:
+    """One heap through Algorithm 1 and the five policies: a JSON-able record (module docstring)."""
+    t_wall, t_cpu = time.perf_counter(), time.process_time()
+    n = _heap_size(seed, params)
+    heap = generate_heap(copy.deepcopy(_scenario("BinHeap15")), n, seed)
+    heap = Heap(heap.seed, heap.environment, heap.objects)  # no target in this study
+    world = PushWorld(heap, params)
+    world.advance(params.settle)  # the dropped heap at rest in the station's contact model
+    sets = GraspSets(params, seed)
+    reason, before, grasps = grasp_until_stuck(world, sets, seed, params)
+    rec = {"seed": int(seed), "objects_dropped": n, "grasps": grasps, "stop": reason,
+           "objects": before["objects"], "heap": heap_to_dict(heap), "improvable": False}
+    if reason == "cleared":
+        rec.update(seconds=time.perf_counter() - t_wall, cpu_seconds=time.process_time() - t_cpu)
+        return rec
+    snap = world.snapshot()
+    rec["state"] = world.poses_record()
+    rec["before"] = {k: before[k] for k in ("D", "jaw", "suction", "overall")}
+    rec["before_per_object"] = before["per_object"]
+    results = {}
+    for p in policies:
+        results[p] = run_policy(world, snap, before, sets, p, seed)
+    rec["policies"] = results
+    rec["improvable"] = any(r.get("overall_gain", 0.0) > 1e-9 for r in results.values())
+    rec["grasp_evaluations"] = sets.evaluations
+    rec.update(seconds=time.perf_counter() - t_wall, cpu_seconds=time.process_time() - t_cpu)
+    return rec
+
+
+# --------------------------------------------------------------------------- data and benchmark
+HEAPS_FILE = "heaps.jsonl"
+
+
+def push_heap_job(job: tuple) -> dict:
+    """(seed, StudyParams as a dict) -> improvable_heap's record (module-level for worker pools)."""
+    seed, params = job
+    return improvable_heap(int(seed), StudyParams(**params))
+
+
+def read_jsonl(path: Path) -> list[dict]:
+    """Records of a JSON-lines file; a torn last line (killed mid-write) is dropped."""
+    path = Path(path)
+    if not path.exists():
+        return []
+    out = []
+    for line in path.read_text().splitlines():
+        try:
+            out.append(json.loads(line))
+        except ValueError:
+            continue
+    return out
+
+
+def _append(path: Path, rec: dict) -> None:
+    with open(path, "a") as f:
+        f.write(json.dumps(rec) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def _rewrite_clean(path: Path, recs: list[dict]) -> None:
+    path.write_text("".join(json.dumps(r) + "\n" for r in recs))
+
+
+def write_push_heaps(count: int, out_dir: Path, seed_start: int = 0, workers: int = 1, use_ray: bool = False,
+                     ray_address: str | None = None, params: StudyParams = StudyParams(), bar=None) -> dict:
+    """Algorithm 1 on heaps seed_start .. seed_start + count - 1 into out_dir/heaps.jsonl (one record
+    per heap, resumable: finished seeds are kept and skipped). Returns the counts."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / HEAPS_FILE
+    recs = read_jsonl(path)
+    _rewrite_clean(path, recs)
+    done = {int(r["seed"]) for r in recs}
+    seeds = [k for k in range(seed_start, seed_start + count) if k not in done]
+    jobs = [(k, asdict(params)) for k in seeds]
+    failed = []
+    for r in run_jobs(push_heap_job, jobs, workers=workers, use_ray=use_ray, ray_address=ray_address):
+        if r.ok:
+            _append(path, r.value)
+        else:
+            failed.append((r.job[0], r.error.splitlines()[-1] if r.error else ""))
+        if bar is not None:
+            bar(r)
+    recs = [r for r in read_jsonl(path) if seed_start <= int(r["seed"]) < seed_start + count]
+    return {"dropped": len(recs), "recorded": sum(1 for r in recs if r["stop"] != "cleared"),
+            "improvable": sum(1 for r in recs if r["improvable"]), "resumed": count - len(seeds),
+            "failed": failed, "path": str(path)}
+
+
+def improvable_records(heap_dir: Path, heaps: int, seed_start: int = 0) -> list[dict]:
+    """The first `heaps` improvable heaps with seed >= seed_start of heap_dir/heaps.jsonl, by seed."""
+    recs = sorted((r for r in read_jsonl(Path(heap_dir) / HEAPS_FILE)
+                   if r["improvable"] and int(r["seed"]) >= seed_start), key=lambda r: int(r["seed"]))
+    return recs[:heaps]
+
+
+def bench_row(heap_rec: dict, policy: str, result: dict, source: str) -> dict:
+    row = {"seed": int(heap_rec["seed"]), "policy": policy, "objects": heap_rec["objects"], "source": source}
+    row.update({k: float(result.get(k, 0.0)) for k in METRICS})
+    row.update(pushed=bool(result.get("pushed")), plan_ms=float(result.get("plan_ms", 0.0)),
+               push=result.get("push"), before=heap_rec.get("before"), after=result.get("after"),
+               left_bin=int(result.get("left_bin", 0)))
+    if result.get("error"):
+        row["error"] = result["error"]
+    return row
+
+
+def rerun_job(job: tuple) -> dict:
+    """(seed, policy, StudyParams dict) -> the heap's record with only `policy` run (Algorithm 1
+    again from the seed: deterministic, so it reproduces the data step's state)."""
+    seed, policy, params = job
+    return improvable_heap(int(seed), StudyParams(**params), policies=(policy,))
+
+
+def run_push_bench(policy: str, heaps: int, seed_start: int, out: Path, heap_dir: Path, workers: int = 1,
+                   rerun: bool = False, params: StudyParams = StudyParams(), progress=None) -> dict:
+    """Rows of `policy` on the first `heaps` improvable heaps (seed >= seed_start) of heap_dir into
+    `out` (resumable). By default a row is the data step's own execution of the policy on that heap
+    (push-heaps runs all five to decide improvability); rerun=True executes it again."""
+    check_push_policy(policy)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    rows = read_jsonl(out)
+    _rewrite_clean(out, rows)
+    done = {(int(r["seed"]), r["policy"]) for r in rows}
+    todo = [h for h in improvable_records(heap_dir, heaps, seed_start) if (int(h["seed"]), policy) not in done]
+    if rerun:
+        jobs = [(int(h["seed"]), policy, asdict(params)) for h in todo]
+        for r in run_jobs(rerun_job, jobs, workers=workers):
+            if r.ok:
+                row = bench_row(r.value, policy, r.value["policies"][policy], "rerun")
+                _append(out, row)
+                if progress:
+                    progress(row)
+    else:
+        for h in todo:
+            row = bench_row(h, policy, h["policies"][policy], "push-heaps")
+            _append(out, row)
+            if progress:
+                progress(row)
+    got = [r for r in read_jsonl(out) if r["policy"] == policy]
+    return {"rows": len(got), "new": len(todo), "available": len(improvable_records(heap_dir, 10**9, seed_start))}
+
+
+def summarize_push(rows: list[dict]) -> dict:
+    """Per policy and metric: n, mean, standard error; per metric the one-way ANOVA across policies
+    on the heaps every policy has (scipy.stats.f_oneway: F, p, degrees of freedom)."""
+    by = {}
+    for r in rows:
+        by.setdefault(r["policy"], {})[int(r["seed"])] = r
+    pols = [p for p in POLICIES if p in by]
+    common = sorted(set.intersection(*(set(by[p]) for p in pols))) if pols else []
+    out = {"policies": {}, "anova": {}, "heaps": len(common)}
+    for p in pols:
+        out["policies"][p] = {}
+        for m in METRICS:
+            x = np.array([by[p][s][m] for s in common], float)
+            se = float(x.std(ddof=1) / np.sqrt(len(x))) if len(x) > 1 else 0.0
+            out["policies"][p][m] = {"n": len(x), "mean": float(x.mean()) if len(x) else 0.0, "se": se}
+        out["policies"][p]["pushed"] = float(np.mean([by[p][s]["pushed"] for s in common])) if common else 0.0
+        out["policies"][p]["positive_overall"] = float(np.mean([by[p][s]["overall_gain"] > 1e-9
+                                                                for s in common])) if common else 0.0
+    if len(pols) >= 2 and len(common) >= 2:
+        for m in METRICS:
+            groups = [np.array([by[p][s][m] for s in common], float) for p in pols]
+            if all(np.ptp(g) == 0 for g in groups) and len({float(g[0]) for g in groups}) == 1:
+                out["anova"][m] = {"F": float("nan"), "p": float("nan"), "df": [len(pols) - 1, len(pols) * (len(common) - 1)]}
+                continue
+            F, pv = f_oneway(*groups)
+            out["anova"][m] = {"F": float(F), "p": float(pv), "df": [len(pols) - 1, len(pols) * len(common) - len(pols)]}
+    return out
+
+
+def format_push_table(s: dict) -> str:
+    lines = [f"{s['heaps']} improvable heaps, every policy on each (mean +- standard error)",
+             f"{'policy':18s} " + " ".join(f"{m:>16s}" for m in METRICS) + "   pushed  overall>0"]
+    for p, v in s["policies"].items():
+        lines.append(f"{p:18s} " + " ".join(f"{v[m]['mean']:+7.3f} +- {v[m]['se']:.3f}" for m in METRICS)
+                     + f"   {100 * v['pushed']:5.1f} %  {100 * v['positive_overall']:5.1f} %")
+    for m, a in s["anova"].items():
+        lines.append(f"ANOVA {m}: F({a['df'][0]}, {a['df'][1]}) = {a['F']:.2f}, p = {a['p']:.2g}")
+    return "\n".join(lines)
+
+
+def plot_push(s: dict, out_dir: Path) -> list[Path]:
+    """Fig. 4.2 (every metric per policy) and Fig. 4.3 (jaw vs suction per policy) as PNG."""
+    matplotlib.use("Agg")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    pols = list(s["policies"])
+    labels = {"quasi_random": "Quasi-random", "boundary_shear": "Boundary shear", "free_space": "Free space",
+              "max_clearance": "Max clearance", "cluster_diffusion": "Cluster diffusion"}
+    names = {"separation_gain": "Mean object separation gain", "jaw_gain": "Parallel-jaw quality gain",
+             "suction_gain": "Suction quality gain", "overall_gain": "Overall quality gain"}
+    paths = []
+    fig, ax = plt.subplots(figsize=(9, 4))
+    w = 0.8 / len(METRICS)
+    x = np.arange(len(pols))
+    for k, m in enumerate(METRICS):
+        ax.bar(x + (k - 1.5) * w, [s["policies"][p][m]["mean"] for p in pols], w,
+               yerr=[s["policies"][p][m]["se"] for p in pols], capsize=2, label=names[m])
+    ax.set_xticks(x, [labels[p] for p in pols])
+    ax.axhline(0, color="k", lw=0.5)
+    ax.set_ylabel("gain")
+    ax.set_title(f"Push policies on {s['heaps']} improvable heaps (Fig. 4.2 analogue)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    p1 = out_dir / "push_policies_fig4_2.png"
+    fig.savefig(p1, dpi=120)
+    plt.close(fig)
+    paths.append(p1)
+    fig, ax = plt.subplots(figsize=(8, 4))
+    for k, m in enumerate(("jaw_gain", "suction_gain")):
+        ax.bar(x + (k - 0.5) * 0.35, [s["policies"][p][m]["mean"] for p in pols], 0.35,
+               yerr=[s["policies"][p][m]["se"] for p in pols], capsize=2, label=names[m])
+    ax.set_xticks(x, [labels[p] for p in pols])
+    ax.axhline(0, color="k", lw=0.5)
+    ax.set_ylabel("quality gain")
+    ax.set_title("Parallel jaw vs suction (Fig. 4.3 analogue)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    p2 = out_dir / "push_policies_fig4_3.png"
+    fig.savefig(p2, dpi=120)
+    plt.close(fig)
+    paths.append(p2)
+    return paths

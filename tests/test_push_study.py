@@ -1,0 +1,113 @@
+"""The Ch. 4 push study: metrics, the physics push, determinism, the summary."""
+
+import numpy as np
+import pytest
+from pydrake.common.eigen_geometry import Quaternion  # noqa: F401
+
+from ms_drake.experiments.push_study import (
+    METRICS,
+    GraspSets,
+    PushWorld,
+    StudyParams,
+    _mesh,
+    mean_separation,
+    run_policy,
+    separation_gain,
+    state_metrics,
+    summarize_push,
+)
+from ms_drake.geometry import Workspace
+from ms_drake.pushing import POLICIES
+from ms_drake.types import Heap, ObjectPose
+
+BIN = Workspace((0.0, 0.0), (0.5, 0.4), 0.0, 0.12)
+BOX = "procedural/box_117"  # 5.3 x 4.5 x 3.4 cm
+
+
+def test_mean_separation_by_hand():
+    # One object at the centre: D is its distance to the nearest wall (0.2 m, the y walls).
+    assert mean_separation(np.array([[0.0, 0.0]]), BIN) == pytest.approx(0.2)
+    # Two objects 0.1 m apart on the x axis: (0.1 + 0.2 + 0.2) / (1 + 2).
+    assert mean_separation(np.array([[-0.05, 0.0], [0.05, 0.0]]), BIN) == pytest.approx(0.5 / 3)
+    assert separation_gain(0.1, 0.2) == pytest.approx(0.5) and separation_gain(0.2, 0.1) == pytest.approx(-0.5)
+    assert separation_gain(0.0, 0.0) == 0.0
+
+
+def _pair_heap():
+    """Two boxes touching side by side (along x) near the +y wall, resting on the floor."""
+    v = np.asarray(_mesh(BOX).vertices)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    z = -lo[2] + 0.001
+    ex = hi[0] - lo[0]
+    xa, xb = -0.5 * ex - 0.0005 - 0.5 * (hi[0] + lo[0]), 0.5 * ex + 0.0005 - 0.5 * (hi[0] + lo[0])
+    y = 0.12 - 0.5 * (hi[1] + lo[1])
+    objs = (ObjectPose(BOX, (1.0, 0.0, 0.0, 0.0, xa, y, z)), ObjectPose(BOX, (1.0, 0.0, 0.0, 0.0, xb, y, z)))
+    return Heap(seed=0, environment="bin", objects=objs)
+
+
+@pytest.fixture(scope="module")
+def pair_world():
+    w = PushWorld(_pair_heap(), StudyParams())
+    w.advance(0.3)
+    return w
+
+
+def test_boundary_shear_separates_two_touching_boxes(pair_world):
+    w = pair_world
+    snap = w.snapshot()
+    sets = GraspSets(StudyParams(), seed=0)
+    before = state_metrics(w, sets)
+    assert before["objects"] == 2
+    rec = run_policy(w, snap, before, sets, "boundary_shear", seed=0)
+    assert rec["pushed"] and rec["push"]["object"] in w.ids
+    assert rec["separation_gain"] > 0.05  # pushed along the boundary, toward the bin's middle
+    assert rec["left_bin"] == 0
+    for m in METRICS[1:]:
+        assert -1.0 <= rec[m] <= 1.0
+    # The pushed box moved; the state is restored for the next policy.
+    w.restore(snap)
+    again = state_metrics(w, sets)
+    assert again["D"] == pytest.approx(before["D"]) and again["overall"] == before["overall"]
+
+
+def test_metrics_are_deterministic_under_a_seed(pair_world):
+    w = pair_world
+    snap = w.snapshot()
+    out = []
+    for _ in range(2):
+        w.restore(snap)
+        sets = GraspSets(StudyParams(), seed=7)
+        before = state_metrics(w, sets)
+        out.append([run_policy(w, snap, before, sets, p, seed=7) for p in ("quasi_random", "free_space")])
+    for a, b in zip(*out):
+        assert a["push"] == b["push"]
+        for m in METRICS:
+            assert a[m] == b[m]
+
+
+def test_grasp_sets_see_the_neighbour(pair_world):
+    # A box's jaw grasps across the pair's shared side are pruned by the neighbour: its best jaw
+    # quality with the neighbour is at most its best alone.
+    w = pair_world
+    w.restore(w.snapshot())
+    sets = GraspSets(StudyParams(), seed=0)
+    both = sets.qualities(w)
+    alone = sets.qualities(w, ids=[w.ids[0]])
+    assert both["per_object"][w.ids[0]][0] <= alone["per_object"][w.ids[0]][0] + 1e-12
+    assert 0.0 <= both["overall"] <= 1.0 and both["overall"] == max(both["jaw"], both["suction"])
+
+
+def test_summary_means_and_anova():
+    rows = []
+    rng = np.random.default_rng(0)
+    for s in range(20):
+        for k, p in enumerate(POLICIES):
+            rows.append({"seed": s, "policy": p, "pushed": True, "separation_gain": 0.01 * k + 0.01 * rng.random(),
+                         "jaw_gain": 0.1, "suction_gain": 0.0, "overall_gain": 0.1 + 0.05 * (p == "free_space")})
+    rows.append({"seed": 99, "policy": "free_space", "pushed": True, **{m: 1.0 for m in METRICS}})  # not common
+    s = summarize_push(rows)
+    assert s["heaps"] == 20
+    assert s["policies"]["free_space"]["overall_gain"]["mean"] == pytest.approx(0.15)
+    assert s["policies"]["quasi_random"]["jaw_gain"]["se"] == pytest.approx(0.0)
+    a = s["anova"]["separation_gain"]
+    assert a["df"] == [4, 95] and a["p"] < 1e-6
