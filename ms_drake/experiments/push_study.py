@@ -52,15 +52,22 @@ from scipy.stats import f_oneway
 
 from ms_drake.execution import PrimitiveBackend, remove_objects
 from ms_drake.execution.backends import tcp_offset_of
-from ms_drake.experiments.heap_grasps import _coal_shape, _shape_pose, gripper_boxes
-from ms_drake.geometry import Workspace
+from ms_drake.experiments.heap_grasps import _coal_shape, _shape_pose, gripper_boxes, heap_grasp_inputs
+from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.grasping.evaluator import GraspEvaluator
 from ms_drake.grasping.samplers import sample_antipodal_grasps, sample_suction_grasps
 from ms_drake.grasping.grasp import SuctionGrasp
 from ms_drake.grasping.suction import SuctionEvaluator
 from ms_drake.objects import get_object
 from ms_drake.parallel import run_jobs
-from ms_drake.pushing.policies import POLICIES, PolicyParams, check_push_policy, plan_policy_push, state_scene
+from ms_drake.pushing.policies import (
+    POLICIES,
+    PolicyParams,
+    check_push_policy,
+    image_scene,
+    plan_policy_push,
+    state_scene,
+)
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import generate_heap, heap_to_dict, scenario_with_heap, set_heap_poses
 from ms_drake.station import MakeStation, get_plant, station_objects
@@ -663,3 +670,93 @@ def plot_push(s: dict, out_dir: Path) -> list[Path]:
     plt.close(fig)
     paths.append(p2)
     return paths
+
+
+def planning_speed(heaps: int = 20, seed_start: int = 0, objects: int = 8, repeats: int = 3) -> dict:
+    """CPU ms to plan one push per policy and source (full state, depth image + ground-truth masks)
+    on `heaps` dropped heaps of `objects` objects (BinHeap15): median and max over heaps of the
+    best of `repeats` (the heap's scene built once per source; its building is timed apart)."""
+    from_scen = _scenario("BinHeap15")
+    cam = PinholeCamera.from_config(from_scen.cameras["overhead"])
+    ws = Workspace.from_scenario(from_scen)
+    times = {(src, p): [] for src in ("state", "image") for p in POLICIES}
+    build = {"state": [], "image": []}
+    found = {(src, p): 0 for src in ("state", "image") for p in POLICIES}
+    for seed in range(seed_start, seed_start + heaps):
+        heap = generate_heap(copy.deepcopy(from_scen), objects, seed)
+        inp = heap_grasp_inputs(copy.deepcopy(from_scen), heap)
+        for src in ("state", "image"):
+            for p in POLICIES:
+                best = np.inf
+                for _ in range(repeats):
+                    c0 = time.process_time()
+                    scene = (state_scene(inp.objects, ws) if src == "state" else
+                             image_scene(inp.depth, inp.masks, cam, ws))
+                    c1 = time.process_time()
+                    push = plan_policy_push(p, scene, seed=seed)
+                    best = min(best, time.process_time() - c1)
+                    build[src].append(c1 - c0)
+                times[(src, p)].append(1000 * best)
+                found[(src, p)] += push is not None
+    return {"heaps": heaps, "objects": objects,
+            "build_ms": {k: float(1000 * np.median(v)) for k, v in build.items()},
+            "plan_ms": {f"{s}/{p}": {"median": float(np.median(v)), "max": float(np.max(v)),
+                                     "found": found[(s, p)]} for (s, p), v in times.items()}}
+
+
+def push_example_figure(seed: int, out: Path, params: StudyParams = StudyParams(), policies=POLICIES) -> dict:
+    """Fig. 4.4 / 4.5 style picture of heap `seed`: Algorithm 1 replayed (deterministic), then per
+    policy the overhead image before (its push drawn as an arrow, tail = the jaw's start) and after
+    the push, with the overall / jaw / suction gains. Returns the policies' gains."""
+    matplotlib.use("Agg")
+    n = _heap_size(seed, params)
+    heap = generate_heap(copy.deepcopy(_scenario("BinHeap15")), n, seed)
+    heap = Heap(heap.seed, heap.environment, heap.objects)
+    world = PushWorld(heap, params, cameras=True)
+    world.advance(params.settle)
+    sets = GraspSets(params, seed)
+    reason, before, _ = grasp_until_stuck(world, sets, seed, params)
+    if reason == "cleared":
+        raise ValueError(f"heap {seed} was cleared by Algorithm 1's grasps: no push state to draw")
+    snap = world.snapshot()
+    cam = PinholeCamera.from_config(world.scenario.cameras["overhead"])
+    ws = world.workspace
+    half = 0.5 * np.asarray(ws.size_xy) + 0.03
+    corners = np.array([[ws.center_xy[0] + sx * half[0], ws.center_xy[1] + sy * half[1], ws.floor_z]
+                        for sx, sy in ((-1, -1), (1, 1))])
+    (u0, v0), (u1, v1) = cam.project(corners)[0]
+    crop = (slice(int(max(min(v0, v1), 0)), int(max(v0, v1))), slice(int(max(min(u0, u1), 0)), int(max(u0, u1))))
+
+    def rgb():
+        img = world.station.GetOutputPort("overhead.rgb_image").Eval(world.context)
+        return np.array(img.data)[..., :3][crop]
+
+    fig, axes = plt.subplots(2, len(policies), figsize=(3.2 * len(policies), 5.4))
+    axes = np.atleast_2d(axes).reshape(2, len(policies))
+    out_gains = {}
+    for k, p in enumerate(policies):
+        world.restore(snap)
+        img0 = rgb()
+        rec = run_policy(world, snap, before, sets, p, seed)
+        img1 = rgb()
+        out_gains[p] = {m: rec[m] for m in METRICS}
+        axes[0, k].imshow(img0)
+        if rec["push"] is not None:
+            uv, _ = cam.project(np.array([rec["push"]["start"], rec["push"]["end"]]))
+            uv = uv - [crop[1].start, crop[0].start]
+            axes[0, k].annotate("", xy=uv[1], xytext=uv[0],
+                                arrowprops=dict(color="blue", width=2.0, headwidth=8.0))
+        axes[0, k].set_title(p.replace("_", " ") + ("" if rec["pushed"] else " (no push)"), fontsize=9)
+        axes[1, k].imshow(img1)
+        axes[1, k].set_title(f"dQo {rec['overall_gain']:+.2f} dQj {rec['jaw_gain']:+.2f} "
+                             f"dQs {rec['suction_gain']:+.2f}\ndD {rec['separation_gain']:+.2f}", fontsize=8)
+        for a in axes[:, k]:
+            a.axis("off")
+    fig.suptitle(f"heap {seed}: {before['objects']} objects, Q*o = {before['overall']:.2f} before "
+                 f"(top: planned push; bottom: after)", fontsize=10)
+    fig.tight_layout()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return out_gains

@@ -21,7 +21,8 @@ Policies (the reference's steps; our choices where it is silent, recorded here):
                      through its centre, clipped to the bin; no collision check (the baseline);
   boundary_shear     the two objects with the closest centres c_i, c_j; four pushes along the
                      perpendicular to c_i c_j (each object, both senses); the collision-free one
-                     closest (cosine) to the object's direction of free space;
+                     closest (cosine) to the object's direction of free space (one object alone:
+                     the free-space push);
   free_space         the same two objects; each object's free-space point p (below); directions
                      from c toward p turned in 10-degree steps up to 90 degrees, the first
                      collision-free one per object; of the two, the object nearer its p;
