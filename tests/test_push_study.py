@@ -111,3 +111,18 @@ def test_summary_means_and_anova():
     assert s["policies"]["quasi_random"]["jaw_gain"]["se"] == pytest.approx(0.0)
     a = s["anova"]["separation_gain"]
     assert a["df"] == [4, 95] and a["p"] < 1e-6
+
+
+def test_metrics_do_not_depend_on_the_states_measured_before(pair_world):
+    # Grasp sets keyed by (seed, object, tilt bin): measuring after a push and then the start
+    # state gives the start state's metrics of a fresh measurement.
+    w = pair_world
+    snap = w.snapshot()
+    fresh = state_metrics(w, GraspSets(StudyParams(), seed=3))
+    used = GraspSets(StudyParams(), seed=3)
+    before = state_metrics(w, used)
+    run_policy(w, snap, before, used, "quasi_random", seed=11)
+    w.restore(snap)
+    again = state_metrics(w, used)
+    assert again["per_object"] == fresh["per_object"]
+    assert (again["jaw"], again["suction"]) == (fresh["jaw"], fresh["suction"])

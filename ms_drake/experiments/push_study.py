@@ -19,8 +19,10 @@ Metrics (lines 590-642), on the objects in the bin before and after the push:
                    fingers, or the cup's stem as a cylinder along the approach, against the other
                    objects' collision shapes and the bin): best per object, then the best object.
 A grasp's quality depends only on where gravity points in the object's frame, so an object's
-sampled grasps and qualities are kept (object frame) and reused while its tilt stays within
-`retilt_deg`; the collision check is redone in every state.
+grasps are sampled and scored once per tilt bin (gravity in the object frame rounded to
+`tilt_grid` per component, ~3 degrees), in a frame where the rounded gravity points exactly down,
+seeded by (heap seed, object, bin): the metrics of a state do not depend on the states measured
+before it. The collision check is redone in every state.
 
 Algorithm 1 (lines 704-720), `improvable_heap(seed)`: a heap of N objects, N uniform in
 [`min_objects`, `max_objects`] (our choice: small heaps, as the reference's final heaps mostly
@@ -94,7 +96,7 @@ class StudyParams:
     grasps: int = 100  # per object and gripper (the reference's)
     robust_samples: int = 4
     max_approach: float = np.radians(60.0)
-    retilt_deg: float = 5.0
+    tilt_grid: float = 0.05  # gravity in the object frame, rounded per component (bins of ~3 degrees)
     cup_length: float = 0.10  # the suction stem checked for collisions along the approach
     cup_radius: float = 0.015
     threshold: float = 0.5
@@ -268,6 +270,19 @@ def _collides(boxes, shapes) -> bool:
     return False
 
 
+def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation R with R a = b (unit vectors)."""
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    v, c = np.cross(a, b), float(a @ b)
+    if c < -1 + 1e-12:  # opposite: half a turn about any axis perpendicular to a
+        axis = np.cross(a, [1.0, 0.0, 0.0])
+        axis = axis if np.linalg.norm(axis) > 1e-6 else np.cross(a, [0.0, 1.0, 0.0])
+        axis /= np.linalg.norm(axis)
+        return 2 * np.outer(axis, axis) - np.eye(3)
+    K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + K + K @ K / (1 + c)
+
+
 def _jaw_boxes(g):
     return [(coal.Box(*np.maximum(size - 0.002, 1e-6)), coal.Transform3s(X[:3, :3], X[:3, 3]))
             for _, size, X in gripper_boxes(g)]
@@ -295,25 +310,33 @@ class GraspSets:
         self.params, self.seed = params, int(seed)
         self.jaw_eval = GraspEvaluator("soft_point")
         self.suction_eval = SuctionEvaluator()
-        self._cache: dict = {}  # id -> [gravity in object frame, jaw [[g_O, q]], suction [[p_O, a_O, q]], version, seed]
+        self._cache: dict = {}  # (id, tilt bin) -> [X of the bin, jaw [[g_O, q]], suction [[p_O, a_O, q]], bin, seed]
         self.evaluations = 0
 
     def _sets(self, oid: str, name: str, X: np.ndarray):
+        """The object's grasp set for its tilt bin: gravity in the object frame rounded to a grid of
+        `tilt_grid` per component; sampled and scored in a frame where that rounded gravity points
+        exactly down, so the set and its qualities depend on (seed, object, bin) only."""
         g_O = X[:3, :3].T @ np.array([0.0, 0.0, -1.0])
-        hit = self._cache.get(oid)
-        if hit is not None and np.degrees(np.arccos(np.clip(hit[0] @ g_O, -1, 1))) <= self.params.retilt_deg:
+        key = tuple(int(v) for v in np.round(g_O / self.params.tilt_grid))
+        hit = self._cache.get((oid, key))
+        if hit is not None:
             return hit
         p = self.params
         mesh = _mesh(name)
-        version = 0 if hit is None else hit[3] + 1
-        rng_seed = int(np.random.default_rng([self.seed, zlib.crc32(oid.encode()), version]).integers(2**31))
-        X_inv = np.linalg.inv(X)
-        jaw = [[g.transformed(X_inv), None] for g in sample_antipodal_grasps(mesh, X, p.grasps, seed=rng_seed)
+        gq = np.asarray(key, float)
+        gq = gq / np.linalg.norm(gq) if np.linalg.norm(gq) > 0 else g_O
+        Xq = np.eye(4)
+        Xq[:3, :3] = _rotation_between(gq, np.array([0.0, 0.0, -1.0]))
+        rng_seed = int(np.random.default_rng([self.seed, zlib.crc32(oid.encode()),
+                                              zlib.crc32(repr(key).encode())]).integers(2**31))
+        Xq_inv = np.linalg.inv(Xq)
+        jaw = [[g.transformed(Xq_inv), None] for g in sample_antipodal_grasps(mesh, Xq, p.grasps, seed=rng_seed)
                if -g.approach[2] >= np.cos(p.max_approach)]
-        suc = [[X_inv[:3, :3] @ g.point + X_inv[:3, 3], X_inv[:3, :3] @ g.approach, None]
-               for g in sample_suction_grasps(mesh, X, p.grasps, seed=rng_seed + 1, max_approach_angle=p.max_approach)]
-        entry = [g_O, jaw, suc, version, rng_seed]
-        self._cache[oid] = entry
+        suc = [[Xq_inv[:3, :3] @ g.point, Xq_inv[:3, :3] @ g.approach, None]
+               for g in sample_suction_grasps(mesh, Xq, p.grasps, seed=rng_seed + 1, max_approach_angle=p.max_approach)]
+        entry = [Xq, jaw, suc, key, rng_seed]
+        self._cache[(oid, key)] = entry
         return entry
 
     def _best(self, oid, name, X, others, kind):
@@ -331,14 +354,15 @@ class GraspSets:
                 continue  # cannot beat the best so far
             if _collides(boxes, others):
                 continue
-            if item[-1] is None:
-                mesh = _mesh(name)
+            if item[-1] is None:  # scored in the bin's frame (gravity exactly the rounded one)
+                mesh, Xq = _mesh(name), entry[0]
                 if kind == "jaw":
-                    item[-1] = float(self.jaw_eval.quality(mesh, X, g, spec.mass, self.params.robust_samples,
-                                                           seed=entry[4]))
+                    item[-1] = float(self.jaw_eval.quality(mesh, Xq, item[0].transformed(Xq), spec.mass,
+                                                           self.params.robust_samples, seed=entry[4]))
                 else:
-                    item[-1] = float(self.suction_eval.quality(mesh, X, SuctionGrasp(*g), spec.mass,
-                                                               self.params.robust_samples, seed=entry[4]))
+                    sg = SuctionGrasp(Xq[:3, :3] @ item[0], Xq[:3, :3] @ item[1])
+                    item[-1] = float(self.suction_eval.quality(mesh, Xq, sg, spec.mass, self.params.robust_samples,
+                                                               seed=entry[4]))
                 self.evaluations += 1
             if item[-1] > best:
                 best, best_g = item[-1], g

@@ -122,7 +122,8 @@ class PushScene:
         return max(t, 0.0)
 
     def clearance(self, i: int, d: np.ndarray, limit: float) -> float:
-        return min(self.wall_clearance(i, d), self.checker.clearance(self, i, d, limit), limit)
+        limit = min(self.wall_clearance(i, d), limit)
+        return min(self.checker.clearance(self, i, d, limit), limit) if limit > 0 else 0.0
 
     def free_point(self, i: int, params: PolicyParams) -> np.ndarray:
         """The free-space point p_i (module docstring)."""
@@ -301,6 +302,16 @@ class ImageChecker:
             ij = np.unique(np.stack([i, j], axis=1), axis=0)
             self.labels[ij[:, 0], ij[:, 1]] = k
             self.cells.append(ij)
+        # An object's boundary cells (a 8-neighbour outside it): a shifted footprint first meets
+        # another object with them (the shifts advance by at most one cell per step).
+        pad = np.pad(self.labels, 1, constant_values=-1)
+        for k, ij in enumerate(self.cells):
+            I, J = ij[:, 0] + 1, ij[:, 1] + 1
+            inner = np.ones(len(ij), bool)
+            for di in (-1, 0, 1):
+                for dj in (-1, 0, 1):
+                    inner &= pad[I + di, J + dj] == k
+            self.cells[k] = ij[~inner] if (~inner).any() else ij
 
     def clearance(self, scene: PushScene, i: int, d2: np.ndarray, limit: float) -> float:
         ij = self.cells[i]
@@ -470,11 +481,13 @@ def max_clearance(scene: PushScene, params: PolicyParams, rng=None) -> Push | No
     for i in range(len(scene.objects)):
         for a in angles:
             d = np.array([np.cos(a), np.sin(a)])
+            back = max(scene.clearance(i, -d, params.max_travel), params.resolution)
+            if params.max_travel / back <= best_ratio:
+                continue  # even the longest forward clearance would not beat the best ratio
             fwd = scene.clearance(i, d, params.max_travel)
             if fwd < params.min_clearance:
                 continue
-            back = scene.clearance(i, -d, params.max_travel)
-            ratio = fwd / max(back, params.resolution)
+            ratio = fwd / back
             if ratio > best_ratio:
                 push = make_push(scene, i, d, fwd, params)
                 if push is not None:
