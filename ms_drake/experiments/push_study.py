@@ -252,20 +252,44 @@ def _bin_shapes(scenario) -> list:
     env = scenario.environment
     X_env = np.eye(4)
     X_env[:3, 3] = np.asarray(env.position, float)
-    return [("bin", _coal_shape(sh), _shape_pose(X_env, sh.pose))
-            for _, sh, _ in _boxes(env.type, env.resolved_size(), env.wall_thickness)]
+    out = []
+    for _, sh, _ in _boxes(env.type, env.resolved_size(), env.wall_thickness):
+        T = _shape_pose(X_env, sh.pose)
+        out.append(_prepared(_coal_shape(sh), T[:3, :3], T[:3, 3]))
+    return out
 
 
 def _object_shapes(oid: str, name: str, X: np.ndarray) -> list:
-    return [(oid, _coal_shape(sh), _shape_pose(X, sh.pose)) for sh in get_object(name).collisions]
+    out = []
+    for sh in get_object(name).collisions:
+        T = _shape_pose(X, sh.pose)
+        out.append(_prepared(_coal_shape(sh), T[:3, :3], T[:3, 3]))
+    return out
+
+
+def _half(shape) -> np.ndarray:
+    if isinstance(shape, coal.Box):
+        return np.asarray(shape.halfSide, float)
+    if isinstance(shape, coal.Cylinder):
+        return np.array([shape.radius, shape.radius, shape.halfLength])
+    return np.full(3, float(shape.radius))
+
+
+def _prepared(shape, R: np.ndarray, p: np.ndarray) -> tuple:
+    """(shape, coal pose, world AABB lo, hi): the AABB skips coal calls that cannot collide."""
+    e = np.abs(R) @ _half(shape)
+    return shape, coal.Transform3s(R, p), p - e, p + e
 
 
 def _collides(boxes, shapes) -> bool:
+    """Any of `boxes` against any of `shapes` (both lists of _prepared tuples)."""
     req = coal.CollisionRequest()
-    for shape1, T1 in boxes:
-        for _, shape, Xs in shapes:
+    for shape1, T1, lo1, hi1 in boxes:
+        for shape, T2, lo2, hi2 in shapes:
+            if np.any(lo1 > hi2) or np.any(lo2 > hi1):
+                continue
             res = coal.CollisionResult()
-            if coal.collide(shape1, T1, shape, coal.Transform3s(Xs[:3, :3], Xs[:3, 3]), req, res):
+            if coal.collide(shape1, T1, shape, T2, req, res):
                 return True
     return False
 
@@ -284,7 +308,7 @@ def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _jaw_boxes(g):
-    return [(coal.Box(*np.maximum(size - 0.002, 1e-6)), coal.Transform3s(X[:3, :3], X[:3, 3]))
+    return [_prepared(coal.Box(*np.maximum(size - 0.002, 1e-6)), X[:3, :3], X[:3, 3])
             for _, size, X in gripper_boxes(g)]
 
 
@@ -297,7 +321,7 @@ def _cup_boxes(point, approach, params: StudyParams):
     x /= np.linalg.norm(x)
     R = np.column_stack([x, np.cross(z, x), z])
     c = np.asarray(point, float) + z * (0.003 + 0.5 * params.cup_length)
-    return [(coal.Cylinder(params.cup_radius, params.cup_length), coal.Transform3s(R, c))]
+    return [_prepared(coal.Cylinder(params.cup_radius, params.cup_length), R, c)]
 
 
 class GraspSets:
