@@ -7,15 +7,19 @@ import numpy as np
 import pytest
 import trimesh
 from pydrake.math import RigidTransform, RollPitchYaw
+from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.sensors import ImageDepth32F
 
+from ms_drake.experiments.rollout import SearchParams, _set_initial, build_search
 from ms_drake.geometry import PinholeCamera, Workspace, world_points
 from ms_drake.perception.masks import object_labels
 from ms_drake.perception.segmentation import Segmenter
+from ms_drake.policies.bin_search import BinSearchParams
 from ms_drake.pushing import POLICIES, PolicyParams, PushError, PushPolicySystem, image_scene, plan_policy_push, \
     state_scene
 from ms_drake.pushing.policies import clusters, closest_pair
+from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import scenario_with_heap, set_heap_poses
 from ms_drake.station import MakeStation, get_plant
 from ms_drake.types import InstanceMasks, ObjectGeometry
@@ -227,3 +231,17 @@ def test_system_wired_to_a_station(bin_scenario, small_heap):
             assert push.object_id in masks.ids
             assert np.all(np.abs(np.array(push.end[:2]) - ws.center_xy) <= half)
     assert planned >= 2  # quasi_random always pushes; a 4-object heap leaves room for others
+
+
+def test_push_policy_in_the_bin_search_controller(small_heap):
+    params = SearchParams(policy="largest_push", seed=5, time_step=0.01, push_policy="max_clearance")
+    system = build_search(load_scenario(None, "FloatingGripperBin"), small_heap, params)
+    sysm = system.controller.GetSubsystemByName("push_planner")
+    assert isinstance(sysm, PushPolicySystem) and sysm.policy == "max_clearance"
+    ctx = Simulator(system.diagram).get_mutable_context()
+    _set_initial(system, ctx, small_heap)
+    pushes = system.output(ctx, "pushes")
+    masks = system.output(ctx, "masks")
+    assert len(pushes) == 1 and pushes[0].object_id in masks.ids
+    with pytest.raises(PushError, match="choose one of quasi_random"):
+        BinSearchParams(policy="largest_push", push_policy="sideways")

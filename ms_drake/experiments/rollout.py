@@ -88,6 +88,9 @@ class SearchParams:
     # BinSearchParams.grasp_planner: "indexed" (the objects' grasp sets) or "image"; "" (default):
     # indexed for the primitive fidelity, image for the full one
     grasp_planner: str = ""
+    # The *_push selectors' pushes (BinSearchParams.push_policy): "" = the Ch. 7 free-space push,
+    # or a Ch. 4 policy (ms_drake.pushing.POLICIES).
+    push_policy: str = ""
 
     def __post_init__(self):
         check_policy(self.policy)
@@ -128,6 +131,7 @@ class RolloutResult:
     objects_present: int = 0  # objects in the heap searched (its budget 2N counts these)
     grasp_plans: int = 0  # object grasp plans (LazyGraspPlanner: only the masks the selector reached)
     grasp_planner: str = ""
+    push_policy: str = ""
     error: str = ""
     frames: list = field(default_factory=list, repr=False)
 
@@ -162,7 +166,7 @@ def controller_params(params: SearchParams, num_objects: int) -> BinSearchParams
                            robust_samples=params.robust_samples, grasp_params=params.grasp_params,
                            period=params.period, segmentation=params.segmenter, detector=params.detector,
                            occupancy="analytic" if params.policy == "oracle" else params.occupancy,
-                           grasp_planner=params.grasp_planner)
+                           grasp_planner=params.grasp_planner, push_policy=params.push_policy)
 
 
 def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSystem:
@@ -289,6 +293,7 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
                         target=heap.target, segmenter=params.segmenter, detector=params.detector,
                         grasp_successes=sum(1 for o in history if o.action.kind == "grasp" and o.success),
                         grasp_plans=grasp_plans, grasp_planner=system.controller.params.grasp_planner,
+                        push_policy=params.push_policy,
                         error=msg, frames=frames)
     return res
 

@@ -59,7 +59,7 @@ from ms_drake.perception.target import BACKENDS as DETECTOR_BACKENDS
 from ms_drake.perception.target import TargetDetector, render_templates
 from ms_drake.policies.bin_selectors import SelectorParams, check_policy
 from ms_drake.policies.selector import PolicySelector
-from ms_drake.pushing import PushPlanner
+from ms_drake.pushing import PushPlanner, PushPolicySystem, check_push_policy
 from ms_drake.station import get_plant, station_objects
 
 
@@ -93,6 +93,9 @@ class BinSearchParams:
     pose, checked against the scene, ms_drake.grasping.indexed; objects without a set, or
     without `sim`, are planned on the image) or "image" (the image-based planners only); ""
     (default): "indexed" for the primitive fidelity, "image" for the full one.
+    push_policy: the pushes of the *_push selectors: "" (default) the Ch. 7 free-space push of
+    every object (PushPlanner), or a Ch. 4 policy of ms_drake.pushing.POLICIES (PushPolicySystem
+    on the depth image and masks: one push, of the object the policy chooses).
     """
 
     policy: str = "largest"
@@ -110,9 +113,12 @@ class BinSearchParams:
     camera: str = "overhead"
     period: float = 0.05
     grasp_planner: str = ""
+    push_policy: str = ""
 
     def __post_init__(self):
         check_policy(self.policy)
+        if self.push_policy:
+            check_push_policy(self.push_policy)
         if self.fidelity not in FIDELITIES:
             raise ControllerError(f"fidelity {self.fidelity!r} unknown; choose one of {', '.join(FIDELITIES)}")
         if self.segmentation not in SEGMENTATION_BACKENDS:
@@ -280,7 +286,9 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
     builder.Connect(grasp.GetOutputPort("grasps"), selector.GetInputPort("grasps"))
     outputs = {"masks": masks, "target": det.GetOutputPort("target"), "grasps": grasp.GetOutputPort("grasps")}
     if params.policy.endswith("_push"):
-        pushes = builder.AddSystem(PushPlanner(camera, workspace))
+        pushes = builder.AddSystem(PushPolicySystem(params.push_policy, camera, workspace, source="image",
+                                                    seed=params.seed) if params.push_policy
+                                   else PushPlanner(camera, workspace))
         pushes.set_name("push_planner")
         depth_inputs.append(pushes.GetInputPort("depth_image"))
         builder.Connect(masks, pushes.GetInputPort("masks"))
