@@ -378,9 +378,14 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
                  segmenter: str = typer.Option("ground_truth", "--segmenter", help="Instance masks: ground_truth "
                                                "(label image) | euclidean | region_growing | learned (depth)"),
                  detector: str = typer.Option("color", "--detector", help="Target detector: color (HSV, red "
-                                              "target) | template | learned (siamese matcher on target views)")):
+                                              "target) | template | learned (siamese matcher on target views)"),
+                 push_policy: str = typer.Option("", "--push-policy", help="The *_push selectors' pushes: "
+                                                 "'' = the Ch. 7 free-space push of every object, or a Ch. 4 "
+                                                 f"policy ({' | '.join(PUSH_POLICIES)})")):
     """Search heaps S..S+K-1 with a policy; one JSON line per rollout (resumable), then a summary."""
     check_policy(policy)
+    if push_policy and push_policy not in PUSH_POLICIES:
+        _fail(f"--push-policy {push_policy!r}: choose one of {', '.join(PUSH_POLICIES)}")
     if segmenter not in SEGMENTATION_BACKENDS:
         _fail(f"--segmenter {segmenter!r}: choose one of {', '.join(SEGMENTATION_BACKENDS)}")
     if detector not in DETECTOR_BACKENDS:
@@ -403,7 +408,7 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
     s = run_bench(policy, objects, heaps_, seed_start, out, workers=workers, fidelity=fidelity, horizon=horizon,
                   use_ray=ray or ray_address is not None, ray_address=ray_address, progress=progress,
                   heap_dir=str(heap_dir) if heap_dir is not None else None, protocol=protocol,
-                  segmenter=segmenter, detector=detector)
+                  segmenter=segmenter, detector=detector, push_policy=push_policy)
     if s["resumed"]:
         typer.echo(f"resuming: {s['resumed']} of {heaps_} rollouts already in {out}")
     typer.echo(format_summary(policy, s))

@@ -59,13 +59,15 @@ whose target starts fully hidden (heap_xray_hidden_N<N>_s<seed>.json)."""
 
 
 def rollout_job(job: tuple) -> dict:
-    """(policy, objects, seed, fidelity, horizon[, heap_dir[, protocol[, segmenter, detector]]]) -> record;
-    module-level for pickling."""
+    """(policy, objects, seed, fidelity, horizon[, heap_dir[, protocol[, segmenter, detector[, push_policy]]]])
+    -> record; module-level for pickling."""
     policy, objects, seed, fidelity, horizon, *rest = job
     protocol = rest[1] if len(rest) > 1 else "ch7"
     segmenter, detector = (rest[2], rest[3]) if len(rest) > 3 else ("ground_truth", "color")
+    push_policy = rest[4] if len(rest) > 4 else ""
     heap = cached_heap(objects, seed, rest[0] if rest else None, protocol)
-    rec = rollout(policy, objects, seed, fidelity, horizon, heap=heap, segmenter=segmenter, detector=detector).record()
+    rec = rollout(policy, objects, seed, fidelity, horizon, heap=heap, segmenter=segmenter, detector=detector,
+                  push_policy=push_policy).record()
     if protocol != "ch7":
         rec["protocol"] = protocol
     rec["pid"] = os.getpid()
@@ -104,34 +106,39 @@ def result_file(out_dir, policy: str, objects: int, horizon: int | None = None) 
 
 
 def _matches(r: dict, policy: str, objects: int, fidelity: str, segmenter: str = "ground_truth",
-             detector: str = "color") -> bool:
+             detector: str = "color", push_policy: str = "") -> bool:
     return (r.get("policy") == policy and r.get("objects") == objects and r.get("fidelity", "primitive") == fidelity
-            and r.get("segmenter", "ground_truth") == segmenter and r.get("detector", "color") == detector)
+            and r.get("segmenter", "ground_truth") == segmenter and r.get("detector", "color") == detector
+            and r.get("push_policy", "") == push_policy)
 
 
 def _done_seeds(path: Path, policy: str, objects: int, fidelity: str, segmenter: str = "ground_truth",
-                detector: str = "color") -> set[int]:
+                detector: str = "color", push_policy: str = "") -> set[int]:
     return {int(r["seed"]) for r in final_records(read_records(path))
-            if _matches(r, policy, objects, fidelity, segmenter, detector) and r.get("failure") != "worker_died"}
+            if _matches(r, policy, objects, fidelity, segmenter, detector, push_policy)
+            and r.get("failure") != "worker_died"}
 
 
 def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, workers: int = 1,
               fidelity: str = "primitive", horizon: int | None = None, use_ray: bool = False,
               ray_address: str | None = None, progress=None, heap_dir: str | None = None,
-              protocol: str = "ch7", segmenter: str = "ground_truth", detector: str = "color") -> dict:
+              protocol: str = "ch7", segmenter: str = "ground_truth", detector: str = "color",
+              push_policy: str = "") -> dict:
     """The missing rollouts of every run (policy, N, result file) on seeds S..S+K-1, all through
     ONE pool of `workers` processes; each record is appended (flushed, fsync'ed) to its run's file
     as it completes, so a killed run loses only the rollouts in flight and the same command
     resumes it. Jobs are queued run by run (all seeds of the first run, then the next), so with a
     shared `heap_dir` the first run's workers generate the heaps in parallel, each heap once, and
-    later runs load them. segmenter / detector: the controller's perception (SearchParams).
+    later runs load them. segmenter / detector: the controller's perception (SearchParams);
+    push_policy: the *_push selectors' push policy (SearchParams.push_policy, "" = Ch. 7's).
     Returns {(policy, N): summary}."""
     jobs, done = [], {}
     for policy, objects, out in runs:
         out = Path(out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        done[(policy, objects)] = _done_seeds(out, policy, objects, fidelity, segmenter, detector)
-        jobs += [(policy, objects, k, fidelity, horizon, heap_dir, protocol, segmenter, detector) for k in range(seed_start, seed_start + heaps)
+        done[(policy, objects)] = _done_seeds(out, policy, objects, fidelity, segmenter, detector, push_policy)
+        jobs += [(policy, objects, k, fidelity, horizon, heap_dir, protocol, segmenter, detector, push_policy)
+                 for k in range(seed_start, seed_start + heaps)
                  if k not in done[(policy, objects)]]
     files = {(policy, objects): Path(out) for policy, objects, out in runs}
     t0 = time.perf_counter()
@@ -145,7 +152,8 @@ def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, wo
                 err = (r.error or "").strip().splitlines()
                 rec = dict(seed=seed, policy=policy, fidelity=fidelity, objects=objects, success=False,
                            actions=0, action_kinds=[], failure="worker_died", stop_reason="",
-                           error=err[-1] if err else "", seconds=0.0, segmenter=segmenter, detector=detector)
+                           error=err[-1] if err else "", seconds=0.0, segmenter=segmenter, detector=detector,
+                           push_policy=push_policy)
             key = (policy, objects)
             if key not in handles:
                 handles[key] = open(files[key], "a")
@@ -161,7 +169,8 @@ def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, wo
     wall = time.perf_counter() - t0
     out = {}
     for policy, objects, path in runs:
-        recs = [r for r in final_records(read_records(path)) if _matches(r, policy, objects, fidelity, segmenter, detector)
+        recs = [r for r in final_records(read_records(path))
+                if _matches(r, policy, objects, fidelity, segmenter, detector, push_policy)
                 and seed_start <= int(r["seed"]) < seed_start + heaps]
         summ = summarize(recs)
         summ.update(resumed=len(done[(policy, objects)] & set(range(seed_start, seed_start + heaps))),
@@ -173,11 +182,13 @@ def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, wo
 def run_bench(policy: str, objects: int, heaps: int, seed_start: int, out: Path, workers: int = 1,
               fidelity: str = "primitive", horizon: int | None = None, use_ray: bool = False,
               ray_address: str | None = None, progress=None, heap_dir: str | None = None,
-              protocol: str = "ch7", segmenter: str = "ground_truth", detector: str = "color") -> dict:
+              protocol: str = "ch7", segmenter: str = "ground_truth", detector: str = "color",
+              push_policy: str = "") -> dict:
     """Run the missing rollouts of seeds S..S+K-1, append them to `out`; returns the summary."""
     return run_suite([(policy, objects, Path(out))], heaps, seed_start, workers=workers, fidelity=fidelity,
                      horizon=horizon, use_ray=use_ray, ray_address=ray_address, progress=progress,
-                     heap_dir=heap_dir, protocol=protocol, segmenter=segmenter, detector=detector)[(policy, objects)]
+                     heap_dir=heap_dir, protocol=protocol, segmenter=segmenter, detector=detector,
+                     push_policy=push_policy)[(policy, objects)]
 
 
 def truncate_record(rec: dict, horizon: int) -> dict:
