@@ -302,7 +302,8 @@ class ImageChecker:
         for k, xy in enumerate(cells):
             j = np.clip(((xy[:, 0] - self.x0) / res).astype(int), 0, self.nx - 1)
             i = np.clip(((xy[:, 1] - self.y0) / res).astype(int), 0, self.ny - 1)
-            ij = np.unique(np.stack([i, j], axis=1), axis=0)
+            lin = np.unique(i * self.nx + j)  # 1D unique: ~20x cheaper than unique rows
+            ij = np.stack([lin // self.nx, lin % self.nx], axis=1)
             self.labels[ij[:, 0], ij[:, 1]] = k
             self.cells.append(ij)
         # An object's boundary cells (a 8-neighbour outside it): a shifted footprint first meets
