@@ -34,13 +34,13 @@ def test_mean_separation_by_hand():
 
 
 def _pair_heap():
-    """Two boxes touching side by side (along x) near the +y wall, resting on the floor."""
+    """Two boxes touching side by side (along x), 10 cm from the +y wall, resting on the floor."""
     v = np.asarray(_mesh(BOX).vertices)
     lo, hi = v.min(axis=0), v.max(axis=0)
     z = -lo[2] + 0.001
     ex = hi[0] - lo[0]
     xa, xb = -0.5 * ex - 0.0005 - 0.5 * (hi[0] + lo[0]), 0.5 * ex + 0.0005 - 0.5 * (hi[0] + lo[0])
-    y = 0.12 - 0.5 * (hi[1] + lo[1])
+    y = 0.10 - 0.5 * (hi[1] + lo[1])
     objs = (ObjectPose(BOX, (1.0, 0.0, 0.0, 0.0, xa, y, z)), ObjectPose(BOX, (1.0, 0.0, 0.0, 0.0, xb, y, z)))
     return Heap(seed=0, environment="bin", objects=objs)
 

@@ -1,10 +1,9 @@
 """The linear push policies study of Ch. 4: metrics, improvable heaps (Algorithm 1), the benchmark.
 
 Physics: the primitive mode's floating closed jaw (FloatingGripperBin, PrimitiveBackend) moves
-along the push segment in Drake (10 ms steps, the primitive mode's); the jaw starts parked above
-the push's start at the backend's travel height (instead of beside the bin: the legs from and back
-to the park pose touch nothing); then `settle` s. Objects that leave the bin are out of the after
-state.
+along the push segment in Drake (10 ms steps, the primitive mode's): from its park pose beside
+the bin to above the start, down, along the segment, up and back, commanded through the station's
+floating-gripper driver; then `settle` s. Objects that leave the bin are out of the after state.
 
 Metrics (lines 590-642), on the objects in the bin before and after the push:
   separation gain  Delta D = (D1 - D0) / max(D0, D1), D the mean of the pairwise distances of the
@@ -196,26 +195,13 @@ class PushWorld:
         self.removed.add(oid)
 
     def execute_push(self, push) -> float:
-        """The closed jaw along the push (PrimitiveBackend's legs from above the start), then the
-        settle time. Returns the simulated seconds."""
+        """The primitive mode's push: PrimitiveBackend's legs from the parked jaw (above the start,
+        down, along the segment, up, back to the park pose), each a command of the station's
+        floating-gripper driver, then the settle time. Returns the simulated seconds."""
         b = self.backend
-        a, e = np.asarray(push.start, float), np.asarray(push.end, float)
-        yaw = float(np.arctan2(*(e - a)[1::-1])) + np.pi / 2
-        above = b._q([a[0], a[1], b.travel_z], yaw)
-        # Jump the jaw above the start (nothing there: it is above the walls), then the backend's legs.
-        q = self.plant.GetPositions(self.pc)
-        set_arm_positions(self.plant, self.pc, "floating", {"floating.position": above})
-        del q
-        self._cmd.FixValue(self.context, above)
-        motion = b.plan(Action("push", push=push), {"floating.position": above}, 0)
-        path = motion.commands["floating.position"]
-        t_up = float(path.t[4])  # above the end: the leg back to the park pose is skipped
-        self.advance(t_up, command=path)
-        park = b.park
-        set_arm_positions(self.plant, self.pc, "floating", {"floating.position": park})
-        self._cmd.FixValue(self.context, park)
-        self.advance(self.params.settle)
-        return t_up + self.params.settle
+        motion = b.plan(Action("push", push=push), {"floating.position": b.park}, 0)
+        self.advance(motion.duration, command=motion.commands["floating.position"])
+        return motion.duration
 
 
 # --------------------------------------------------------------------------- metrics

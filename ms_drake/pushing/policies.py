@@ -14,7 +14,8 @@ and its height range, and a clearance checker:
     another object's cells or a wall (the "image clearance check"); the jaw is a disc of cells.
 
 Both: the bin walls bound every object's motion (its footprint stays inside the inner box) and
-the jaw's disc stays inside the walls (pushes are clipped to the bin).
+the jaw stays inside the walls (pushes are clipped to the bin): its fingers' disc, and its palm,
+which rides below the wall tops across the push direction (`palm_half_length`).
 
 Policies (the reference's steps; our choices where it is silent, recorded here):
   quasi_random       a random object, a random direction, a fixed push (`PolicyParams.fixed_travel`)
@@ -66,7 +67,12 @@ def check_push_policy(policy: str) -> str:
 
 @dataclass(frozen=True)
 class PolicyParams:
-    gripper_radius: float = 0.025  # the closed jaw seen from above (as PushParams)
+    gripper_radius: float = 0.025  # the closed jaw's fingers seen from above (as PushParams)
+    # The jaw's palm (13 x 5 cm, ParallelJawConfig) lies ~5 cm above the push height, its long
+    # side across the push (PrimitiveBackend: the broad side leads), below the 12-cm walls: it
+    # must stay inside the bin too (half extents with 5 mm margin).
+    palm_half_length: float = 0.07
+    palm_half_width: float = 0.03
     start_gap: float = 0.005  # jaw start behind the object's footprint
     max_travel: float = 0.10  # object displacement cap
     fixed_travel: float = 0.08  # quasi-random's fixed push
@@ -374,13 +380,20 @@ def image_scene(depth, masks: InstanceMasks, camera: PinholeCamera, workspace: W
 
 
 # --------------------------------------------------------------------------- push construction
-def _inside(scene: PushScene, xy: np.ndarray, radius: float) -> bool:
+def _jaw_half(d: np.ndarray, params: PolicyParams) -> np.ndarray:
+    """Per world axis, the half extent of the jaw's footprint (fingers' disc, palm across d)."""
+    perp = np.array([-d[1], d[0]])
+    palm = np.abs(perp) * params.palm_half_length + np.abs(d) * params.palm_half_width
+    return np.maximum(palm, params.gripper_radius)
+
+
+def _inside(scene: PushScene, xy: np.ndarray, radius) -> bool:
     ws = scene.workspace
     half = 0.5 * np.asarray(ws.size_xy) - radius
     return bool(np.all(np.abs(xy - np.asarray(ws.center_xy)) <= half + 1e-9))
 
 
-def _clip_inside(scene: PushScene, xy: np.ndarray, radius: float) -> np.ndarray:
+def _clip_inside(scene: PushScene, xy: np.ndarray, radius) -> np.ndarray:
     ws = scene.workspace
     half = 0.5 * np.asarray(ws.size_xy) - radius
     c = np.asarray(ws.center_xy)
@@ -404,16 +417,17 @@ def make_push(scene: PushScene, i: int, d, travel: float, params: PolicyParams,
     t_back = float(np.max((c - o.footprint) @ d))
     contact = t_back + r  # jaw centre distance behind c when it touches the footprint
     start = c - (contact + params.start_gap) * d
+    jaw = _jaw_half(d, params)
     if check:
         # The jaw descends at the start: it must touch no other object there, and inside the walls.
-        if not (_inside(scene, start, r) and scene.checker.gripper_free(scene, start, z, r, skip=i)):
+        if not (_inside(scene, start, jaw) and scene.checker.gripper_free(scene, start, z, r, skip=i)):
             return None
     else:
-        start = _clip_inside(scene, start, r)
+        start = _clip_inside(scene, start, jaw)
     end = c + (travel - contact) * d
-    # Clipped to the bin: the jaw's disc stays inside the walls.
+    # Clipped to the bin: the jaw (fingers and palm) stays inside the walls.
     L = float((end - start) @ d)
-    half = 0.5 * np.asarray(scene.workspace.size_xy) - r
+    half = 0.5 * np.asarray(scene.workspace.size_xy) - jaw
     cen = np.asarray(scene.workspace.center_xy)
     for k in range(2):
         if d[k] > 1e-9:
