@@ -18,7 +18,7 @@ from ms_drake.perception.segmentation import Segmenter
 from ms_drake.policies.bin_search import BinSearchParams
 from ms_drake.pushing import POLICIES, PolicyParams, PushError, PushPolicySystem, image_scene, plan_policy_push, \
     state_scene
-from ms_drake.pushing.policies import clusters, closest_pair
+from ms_drake.pushing.policies import _jaw_half, clusters, closest_pair
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import scenario_with_heap, set_heap_poses
 from ms_drake.station import MakeStation, get_plant
@@ -140,20 +140,21 @@ def test_quasi_random_is_seeded_and_clipped_to_the_bin():
     a = [plan_policy_push("quasi_random", sc, P, seed=s) for s in range(20)]
     assert a == [plan_policy_push("quasi_random", sc, P, seed=s) for s in range(20)]
     assert len({p.start for p in a}) > 10
-    half = np.array(BIN.size_xy) / 2 - P.gripper_radius
     for p in a:
+        half = np.array(BIN.size_xy) / 2 - _jaw_half(_dir(p), P)  # fingers and palm inside the walls
         assert np.all(np.abs(p.start[:2]) <= half + 1e-9) and np.all(np.abs(p.end[:2]) <= half + 1e-9)
 
 
 def test_pushes_stay_in_the_bin_and_errors_name_the_choices():
     objs = (box("a", -0.2, -0.15), box("b", 0.2, 0.15), box("c", 0.0, 0.0, 0.1, 0.1, 0.05))
-    half = np.array(BIN.size_xy) / 2 - P.gripper_radius
     for source, sc in _scenes(objs).items():
         for pol in POLICIES:
             p = plan_policy_push(pol, sc, P, seed=3)
             if p is None:
                 continue
-            assert np.all(np.abs(p.end[:2]) <= half + 1e-9), (source, pol)
+            half = np.array(BIN.size_xy) / 2 - _jaw_half(_dir(p), P)
+            assert np.all(np.abs(p.end[:2]) <= half + 1e-9) and np.all(np.abs(p.start[:2]) <= half + 1e-9), \
+                (source, pol)
             assert p.start[2] == p.end[2] and 0.0 < p.start[2] <= P.max_push_height
     with pytest.raises(PushError, match="quasi_random, boundary_shear, free_space, max_clearance, cluster_diffusion"):
         plan_policy_push("greedy", state_scene(objs, BIN))
