@@ -61,12 +61,15 @@ def test_data_grasps_command_writes_and_resumes(tmp_path):
             "--robust", "1", "--out", str(tmp_path)]
     r = CliRunner().invoke(app, args)
     assert r.exit_code == 0, r.output
-    files = sorted(p.name for p in tmp_path.glob("*.npz"))
-    assert files == ["box_000.npz", "cylinder_001.npz"]
+    # one pack per set, the per-object files removed; both objects read back from it
+    assert sorted(p.name for p in tmp_path.glob("*.npz")) == ["pack.npz"]
     assert (tmp_path / "README.md").read_text().count("ms-drake data grasps --objects procedural") == 1
-    stamp = (tmp_path / "box_000.npz").stat().st_mtime_ns
-    r = CliRunner().invoke(app, args)  # resume: nothing recomputed
-    assert r.exit_code == 0 and (tmp_path / "box_000.npz").stat().st_mtime_ns == stamp
+    for name in ("procedural/box_000", "procedural/cylinder_001"):
+        gs = load_grasp_set(name, tmp_path)
+        assert gs is not None and gs.params["jaw"] == 5 and np.all(gs.suction_quality > 0)
+    stamp = (tmp_path / "pack.npz").stat().st_mtime_ns
+    r = CliRunner().invoke(app, args)  # resume: nothing recomputed, the pack kept
+    assert r.exit_code == 0 and (tmp_path / "pack.npz").stat().st_mtime_ns == stamp
     r = CliRunner().invoke(app, ["data", "grasps", "--objects", "nothing"])
     assert r.exit_code != 0 and "nothing" in r.output
 
@@ -166,10 +169,15 @@ def test_indexed_planner_wired_in_the_search_diagram():
     """The search diagram holds the IndexedGraspPlanner; on a heap of objects with committed grasp
     sets, the grasp it gives an object is one of the set's at the object's pose, its jaw free of
     every other object."""
-    from ms_drake.experiments.heap_grasps import heap_grasp_inputs, scene_shapes, grasp_collisions
+    from pydrake.systems.analysis import Simulator
+
+    from ms_drake.experiments.heap_grasps import (
+        grasp_collisions,
+        heap_grasp_inputs,
+        scene_shapes,
+    )
     from ms_drake.experiments.rollout import SearchParams, _set_initial, build_search
     from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap
-    from pydrake.systems.analysis import Simulator
 
     heap = generate_heap(load_scenario(None, "BinHeap15"), 4, seed=3, params=SEARCH_HEAPS)
     system = build_search(load_scenario(None, "FloatingGripperBin"), heap,

@@ -2,7 +2,8 @@
 npz per object, resumable, in parallel, with a manifest (manifest.json: the command, the
 parameters, per object the grasp counts and the CPU seconds) and a README in the folder.
 
-A file whose stored parameters equal the run's is kept (resume); any other is recomputed.
+An object whose stored set (file or pack entry) has the run's parameters is kept (resume); any
+other is recomputed.
 """
 
 from __future__ import annotations
@@ -16,7 +17,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ms_drake.grasping.grasp_sets import GraspSet, compute_grasp_set, grasp_set_dir, grasp_set_params
+from ms_drake.grasping.grasp_sets import (
+    compute_grasp_set,
+    grasp_set_dir,
+    grasp_set_params,
+    grasp_set_path,
+    load_grasp_set,
+    pack_grasp_sets,
+)
 from ms_drake.objects import get_object_set
 from ms_drake.parallel import run_jobs
 
@@ -29,18 +37,18 @@ def _job(job: tuple) -> dict:
     gs = compute_grasp_set(name, **kw)
     cpu = time.process_time() - t
     gs.save(Path(out) / f"{name.split('/', 1)[1]}.npz")
-    return {"object": name, "jaw": int(len(gs.jaw_center)), "suction": int(len(gs.suction_point)),
+    return {"object": name, "jaw": len(gs.jaw_center), "suction": len(gs.suction_point),
             "jaw_above_0.5": int((gs.jaw_quality.max(axis=1) > 0.5).sum()) if len(gs.jaw_center) else 0,
             "suction_above_0.5": int((gs.suction_quality > 0.5).sum()), "cpu_s": round(cpu, 3)}
 
 
-def _current(path: Path, params: dict) -> bool:
-    if not path.is_file():
-        return False
+def _current(out: Path, name: str, params: dict) -> bool:
+    """The object has a stored set (its own file or the folder's pack) made with `params`."""
     try:
-        return GraspSet.load(path).params == json.loads(json.dumps(params))
+        gs = load_grasp_set(name, out)
     except (OSError, ValueError, KeyError):
         return False
+    return gs is not None and gs.params == json.loads(json.dumps(params))
 
 
 def _commit() -> str:
@@ -62,12 +70,13 @@ def write_grasp_sets(set_name: str, out: str | Path | None = None, workers: int 
     man_path = out / "manifest.json"
     manifest = json.loads(man_path.read_text()) if man_path.is_file() else {}
     rows = {r["object"]: r for r in manifest.get("objects", [])} if manifest.get("params") == params else {}
-    todo = [n for n in names if not (_current(out / f"{n.split('/', 1)[1]}.npz", params) and n in rows)]
+    todo = [n for n in names if not (_current(out, n, params) and n in rows)]
     t0 = time.perf_counter()
     errors = []
 
     def save():
-        man = {"set": set_name, "command": command, "params": params, "commit": _commit(),
+        man = {"set": set_name, "command": command if todo or not manifest.get("command") else manifest["command"],
+               "params": params, "commit": _commit() if todo or not manifest.get("commit") else manifest["commit"],
                "machine": f"{platform.node()} {os.cpu_count()} cores", "objects": [rows[n] for n in names if n in rows]}
         cpu = [r["cpu_s"] for r in man["objects"]]
         if cpu:
@@ -90,11 +99,14 @@ def write_grasp_sets(set_name: str, out: str | Path | None = None, workers: int 
         if progress is not None:
             progress(r)
     man = save()
+    if not errors and all(n in rows for n in names) and (todo or any(grasp_set_path(n, out).is_file() for n in names)):
+        pack_grasp_sets(out, names)  # one file per set (see pack_grasp_sets)
     (out / "README.md").write_text(
         f"# Grasp sets of the {set_name!r} objects\n\n"
-        "One npz per object (ms_drake.grasping.grasp_sets.GraspSet: object-frame jaw grasps with "
+        "pack.npz: every object's grasp set (ms_drake.grasping.grasp_sets: object-frame jaw grasps with "
         f"{params['approaches']} approaches about each axis and suction grasps, each with its robust "
-        f"{params['model']} / suction quality, gravity along the approach). Made by\n\n    {command}\n\n"
+        f"{params['model']} / suction quality, gravity along the approach; grasps of zero quality left "
+        f"out), read by ms_drake.grasping.grasp_sets.load_grasp_set. Made by\n\n    {command}\n\n"
         f"at commit {man['commit']}; parameters and per-object CPU seconds in manifest.json.\n")
     man["errors"] = errors
     man["wall_s"] = time.perf_counter() - t0

@@ -36,7 +36,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ms_drake.grasping.evaluator import MODELS, GraspEvaluator
-from ms_drake.grasping.grasp import GraspError, ParallelJawGrasp, SuctionGrasp
+from ms_drake.grasping.grasp import GraspError, ParallelJawGrasp
 from ms_drake.grasping.meshes import object_mesh
 from ms_drake.grasping.samplers import sample_antipodal_grasps, sample_suction_grasps
 from ms_drake.grasping.suction import SuctionEvaluator
@@ -102,23 +102,29 @@ class GraspSet:
         tmp.replace(path)
 
     @staticmethod
-    def load(path) -> "GraspSet":
+    def load(path) -> GraspSet:
         with np.load(Path(path)) as z:
-            def unit(a):
-                a = np.asarray(a, float).reshape(-1, 3)
-                return a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)
-
-            axis = unit(z["jaw_axis"])
-            ref = np.asarray(z["jaw_ref"], float).reshape(-1, 3)
-            ref = unit(ref - np.sum(ref * axis, axis=1, keepdims=True) * axis)  # orthogonal again after float16
-            return GraspSet(str(z["object"]), str(z["model"]), np.asarray(z["jaw_center"], float).reshape(-1, 3),
-                            axis, ref, np.asarray(z["jaw_width"], float),
-                            np.asarray(z["jaw_quality"], float).reshape(len(axis), APPROACHES) / 100.0,
-                            np.asarray(z["suction_point"], float).reshape(-1, 3), unit(z["suction_normal"]),
-                            np.asarray(z["suction_quality"], float) / 100.0, json.loads(str(z["params"])))
+            return _from_arrays(str(z["object"]), str(z["model"]), json.loads(str(z["params"])), z["jaw_center"],
+                                z["jaw_axis"], z["jaw_ref"], z["jaw_width"], z["jaw_quality"], z["suction_point"],
+                                z["suction_normal"], z["suction_quality"])
 
     def __len__(self) -> int:
         return len(self.jaw_center) + len(self.suction_point)
+
+
+def _unit(a) -> np.ndarray:
+    a = np.asarray(a, float).reshape(-1, 3)
+    return a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)
+
+
+def _from_arrays(name, model, params, jc, ja, jr, jw, jq, sp, sn, sq) -> GraspSet:
+    """A GraspSet from stored arrays (float16 geometry, uint8 percent qualities)."""
+    axis = _unit(ja)
+    ref = np.asarray(jr, float).reshape(-1, 3)
+    ref = _unit(ref - np.sum(ref * axis, axis=1, keepdims=True) * axis)  # orthogonal again after float16
+    return GraspSet(name, model, np.asarray(jc, float).reshape(-1, 3), axis, ref, np.asarray(jw, float),
+                    np.asarray(jq, float).reshape(len(axis), APPROACHES) / 100.0,
+                    np.asarray(sp, float).reshape(-1, 3), _unit(sn), np.asarray(sq, float) / 100.0, params)
 
 
 def _down(direction: np.ndarray) -> np.ndarray:
@@ -166,10 +172,74 @@ def compute_grasp_set(full_name: str, **kw) -> GraspSet:
     for i, g in enumerate(sucs):
         X = _down(g.approach)
         sq[i] = sev.quality(mesh, X, g.transformed(X), mass, n, seed + 104729 + i, com)
-    arr = lambda rows: np.asarray(rows, float).reshape(-1, 3)  # noqa: E731
+    arr = lambda rows: np.asarray(rows, float).reshape(-1, 3)
     return GraspSet(full_name, p["model"], arr([g.center for g in jaws]), arr([g.axis for g in jaws]),
                     arr([g.approach for g in jaws]), np.array([g.width for g in jaws], float), jq,
                     arr([g.point for g in sucs]), -arr([g.approach for g in sucs]), sq, p)
+
+
+PACK = "pack.npz"
+_FIELDS = ("jaw_center", "jaw_axis", "jaw_ref", "jaw_width", "suction_point", "suction_normal")
+
+
+def pack_grasp_sets(folder: str | Path, names: list[str]) -> Path:
+    """One file `<folder>/pack.npz` with the grasp sets of `names` (their per-object files in the
+    folder, or an earlier pack's entries), grasps of zero quality left out (the planner never uses
+    them: IndexedGraspPlanner.min_quality > 0). The per-object files are removed afterwards. A
+    few hundred ~8 KB files take whole file-system blocks each; one pack takes ~40 % of that."""
+    folder = Path(folder)
+    sets = []
+    for n in names:
+        gs = load_grasp_set(n, folder)
+        if gs is None:
+            raise GraspError(f"pack_grasp_sets: no grasp set of {n!r} in {folder}; run `ms-drake data grasps` first")
+        sets.append(gs)
+    params = {json.dumps(gs.params, sort_keys=True) for gs in sets}
+    if len(params) > 1:
+        raise GraspError(f"pack_grasp_sets: the sets in {folder} were made with different parameters; "
+                         "recompute them with one `ms-drake data grasps` command")
+    parts = {k: [] for k in (*_FIELDS, "jaw_quality", "suction_quality")}
+    jaw_n, suc_n = [], []
+    for gs in sets:
+        keep_j = np.round(100 * gs.jaw_quality).max(axis=1) > 0 if len(gs.jaw_center) else np.zeros(0, bool)
+        keep_s = np.round(100 * gs.suction_quality) > 0
+        for k in _FIELDS:
+            v = getattr(gs, k)
+            parts[k].append(v[keep_j] if k.startswith("jaw") else v[keep_s])
+        parts["jaw_quality"].append(gs.jaw_quality[keep_j])
+        parts["suction_quality"].append(gs.suction_quality[keep_s])
+        jaw_n.append(int(keep_j.sum()))
+        suc_n.append(int(keep_s.sum()))
+    arrays = {k: np.concatenate(v).astype(np.float16) for k, v in parts.items() if k in _FIELDS}
+    arrays["jaw_quality"] = np.round(100 * np.concatenate(parts["jaw_quality"]).reshape(-1, APPROACHES)).astype(np.uint8)
+    arrays["suction_quality"] = np.round(100 * np.concatenate(parts["suction_quality"])).astype(np.uint8)
+    path = folder / PACK
+    tmp = folder / "pack.tmp.npz"
+    np.savez_compressed(tmp, objects=np.array([gs.object for gs in sets]), models=np.array([gs.model for gs in sets]),
+                        jaw_count=np.array(jaw_n, np.int32), suction_count=np.array(suc_n, np.int32),
+                        params=next(iter(params)) if params else "{}", **arrays)
+    tmp.replace(path)
+    _pack.cache_clear()
+    for n in names:
+        grasp_set_path(n, folder).unlink(missing_ok=True)
+    return path
+
+
+@functools.lru_cache(maxsize=16)
+def _pack(path: str, mtime: float) -> dict:
+    """{full name: GraspSet} of a pack file."""
+    with np.load(path) as z:
+        a = {k: z[k] for k in z.files}
+    params = json.loads(str(a["params"]))
+    j0 = np.concatenate([[0], np.cumsum(a["jaw_count"])])
+    s0 = np.concatenate([[0], np.cumsum(a["suction_count"])])
+    out = {}
+    for i, (name, model) in enumerate(zip(a["objects"], a["models"])):
+        js, ss = slice(j0[i], j0[i + 1]), slice(s0[i], s0[i + 1])
+        out[str(name)] = _from_arrays(str(name), str(model), params, a["jaw_center"][js], a["jaw_axis"][js],
+                                      a["jaw_ref"][js], a["jaw_width"][js], a["jaw_quality"][js],
+                                      a["suction_point"][ss], a["suction_normal"][ss], a["suction_quality"][ss])
+    return out
 
 
 @functools.lru_cache(maxsize=4096)
@@ -178,11 +248,15 @@ def _load_cached(path: str, mtime: float) -> GraspSet:
 
 
 def load_grasp_set(full_name: str, root: str | Path | None = None) -> GraspSet | None:
-    """The stored grasp set of an object, or None when it has none (cached by file and mtime)."""
+    """The stored grasp set of an object (its own file, else its entry in the folder's pack.npz),
+    or None when it has none (cached by file and mtime)."""
     path = grasp_set_path(full_name, root)
-    if not path.is_file():
-        return None
-    return _load_cached(str(path), path.stat().st_mtime)
+    if path.is_file():
+        return _load_cached(str(path), path.stat().st_mtime)
+    pack = path.parent / PACK
+    if pack.is_file():
+        return _pack(str(pack), pack.stat().st_mtime).get(full_name)
+    return None
 
 
 def load_grasp_sets(names, root: str | Path | None = None) -> dict[str, GraspSet]:
