@@ -128,7 +128,7 @@ def test_a_grasp_through_a_neighbour_is_dropped_a_free_one_kept(bin_scene):
     # the jaw geometry really reaches into b: the outer face of grasp 0's +y finger is past b's near face
     fingers = jaw_parts(a.X_WO[:3, 3], [0, 1, 0], [0, 0, -1], 0.06, p.jaw, 0.0)[1:]
     half = 0.5 * (p.jaw.pads.thickness + p.jaw.finger_thickness)
-    assert max(f[1][1, 3] for f in fingers) + half > b.X_WO[1, 3] - 0.015
+    assert max(f[2][1] for f in fingers) + half > b.X_WO[1, 3] - 0.015
 
 
 def test_out_of_reach_and_buried_grasps_are_dropped(bin_scene):

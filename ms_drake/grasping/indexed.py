@@ -108,44 +108,62 @@ def environment_parts(scenario) -> tuple[Part, ...]:
     return tuple(out)
 
 
+class GripperGeometry:
+    """The collision geometry of the jaw (palm, two fingers with their pads) and of the suction
+    tool (cup, shaft), built once (coal shapes shrunk by `margin` on every side); `jaw(...)` and
+    `suction(...)` give the parts (coal shape, 3x3 rotation, world centre, bounding radius) at a
+    grasp."""
+
+    def __init__(self, jaw: ParallelJawConfig, cup: SuctionCupConfig, margin: float, clearance: float):
+        p = jaw.pads
+        pz, flen = jaw.palm_size[2], jaw.finger_length
+        tcp_z = pz + flen - p.length / 2  # tool point (pads' centre) in the gripper body, z along the approach
+        self.thick = p.thickness + jaw.finger_thickness
+        palm = (np.asarray(jaw.palm_size, float) - 2 * margin).clip(1e-6)
+        finger = (np.array([self.thick, jaw.finger_depth, flen], float) - 2 * margin).clip(1e-6)
+        self.palm, self.palm_r, self.palm_z = coal.Box(*palm), 0.5 * float(np.linalg.norm(palm)), pz / 2 - tcp_z
+        self.finger, self.finger_r = coal.Box(*finger), 0.5 * float(np.linalg.norm(finger))
+        self.finger_z = pz + flen / 2 - tcp_z
+        self.cup_parts = []
+        for radius, length, back in ((cup.cup_radius, cup.cup_height, 0.0),
+                                     (cup.stem_radius, cup.stem_length, cup.cup_height)):
+            r, h = max(radius - margin, 1e-6), max(length - 2 * margin, 1e-6)
+            self.cup_parts.append((coal.Cylinder(r, h), float(np.hypot(r, 0.5 * h)), clearance + back + 0.5 * length))
+
+    def jaw(self, center, axis, approach, width, across=None) -> list:
+        """Palm and fingers opened to `width` with the tool point at `center` (x = axis, z = approach)."""
+        ax, ap = np.asarray(axis, float), np.asarray(approach, float)
+        across = np.cross(ap, ax) if across is None else across
+        R = np.empty((3, 3))
+        R[:, 0], R[:, 1], R[:, 2] = ax, across, ap
+        c = np.asarray(center, float)
+        fx = 0.5 * float(width) + 0.5 * self.thick
+        fz = c + self.finger_z * ap
+        return [(self.palm, R, c + self.palm_z * ap, self.palm_r),
+                (self.finger, R, fz - fx * ax, self.finger_r), (self.finger, R, fz + fx * ax, self.finger_r)]
+
+    def suction(self, point, approach) -> list:
+        """Cup and shaft along the approach, the lip `clearance` off the surface point."""
+        ap = np.asarray(approach, float)
+        h = np.array([1.0, 0.0, 0.0]) if abs(ap[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        x = np.cross(h, ap)
+        x /= np.linalg.norm(x)
+        R = np.empty((3, 3))
+        R[:, 0], R[:, 1], R[:, 2] = x, np.cross(ap, x), ap  # z along the approach (the cylinders' axis)
+        p = np.asarray(point, float)
+        return [(shape, R, p - back * ap, r) for shape, r, back in self.cup_parts]
+
+
 def jaw_parts(center, axis, approach, width, config: ParallelJawConfig, margin: float) -> list:
-    """(coal box, 4x4 world pose, centre, radius) of the jaw's palm and fingers opened to `width`,
-    tool point (the pads' centre) at `center`; boxes shrunk by `margin` on every side."""
-    p = config.pads
-    ax, ap = np.asarray(axis, float), np.asarray(approach, float)
-    R = np.column_stack([ax, np.cross(ap, ax), ap])  # x = axis, y = across, z = approach
-    pz, flen = config.palm_size[2], config.finger_length
-    tcp_z = pz + flen - p.length / 2
-    thick = p.thickness + config.finger_thickness
-    w = 0.5 * float(width)
-    out = []
-    for size, c in ((config.palm_size, (0.0, 0.0, pz / 2)),
-                    ((thick, config.finger_depth, flen), (-(w + thick / 2), 0.0, pz + flen / 2)),
-                    ((thick, config.finger_depth, flen), (w + thick / 2, 0.0, pz + flen / 2))):
-        size = (np.asarray(size, float) - 2 * margin).clip(1e-6)
-        T = np.eye(4)
-        T[:3, :3] = R
-        T[:3, 3] = np.asarray(center, float) + R @ (np.asarray(c) - [0.0, 0.0, tcp_z])
-        out.append((coal.Box(*size), T, T[:3, 3].copy(), 0.5 * float(np.linalg.norm(size))))
-    return out
+    """(coal box, 3x3 rotation, world centre, radius) of the jaw's palm and fingers opened to
+    `width`, tool point (the pads' centre) at `center`; boxes shrunk by `margin` on every side."""
+    return GripperGeometry(config, SuctionCupConfig(), margin, 0.0).jaw(center, axis, approach, width)
 
 
 def suction_parts(point, approach, config: SuctionCupConfig, clearance: float, margin: float) -> list:
     """The suction cup and its shaft (cylinders along the approach) with the lip `clearance` off
     the surface point, shrunk by `margin`."""
-    ap = np.asarray(approach, float)
-    R, _ = Rotation.align_vectors([ap], [[0.0, 0.0, 1.0]])
-    R = R.as_matrix()
-    out = []
-    start = np.asarray(point, float) - clearance * ap
-    for radius, length, back in ((config.cup_radius, config.cup_height, 0.0),
-                                 (config.stem_radius, config.stem_length, config.cup_height)):
-        r, h = max(radius - margin, 1e-6), max(length - 2 * margin, 1e-6)
-        T = np.eye(4)
-        T[:3, :3] = R
-        T[:3, 3] = start - (back + 0.5 * length) * ap
-        out.append((coal.Cylinder(r, h), T, T[:3, 3].copy(), float(np.hypot(r, 0.5 * h))))
-    return out
+    return GripperGeometry(ParallelJawConfig(), config, margin, clearance).suction(point, approach)
 
 
 class Scene:
@@ -160,12 +178,14 @@ class Scene:
         self.request = coal.CollisionRequest()
 
     def hits(self, gripper: list) -> bool:
-        """True when any gripper part intersects any scene part."""
-        for shape, T, c, r in gripper:
-            near = np.nonzero(np.linalg.norm(self.centers - c, axis=1) < self.radii + r)[0]
+        """True when any gripper part (coal shape, 3x3 rotation, centre, radius) intersects any
+        scene part."""
+        for shape, R, c, r in gripper:
+            d = self.centers - c
+            near = np.nonzero(np.einsum("ij,ij->i", d, d) < (self.radii + r) ** 2)[0]
             if len(near) == 0:
                 continue
-            Tg = coal.Transform3s(T[:3, :3], T[:3, 3])
+            Tg = coal.Transform3s(R, c)
             for j in near:
                 res = coal.CollisionResult()
                 if coal.collide(shape, Tg, self.shapes[j], self.transforms[j], self.request, res):
@@ -213,6 +233,7 @@ class IndexedGraspPlanner(LeafSystem):
         self.cos_tilt, self.min_quality, self.max_checks = float(np.cos(max_tilt)), float(min_quality), int(max_checks)
         self.margin, self.suction_clearance = float(margin), float(suction_clearance)
         self.jaw, self.cup = jaw or ParallelJawConfig(), cup or SuctionCupConfig()
+        self.gripper = GripperGeometry(self.jaw, self.cup, self.margin, self.suction_clearance)
         self.jaw_model = jaw_model or next((gs.model for gs in self.sets.values()), "soft_point")
         self._hull_cache: dict = {}
 
@@ -255,9 +276,10 @@ class IndexedGraspPlanner(LeafSystem):
             ok = (down >= self.cos_tilt) & (q >= self.min_quality) & self._reachable(c)[:, None]
             i, k = np.nonzero(ok)
             order = np.lexsort((-down[i, k], -q[i, k]))[: self.max_checks]
-            for j in order:
+            across = np.cross(ap[i[order], k[order]], a[i[order]])
+            for j, y in zip(order, across):
                 n, m = i[j], k[j]
-                if not scene.hits(jaw_parts(c[n], a[n], ap[n, m], gs.jaw_width[n], self.jaw, self.margin)):
+                if not scene.hits(self.gripper.jaw(c[n], a[n], ap[n, m], gs.jaw_width[n], y)):
                     out.append(ParallelJawGrasp(c[n], a[n], ap[n, m], gs.jaw_width[n]).to_grasp(
                         float(q[n, m]), self.jaw_model, oid))
                     break
@@ -270,7 +292,7 @@ class IndexedGraspPlanner(LeafSystem):
             idx = np.nonzero(ok)[0]
             order = idx[np.lexsort((-down[idx], -q[idx]))][: self.max_checks]
             for n in order:
-                if not scene.hits(suction_parts(p[n], ap[n], self.cup, self.suction_clearance, self.margin)):
+                if not scene.hits(self.gripper.suction(p[n], ap[n])):
                     out.append(SuctionGrasp(p[n], ap[n]).to_grasp(float(q[n]), "suction", oid))
                     break
         return tuple(out)
