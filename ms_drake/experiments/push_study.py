@@ -640,6 +640,10 @@ def summarize_push(rows: list[dict]) -> dict:
         out["policies"][p]["pushed"] = float(np.mean([by[p][s]["pushed"] for s in common])) if common else 0.0
         out["policies"][p]["positive_overall"] = float(np.mean([by[p][s]["overall_gain"] > 1e-9
                                                                 for s in common])) if common else 0.0
+        pushed = np.array([by[p][s]["overall_gain"] for s in common if by[p][s]["pushed"]], float)
+        out["policies"][p]["overall_when_pushed"] = {
+            "n": len(pushed), "mean": float(pushed.mean()) if len(pushed) else 0.0,
+            "se": float(pushed.std(ddof=1) / np.sqrt(len(pushed))) if len(pushed) > 1 else 0.0}
     if len(pols) >= 2 and len(common) >= 2:
         for m in METRICS:
             groups = [np.array([by[p][s][m] for s in common], float) for p in pols]
@@ -653,10 +657,13 @@ def summarize_push(rows: list[dict]) -> dict:
 
 def format_push_table(s: dict) -> str:
     lines = [f"{s['heaps']} improvable heaps, every policy on each (mean +- standard error)",
-             f"{'policy':18s} " + " ".join(f"{m:>16s}" for m in METRICS) + "   pushed  overall>0"]
+             f"{'policy':18s} " + " ".join(f"{m:>16s}" for m in METRICS) + "   pushed  overall>0"
+             + "  overall when pushed"]
     for p, v in s["policies"].items():
+        w = v.get("overall_when_pushed", {"n": 0, "mean": 0.0, "se": 0.0})
         lines.append(f"{p:18s} " + " ".join(f"{v[m]['mean']:+7.3f} +- {v[m]['se']:.3f}" for m in METRICS)
-                     + f"   {100 * v['pushed']:5.1f} %  {100 * v['positive_overall']:5.1f} %")
+                     + f"   {100 * v['pushed']:5.1f} %  {100 * v['positive_overall']:5.1f} %"
+                     + f"  {w['mean']:+.3f} +- {w['se']:.3f} (n = {w['n']})")
     for m, a in s["anova"].items():
         lines.append(f"ANOVA {m}: F({a['df'][0]}, {a['df'][1]}) = {a['F']:.2f}, p = {a['p']:.2g}")
     return "\n".join(lines)
