@@ -16,9 +16,16 @@ from ms_drake.geometry import PinholeCamera, Workspace, world_points
 from ms_drake.perception.masks import object_labels
 from ms_drake.perception.segmentation import Segmenter
 from ms_drake.policies.bin_search import BinSearchParams
-from ms_drake.pushing import POLICIES, PolicyParams, PushError, PushPolicySystem, image_scene, plan_policy_push, \
-    state_scene
-from ms_drake.pushing.policies import _jaw_half, clusters, closest_pair
+from ms_drake.pushing import (
+    POLICIES,
+    PolicyParams,
+    PushError,
+    PushPolicySystem,
+    image_scene,
+    plan_policy_push,
+    state_scene,
+)
+from ms_drake.pushing.policies import _jaw_half, closest_pair, clusters
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import scenario_with_heap, set_heap_poses
 from ms_drake.station import MakeStation, get_plant
@@ -224,7 +231,7 @@ def test_system_wired_to_a_station(bin_scenario, small_heap):
     masks = seg.GetOutputPort("masks").Eval(seg.GetMyContextFromRoot(ctx))
     planned = 0
     half = np.array(ws.size_xy) / 2 - P.gripper_radius + 1e-9
-    for p, sysm in systems.items():
+    for sysm in systems.values():
         pushes = sysm.GetOutputPort("pushes").Eval(sysm.GetMyContextFromRoot(ctx))
         assert len(pushes) <= 1
         for push in pushes:
@@ -246,3 +253,17 @@ def test_push_policy_in_the_bin_search_controller(small_heap):
     assert len(pushes) == 1 and pushes[0].object_id in masks.ids
     with pytest.raises(PushError, match="choose one of quasi_random"):
         BinSearchParams(policy="largest_push", push_policy="sideways")
+
+
+def test_state_checks_use_the_convex_hull_not_its_box():
+    # A thin bar turned 45 degrees and a small box inside the bar's axis-aligned bounding box but
+    # clear of the bar itself: coal's hull distance sees the gap.
+    bar = box("bar", 0.0, 0.0, 0.14, 0.02, 0.03)
+    R = np.array([[np.cos(np.pi / 4), -np.sin(np.pi / 4), 0], [np.sin(np.pi / 4), np.cos(np.pi / 4), 0], [0, 0, 1]])
+    X = bar.X_WO.copy()
+    X[:3, :3] = R
+    bar = ObjectGeometry("bar", bar.vertices, bar.faces, X, 0.1)
+    small = box("s", 0.035, -0.035, 0.02, 0.02, 0.03)
+    sc = state_scene((bar, small), BIN)
+    assert sc.checker._distance(0, 1, np.zeros(3)) > 0.02
+    assert sc.clearance(1, np.array([-1.0, 0.0]), 0.1) > 0.02  # it can slide under the bar's box corner

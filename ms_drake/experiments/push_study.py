@@ -53,11 +53,16 @@ from scipy.stats import f_oneway
 
 from ms_drake.execution import PrimitiveBackend, remove_objects
 from ms_drake.execution.backends import tcp_offset_of
-from ms_drake.experiments.heap_grasps import _coal_shape, _shape_pose, gripper_boxes, heap_grasp_inputs
+from ms_drake.experiments.heap_grasps import (
+    _coal_shape,
+    _shape_pose,
+    gripper_boxes,
+    heap_grasp_inputs,
+)
 from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.grasping.evaluator import GraspEvaluator
-from ms_drake.grasping.samplers import sample_antipodal_grasps, sample_suction_grasps
 from ms_drake.grasping.grasp import SuctionGrasp
+from ms_drake.grasping.samplers import sample_antipodal_grasps, sample_suction_grasps
 from ms_drake.grasping.suction import SuctionEvaluator
 from ms_drake.objects import get_object
 from ms_drake.parallel import run_jobs
@@ -70,11 +75,17 @@ from ms_drake.pushing.policies import (
     state_scene,
 )
 from ms_drake.scenario import load_scenario
-from ms_drake.scenes.heaps import generate_heap, heap_to_dict, scenario_with_heap, set_heap_poses
+from ms_drake.scenes.heaps import (
+    generate_heap,
+    heap_from_dict,
+    heap_to_dict,
+    scenario_with_heap,
+    set_heap_poses,
+)
 from ms_drake.station import MakeStation, get_plant, station_objects
 from ms_drake.station.environments import _boxes
 from ms_drake.station.robots import set_arm_positions
-from ms_drake.types import Action, ObjectGeometry, ObjectPose, Heap
+from ms_drake.types import Action, Heap, ObjectGeometry
 
 METRICS = ("separation_gain", "jaw_gain", "suction_gain", "overall_gain")
 
@@ -179,7 +190,7 @@ class PushWorld:
     # actions ------------------------------------------------------------------------------
     def advance(self, dt: float, command=None):
         t0 = self.context.get_time()
-        steps = max(1, int(round(dt / self.params.time_step)))
+        steps = max(1, round(dt / self.params.time_step))
         for k in range(1, steps + 1):
             t = t0 + k * self.params.time_step
             if command is not None:
@@ -418,14 +429,14 @@ def gains(before: dict, after: dict) -> dict:
 
 
 def run_policy(world: PushWorld, snap, before: dict, sets: GraspSets, policy: str, seed: int,
-               policy_params: PolicyParams = PolicyParams()) -> dict:
+               policy_params: PolicyParams | None = None) -> dict:
     """Plan `policy`'s push on the full state of `snap`, execute it in physics, the four gains."""
     check_push_policy(policy)
     world.restore(snap)
     geoms = world.geometry()
     t0 = time.perf_counter()
     cpu0 = time.process_time()
-    push = plan_policy_push(policy, state_scene(geoms, world.workspace), policy_params,
+    push = plan_policy_push(policy, state_scene(geoms, world.workspace), policy_params or PolicyParams(),
                             seed=[int(seed), POLICIES.index(policy)])
     plan_ms = 1000 * (time.process_time() - cpu0)
     del t0
@@ -464,7 +475,7 @@ def grasp_until_stuck(world: PushWorld, sets: GraspSets, seed: int, params: Stud
             return "cleared", m, t
         if m["overall"] < params.threshold:
             return "low_quality", m, t
-        kind, oid, _, q = m["_best"]
+        _, oid, _, q = m["_best"]
         ok = bool(np.random.default_rng([seed, t, 4242]).random() < q)
         t += 1
         if ok:
@@ -786,7 +797,7 @@ def push_example_figure(seed: int, out: Path, params: StudyParams = StudyParams(
             uv, _ = cam.project(np.array([rec["push"]["start"], rec["push"]["end"]]))
             uv = uv - [crop[1].start, crop[0].start]
             axes[0, k].annotate("", xy=uv[1], xytext=uv[0],
-                                arrowprops=dict(color="blue", width=2.0, headwidth=8.0))
+                                arrowprops={"color": "blue", "width": 2.0, "headwidth": 8.0})
         axes[0, k].set_title(p.replace("_", " ") + ("" if rec["pushed"] else " (no push)"), fontsize=9)
         axes[1, k].imshow(img1)
         axes[1, k].set_title(f"dQo {rec['overall_gain']:+.2f} dQj {rec['jaw_gain']:+.2f} "
@@ -801,3 +812,25 @@ def push_example_figure(seed: int, out: Path, params: StudyParams = StudyParams(
     fig.savefig(out, dpi=100)
     plt.close(fig)
     return out_gains
+
+
+def quality_noise(heap_recs: list[dict], seeds=(0, 1, 2, 3, 4), params: StudyParams = StudyParams()) -> dict:
+    """How much Q*_o of a fixed state moves with the grasp sample alone: each record's before-push
+    state (its stored poses) scored with GraspSets of several seeds. Returns per heap the values and
+    overall the mean standard deviation and the share of heaps whose Q*_o differs between seeds."""
+    out = []
+    for rec in heap_recs:
+        heap = heap_from_dict(rec["heap"])
+        world = PushWorld(heap, params)
+        for oid in world.ids:
+            if oid in rec["state"]:
+                o = world.objects[world.ids.index(oid)]
+                world.plant.SetFreeBodyPose(world.pc, world.plant.get_body(o.body_index),
+                                            RigidTransform(np.asarray(rec["state"][oid], float)))
+            else:
+                world.remove(oid)
+        q = [GraspSets(params, seed=int(rec["seed"]) * 1000 + s).qualities(world)["overall"] for s in seeds]
+        out.append({"seed": int(rec["seed"]), "overall": q, "recorded": rec["before"]["overall"]})
+    sd = [float(np.std(r["overall"])) for r in out]
+    return {"heaps": out, "mean_sd": float(np.mean(sd)) if sd else 0.0,
+            "share_varying": float(np.mean([s > 0 for s in sd])) if sd else 0.0}

@@ -1,7 +1,7 @@
 """Pushing: the free-space linear push of Ch. 7.3.2 (`plan_free_space_push`) and the PushPlanner
 system; the five push policies of Ch. 4 (`plan_policy_push`) and the PushPolicySystem."""
 
-from ms_drake.pushing.free_space import (  # noqa: F401
+from ms_drake.pushing.free_space import (
     ObstacleMap,
     PushError,
     PushParams,
@@ -9,8 +9,8 @@ from ms_drake.pushing.free_space import (  # noqa: F401
     plan_free_space_push,
     plan_pushes,
 )
-from ms_drake.pushing.planner import PushPlanner  # noqa: F401
-from ms_drake.pushing.policies import (  # noqa: F401
+from ms_drake.pushing.planner import PushPlanner
+from ms_drake.pushing.policies import (
     POLICIES,
     PolicyParams,
     PushScene,
@@ -19,22 +19,22 @@ from ms_drake.pushing.policies import (  # noqa: F401
     plan_policy_push,
     state_scene,
 )
-from ms_drake.pushing.policy_system import PushPolicySystem  # noqa: F401
+from ms_drake.pushing.policy_system import PushPolicySystem
 
 __all__ = [
+    "POLICIES",
     "ObstacleMap",
+    "PolicyParams",
     "PushError",
     "PushParams",
-    "obstacle_map",
-    "plan_free_space_push",
-    "plan_pushes",
     "PushPlanner",
-    "POLICIES",
-    "PolicyParams",
+    "PushPolicySystem",
     "PushScene",
     "check_push_policy",
     "image_scene",
+    "obstacle_map",
+    "plan_free_space_push",
     "plan_policy_push",
+    "plan_pushes",
     "state_scene",
-    "PushPolicySystem",
 ]

@@ -195,10 +195,14 @@ def _com_of(geom: ObjectGeometry) -> np.ndarray:
 
 
 def _convex(points: np.ndarray):
+    """coal's convex hull of the points (qhull); a degenerate (flat) set: the box of its extents."""
     pts = np.ascontiguousarray(points, float)
+    vec = coal.StdVec_Vec3s()
+    for p in pts:
+        vec.append(p)
     try:
-        return coal.Convex.convexHull(pts, False, None)
-    except Exception:  # degenerate hull: a box around the points instead
+        return coal.Convex.convexHull(vec, False, "")
+    except RuntimeError:
         lo, hi = pts.min(axis=0), pts.max(axis=0)
         return coal.Box(*np.maximum(hi - lo, 1e-4))
 

@@ -21,7 +21,13 @@ from pydrake.systems.sensors import ImageDepth32F
 
 from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.pushing.free_space import PushError
-from ms_drake.pushing.policies import PolicyParams, check_push_policy, image_scene, plan_policy_push, state_scene
+from ms_drake.pushing.policies import (
+    PolicyParams,
+    check_push_policy,
+    image_scene,
+    plan_policy_push,
+    state_scene,
+)
 from ms_drake.types import InstanceMasks
 
 SOURCES = ("auto", "state", "image")
@@ -72,4 +78,4 @@ class PushPolicySystem(LeafSystem):
         objects = self.objects_port.Eval(context) if self.objects_port.HasValue(context) else ()
         depth = self.depth_port.Eval(context) if self.depth_port.HasValue(context) else None
         masks = self.masks_port.Eval(context) if self.masks_port.HasValue(context) else None
-        output.set_value(self.plan(depth, masks, tuple(objects), step=int(round(1000 * context.get_time()))))
+        output.set_value(self.plan(depth, masks, tuple(objects), step=round(1000 * context.get_time())))
