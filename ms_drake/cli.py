@@ -1197,12 +1197,16 @@ def train_collision_cmd(
         query_layers: int = typer.Option(1, "--query-layers", min=0, help="Hidden layers of the query classifier "
                                          "after its first"),
         voxel_features: int = typer.Option(64, "--voxel-features", min=8, help="Voxel feature channels (the "
-                                           "PointNet-grid needs 64, the point features' width)")):
+                                           "PointNet-grid needs 64, the point features' width)"),
+        encoders: Optional[Path] = typer.Option(None, "--encoders", help="Weights file whose scene and object "
+                                                "encoders are copied and frozen: only the query classifier "
+                                                "trains")):
     """Train SceneCollisionNet (Ch. 6); resumes from OUT.ckpt; writes OUT (weights + meta)."""
     cmd = " ".join(["ms-drake", "train", "collision", "--data", str(data), "--out", str(out), "--epochs", str(epochs),
                     "--seed", str(seed), "--threads", str(threads), "--lr", str(lr), "--hidden", str(hidden),
                     "--query-layers", str(query_layers), "--voxel-features", str(voxel_features)]
-                   + (["--pointnet-grid"] if pointnet_grid else []))
+                   + (["--pointnet-grid"] if pointnet_grid else [])
+                   + (["--encoders", str(encoders)] if encoders is not None else []))
     config = CollisionNetConfig(hidden=hidden, query_layers=query_layers, voxel_features=voxel_features,
                                 conv_layers=0 if pointnet_grid else 3)
     bar = tqdm(desc="training", unit="scene")
@@ -1215,7 +1219,7 @@ def train_collision_cmd(
         bar.set_postfix(loss=f"{loss:.4f}")
 
     meta = train_collision(data, out, epochs=epochs, seed=seed, threads=threads, lr=lr, max_minutes=max_minutes,
-                           config=config,
+                           config=config, encoders=encoders,
                            progress=progress, command=cmd)
     bar.close()
     last = meta["history"][-1] if meta["history"] else {}

@@ -155,6 +155,29 @@ def test_training_resumes_and_evaluation_reports_the_table_keys(tmp_path):
     assert {"accuracy", "ap", "us_per_query", "queries"} <= set(r)
 
 
+def test_a_classifier_on_frozen_encoders_keeps_them_and_learns_its_own_layers(tmp_path):
+    from ms_drake.collision.checker import load_collision_net  # noqa: PLC0415
+    from ms_drake.collision.scene_net import NetConfig  # noqa: PLC0415
+    from ms_drake.errors import DatasetError  # noqa: PLC0415
+    from ms_drake.experiments.collision_learning import ENCODERS, train_collision  # noqa: PLC0415
+
+    for k in range(2):
+        _synthetic_shard(tmp_path / f"shard_{k:05d}_train.npz", k)
+    big = tmp_path / "big.pt"
+    train_collision(tmp_path, big, epochs=1, seed=0, lr=3e-3, config=NetConfig(hidden=32, voxel_features=16))
+    small = tmp_path / "small.pt"
+    meta = train_collision(tmp_path, small, epochs=2, seed=1, lr=3e-3, encoders=big,
+                           config=NetConfig(hidden=8, query_layers=0, voxel_features=16))
+    assert meta["encoders"] == str(big)
+    (a, _), (b, _) = load_collision_net(big), load_collision_net(small)
+    for name in ENCODERS:  # copied and not trained
+        for (ka, va), (kb, vb) in zip(getattr(a, name).state_dict().items(), getattr(b, name).state_dict().items()):
+            assert ka == kb and torch.equal(va, vb)
+    assert b.first_pose.weight.shape == (8, 9)  # its own, smaller classifier
+    with pytest.raises(DatasetError, match="--voxel-features"):
+        train_collision(tmp_path, tmp_path / "bad.pt", epochs=1, encoders=big, config=NetConfig(voxel_features=32))
+
+
 def test_point_cloud_baselines_on_a_known_scene():
     from ms_drake.collision.baselines import BASELINES, clusters, make_baseline  # noqa: PLC0415
 

@@ -38,11 +38,30 @@ def _tensors(torch, d: dict, i: int):
             torch.from_numpy(np.asarray(d["labels"][i])))
 
 
+ENCODERS = ("point_mlp", "convs", "group_mlp", "object_mlp")  # the per-observation part of the network
+
+
+def _frozen_encoders(net, encoders) -> None:
+    """Copy the scene and object encoders of the weights file `encoders` into `net` and freeze them."""
+    src = load_collision_net(encoders)[0]
+    for name in ENCODERS:
+        try:
+            getattr(net, name).load_state_dict(getattr(src, name).state_dict())
+        except RuntimeError as e:
+            raise DatasetError(f"--encoders {encoders}: its {name} does not fit the network being trained "
+                               f"(give the same --voxel-features as the file's, {src.cfg.voxel_features}): {e}") from None
+        for q in getattr(net, name).parameters():
+            q.requires_grad_(False)
+
+
 def train_collision(data, out, epochs: int = 20, seed: int = 0, threads: int = 1, lr: float = 1e-3,
                     config: NetConfig = NetConfig(), max_minutes: float = 90.0, hard: float = 0.1,
-                    random: float = 0.1, progress=None, command: str = "") -> dict:
+                    random: float = 0.1, progress=None, command: str = "", encoders=None) -> dict:
     """Train on the train shards of `data`; write `out` (weights + meta) and `out`.ckpt (resume).
-    Stops early (after a whole epoch) when `max_minutes` of wall time would be exceeded."""
+    Stops early (after a whole epoch) when `max_minutes` of wall time would be exceeded.
+    `encoders`: a weights file whose scene and object encoders are copied and frozen; only the query
+    classifier trains (a smaller, faster classifier on a larger network's features), on encodings
+    computed once per scene."""
     torch = torch_setup(seed, threads)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -52,9 +71,13 @@ def train_collision(data, out, epochs: int = 20, seed: int = 0, threads: int = 1
     if n < 1:
         raise DatasetError(f"{data}: no training scenes; write them with `ms-drake data collision`")
     net = make_net(config)
-    opt = torch.optim.Adam(net.parameters(), lr=lr)
+    if encoders is not None:
+        _frozen_encoders(net, encoders)
+    opt = torch.optim.Adam([q for q in net.parameters() if q.requires_grad], lr=lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs * n)
-    settings = dict(config=asdict(config), epochs=epochs, n=n, lr=lr, hard=hard, random=random)
+    settings = dict(config=asdict(config), epochs=epochs, n=n, lr=lr, hard=hard, random=random,
+                    encoders=None if encoders is None else str(encoders))
+    cache: dict[int, tuple] = {}  # frozen encoders: scene index -> (voxel features, object features)
     start, history, seconds = resume(torch, ckpt, settings, net, opt, sched)
     t0 = time.perf_counter() - seconds
     gen = torch.Generator().manual_seed(seed)
@@ -69,7 +92,14 @@ def train_collision(data, out, epochs: int = 20, seed: int = 0, threads: int = 1
         for b, i in enumerate(order):
             scene, obj, poses, labels = _tensors(torch, d, i)
             opt.zero_grad()
-            logits = net(scene, obj, poses)
+            if encoders is None:
+                logits = net(scene, obj, poses)
+            else:
+                if i not in cache:
+                    with torch.no_grad():
+                        cache[i] = (net.scene_features(scene), net.object_features(obj))
+                vox, feat = cache[i]
+                logits = net.query(net.first_voxel(vox) + net.first_object(feat), poses)
             loss = mined_loss(logits, labels, hard, random, generator=gen)
             loss.backward()
             opt.step()
@@ -81,7 +111,7 @@ def train_collision(data, out, epochs: int = 20, seed: int = 0, threads: int = 1
         history.append(dict(epoch=epoch + 1, loss=total / n, train_accuracy=right / n,
                             seconds=time.perf_counter() - te))
         save_checkpoint(torch, ckpt, settings, net, opt, sched, epoch + 1, history, time.perf_counter() - t0)
-    meta = dict(data=str(data), train_scenes=n, train_queries=int(d["labels"].size), epochs_done=len(history),
+    meta = dict(data=str(data), encoders=settings["encoders"], train_scenes=n, train_queries=int(d["labels"].size), epochs_done=len(history),
                 epochs=epochs, seed=seed, lr=lr, hard=hard, random=random, seconds=time.perf_counter() - t0,
                 history=history, command=command, torch=torch.__version__)
     save_atomically(torch, dict(model=net.state_dict(), config=asdict(config), meta=meta), out)
