@@ -3,7 +3,7 @@ Dex-Net 1.0-style database the reference indexes in its bin simulations, lines 1
 
     gs = compute_grasp_set("procedural/box_003")          # soft point, 200 jaw + 200 suction
     gs.save(grasp_set_path("procedural/box_003"))
-    sets = load_grasp_sets(["procedural/box_003", ...])   # name -> GraspSet (absent: no file)
+    sets = load_grasp_sets(["procedural/box_003", ...])   # name -> GraspSet (absent: none stored)
 
 Object frame throughout. Jaw grasps: antipodal pairs from the mesh sampler (any direction,
 ms_drake.grasping.samplers.sample_antipodal_grasps), each stored with `APPROACHES` approach
@@ -19,9 +19,11 @@ At run time the planner accepts approaches within a tilt limit of world -z, so t
 is the quality at zero tilt. Robust trials: `robust_samples` perturbations (pose, friction,
 mass) as GraspEvaluator / SuctionEvaluator, seeded by (seed, grasp index, approach).
 
-Storage: one compressed npz per object, geometry in float16 (~0.1 mm at 0.2 m), qualities in
-uint8 (percent), the parameters alongside so a run with other parameters does not take a stale
-file for its own (`GraspSet.params`).
+Storage: geometry in float16 (~0.1 mm at 0.2 m), qualities in uint8 (percent), the parameters
+alongside so a run with other parameters does not take a stale file for its own
+(`GraspSet.params`); one compressed npz per object while a set is computed (`GraspSet.save`),
+then one `pack.npz` per object set (`pack_grasp_sets`, zero-quality grasps left out), which
+`load_grasp_set` reads.
 """
 
 from __future__ import annotations
