@@ -14,8 +14,8 @@ and two fingers (with their pads) opened to the grasp's width, or the suction cu
 lifted `suction_clearance` off the surface -- does not intersect (coal, shrunk by `margin`) any
 object's collision shapes (the grasped object's included) or the bin. At most `max_checks`
 candidates per kind and object are checked (candidates are sorted; the cap bounds a buried
-object's cost). Objects without a grasp set go to `fallback` (a LazyGraspPlanner: the
-image-based planners) when given, else get no grasp.
+object's cost). Objects without a grasp set, or whose set has no free grasp at their pose, go to
+`fallback` (a LazyGraspPlanner: the image-based planners) when given, else get no grasp.
 
 Broad phase: each shape carries a bounding sphere; coal.collide runs only on gripper-part /
 shape pairs whose spheres overlap.
@@ -302,16 +302,18 @@ class IndexedGraspPlanner(LeafSystem):
         objects = self.objects_port.Eval(context) if self.objects_port.HasValue(context) else ()
         geoms = {o.id: o for o in objects}
         state = {}
-        if self.fallback is not None and any(oid not in self.sets for oid in masks.ids):
-            state["depth"] = np.asarray(self.depth_port.Eval(context).data, float)[..., 0]
 
         def plan_one(oid):
             if oid in self.sets:
                 if "scene" not in state:  # built once per step, on the first lookup
                     state["scene"] = self.scene(objects)
-                return self.plan_object(oid, geoms, state["scene"])
+                grasps = self.plan_object(oid, geoms, state["scene"])
+                if grasps:
+                    return grasps
             if self.fallback is None:
                 return ()
+            if "depth" not in state:  # no set, or no free grasp in it: the image planners
+                state["depth"] = np.asarray(self.depth_port.Eval(context).data, float)[..., 0]
             return self.fallback.plan_object(state["depth"], masks, geoms, oid)
 
         output.set_value(LazyGrasps(plan_one, masks.ids))
