@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import coal
 import cv2
 import numpy as np
 from pydrake.math import RigidTransform, RollPitchYaw
@@ -171,3 +172,14 @@ def as_rigid_transform(X, name: str = "pose") -> RigidTransform:
     (checked as `as_matrix4` does; the same errors, naming `name`)."""
     M = as_matrix4(X, name)
     return X if isinstance(X, RigidTransform) else RigidTransform(M)
+
+
+def coal_convex(vertices, faces) -> coal.Convex:
+    """A coal.Convex of a closed convex polyhedron given by its vertices (n, 3) and triangles (m, 3)."""
+    verts = coal.StdVec_Vec3s()
+    for v in np.asarray(vertices, float):
+        verts.append(v)
+    tris = coal.StdVec_Triangle()
+    for f in np.asarray(faces, int):
+        tris.append(coal.Triangle(int(f[0]), int(f[1]), int(f[2])))
+    return coal.Convex(verts, tris)

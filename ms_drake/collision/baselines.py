@@ -24,6 +24,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from ms_drake.collision.scene_net import CollisionNetError
+from ms_drake.geometry import coal_convex
 
 BASELINES = ("coal_reconstruction", "sdf")
 
@@ -35,13 +36,7 @@ def _convex(points: np.ndarray) -> coal.Convex | None:
         return None
     if len(hull.faces) < 4:
         return None
-    verts = coal.StdVec_Vec3s()
-    for v in np.asarray(hull.vertices, float):
-        verts.append(v)
-    tris = coal.StdVec_Triangle()
-    for f in np.asarray(hull.faces, int):
-        tris.append(coal.Triangle(int(f[0]), int(f[1]), int(f[2])))
-    return coal.Convex(verts, tris)
+    return coal_convex(hull.vertices, hull.faces)
 
 
 def clusters(points: np.ndarray, link: float = 0.01, min_points: int = 10) -> list[np.ndarray]:

@@ -34,7 +34,7 @@ from pydrake.systems.framework import LeafSystem
 from pydrake.systems.sensors import ImageDepth32F
 from scipy.spatial.transform import Rotation
 
-from ms_drake.geometry import Workspace, as_matrix4
+from ms_drake.geometry import Workspace, as_matrix4, coal_convex
 from ms_drake.grasping.grasp import GraspError, ParallelJawGrasp, SuctionGrasp
 from ms_drake.grasping.grasp_sets import GraspSet
 from ms_drake.grasping.planner import LazyGraspPlanner, LazyGrasps
@@ -57,15 +57,9 @@ def _pose(pose) -> np.ndarray:
 
 def _convex(points: np.ndarray):
     hull = trimesh.convex.convex_hull(np.asarray(points, float))
-    verts = coal.StdVec_Vec3s()
-    for v in np.asarray(hull.vertices, float):
-        verts.append(v)
-    tris = coal.StdVec_Triangle()
-    for f in np.asarray(hull.faces, int):
-        tris.append(coal.Triangle(int(f[0]), int(f[1]), int(f[2])))
     v = np.asarray(hull.vertices, float)
     c = 0.5 * (v.min(axis=0) + v.max(axis=0))
-    return coal.Convex(verts, tris), c, float(np.linalg.norm(v - c, axis=1).max())
+    return coal_convex(v, hull.faces), c, float(np.linalg.norm(v - c, axis=1).max())
 
 
 def _primitive(kind: str, size) -> tuple:
