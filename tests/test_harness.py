@@ -31,9 +31,9 @@ def test_bench_search_writes_resumes_and_summarizes(tmp_path):
     r = recs[0]
     assert {"seed", "policy", "success", "actions", "action_kinds", "failure", "seconds"} <= set(r)
     assert r["policy"] == "largest" and len(r["action_kinds"]) == r["actions"]
-    # heap 5: the first grasp fails, the second extracts the target
+    # heap 5 (grasp sets, the primitive mode's default planner): the first grasp extracts the target
     assert (r["success"], r["actions"], r["action_kinds"], r["failure"], r["grasp_successes"]) == \
-        (True, 2, ["grasp", "grasp"], "", 1)
+        (True, 1, ["grasp"], "", 1)
     assert "success" in p.stdout and "SEM" in p.stdout and "quartiles" in p.stdout
     # Interrupted run: a torn last line; the rerun keeps seed 5, drops the torn line, runs seed 6 only.
     out.write_text(out.read_text() + '{"seed": 6, "pol')
