@@ -120,6 +120,7 @@ from ms_drake.objects import available_sets, get_object_set
 from ms_drake.parallel import run_jobs
 from ms_drake.perception.segmentation import BACKENDS as SEGMENTATION_BACKENDS
 from ms_drake.perception.target import BACKENDS as DETECTOR_BACKENDS
+from ms_drake.policies.bin_search import GRASP_PLANNERS
 from ms_drake.policies.bin_selectors import check_policy
 from ms_drake.pushing import POLICIES as PUSH_POLICIES
 from ms_drake.policies.shelf import SHELF_POLICIES, check_shelf_policy
@@ -381,9 +382,14 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
                                               "target) | template | learned (siamese matcher on target views)"),
                  push_policy: str = typer.Option("", "--push-policy", help="The *_push selectors' pushes: "
                                                  "'' = the Ch. 7 free-space push of every object, or a Ch. 4 "
-                                                 f"policy ({' | '.join(PUSH_POLICIES)})")):
+                                                 f"policy ({' | '.join(PUSH_POLICIES)})"),
+                 grasp_planner: str = typer.Option("", "--grasp-planner", help="Grasps: '' = the fidelity's "
+                                                   "default (indexed for primitive, image for full) | "
+                                                   f"{' | '.join(GRASP_PLANNERS)}")):
     """Search heaps S..S+K-1 with a policy; one JSON line per rollout (resumable), then a summary."""
     check_policy(policy)
+    if grasp_planner and grasp_planner not in GRASP_PLANNERS:
+        _fail(f"--grasp-planner {grasp_planner!r}: choose one of {', '.join(GRASP_PLANNERS)}")
     if push_policy and push_policy not in PUSH_POLICIES:
         _fail(f"--push-policy {push_policy!r}: choose one of {', '.join(PUSH_POLICIES)}")
     if segmenter not in SEGMENTATION_BACKENDS:
@@ -408,7 +414,7 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
     s = run_bench(policy, objects, heaps_, seed_start, out, workers=workers, fidelity=fidelity, horizon=horizon,
                   use_ray=ray or ray_address is not None, ray_address=ray_address, progress=progress,
                   heap_dir=str(heap_dir) if heap_dir is not None else None, protocol=protocol,
-                  segmenter=segmenter, detector=detector, push_policy=push_policy)
+                  segmenter=segmenter, detector=detector, push_policy=push_policy, grasp_planner=grasp_planner)
     if s["resumed"]:
         typer.echo(f"resuming: {s['resumed']} of {heaps_} rollouts already in {out}")
     typer.echo(format_summary(policy, s))

@@ -78,6 +78,26 @@ def test_bad_bench_input(tmp_path):
     assert p.returncode == 2 and "primitive" in p.stderr
     p = run("bench", "plot", tmp_path / "missing.jsonl", check=False)
     assert p.returncode == 2 and "no such result file" in p.stderr
+    p = run("bench", "search", "--policy", "largest", "--grasp-planner", "dexnet", "--out", tmp_path / "x.jsonl",
+            check=False)
+    assert p.returncode == 2 and "--grasp-planner 'dexnet'" in p.stderr and "indexed, image" in p.stderr
+
+
+def test_a_run_resumes_only_the_records_of_its_own_grasp_planner(tmp_path):
+    import json
+
+    out = tmp_path / "g.jsonl"
+    assert run_bench("largest", 2, 1, 5, out, horizon=3)["ran"] == 1  # primitive default: the grasp sets
+    s = run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="image")
+    assert s["resumed"] == 0 and s["ran"] == 1
+    recs = read_records(out)
+    assert [r["grasp_planner"] for r in recs] == ["indexed", "image"]
+    assert run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="indexed")["resumed"] == 1
+    # a record without the key predates the grasp sets: it was searched with the image planner
+    old = {k: v for k, v in recs[1].items() if k != "grasp_planner"}
+    out.write_text(json.dumps(old) + "\n")
+    assert run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="image")["ran"] == 0
+    assert run_bench("largest", 2, 1, 5, out, horizon=3)["ran"] == 1
 
 
 def test_truncating_a_record_to_a_smaller_budget():

@@ -58,16 +58,29 @@ whose target starts fully hidden (heap_xray_hidden_N<N>_s<seed>.json)."""
     return heap
 
 
+# The controller options a record is matched on when a run resumes: (key, the value a record
+# without the key had). A record without "grasp_planner" predates the grasp sets: image planner.
+OPTION_DEFAULTS = (("segmenter", "ground_truth"), ("detector", "color"), ("push_policy", ""),
+                   ("grasp_planner", "image"))
+
+
+def search_options(fidelity: str = "primitive", segmenter: str = "ground_truth", detector: str = "color",
+                   push_policy: str = "", grasp_planner: str = "") -> dict:
+    """The controller options of a run (SearchParams keywords), grasp_planner resolved as the
+    controller resolves it ("" = indexed for the primitive fidelity, image for the full one)."""
+    if not grasp_planner:
+        grasp_planner = "indexed" if fidelity == "primitive" else "image"
+    return {"segmenter": segmenter, "detector": detector, "push_policy": push_policy, "grasp_planner": grasp_planner}
+
+
 def rollout_job(job: tuple) -> dict:
-    """(policy, objects, seed, fidelity, horizon[, heap_dir[, protocol[, segmenter, detector[, push_policy]]]])
-    -> record; module-level for pickling."""
+    """(policy, objects, seed, fidelity, horizon[, heap_dir[, protocol[, options]]]) -> record;
+    options: search_options(); module-level for pickling."""
     policy, objects, seed, fidelity, horizon, *rest = job
     protocol = rest[1] if len(rest) > 1 else "ch7"
-    segmenter, detector = (rest[2], rest[3]) if len(rest) > 3 else ("ground_truth", "color")
-    push_policy = rest[4] if len(rest) > 4 else ""
+    opts = rest[2] if len(rest) > 2 else search_options(fidelity)
     heap = cached_heap(objects, seed, rest[0] if rest else None, protocol)
-    rec = rollout(policy, objects, seed, fidelity, horizon, heap=heap, segmenter=segmenter, detector=detector,
-                  push_policy=push_policy).record()
+    rec = rollout(policy, objects, seed, fidelity, horizon, heap=heap, **opts).record()
     if protocol != "ch7":
         rec["protocol"] = protocol
     rec["pid"] = os.getpid()
@@ -93,10 +106,12 @@ def read_records(path: Path) -> list[dict]:
 
 
 def final_records(recs: list[dict]) -> list[dict]:
-    """The last record per (policy, objects, seed, fidelity): a retried rollout replaces its failure."""
+    """The last record per (policy, objects, seed, fidelity, options): a retried rollout replaces
+    its failure; runs with other controller options (OPTION_DEFAULTS) in the same file stay apart."""
     out = {}
     for r in recs:
-        out[(r.get("policy"), r.get("objects"), int(r["seed"]), r.get("fidelity"))] = r
+        opts = tuple(r.get(k, default) for k, default in OPTION_DEFAULTS)
+        out[(r.get("policy"), r.get("objects"), int(r["seed"]), r.get("fidelity"), opts)] = r
     return list(out.values())
 
 
@@ -105,39 +120,37 @@ def result_file(out_dir, policy: str, objects: int, horizon: int | None = None) 
     return Path(out_dir) / (f"{policy}_N{objects}.jsonl" if horizon is None else f"{policy}_N{objects}_H{horizon}.jsonl")
 
 
-def _matches(r: dict, policy: str, objects: int, fidelity: str, segmenter: str = "ground_truth",
-             detector: str = "color", push_policy: str = "") -> bool:
+def _matches(r: dict, policy: str, objects: int, fidelity: str, opts: dict) -> bool:
     return (r.get("policy") == policy and r.get("objects") == objects and r.get("fidelity", "primitive") == fidelity
-            and r.get("segmenter", "ground_truth") == segmenter and r.get("detector", "color") == detector
-            and r.get("push_policy", "") == push_policy)
+            and all(r.get(k, default) == opts[k] for k, default in OPTION_DEFAULTS))
 
 
-def _done_seeds(path: Path, policy: str, objects: int, fidelity: str, segmenter: str = "ground_truth",
-                detector: str = "color", push_policy: str = "") -> set[int]:
+def _done_seeds(path: Path, policy: str, objects: int, fidelity: str, opts: dict) -> set[int]:
     return {int(r["seed"]) for r in final_records(read_records(path))
-            if _matches(r, policy, objects, fidelity, segmenter, detector, push_policy)
-            and r.get("failure") != "worker_died"}
+            if _matches(r, policy, objects, fidelity, opts) and r.get("failure") != "worker_died"}
 
 
 def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, workers: int = 1,
               fidelity: str = "primitive", horizon: int | None = None, use_ray: bool = False,
               ray_address: str | None = None, progress=None, heap_dir: str | None = None,
               protocol: str = "ch7", segmenter: str = "ground_truth", detector: str = "color",
-              push_policy: str = "") -> dict:
+              push_policy: str = "", grasp_planner: str = "") -> dict:
     """The missing rollouts of every run (policy, N, result file) on seeds S..S+K-1, all through
     ONE pool of `workers` processes; each record is appended (flushed, fsync'ed) to its run's file
     as it completes, so a killed run loses only the rollouts in flight and the same command
     resumes it. Jobs are queued run by run (all seeds of the first run, then the next), so with a
     shared `heap_dir` the first run's workers generate the heaps in parallel, each heap once, and
     later runs load them. segmenter / detector: the controller's perception (SearchParams);
-    push_policy: the *_push selectors' push policy (SearchParams.push_policy, "" = Ch. 7's).
-    Returns {(policy, N): summary}."""
+    push_policy: the *_push selectors' push policy (SearchParams.push_policy, "" = Ch. 7's);
+    grasp_planner: SearchParams.grasp_planner ("" = the fidelity's default). A record counts as
+    done only when all of these match. Returns {(policy, N): summary}."""
+    opts = search_options(fidelity, segmenter, detector, push_policy, grasp_planner)
     jobs, done = [], {}
     for policy, objects, out in runs:
         out = Path(out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        done[(policy, objects)] = _done_seeds(out, policy, objects, fidelity, segmenter, detector, push_policy)
-        jobs += [(policy, objects, k, fidelity, horizon, heap_dir, protocol, segmenter, detector, push_policy)
+        done[(policy, objects)] = _done_seeds(out, policy, objects, fidelity, opts)
+        jobs += [(policy, objects, k, fidelity, horizon, heap_dir, protocol, opts)
                  for k in range(seed_start, seed_start + heaps)
                  if k not in done[(policy, objects)]]
     files = {(policy, objects): Path(out) for policy, objects, out in runs}
@@ -152,8 +165,7 @@ def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, wo
                 err = (r.error or "").strip().splitlines()
                 rec = dict(seed=seed, policy=policy, fidelity=fidelity, objects=objects, success=False,
                            actions=0, action_kinds=[], failure="worker_died", stop_reason="",
-                           error=err[-1] if err else "", seconds=0.0, segmenter=segmenter, detector=detector,
-                           push_policy=push_policy)
+                           error=err[-1] if err else "", seconds=0.0, **opts)
             key = (policy, objects)
             if key not in handles:
                 handles[key] = open(files[key], "a")
@@ -170,7 +182,7 @@ def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, wo
     out = {}
     for policy, objects, path in runs:
         recs = [r for r in final_records(read_records(path))
-                if _matches(r, policy, objects, fidelity, segmenter, detector, push_policy)
+                if _matches(r, policy, objects, fidelity, opts)
                 and seed_start <= int(r["seed"]) < seed_start + heaps]
         summ = summarize(recs)
         summ.update(resumed=len(done[(policy, objects)] & set(range(seed_start, seed_start + heaps))),
@@ -183,12 +195,12 @@ def run_bench(policy: str, objects: int, heaps: int, seed_start: int, out: Path,
               fidelity: str = "primitive", horizon: int | None = None, use_ray: bool = False,
               ray_address: str | None = None, progress=None, heap_dir: str | None = None,
               protocol: str = "ch7", segmenter: str = "ground_truth", detector: str = "color",
-              push_policy: str = "") -> dict:
+              push_policy: str = "", grasp_planner: str = "") -> dict:
     """Run the missing rollouts of seeds S..S+K-1, append them to `out`; returns the summary."""
     return run_suite([(policy, objects, Path(out))], heaps, seed_start, workers=workers, fidelity=fidelity,
                      horizon=horizon, use_ray=use_ray, ray_address=ray_address, progress=progress,
                      heap_dir=heap_dir, protocol=protocol, segmenter=segmenter, detector=detector,
-                     push_policy=push_policy)[(policy, objects)]
+                     push_policy=push_policy, grasp_planner=grasp_planner)[(policy, objects)]
 
 
 def truncate_record(rec: dict, horizon: int) -> dict:
