@@ -42,6 +42,7 @@ from ms_drake.experiments.demo import DEMO_SEED, run_demo
 from ms_drake.experiments.grasp_figure import grasp_figure
 from ms_drake.experiments.grasp_set_data import write_grasp_sets
 from ms_drake.experiments.harness import (
+    HEAP_ENGINES,
     format_summary,
     paired_comparison,
     plot,
@@ -385,9 +386,13 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
                                                  f"policy ({' | '.join(PUSH_POLICIES)})"),
                  grasp_planner: str = typer.Option("", "--grasp-planner", help="Grasps: '' = the fidelity's "
                                                    "default (indexed for primitive, image for full) | "
-                                                   f"{' | '.join(GRASP_PLANNERS)}")):
+                                                   f"{' | '.join(GRASP_PLANNERS)}"),
+                 heap_engine: str = typer.Option("drake", "--heap-engine", help="Drop physics of the ch7 heaps: "
+                                                 f"{' | '.join(HEAP_ENGINES)} (Bullet: ~4x cheaper per heap)")):
     """Search heaps S..S+K-1 with a policy; one JSON line per rollout (resumable), then a summary."""
     check_policy(policy)
+    if heap_engine not in HEAP_ENGINES:
+        _fail(f"--heap-engine {heap_engine!r}: choose one of {', '.join(HEAP_ENGINES)}")
     if grasp_planner and grasp_planner not in GRASP_PLANNERS:
         _fail(f"--grasp-planner {grasp_planner!r}: choose one of {', '.join(GRASP_PLANNERS)}")
     if push_policy and push_policy not in PUSH_POLICIES:
@@ -398,6 +403,9 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
         _fail(f"--detector {detector!r}: choose one of {', '.join(DETECTOR_BACKENDS)}")
     if protocol not in PROTOCOLS:
         _fail(f"--protocol {protocol!r}: choose one of {', '.join(PROTOCOLS)}")
+    if heap_engine != "drake" and protocol != "ch7":
+        _fail(f"--heap-engine {heap_engine}: only with --protocol ch7 (the {protocol} heaps are dropped with Bullet "
+              "and settled in Drake)")
     if objects is None:
         objects = XRAY_OBJECTS if protocol in XRAY_PROTOCOLS else 15
     if protocol in XRAY_PROTOCOLS and horizon is None:
@@ -414,7 +422,8 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
     s = run_bench(policy, objects, heaps_, seed_start, out, workers=workers, fidelity=fidelity, horizon=horizon,
                   use_ray=ray or ray_address is not None, ray_address=ray_address, progress=progress,
                   heap_dir=str(heap_dir) if heap_dir is not None else None, protocol=protocol,
-                  segmenter=segmenter, detector=detector, push_policy=push_policy, grasp_planner=grasp_planner)
+                  segmenter=segmenter, detector=detector, push_policy=push_policy, grasp_planner=grasp_planner,
+                  heap_engine=heap_engine)
     if s["resumed"]:
         typer.echo(f"resuming: {s['resumed']} of {heaps_} rollouts already in {out}")
     typer.echo(format_summary(policy, s))

@@ -1,5 +1,6 @@
 """The bin-search benchmark harness: `ms-drake bench search` on tiny heaps, resume, failures, plots."""
 
+import json
 import subprocess
 import sys
 
@@ -81,11 +82,15 @@ def test_bad_bench_input(tmp_path):
     p = run("bench", "search", "--policy", "largest", "--grasp-planner", "dexnet", "--out", tmp_path / "x.jsonl",
             check=False)
     assert p.returncode == 2 and "--grasp-planner 'dexnet'" in p.stderr and "indexed, image" in p.stderr
+    p = run("bench", "search", "--policy", "largest", "--heap-engine", "physx", "--out", tmp_path / "x.jsonl",
+            check=False)
+    assert p.returncode == 2 and "--heap-engine 'physx'" in p.stderr and "drake, bullet" in p.stderr
+    p = run("bench", "search", "--policy", "xray", "--protocol", "xray", "--heap-engine", "bullet",
+            "--out", tmp_path / "x.jsonl", check=False)
+    assert p.returncode == 2 and "only with --protocol ch7" in p.stderr
 
 
 def test_a_run_resumes_only_the_records_of_its_own_grasp_planner(tmp_path):
-    import json
-
     out = tmp_path / "g.jsonl"
     assert run_bench("largest", 2, 1, 5, out, horizon=3)["ran"] == 1  # primitive default: the grasp sets
     s = run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="image")
@@ -98,6 +103,18 @@ def test_a_run_resumes_only_the_records_of_its_own_grasp_planner(tmp_path):
     out.write_text(json.dumps(old) + "\n")
     assert run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="image")["ran"] == 0
     assert run_bench("largest", 2, 1, 5, out, horizon=3)["ran"] == 1
+
+
+def test_bullet_heaps_are_cached_and_matched_apart_from_drake_heaps(tmp_path):
+    out, heaps = tmp_path / "e.jsonl", tmp_path / "heaps"
+    assert run_bench("largest", 2, 1, 5, out, horizon=3, heap_dir=str(heaps))["ran"] == 1
+    s = run_bench("largest", 2, 1, 5, out, horizon=3, heap_dir=str(heaps), heap_engine="bullet")
+    assert s["resumed"] == 0 and s["ran"] == 1
+    assert sorted(f.name for f in heaps.iterdir()) == ["heap_N2_s5.json", "heap_bullet_N2_s5.json"]
+    assert [r["heap_engine"] for r in read_records(out)] == ["drake", "bullet"]
+    assert run_bench("largest", 2, 1, 5, out, horizon=3, heap_dir=str(heaps), heap_engine="bullet")["ran"] == 0
+    a, b = (json.loads((heaps / f).read_text()) for f in ("heap_N2_s5.json", "heap_bullet_N2_s5.json"))
+    assert a["objects"] != b["objects"]  # two drop simulations of the same seed
 
 
 def test_truncating_a_record_to_a_smaller_budget():

@@ -30,26 +30,36 @@ from ms_drake.experiments.rollout import rollout
 from ms_drake.experiments.xray import PROTOCOLS, XRAY_PROTOCOLS, xray_heap
 from ms_drake.parallel import run_jobs
 from ms_drake.scenario import load_scenario
-from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap, load_heap, save_heap
+from ms_drake.scenes.heaps import SEARCH_HEAPS, HeapParams, generate_heap, load_heap, save_heap
 
 BOOTSTRAP = 2000
+# Drop physics of the "ch7" heaps: the compliant Drake drop world (SEARCH_HEAPS, the tables'
+# default) or Bullet (HeapParams' default engine, ~4x cheaper per heap).
+HEAP_ENGINES = {"drake": SEARCH_HEAPS, "bullet": HeapParams(engine="bullet")}
 
 
-def cached_heap(objects: int, seed: int, heap_dir: str | None, protocol: str = "ch7"):
+def cached_heap(objects: int, seed: int, heap_dir: str | None, protocol: str = "ch7", engine: str = "drake"):
     """Heap `seed` of N objects (BinHeap15's bin), read from / saved to `heap_dir` when given, so
     several policies search the very same heaps without regenerating them (a heap is a pure
     function of (protocol, N, seed); the file is written atomically). protocol "ch7": N objects of
     the scenario's set (heap_N<N>_s<seed>.json); "xray": the target dropped first under N unseen
     mesh objects (ms_drake.experiments.xray; heap_xray_N<N>_s<seed>.json); "xray_hidden": those
-whose target starts fully hidden (heap_xray_hidden_N<N>_s<seed>.json)."""
+whose target starts fully hidden (heap_xray_hidden_N<N>_s<seed>.json). engine (HEAP_ENGINES):
+the "ch7" heaps' drop physics; Bullet heaps are heap_bullet_N<N>_s<seed>.json."""
     if protocol not in PROTOCOLS:
         raise ValueError(f"protocol {protocol!r} unknown; choose one of {', '.join(PROTOCOLS)}")
-    stem = f"heap_N{objects}_s{seed}" if protocol == "ch7" else f"heap_{protocol}_N{objects}_s{seed}"
+    if engine not in HEAP_ENGINES:
+        raise ValueError(f"heap engine {engine!r} unknown; choose one of {', '.join(HEAP_ENGINES)}")
+    if engine != "drake" and protocol != "ch7":
+        raise ValueError(f"heap engine {engine!r} applies to the ch7 protocol only (the {protocol} heaps are "
+                         "dropped with Bullet and settled in Drake)")
+    stem = (f"heap_N{objects}_s{seed}" if engine == "drake" else f"heap_{engine}_N{objects}_s{seed}") \
+        if protocol == "ch7" else f"heap_{protocol}_N{objects}_s{seed}"
     path = Path(heap_dir) / f"{stem}.json" if heap_dir else None
     if path is not None and path.exists():
         return load_heap(path)
     heap = (xray_heap(seed, objects, hidden=protocol == "xray_hidden") if protocol in XRAY_PROTOCOLS else
-            generate_heap(load_scenario(None, "BinHeap15"), objects, seed, params=SEARCH_HEAPS))
+            generate_heap(load_scenario(None, "BinHeap15"), objects, seed, params=HEAP_ENGINES[engine]))
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(f".{os.getpid()}.tmp")
@@ -58,19 +68,22 @@ whose target starts fully hidden (heap_xray_hidden_N<N>_s<seed>.json)."""
     return heap
 
 
-# The controller options a record is matched on when a run resumes: (key, the value a record
-# without the key had). A record without "grasp_planner" predates the grasp sets: image planner.
+# The options a record is matched on when a run resumes: (key, the value a record without the key
+# had). A record without "grasp_planner" predates the grasp sets: image planner; without
+# "heap_engine", its heap came from the Drake drop world.
 OPTION_DEFAULTS = (("segmenter", "ground_truth"), ("detector", "color"), ("push_policy", ""),
-                   ("grasp_planner", "image"))
+                   ("grasp_planner", "image"), ("heap_engine", "drake"))
 
 
 def search_options(fidelity: str = "primitive", segmenter: str = "ground_truth", detector: str = "color",
-                   push_policy: str = "", grasp_planner: str = "") -> dict:
-    """The controller options of a run (SearchParams keywords), grasp_planner resolved as the
-    controller resolves it ("" = indexed for the primitive fidelity, image for the full one)."""
+                   push_policy: str = "", grasp_planner: str = "", heap_engine: str = "drake") -> dict:
+    """The options of a run: the controller's (SearchParams keywords; grasp_planner resolved as the
+    controller resolves it, "" = indexed for the primitive fidelity, image for the full one) and
+    the heaps' drop engine (HEAP_ENGINES)."""
     if not grasp_planner:
         grasp_planner = "indexed" if fidelity == "primitive" else "image"
-    return {"segmenter": segmenter, "detector": detector, "push_policy": push_policy, "grasp_planner": grasp_planner}
+    return {"segmenter": segmenter, "detector": detector, "push_policy": push_policy, "grasp_planner": grasp_planner,
+            "heap_engine": heap_engine}
 
 
 def rollout_job(job: tuple) -> dict:
@@ -78,9 +91,11 @@ def rollout_job(job: tuple) -> dict:
     options: search_options(); module-level for pickling."""
     policy, objects, seed, fidelity, horizon, *rest = job
     protocol = rest[1] if len(rest) > 1 else "ch7"
-    opts = rest[2] if len(rest) > 2 else search_options(fidelity)
-    heap = cached_heap(objects, seed, rest[0] if rest else None, protocol)
+    opts = dict(rest[2] if len(rest) > 2 else search_options(fidelity))
+    engine = opts.pop("heap_engine", "drake")
+    heap = cached_heap(objects, seed, rest[0] if rest else None, protocol, engine)
     rec = rollout(policy, objects, seed, fidelity, horizon, heap=heap, **opts).record()
+    rec["heap_engine"] = engine
     if protocol != "ch7":
         rec["protocol"] = protocol
     rec["pid"] = os.getpid()
@@ -134,7 +149,7 @@ def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, wo
               fidelity: str = "primitive", horizon: int | None = None, use_ray: bool = False,
               ray_address: str | None = None, progress=None, heap_dir: str | None = None,
               protocol: str = "ch7", segmenter: str = "ground_truth", detector: str = "color",
-              push_policy: str = "", grasp_planner: str = "") -> dict:
+              push_policy: str = "", grasp_planner: str = "", heap_engine: str = "drake") -> dict:
     """The missing rollouts of every run (policy, N, result file) on seeds S..S+K-1, all through
     ONE pool of `workers` processes; each record is appended (flushed, fsync'ed) to its run's file
     as it completes, so a killed run loses only the rollouts in flight and the same command
@@ -142,9 +157,12 @@ def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, wo
     shared `heap_dir` the first run's workers generate the heaps in parallel, each heap once, and
     later runs load them. segmenter / detector: the controller's perception (SearchParams);
     push_policy: the *_push selectors' push policy (SearchParams.push_policy, "" = Ch. 7's);
-    grasp_planner: SearchParams.grasp_planner ("" = the fidelity's default). A record counts as
-    done only when all of these match. Returns {(policy, N): summary}."""
-    opts = search_options(fidelity, segmenter, detector, push_policy, grasp_planner)
+    grasp_planner: SearchParams.grasp_planner ("" = the fidelity's default); heap_engine: the
+    heaps' drop physics (HEAP_ENGINES). A record counts as done only when all of these match.
+    Returns {(policy, N): summary}."""
+    if heap_engine not in HEAP_ENGINES:
+        raise ValueError(f"heap engine {heap_engine!r} unknown; choose one of {', '.join(HEAP_ENGINES)}")
+    opts = search_options(fidelity, segmenter, detector, push_policy, grasp_planner, heap_engine)
     jobs, done = [], {}
     for policy, objects, out in runs:
         out = Path(out)
@@ -195,12 +213,13 @@ def run_bench(policy: str, objects: int, heaps: int, seed_start: int, out: Path,
               fidelity: str = "primitive", horizon: int | None = None, use_ray: bool = False,
               ray_address: str | None = None, progress=None, heap_dir: str | None = None,
               protocol: str = "ch7", segmenter: str = "ground_truth", detector: str = "color",
-              push_policy: str = "", grasp_planner: str = "") -> dict:
+              push_policy: str = "", grasp_planner: str = "", heap_engine: str = "drake") -> dict:
     """Run the missing rollouts of seeds S..S+K-1, append them to `out`; returns the summary."""
     return run_suite([(policy, objects, Path(out))], heaps, seed_start, workers=workers, fidelity=fidelity,
                      horizon=horizon, use_ray=use_ray, ray_address=ray_address, progress=progress,
                      heap_dir=heap_dir, protocol=protocol, segmenter=segmenter, detector=detector,
-                     push_policy=push_policy, grasp_planner=grasp_planner)[(policy, objects)]
+                     push_policy=push_policy, grasp_planner=grasp_planner,
+                     heap_engine=heap_engine)[(policy, objects)]
 
 
 def truncate_record(rec: dict, horizon: int) -> dict:
