@@ -42,6 +42,7 @@ from ms_drake.experiments.harness import (
     summarize,
     truncate_record,
 )
+from ms_drake.policies.bin_search import GRASP_PLANNERS
 
 POLICIES = ("random", "preempted_random", "preempted_random_push", "largest", "largest_push", "xray", "oracle")
 
@@ -62,11 +63,13 @@ def table(rows) -> str:
     return "\n".join(lines)
 
 
-def report_records(out: Path, policy: str, objects: int, horizon: int | None, engine: str = "drake"):
-    """(records, label of H) of one table row (heaps of `engine`): the file run at `horizon`, else
-    (H given) the 2N file truncated at H."""
+def report_records(out: Path, policy: str, objects: int, horizon: int | None, engine: str = "drake",
+                   grasp_planner: str = "indexed"):
+    """(records, label of H) of one table row (heaps of `engine`, searched with `grasp_planner`):
+    the file run at `horizon`, else (H given) the 2N file truncated at H."""
     def mine(r):
-        return r.get("policy") == policy and r.get("objects") == objects and r.get("heap_engine", "drake") == engine
+        return (r.get("policy") == policy and r.get("objects") == objects and r.get("heap_engine", "drake") == engine
+                and r.get("grasp_planner", "image") == grasp_planner)
 
     f = result_file(out, policy, objects, horizon)
     recs = [r for r in final_records(read_records(f)) if mine(r)]
@@ -108,6 +111,8 @@ def main(argv=None):
     ap.add_argument("--heap-engine", choices=list(HEAP_ENGINES), default="drake",
                     help="drop physics of the heaps (Bullet: ~4x cheaper per heap); records and cached heaps "
                          "of the two engines stay apart")
+    ap.add_argument("--grasp-planner", choices=["", *GRASP_PLANNERS], default="",
+                    help="'' = the primitive fidelity's default (indexed: grasp sets + image fallback) | image")
     args = ap.parse_args(argv)
     if args.scaling:
         scaling(args)
@@ -116,7 +121,8 @@ def main(argv=None):
         rows = []
         for n in args.objects:
             for p in args.policies:
-                recs, h = report_records(args.out, p, n, args.horizon, args.heap_engine)
+                recs, h = report_records(args.out, p, n, args.horizon, args.heap_engine,
+                                          args.grasp_planner or "indexed")
                 if recs:
                     rows.append((p, n, h, summarize(recs)))
         print(table(rows))
@@ -131,7 +137,8 @@ def main(argv=None):
               f"{rec.get('cpu_seconds', 0.0):.1f} s CPU ({count[0]} done)", flush=True)
 
     summ = run_suite(runs, args.heaps, args.seed_start, workers=args.workers, horizon=args.horizon,
-                     heap_dir=str(args.out / "heaps"), progress=progress, heap_engine=args.heap_engine)
+                     heap_dir=str(args.out / "heaps"), progress=progress, heap_engine=args.heap_engine,
+                     grasp_planner=args.grasp_planner)
     rows = []
     for (p, n), s in summ.items():
         print(format_summary(f"{p} N={n}", s), flush=True)
