@@ -91,6 +91,9 @@ class SearchParams:
     # The *_push selectors' pushes (BinSearchParams.push_policy): "" = the Ch. 7 free-space push,
     # or a Ch. 4 policy (ms_drake.pushing.POLICIES).
     push_policy: str = ""
+    # BinSearchParams.reach: with the indexed planner, only grasps this robot reaches ("" none,
+    # "robot" the station's own, or a scenario name such as "YuMiBin")
+    reach: str = ""
 
     def __post_init__(self):
         check_policy(self.policy)
@@ -166,7 +169,8 @@ def controller_params(params: SearchParams, num_objects: int) -> BinSearchParams
                            robust_samples=params.robust_samples, grasp_params=params.grasp_params,
                            period=params.period, segmentation=params.segmenter, detector=params.detector,
                            occupancy="analytic" if params.policy == "oracle" else params.occupancy,
-                           grasp_planner=params.grasp_planner, push_policy=params.push_policy)
+                           grasp_planner=params.grasp_planner, push_policy=params.push_policy,
+                           reach=params.reach)
 
 
 def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSystem:
@@ -213,8 +217,11 @@ def _frame(system: SearchSystem, context, step: int) -> Frame:
 
 
 def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: float | None = None,
-               keep_frames: bool = False, meshcat=None) -> RolloutResult:
-    """Simulate until the executor is done; returns the rollout's result (with frames if asked)."""
+               keep_frames: bool = False, meshcat=None, on_idle=None) -> RolloutResult:
+    """Simulate until the executor is done; returns the rollout's result (with frames if asked).
+    on_idle(system, context, step): called whenever the executor is idle before the action of
+    `step` is chosen (the scene that action is chosen from; e.g. to record the state of each
+    attempt, ms_drake.experiments.fidelity)."""
     n = len(heap.objects)
     horizon = params.horizon if params.horizon is not None else 2 * n
     max_sim_time = max_sim_time or 30.0 + 12.0 * horizon
@@ -245,6 +252,8 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
                 step_grasps = system.output(context, "grasps")
                 if keep_frames:
                     frames.append(_frame(system, context, status.steps))
+                if on_idle is not None:
+                    on_idle(system, context, status.steps)
             if t >= max_sim_time:
                 failure = "timeout"
                 break

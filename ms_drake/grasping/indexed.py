@@ -16,6 +16,10 @@ object's collision shapes (the grasped object's included) or the bin. At most `m
 candidates per kind and object are checked (candidates are sorted; the cap bounds a buried
 object's cost). Objects without a grasp set, or whose set has no free grasp at their pose, go to
 `fallback` (a LazyGraspPlanner: the image-based planners) when given, else get no grasp.
+With `reach` (a callable Grasp -> bool, e.g. ms_drake.execution.reach.PickReach of a robot) a
+free grasp must also be one the robot reaches; at most `max_reach_checks` free candidates per
+kind and object are tried (each check is an IK plan, 20-250 ms); the fallback's grasps are
+checked too.
 
 Broad phase: each shape carries a bounding sphere; coal.collide runs only on gripper-part /
 shape pairs whose spheres overlap.
@@ -203,7 +207,8 @@ class IndexedGraspPlanner(LeafSystem):
                  kinds=("parallel_jaw", "suction"), fallback: LazyGraspPlanner | None = None,
                  max_tilt: float = np.radians(45.0), min_quality: float = 0.05, max_checks: int = 48,
                  margin: float = 0.001, suction_clearance: float = 0.003,
-                 jaw: ParallelJawConfig | None = None, cup: SuctionCupConfig | None = None, jaw_model: str = ""):
+                 jaw: ParallelJawConfig | None = None, cup: SuctionCupConfig | None = None, jaw_model: str = "",
+                 reach=None, max_reach_checks: int = 8):
         super().__init__()
         self.depth_port = self.DeclareAbstractInputPort("depth_image", AbstractValue.Make(ImageDepth32F(width, height)))
         self.masks_port = self.DeclareAbstractInputPort("masks", AbstractValue.Make(InstanceMasks.empty(height, width)))
@@ -230,6 +235,11 @@ class IndexedGraspPlanner(LeafSystem):
         self.gripper = GripperGeometry(self.jaw, self.cup, self.margin, self.suction_clearance)
         self.jaw_model = jaw_model or next((gs.model for gs in self.sets.values()), "soft_point")
         self._hull_cache: dict = {}
+        if reach is not None and not callable(reach):
+            raise GraspError(f"IndexedGraspPlanner reach must be a callable Grasp -> bool, got {type(reach).__name__}")
+        if int(max_reach_checks) < 1:
+            raise GraspError(f"IndexedGraspPlanner max_reach_checks must be >= 1, got {max_reach_checks!r}")
+        self.reach, self.max_reach_checks = reach, int(max_reach_checks)
 
     # ------------------------------------------------------------------ scene
     def _parts_of(self, geom) -> tuple:
@@ -271,11 +281,19 @@ class IndexedGraspPlanner(LeafSystem):
             i, k = np.nonzero(ok)
             order = np.lexsort((-down[i, k], -q[i, k]))[: self.max_checks]
             across = np.cross(ap[i[order], k[order]], a[i[order]])
+            reach_left = self.max_reach_checks
             for j, y in zip(order, across):
                 n, m = i[j], k[j]
                 if not scene.hits(self.gripper.jaw(c[n], a[n], ap[n, m], gs.jaw_width[n], y)):
-                    out.append(ParallelJawGrasp(c[n], a[n], ap[n, m], gs.jaw_width[n]).to_grasp(
-                        float(q[n, m]), self.jaw_model, oid))
+                    g = ParallelJawGrasp(c[n], a[n], ap[n, m], gs.jaw_width[n]).to_grasp(
+                        float(q[n, m]), self.jaw_model, oid)
+                    if self.reach is not None:
+                        reach_left -= 1
+                        if not self.reach(g):
+                            if reach_left == 0:
+                                break
+                            continue
+                    out.append(g)
                     break
         if "suction" in self.kinds and len(gs.suction_point):
             p = gs.suction_point @ R.T + t
@@ -285,9 +303,17 @@ class IndexedGraspPlanner(LeafSystem):
             ok = (down >= self.cos_tilt) & (q >= self.min_quality) & self._reachable(p)
             idx = np.nonzero(ok)[0]
             order = idx[np.lexsort((-down[idx], -q[idx]))][: self.max_checks]
+            reach_left = self.max_reach_checks
             for n in order:
                 if not scene.hits(self.gripper.suction(p[n], ap[n])):
-                    out.append(SuctionGrasp(p[n], ap[n]).to_grasp(float(q[n]), "suction", oid))
+                    g = SuctionGrasp(p[n], ap[n]).to_grasp(float(q[n]), "suction", oid)
+                    if self.reach is not None:
+                        reach_left -= 1
+                        if not self.reach(g):
+                            if reach_left == 0:
+                                break
+                            continue
+                    out.append(g)
                     break
         return tuple(out)
 
@@ -308,6 +334,7 @@ class IndexedGraspPlanner(LeafSystem):
                 return ()
             if "depth" not in state:  # no set, or no free grasp in it: the image planners
                 state["depth"] = np.asarray(self.depth_port.Eval(context).data, float)[..., 0]
-            return self.fallback.plan_object(state["depth"], masks, geoms, oid)
+            grasps = self.fallback.plan_object(state["depth"], masks, geoms, oid)
+            return grasps if self.reach is None else tuple(g for g in grasps if self.reach(g))
 
         output.set_value(LazyGrasps(plan_one, masks.ids))

@@ -17,7 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from pydrake.math import RigidTransform
+from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.primitives import TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
 
@@ -186,6 +186,24 @@ def _start(q_home, q_first, from_home: bool, limits) -> Timeline:
     return tl
 
 
+def _pick_lines(ik, limits, q_home, X_grasp, approach, lift, speed, axis_only):
+    """(q_pre, approach line, lift line) of a pick at X_grasp, or the failing step's IK status."""
+    pre = approach_pose(X_grasp, approach)
+    res = ik.solve(pre, q_seed=q_home, axis_only=axis_only)
+    if not res.success:
+        return res.status
+    q_pre = nearest_equivalent(ik, res.q, q_home)
+    X_pre = ik_pose(ik, q_pre) if axis_only else pre
+    approach_plan = plan_cartesian_line(ik, X_pre, approach * X_grasp.rotation().matrix()[:, 2], q_pre, limits,
+                                        axis_only=axis_only, max_speed=speed)
+    if not approach_plan.success:
+        return approach_plan.status
+    lift_plan = _line(ik, approach_plan.trajectory.final(), [0, 0, lift], limits, speed)
+    if not lift_plan.success:
+        return lift_plan.status
+    return q_pre, approach_plan, lift_plan
+
+
 def plan_pick(ik, limits, q_home, X_grasp: RigidTransform, arm: str, gripper_port: str, kind: str,
               approach: float = 0.10, lift: float = 0.20, force_limit: float = 30.0, max_opening: float = 0.10,
               close_time: float = 0.8, hold_time: float = 0.5, speed: float = 0.15,
@@ -195,20 +213,20 @@ def plan_pick(ik, limits, q_home, X_grasp: RigidTransform, arm: str, gripper_por
     there), skipping the joint motion from home. X_grasp: RigidTransform or 4x4 array."""
     X_grasp = as_rigid_transform(X_grasp, "X_grasp")
     axis_only = kind != "parallel_jaw"
-    pre = approach_pose(X_grasp, approach)
-    res = ik.solve(pre, q_seed=q_home, axis_only=axis_only)
-    if not res.success:
-        return PickPlan(False, res.status, arm, X_target=X_grasp)
-    q_pre = nearest_equivalent(ik, res.q, q_home)
-    X_pre = ik_pose(ik, q_pre) if axis_only else pre
-    approach_plan = plan_cartesian_line(ik, X_pre, approach * X_grasp.rotation().matrix()[:, 2], q_pre, limits,
-                                        axis_only=axis_only, max_speed=speed)
-    if not approach_plan.success:
-        return PickPlan(False, approach_plan.status, arm, X_target=X_grasp)
-    q_grasp = approach_plan.trajectory.final()
-    lift_plan = _line(ik, q_grasp, [0, 0, lift], limits, speed)
-    if not lift_plan.success:
-        return PickPlan(False, lift_plan.status, arm, X_target=X_grasp)
+    # A parallel jaw is symmetric: the tool turned by pi about its axis is the same grasp (the
+    # fingers swap), and often the only one of the two the wrist reaches.
+    poses = [X_grasp] if axis_only else [X_grasp, X_grasp @ RigidTransform(RotationMatrix.MakeZRotation(np.pi))]
+    failure = None
+    for X in poses:
+        lines = _pick_lines(ik, limits, q_home, X, approach, lift, speed, axis_only)
+        if isinstance(lines, str):
+            failure = failure or lines
+            continue
+        break
+    else:
+        return PickPlan(False, failure, arm, X_target=X_grasp)
+    q_pre, approach_plan, lift_plan = lines
+    X_grasp = X
     tl = _start(q_home, q_pre, from_home, limits)
     tl.mark("approach")
     tl.play(approach_plan.trajectory)

@@ -42,6 +42,7 @@ from pydrake.systems.framework import Diagram, DiagramBuilder
 
 from ms_drake.errors import MsDrakeError
 from ms_drake.execution import FIDELITIES, ActionExecutor, FullBackend, PrimitiveBackend, tcp_offset_of
+from ms_drake.execution.reach import PickReach
 from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.grasping.grasp_sets import load_grasp_set
 from ms_drake.grasping.indexed import IndexedGraspPlanner, environment_parts
@@ -60,6 +61,7 @@ from ms_drake.perception.target import TargetDetector, render_templates
 from ms_drake.policies.bin_selectors import SelectorParams, check_policy
 from ms_drake.policies.selector import PolicySelector
 from ms_drake.pushing import PushPlanner, PushPolicySystem, check_push_policy
+from ms_drake.scenario import load_scenario
 from ms_drake.station import get_plant, station_objects
 
 
@@ -93,6 +95,9 @@ class BinSearchParams:
     pose, checked against the scene, ms_drake.grasping.indexed; objects without a set, or
     without `sim`, are planned on the image) or "image" (the image-based planners only); ""
     (default): "indexed" for the primitive fidelity, "image" for the full one.
+    reach: with the "indexed" planner, keep only grasps a robot reaches (execution.reach.PickReach:
+    the full backend's pick plan, IK from park): "" (default) no check, "robot" the scenario's own
+    robot, or a scenario name (e.g. "YuMiBin": the primitive mode choosing the YuMi's grasps).
     push_policy: the pushes of the *_push selectors: "" (default) the Ch. 7 free-space push of
     every object (PushPlanner), or a Ch. 4 policy of ms_drake.pushing.POLICIES (PushPolicySystem
     on the depth image and masks: one push, of the object the policy chooses).
@@ -114,6 +119,7 @@ class BinSearchParams:
     period: float = 0.05
     grasp_planner: str = ""
     push_policy: str = ""
+    reach: str = ""
 
     def __post_init__(self):
         check_policy(self.policy)
@@ -258,8 +264,12 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
         sets = {oid: gs for oid, name in names.items()
                 if (gs := load_grasp_set(name)) is not None and (not jaw_model or gs.model == jaw_model)}
         grasp_kinds = tuple(sorted({"suction" if m == "suction" else "parallel_jaw" for m in models}))
+        reach = None
+        if params.reach:
+            reach = PickReach(scenario if params.reach == "robot" else load_scenario(None, params.reach),
+                              seed=params.seed)
         grasp = IndexedGraspPlanner(names, sets, environment_parts(scenario), workspace, camera.width, camera.height,
-                                    kinds=grasp_kinds, fallback=grasp, jaw_model=jaw_model)
+                                    kinds=grasp_kinds, fallback=grasp, jaw_model=jaw_model, reach=reach)
     grasp = builder.AddSystem(grasp)
     grasp.set_name("grasp_planner")
     depth_inputs.append(grasp.GetInputPort("depth_image"))
