@@ -64,6 +64,12 @@ from ms_drake.experiments.occupancy_learning import (
     write_json,
 )
 from ms_drake.experiments.picks import TASKS, run_pick
+from ms_drake.experiments.push_fidelity import (
+    format_fidelity,
+    pushed_records,
+    run_push_fidelity,
+    summarize_fidelity,
+)
 from ms_drake.experiments.push_study import (
     format_push_table,
     plot_push,
@@ -539,6 +545,44 @@ def bench_push_table(files: list[Path] = typer.Argument(..., help="Result .jsonl
     if figures is not None:
         for p in plot_push(s, figures):
             typer.echo(f"wrote {p}")
+
+
+@bench_app.command("push-fidelity")
+def bench_push_fidelity(heaps_: int = typer.Option(400, "--heaps", min=1, help="Improvable heaps (the first N, by seed)"),
+                        seed_start: int = typer.Option(0, "--seed-start", min=0, help="Lowest heap seed (S)"),
+                        heap_dirs: list[Path] = typer.Option(..., "--heap-dir", help="Folder of `ms-drake data "
+                                                             "push-heaps` (repeat for several)"),
+                        out: Path = typer.Option(..., "--out", help="Output .jsonl (appended to; resumes)"),
+                        workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers"),
+                        policies: Optional[list[str]] = typer.Option(None, "--policy", help="Push policies "
+                                                                     f"(repeat; default all): {' | '.join(PUSH_POLICIES)}"),
+                        json_out: Optional[Path] = typer.Option(None, "--json", help="Write the summary as JSON")):
+    """Each policy's recorded push on the YuMi (full fidelity) and in the primitive mode from the same
+    state: one JSON line per (heap, policy) with status, agree, gain_sign_agree, object motions, CPU s."""
+    bad = [p for p in policies or [] if p not in PUSH_POLICIES]
+    if bad:
+        _fail(f"--policy {', '.join(bad)}: choose from {', '.join(PUSH_POLICIES)}")
+    if out.suffix != ".jsonl":
+        _fail(f"--out {out}: give a .jsonl file")
+    missing = [str(d) for d in heap_dirs if not (d / "heaps.jsonl").exists()]
+    if missing:
+        _fail(f"--heap-dir {', '.join(missing)}: no heaps.jsonl; run `ms-drake data push-heaps --out DIR` first")
+    pols = tuple(policies) if policies else PUSH_POLICIES
+    total = sum(len(ps) for _, ps in pushed_records(heap_dirs, heaps_, seed_start, pols))
+    with tqdm(total=total, desc="push fidelity", unit="push") as bar:
+        done = {(int(r["seed"]), r["policy"]) for r in read_jsonl(out)} if out.exists() else set()
+        bar.update(sum(len([p for p in ps if (int(r["seed"]), p) in done])
+                       for r, ps in pushed_records(heap_dirs, heaps_, seed_start, pols)))
+        s = run_push_fidelity(heap_dirs, heaps_, seed_start, out, workers=workers, policies=pols,
+                              progress=lambda rows: bar.update(len(rows)))
+    summary = summarize_fidelity(s["rows"])
+    typer.echo(f"{len(s['rows'])} of {s['pushes']} pushes on {s['heaps']} heaps in {out}")
+    typer.echo(format_fidelity(summary))
+    if json_out is not None:
+        _write_json(json_out, summary)
+    if s["failed"]:
+        typer.echo(f"{len(s['failed'])} heaps failed (rerun to retry): {s['failed'][:3]}")
+        raise typer.Exit(1)
 
 
 def _occluder_counts(first: list[int], extra: list[str]) -> list[int]:

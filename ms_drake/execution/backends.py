@@ -262,13 +262,19 @@ class FullBackend(_Base):
             a, b = np.asarray(p.start, float), np.asarray(p.end, float)
             d = b - a
             yaw = float(np.arctan2(d[1], d[0])) + np.pi / 2
-            R = RotationMatrix.MakeZRotation(yaw) @ RotationMatrix.MakeXRotation(np.pi)
             ik, limits, _ = self.ik[arm]
             q_now = np.asarray(hold[f"{arm}.position"], float)
-            plan = plan_push(ik, limits, q_now, RigidTransform(R, a), d, float(np.linalg.norm(d)), arm,
-                             speed=min(self.speed, 0.1))
+            # The closed jaw is symmetric under a half turn about the tool axis: either yaw pushes
+            # with the broad side; the second is tried when the arm cannot plan the first.
+            for k, y in enumerate((yaw, yaw + np.pi)):
+                R = RotationMatrix.MakeZRotation(y) @ RotationMatrix.MakeXRotation(np.pi)
+                plan = plan_push(ik, limits, q_now, RigidTransform(R, a), d, float(np.linalg.norm(d)), arm,
+                                 speed=min(self.speed, 0.1))
+                first = plan.status if k == 0 else first
+                if plan.success:
+                    break
             if not plan.success:
-                return plan.status
+                return first
             close = Schedule()
             close.set(0.0, 0.0)
             plan.commands[f"{jaw}.position"] = close

@@ -48,10 +48,11 @@ import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
 from pydrake.math import RigidTransform
+from pydrake.multibody.math import SpatialVelocity
 from pydrake.systems.analysis import Simulator
 from scipy.stats import f_oneway
 
-from ms_drake.execution import PrimitiveBackend, remove_objects
+from ms_drake.execution import FullBackend, Motion, PrimitiveBackend, remove_objects
 from ms_drake.execution.backends import tcp_offset_of
 from ms_drake.experiments.heap_grasps import (
     _coal_shape,
@@ -88,6 +89,7 @@ from ms_drake.station.robots import set_arm_positions
 from ms_drake.types import Action, Heap, ObjectGeometry
 
 METRICS = ("separation_gain", "jaw_gain", "suction_gain", "overall_gain")
+WORLD_SCENARIOS = {"primitive": "FloatingGripperBin", "full": "YuMiBin"}  # PushWorld's station per fidelity
 
 
 @functools.lru_cache(maxsize=512)
@@ -119,14 +121,24 @@ class StudyParams:
 
 # --------------------------------------------------------------------------- physics
 class PushWorld:
-    """FloatingGripperBin holding a heap (cameras off unless asked): states, grasps, pushes."""
+    """A bin station holding a heap (cameras off unless asked): states, grasps, pushes.
 
-    def __init__(self, heap: Heap, params: StudyParams = StudyParams(), cameras: bool = False):
-        s = scenario_with_heap(_scenario("FloatingGripperBin"), heap)
-        s.plant_config.time_step = params.time_step
+    fidelity "primitive" (the study's): FloatingGripperBin + PrimitiveBackend, plant step
+    `params.time_step`. fidelity "full": YuMiBin (or `scenario_name`, any robot scenario) at the
+    scenario's own plant step + FullBackend (IK + ruckig from the arm's park configuration through
+    the station's drivers). Commands are held over one plant step."""
+
+    def __init__(self, heap: Heap, params: StudyParams = StudyParams(), cameras: bool = False,
+                 fidelity: str = "primitive", scenario_name: str | None = None):
+        if fidelity not in WORLD_SCENARIOS:
+            raise ValueError(f"fidelity {fidelity!r} unknown; choose one of {', '.join(WORLD_SCENARIOS)}")
+        s = scenario_with_heap(_scenario(scenario_name or WORLD_SCENARIOS[fidelity]), heap)
+        if fidelity == "primitive":
+            s.plant_config.time_step = params.time_step
         if not cameras:
             s.cameras = {}
-        self.scenario, self.params = s, params
+        self.scenario, self.params, self.fidelity = s, params, fidelity
+        self.step = float(s.plant_config.time_step)
         self.station = MakeStation(s, target_index=-1)
         self.plant = get_plant(self.station)
         self.sim = Simulator(self.station)
@@ -136,25 +148,49 @@ class PushWorld:
         self.ids = [o.model_name for o in self.objects]
         self.names = {o.model_name: o.full_name for o in self.objects}
         self.workspace = Workspace.from_scenario(s)
-        self.backend = PrimitiveBackend({o.model_name: int(o.body_index) for o in self.objects}, self.workspace,
-                                        tcp_offset_of(self.plant))
+        bodies = {o.model_name: int(o.body_index) for o in self.objects}
+        if fidelity == "primitive":
+            self.backend = PrimitiveBackend(bodies, self.workspace, tcp_offset_of(self.plant))
+        else:
+            self.backend = FullBackend(s, bodies, self.workspace)
         self.removed: set = set()
         cmds = self.backend.initial_commands()
-        for port, v in cmds.items():
-            self.station.GetInputPort(port).FixValue(self.context, np.asarray(v, float))
+        self.hold = {port: np.atleast_1d(np.asarray(v, float)) for port, v in cmds.items()}
+        self._fix(self.hold)
         set_heap_poses(self.station, self.context, heap)
-        set_arm_positions(self.plant, self.pc, "floating", cmds)
-        self._cmd = self.station.GetInputPort("floating.position")
+        set_arm_positions(self.plant, self.pc, s.robot.name, cmds)
         self.sim.Initialize()
+
+    def _fix(self, commands: dict):
+        for port, v in commands.items():
+            self.station.GetInputPort(port).FixValue(self.context, v)
 
     # state --------------------------------------------------------------------------------
     def snapshot(self):
-        return self.context.Clone(), set(self.removed)
+        return self.context.Clone(), set(self.removed), dict(self.hold)
 
     def restore(self, snap):
-        ctx, removed = snap
+        ctx, removed, hold = snap
         self.context.SetTimeStateAndParametersFrom(ctx)
         self.removed = set(removed)
+        self.hold = dict(hold)
+        self._fix(self.hold)
+        self.sim.Initialize()
+
+    def set_state(self, poses: dict):
+        """Objects of `poses` ({id: 4x4}, e.g. a heap record's "state") at those poses, at rest;
+        every other object out of the scene (removed)."""
+        unknown = sorted(set(poses) - set(self.ids))
+        if unknown:
+            raise ValueError(f"state objects {unknown} are not in this world ({len(self.ids)} objects); build the "
+                             f"world from the record's own heap")
+        for o, oid in zip(self.objects, self.ids):
+            if oid in poses:
+                body = self.plant.get_body(o.body_index)
+                self.plant.SetFreeBodyPose(self.pc, body, RigidTransform(np.asarray(poses[oid], float)))
+                self.plant.SetFreeBodySpatialVelocity(self.pc, body, SpatialVelocity(np.zeros(3), np.zeros(3)))
+            elif oid not in self.removed:
+                self.remove(oid)
         self.sim.Initialize()
 
     def pose(self, oid: str) -> np.ndarray:
@@ -188,14 +224,20 @@ class PushWorld:
         return {oid: np.round(self.pose(oid), 6).tolist() for oid in self.present()}
 
     # actions ------------------------------------------------------------------------------
-    def advance(self, dt: float, command=None):
+    def advance(self, dt: float, motion: Motion | None = None):
+        """Simulate `dt` s in plant steps; with `motion`, its commands (at the time since the call)
+        on their input ports at every step, the held commands on the others; at the end the
+        motion's final commands are held."""
         t0 = self.context.get_time()
-        steps = max(1, round(dt / self.params.time_step))
+        steps = max(1, round(dt / self.step))
         for k in range(1, steps + 1):
-            t = t0 + k * self.params.time_step
-            if command is not None:
-                self._cmd.FixValue(self.context, np.asarray(command(t - t0), float))
+            t = t0 + k * self.step
+            if motion is not None:
+                v = motion.values(t - t0, self.hold)
+                self._fix({port: v[port] for port in motion.commands})
             self.sim.AdvanceTo(t)
+        if motion is not None:
+            self.hold = motion.values(motion.duration, self.hold)
         q = self.plant.GetPositions(self.pc)
         if not np.all(np.isfinite(q)):
             raise RuntimeError("non-finite plant state")
@@ -205,13 +247,17 @@ class PushWorld:
         remove_objects(self.plant, self.pc, [int(o.body_index)])
         self.removed.add(oid)
 
-    def execute_push(self, push) -> float:
-        """The primitive mode's push: PrimitiveBackend's legs from the parked jaw (above the start,
-        down, along the segment, up, back to the park pose), each a command of the station's
-        floating-gripper driver, then the settle time. Returns the simulated seconds."""
-        b = self.backend
-        motion = b.plan(Action("push", push=push), {"floating.position": b.park}, 0)
-        self.advance(motion.duration, command=motion.commands["floating.position"])
+    def execute_push(self, push) -> float | str:
+        """The backend's push, then the settle time. Primitive: PrimitiveBackend's legs from the
+        parked jaw (above the start, down, along the segment, up, back to the park pose), each a
+        command of the floating-gripper driver. Full: FullBackend's closed jaw at the push's height
+        along the segment (plan_push: above the start, down, along, up), the arm back to park.
+        Returns the simulated seconds, or the planner's status (a str: "unreachable",
+        "collision", ...) when the robot cannot execute the push (nothing is simulated)."""
+        motion = self.backend.plan(Action("push", push=push), self.hold, 0)
+        if isinstance(motion, str):
+            return motion
+        self.advance(motion.duration, motion)
         return motion.duration
 
 
@@ -448,9 +494,12 @@ def run_policy(world: PushWorld, snap, before: dict, sets: GraspSets, policy: st
     rec["push"] = {"start": list(push.start), "end": list(push.end), "object": push.object_id}
     cpu1 = time.process_time()
     try:
-        world.execute_push(push)
+        done = world.execute_push(push)
     except RuntimeError as e:
         rec.update({k: 0.0 for k in METRICS}, error=str(e).splitlines()[0] if str(e) else "RuntimeError")
+        return rec
+    if isinstance(done, str):  # the robot cannot execute it (full fidelity): the state is unchanged
+        rec.update({k: 0.0 for k in METRICS}, error=f"plan_failed:{done}")
         return rec
     rec["sim_cpu_s"] = time.process_time() - cpu1
     after = state_metrics(world, sets)
@@ -822,13 +871,7 @@ def quality_noise(heap_recs: list[dict], seeds=(0, 1, 2, 3, 4), params: StudyPar
     for rec in heap_recs:
         heap = heap_from_dict(rec["heap"])
         world = PushWorld(heap, params)
-        for oid in world.ids:
-            if oid in rec["state"]:
-                o = world.objects[world.ids.index(oid)]
-                world.plant.SetFreeBodyPose(world.pc, world.plant.get_body(o.body_index),
-                                            RigidTransform(np.asarray(rec["state"][oid], float)))
-            else:
-                world.remove(oid)
+        world.set_state(rec["state"])
         q = [GraspSets(params, seed=int(rec["seed"]) * 1000 + s).qualities(world)["overall"] for s in seeds]
         out.append({"seed": int(rec["seed"]), "overall": q, "recorded": rec["before"]["overall"]})
     sd = [float(np.std(r["overall"])) for r in out]

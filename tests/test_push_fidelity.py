@@ -1,0 +1,99 @@
+"""The push study's full fidelity: one box pushed by the YuMi and by the primitive mode, an
+unreachable push, the agreement measure."""
+
+import numpy as np
+import pytest
+from pydrake.math import RotationMatrix
+
+from ms_drake.experiments.push_fidelity import (
+    FidelityPair,
+    agreement,
+    gain_sign,
+    mirror_deg,
+    summarize_fidelity,
+    wilson,
+    yaw_change,
+)
+from ms_drake.experiments.push_study import PushWorld, StudyParams, _mesh
+from ms_drake.scenes.heaps import heap_to_dict
+from ms_drake.types import Heap, ObjectPose, Push
+
+BOX = "procedural/box_117"  # 5.3 x 4.5 x 3.4 cm
+X0, Y0 = -0.06, -0.05  # in the YuMi's reach (the bin centre is at 0.55 m from its base)
+
+
+def _motion(center, dist, left=False):
+    return {"center": list(center), "dist": dist, "left": left, "dxy": [0.0, 0.0], "yaw": 0.0}
+
+
+def test_agreement_by_hand():
+    # 2 cm + 25 % of the primitive displacement: a 10 cm push may end 4.5 cm apart, not 5.
+    p = {"a": _motion([0.10, 0.0], 0.10), "b": _motion([0.3, 0.3], 0.0, left=True)}
+    ok, per = agreement(p, {"a": _motion([0.144, 0.0], 0.144), "b": _motion([9.0, 9.0], 1.0, left=True)})
+    assert ok and per["a"]["tol"] == pytest.approx(0.045) and per["b"]["ok"]
+    assert not agreement(p, {"a": _motion([0.151, 0.0], 0.15), "b": _motion([9.0, 9.0], 1.0, left=True)})[0]
+    # leaving the bin in one execution only disagrees, wherever the centres are
+    assert not agreement(p, {"a": _motion([0.10, 0.0], 0.1), "b": _motion([0.3, 0.3], 0.0, left=False)})[0]
+    assert gain_sign(0.25) == 1 and gain_sign(-1e-12) == 0 and gain_sign(-0.5) == -1
+    lo, hi = wilson(8, 10)
+    assert 0.49 < lo < 0.5 and 0.94 < hi < 0.95  # the textbook Wilson interval of 8/10
+
+
+def test_yaw_change_and_mirror():
+    R0 = RotationMatrix.MakeXRotation(0.3).matrix()
+    assert yaw_change(R0, RotationMatrix.MakeZRotation(0.5).matrix() @ R0) == pytest.approx(0.5)
+    # rolling about a horizontal axis has no yaw
+    assert yaw_change(R0, RotationMatrix.MakeYRotation(1.0).matrix() @ R0) == pytest.approx(0.0, abs=1e-9)
+    assert mirror_deg(Push((0, 0, 0.02), (0.1, 0, 0.02))) == pytest.approx(0.0)
+    assert mirror_deg(Push((0, 0, 0.02), (0.1, 0.1, 0.02))) == pytest.approx(90.0)
+    assert mirror_deg(Push((0, 0, 0.02), (0, -0.1, 0.02))) == pytest.approx(0.0)
+
+
+def _box_record():
+    """A heap record with one box on the floor at (X0, Y0), settled in the primitive world."""
+    v = np.asarray(_mesh(BOX).vertices)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    q = (1.0, 0.0, 0.0, 0.0, X0 - 0.5 * (hi[0] + lo[0]), Y0 - 0.5 * (hi[1] + lo[1]), -lo[2] + 0.001)
+    heap = Heap(seed=0, environment="bin", objects=(ObjectPose(BOX, q),))
+    w = PushWorld(heap, StudyParams())
+    w.advance(0.3)
+    return {"seed": 0, "heap": heap_to_dict(heap), "state": w.poses_record(), "improvable": True}
+
+
+@pytest.fixture(scope="module")
+def box_pair():
+    return FidelityPair(_box_record())
+
+
+def test_yumi_push_moves_the_box_as_the_primitive_does(box_pair):
+    pair = box_pair
+    # along +x (the primitive jaw's yaw is right on the axes), from 4.5 cm behind the centre to
+    # 3 cm past it, tcp 2.5 cm above the floor (fingertips 1 cm above it)
+    push = {"start": [X0 - 0.045, Y0, 0.025], "end": [X0 + 0.03, Y0, 0.025], "object": pair.ids[0]}
+    row = pair.compare("quasi_random", push)
+    assert row["status"] == "ok", row.get("plan_status")
+    oid = pair.ids[0]
+    full = row["full"]["motion"][oid]
+    assert 0.04 < full["dxy"][0] < 0.08  # pushed forward by about the 7.5 cm segment minus the gap
+    assert abs(full["dxy"][1]) < 0.01 and abs(full["yaw"]) < 0.1 and not full["left"]  # straight
+    # The primitive jaw at 5 ms (the study's legs and speeds) slides it the same way; the study's
+    # 10 ms step launches it (module docstring), so only its forward motion is checked.
+    for side in ("fine", "fixed"):
+        m = row[side]["motion"][oid]
+        assert abs(m["dist"] - full["dist"]) < 0.01 and row[f"per_object_{side}"][oid]["gap"] < 0.01
+        assert row[f"agree_{side}"] is True
+    assert row["primitive"]["motion"][oid]["dxy"][0] > 0.04
+    s = summarize_fidelity([row])
+    assert s["status"] == {"ok": 1} and s["agree_fine"]["k"] == 1 and s["agree"]["n"] == 1
+
+
+def test_push_out_of_reach_is_unreachable(box_pair):
+    # at the far wall (0.75 m from the YuMi's base) with the tool pointing down
+    push = {"start": [0.20, 0.10, 0.03], "end": [0.22, 0.10, 0.03], "object": box_pair.ids[0]}
+    row = box_pair.compare("quasi_random", push)
+    assert row["status"] == "unreachable" and row["plan_status"] == "unreachable"
+    assert row["agree"] is None and row["gain_sign_agree"] is None
+    assert row["primitive"]["status"] == "ok"  # the floating jaw goes anywhere
+    assert "fine" not in row and "fixed" not in row  # the diagnostic sides only where the YuMi pushed
+    s = summarize_fidelity([row])
+    assert s["status"] == {"unreachable": 1} and s["agree"]["n"] == 0
