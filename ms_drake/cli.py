@@ -63,6 +63,8 @@ from ms_drake.experiments.occupancy_learning import (
     train_occupancy,
     write_json,
 )
+from ms_drake.experiments.fidelity import format_summary as format_fidelity_summary
+from ms_drake.experiments.fidelity import run_fidelity
 from ms_drake.experiments.picks import TASKS, run_pick
 from ms_drake.experiments.push_fidelity import (
     format_fidelity,
@@ -583,6 +585,32 @@ def bench_push_fidelity(heaps_: int = typer.Option(400, "--heaps", min=1, help="
     if s["failed"]:
         typer.echo(f"{len(s['failed'])} heaps failed (rerun to retry): {s['failed'][:3]}")
         raise typer.Exit(1)
+
+
+@bench_app.command("fidelity")
+def bench_fidelity(heaps_: int = typer.Option(50, "--heaps", min=1, help="Heaps (seeds S..S+K-1)"),
+                   objects: int = typer.Option(10, "--objects", min=1, help="Objects per heap (N)"),
+                   seed_start: int = typer.Option(5000, "--seed-start", min=0, help="Lowest heap seed (S)"),
+                   heap_dir: Optional[Path] = typer.Option(None, "--heap-dir", help="Heap cache folder (shared "
+                                                           "with `bench search --heap-dir`)"),
+                   out: Path = typer.Option(..., "--out", help="Output .jsonl (appended to; resumes)"),
+                   workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers"),
+                   attempts: int = typer.Option(2, "--attempts", min=1, help="First K grasp attempts per heap"),
+                   reach: str = typer.Option("YuMiBin", "--reach", help="The primitive search keeps only grasps "
+                                             "this scenario's robot reaches ('' for none)"),
+                   json_out: Optional[Path] = typer.Option(None, "--json", help="Write the summary as JSON")):
+    """The primitive search's first grasp attempts per heap, each replayed on the YuMi (full
+    fidelity) from the same scene with the same grasp: one JSON line per attempt (primitive and
+    full outcome, CPU s), per-attempt success in each fidelity and their agreement."""
+    if out.suffix != ".jsonl":
+        _fail(f"--out {out}: give a .jsonl file")
+    with tqdm(total=heaps_, desc="fidelity", unit="heap") as bar:
+        s = run_fidelity(heaps_, seed_start, out, objects=objects, heap_dir=str(heap_dir) if heap_dir else None,
+                         workers=workers, max_attempts=attempts, reach=reach,
+                         progress=lambda rec: bar.update(1 if rec.get("kind") == "heap" else 0))
+    typer.echo(format_fidelity_summary(s))
+    if json_out is not None:
+        _write_json(json_out, s)
 
 
 def _occluder_counts(first: list[int], extra: list[str]) -> list[int]:

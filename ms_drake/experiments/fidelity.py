@@ -154,26 +154,27 @@ def replay_full(attempt: Attempt, scenario_name: str = "YuMiBin", max_sim_time: 
 
 # ------------------------------------------------------------------------------------ benchmark
 def heap_job(job: tuple) -> list[dict]:
-    """(objects, seed, heap_dir, max_attempts, policy) -> records of one heap: one per attempt
-    (kind "attempt") and one for the heap (kind "heap": the primitive search's result). Module
-    level for pickling."""
-    objects, seed, heap_dir, max_attempts, policy = job
+    """(objects, seed, heap_dir, max_attempts, policy, reach) -> records of one heap: one per
+    attempt (kind "attempt") and one for the heap (kind "heap": the primitive search's result).
+    reach: SearchParams.reach of the primitive search ("" none, "YuMiBin": only the YuMi's
+    reachable grasps). Module level for pickling."""
+    objects, seed, heap_dir, max_attempts, policy, reach = job
     heap = cached_heap(objects, seed, heap_dir)
     t = time.process_time()
-    attempts, res = primitive_attempts(heap, policy=policy, max_attempts=max_attempts)
+    attempts, res = primitive_attempts(heap, policy=policy, max_attempts=max_attempts, reach=reach)
     prim_cpu = time.process_time() - t
     recs = []
     for a in attempts:
         r = replay_full(a)
         g = a.grasp
-        recs.append({"kind": "attempt", "seed": int(seed), "objects": int(objects), "step": a.step,
+        recs.append({"kind": "attempt", "seed": int(seed), "objects": int(objects), "reach": reach, "step": a.step,
                      "grasp": g.kind, "object": g.object_id, "target": a.target, "quality": float(g.quality),
                      "tilt_deg": float(np.degrees(np.arccos(np.clip(-np.asarray(g.approach)[2], -1, 1)))),
                      "center": [float(v) for v in g.center], "approach": [float(v) for v in g.approach],
                      "width": float(g.width), "primitive_lifted": a.primitive_lifted, "full_lifted": r.lifted,
                      "full_message": r.message, "full_rise": None if math.isnan(r.rise) else r.rise,
                      "full_sim_seconds": r.sim_seconds, "full_cpu_seconds": r.cpu_seconds})
-    recs.append({"kind": "heap", "seed": int(seed), "objects": int(objects), "policy": policy,
+    recs.append({"kind": "heap", "seed": int(seed), "objects": int(objects), "reach": reach, "policy": policy,
                  "primitive_success": bool(res.success), "primitive_actions": int(res.actions),
                  "primitive_grasps": sum(1 for k in res.action_kinds if k == "grasp"),
                  "primitive_lifts": int(res.grasp_successes), "primitive_failure": res.failure,
@@ -197,7 +198,8 @@ def _read(path: Path) -> list[dict]:
 
 
 def run_fidelity(heaps: int, seed_start: int, out, objects: int = 10, heap_dir: str | None = None,
-                 workers: int = 1, max_attempts: int | None = 3, policy: str = "largest", progress=None) -> dict:
+                 workers: int = 1, max_attempts: int | None = 3, policy: str = "largest", reach: str = "YuMiBin",
+                 progress=None) -> dict:
     """The paired benchmark: heaps S..S+K-1 not yet in `out` (a heap is done once its "heap"
     record is there; its records are written together, so a killed run loses only the heaps in
     flight and the same command resumes). Returns `summarize` of the file."""
@@ -207,7 +209,7 @@ def run_fidelity(heaps: int, seed_start: int, out, objects: int = 10, heap_dir: 
     # attempt records of heaps without their heap record (a torn run) are dropped before rerunning
     keep = [r for r in _read(out) if r.get("objects") != objects or int(r["seed"]) in done]
     out.write_text("".join(json.dumps(r) + "\n" for r in keep))
-    jobs = [(objects, k, heap_dir, max_attempts, policy) for k in range(seed_start, seed_start + heaps) if k not in done]
+    jobs = [(objects, k, heap_dir, max_attempts, policy, reach) for k in range(seed_start, seed_start + heaps) if k not in done]
     with out.open("a") as f:
         for res in run_jobs(heap_job, jobs, workers=workers):
             if not res.ok:
@@ -268,3 +270,21 @@ def summarize(recs: list[dict]) -> dict:
             "full_failures": dict(sorted(messages.items(), key=lambda kv: -kv[1])), "by_kind": by_kind,
             "primitive_search": _rate(sum(r["primitive_success"] for r in heaps), len(heaps)),
             "full_cpu_seconds_per_attempt": float(np.mean([r["full_cpu_seconds"] for r in att])) if att else 0.0}
+
+
+def format_summary(s: dict) -> str:
+    """The summary as text: rates with their Wilson 95 % intervals."""
+
+    def r(x):
+        return f"{100 * x['rate']:.0f} % ({x['k']}/{x['n']}) [{100 * x['ci95'][0]:.0f}, {100 * x['ci95'][1]:.0f}]"
+
+    lines = [f"{s['heaps']} heaps, {s['attempts']} attempts",
+             f"  lifted, primitive: {r(s['primitive'])}", f"  lifted, full:      {r(s['full'])}",
+             f"  difference: {s['difference_points']:.1f} points", f"  agreement:  {r(s['agreement'])}",
+             f"  full vs quality >= 0.5: {r(s['agreement_with_quality'])}",
+             f"  full failures: {s['full_failures']}",
+             f"  primitive search success: {r(s['primitive_search'])}",
+             f"  full CPU s per attempt: {s['full_cpu_seconds_per_attempt']:.1f}"]
+    for kind, k in s["by_kind"].items():
+        lines.append(f"  {kind}: primitive {r(k['primitive'])}, full {r(k['full'])}, agreement {r(k['agreement'])}")
+    return "\n".join(lines)
