@@ -34,6 +34,7 @@ from pathlib import Path
 
 from ms_drake.experiments.harness import (
     HEAP_ENGINES,
+    action_breakdown,
     final_records,
     format_summary,
     read_records,
@@ -118,14 +119,21 @@ def main(argv=None):
         scaling(args)
         return
     if args.report:
-        rows = []
+        rows, breakdown = [], []
         for n in args.objects:
             for p in args.policies:
                 recs, h = report_records(args.out, p, n, args.horizon, args.heap_engine,
                                           args.grasp_planner or "indexed")
                 if recs:
                     rows.append((p, n, h, summarize(recs)))
+                    breakdown.append((p, n, action_breakdown(recs)))
         print(table(rows))
+        print("\n| policy | N | actions | grasps | pushes (share) | jaw grasps (success) | suction grasps (success) |")
+        print("|---|---|---|---|---|---|---|")
+        for p, n, b in breakdown:
+            jaw, suc = b["parallel_jaw"], b["suction"]
+            print(f"| {p} | {n} | {b['actions']} | {b['grasps']} | {b['pushes']} ({100 * b['push_share']:.1f} %) "
+                  f"| {jaw['grasps']} ({jaw['success_rate']:.2f}) | {suc['grasps']} ({suc['success_rate']:.2f}) |")
         return
     runs = [(p, n, result_file(args.out, p, n, args.horizon)) for n in args.objects for p in args.policies]
     t0, count = time.perf_counter(), [0]

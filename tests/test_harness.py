@@ -32,6 +32,8 @@ def test_bench_search_writes_resumes_and_summarizes(tmp_path):
     r = recs[0]
     assert {"seed", "policy", "success", "actions", "action_kinds", "failure", "seconds"} <= set(r)
     assert r["policy"] == "largest" and len(r["action_kinds"]) == r["actions"]
+    assert len(r["grasp_kinds"]) == len(r["action_successes"]) == r["actions"]
+    assert r["grasp_kinds"][0] in ("parallel_jaw", "suction") and r["action_successes"] == [True]
     # heap 5 (grasp sets, the primitive mode's default planner): the first grasp extracts the target
     assert (r["success"], r["actions"], r["action_kinds"], r["failure"], r["grasp_successes"]) == \
         (True, 1, ["grasp"], "", 1)

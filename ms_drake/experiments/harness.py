@@ -30,7 +30,13 @@ from ms_drake.experiments.rollout import rollout
 from ms_drake.experiments.xray import PROTOCOLS, XRAY_PROTOCOLS, xray_heap
 from ms_drake.parallel import run_jobs
 from ms_drake.scenario import load_scenario
-from ms_drake.scenes.heaps import SEARCH_HEAPS, HeapParams, generate_heap, load_heap, save_heap
+from ms_drake.scenes.heaps import (
+    SEARCH_HEAPS,
+    HeapParams,
+    generate_heap,
+    load_heap,
+    save_heap,
+)
 
 BOOTSTRAP = 2000
 # Drop physics of the "ch7" heaps: the compliant Drake drop world (SEARCH_HEAPS, the tables'
@@ -240,6 +246,9 @@ def truncate_record(rec: dict, horizon: int) -> dict:
         return r
     r.update(actions=horizon, action_kinds=list(r.get("action_kinds", []))[:horizon], success=False,
              failure="horizon", stop_reason="horizon", truncated_from=n)
+    for k in ("grasp_kinds", "action_successes"):
+        if k in r:
+            r[k] = list(r[k])[:horizon]
     r.pop("grasp_successes", None)
     r.pop("grasp_plans", None)
     return r
@@ -293,6 +302,19 @@ def paired_comparison(recs_a: list[dict], recs_b: list[dict]) -> dict:
     n = len(only_a) + len(only_b)
     p = float(binomtest(len(only_a), n, 0.5).pvalue) if n else 1.0
     return dict(heaps=len(seeds), only_a=only_a, only_b=only_b, both=both, neither=len(seeds) - both - n, p=p)
+
+
+def action_breakdown(recs: list[dict]) -> dict:
+    """Table C.2: grasps and pushes, pushes as a share of actions, and per gripper kind the grasps
+    and their success rate (records with `grasp_kinds` / `action_successes` only for the kinds)."""
+    kinds = [k for r in recs for k in r.get("action_kinds", [])]
+    out = {"actions": len(kinds), "grasps": kinds.count("grasp"), "pushes": kinds.count("push")}
+    out["push_share"] = out["pushes"] / out["actions"] if out["actions"] else float("nan")
+    for g in ("parallel_jaw", "suction"):
+        ok = [s for r in recs for k, s in zip(r.get("grasp_kinds", []), r.get("action_successes", [])) if k == g]
+        out[g] = {"grasps": len(ok), "success_rate": float(np.mean(ok)) if ok else float("nan")}
+    out["with_kinds"] = sum(1 for r in recs if "grasp_kinds" in r)
+    return out
 
 
 def format_summary(policy: str, s: dict) -> str:

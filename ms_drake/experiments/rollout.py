@@ -136,6 +136,10 @@ class RolloutResult:
     grasp_planner: str = ""
     push_policy: str = ""
     error: str = ""
+    # per action: the grasp's gripper kind ("parallel_jaw" / "suction"; "" for a push) and
+    # whether the action succeeded (Table C.2: jaw vs suction grasps)
+    grasp_kinds: list = field(default_factory=list)
+    action_successes: list = field(default_factory=list)
     frames: list = field(default_factory=list, repr=False)
 
     def record(self) -> dict:
@@ -303,6 +307,9 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
                         grasp_successes=sum(1 for o in history if o.action.kind == "grasp" and o.success),
                         grasp_plans=grasp_plans, grasp_planner=system.controller.params.grasp_planner,
                         push_policy=params.push_policy,
+                        grasp_kinds=[o.action.grasp.kind if o.action.kind == "grasp" and o.action.grasp is not None
+                                     else "" for o in history],
+                        action_successes=[bool(o.success) for o in history],
                         error=msg, frames=frames)
     return res
 
