@@ -264,12 +264,17 @@ class FullBackend(_Base):
             yaw = float(np.arctan2(d[1], d[0])) + np.pi / 2
             ik, limits, _ = self.ik[arm]
             q_now = np.asarray(hold[f"{arm}.position"], float)
+            # Straight back up to 5 cm above the walls after the push: the joint motion back to park,
+            # which does not avoid collisions, starts above the bin (from 5 cm above the push it
+            # dragged objects and caught on the walls).
+            ws = self.workspace
+            clear = max(0.05, ws.floor_z + ws.wall_height + 0.05 - float(a[2]))
             # The closed jaw is symmetric under a half turn about the tool axis: either yaw pushes
             # with the broad side; the second is tried when the arm cannot plan the first.
             for k, y in enumerate((yaw, yaw + np.pi)):
                 R = RotationMatrix.MakeZRotation(y) @ RotationMatrix.MakeXRotation(np.pi)
                 plan = plan_push(ik, limits, q_now, RigidTransform(R, a), d, float(np.linalg.norm(d)), arm,
-                                 speed=min(self.speed, 0.1))
+                                 retreat=clear, speed=min(self.speed, 0.1))
                 first = plan.status if k == 0 else first
                 if plan.success:
                     break

@@ -69,7 +69,7 @@ from ms_drake.experiments.push_study import (
 from ms_drake.parallel import run_jobs
 from ms_drake.pushing.policies import POLICIES, check_push_policy
 from ms_drake.scenes.heaps import heap_from_dict
-from ms_drake.types import Heap, Push
+from ms_drake.types import Action, Heap, Push
 
 AGREE_ABS = 0.02  # m
 AGREE_REL = 0.25  # of the primitive displacement
@@ -165,6 +165,8 @@ class FidelityPair:
         """The push in one world from the loaded state: status, object motion, after Q*_o, CPU s."""
         w, snap = self.worlds[fidelity]
         w.restore(snap)
+        for ik, _, _ in getattr(w.backend, "ik", {}).values():
+            ik.rng = np.random.default_rng(0)  # IK restarts as a fresh backend's: rows do not depend on order
         c = time.process_time()
         try:
             done = w.execute_push(push)
@@ -336,3 +338,34 @@ def format_fidelity(s: dict) -> str:
                  f"{c['primitive_median']:.1f}; worlds per heap {s['build_cpu_s_per_heap']:.1f}; centre gap "
                  f"median {100 * s['gap_m']['median']:.1f} cm, p90 {100 * s['gap_m']['p90']:.1f} cm")
     return "\n".join(lines)
+
+
+def reach_probe(heap_dirs, heaps: int, seed_start: int = 0, heights=(0.0, 0.02, 0.025), policies=POLICIES) -> dict:
+    """Which recorded pushes FullBackend's arm can plan (plan_push, either jaw yaw, from the park
+    configuration) when the tool centre is raised to at least floor + h, for each h of `heights`
+    (0: the recorded height). The closed jaw's fingertips reach 1.5 cm below the tool centre and
+    the IK keeps 5 mm from the floor, so a push below ~2 cm needs the raise. Planning only."""
+    recs = pushed_records(heap_dirs, heaps, seed_start, policies)
+    if not recs:
+        return {"pushes": 0}
+    heap = heap_from_dict(recs[0][0]["heap"])
+    w = PushWorld(Heap(heap.seed, heap.environment, heap.objects), fidelity="full")
+    b = w.backend
+    floor = w.workspace.floor_z
+    out = {"pushes": 0, "reachable": {str(h): 0 for h in heights}, "push_z": []}
+    for r, ps in recs:
+        for p in ps:
+            pr = r["policies"][p]["push"]
+            out["pushes"] += 1
+            out["push_z"].append(float(pr["start"][2]) - floor)
+            for h in heights:
+                a = np.array(pr["start"], float)
+                e = np.array(pr["end"], float)
+                a[2] = e[2] = max(a[2], floor + h)
+                for ik, _, _ in b.ik.values():
+                    ik.rng = np.random.default_rng(0)
+                plan = b.plan(Action("push", push=Push(tuple(a), tuple(e), pr.get("object", ""))), b.initial_commands(), 0)
+                out["reachable"][str(h)] += not isinstance(plan, str)
+    z = np.array(out.pop("push_z"))
+    out["push_height_m"] = {"median": float(np.median(z)), "below_0.02": int(np.sum(z < 0.02 - 1e-9))}
+    return out
