@@ -13,11 +13,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from test_push_fidelity import X0, Y0, _box_record  # noqa: E402
+from test_push_fidelity import X0, Y0, _box_record
 
-from ms_drake.experiments.push_fidelity import FidelityPair  # noqa: E402
-from ms_drake.experiments.push_study import StudyParams  # noqa: E402
-from ms_drake.types import Push  # noqa: E402
+from ms_drake.experiments.push_fidelity import FidelityPair
+from ms_drake.experiments.push_study import StudyParams
+from ms_drake.types import Push
 
 
 def main():

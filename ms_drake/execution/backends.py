@@ -271,15 +271,16 @@ class FullBackend(_Base):
             clear = max(0.05, ws.floor_z + ws.wall_height + 0.05 - float(a[2]))
             # The closed jaw is symmetric under a half turn about the tool axis: either yaw pushes
             # with the broad side; the second is tried when the arm cannot plan the first.
-            for k, y in enumerate((yaw, yaw + np.pi)):
+            plans = []
+            for y in (yaw, yaw + np.pi):
                 R = RotationMatrix.MakeZRotation(y) @ RotationMatrix.MakeXRotation(np.pi)
-                plan = plan_push(ik, limits, q_now, RigidTransform(R, a), d, float(np.linalg.norm(d)), arm,
-                                 retreat=clear, speed=min(self.speed, 0.1))
-                first = plan.status if k == 0 else first
-                if plan.success:
+                plans.append(plan_push(ik, limits, q_now, RigidTransform(R, a), d, float(np.linalg.norm(d)), arm,
+                                       retreat=clear, speed=min(self.speed, 0.1)))
+                if plans[-1].success:
                     break
+            plan = plans[-1]
             if not plan.success:
-                return first
+                return plans[0].status
             close = Schedule()
             close.set(0.0, 0.0)
             plan.commands[f"{jaw}.position"] = close

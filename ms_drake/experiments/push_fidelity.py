@@ -137,7 +137,8 @@ def mirror_deg(push: Push) -> float:
 class FidelityPair:
     """The two worlds of one heap record, its state loaded in both, its before metrics."""
 
-    def __init__(self, rec: dict, params: StudyParams = StudyParams()):
+    def __init__(self, rec: dict, params: StudyParams | None = None):
+        params = params or StudyParams()
         if "state" not in rec:
             raise ValueError(f"heap {rec.get('seed')}: the record has no pushed state (stop {rec.get('stop')!r})")
         c = time.process_time()
@@ -195,7 +196,7 @@ class FidelityPair:
                "mirror_deg": mirror_deg(push), **res,
                "cpu_s": full["cpu_s"], "primitive_cpu_s": prim["cpu_s"], "build_cpu_s": self.build_cpu_s}
         if any(r["status"] != "ok" for r in res.values()):
-            bad = [side for side in SIDES if side in res and res[side]["status"] != "ok"][0]
+            bad = next(side for side in SIDES if side in res and res[side]["status"] != "ok")
             row.update(status=res[bad]["status"] if bad == "full" else f"{bad}_{res[bad]['status']}",
                        plan_status=full.get("plan_status", ""), agree=None, gain_sign_agree=None)
             return row
@@ -235,11 +236,12 @@ def pushed_records(heap_dirs, heaps: int, seed_start: int = 0, policies=POLICIES
 
 
 def run_push_fidelity(heap_dirs, heaps: int, seed_start: int, out: Path, workers: int = 1, policies=POLICIES,
-                      params: StudyParams = StudyParams(), progress=None) -> dict:
+                      params: StudyParams | None = None, progress=None) -> dict:
     """Rows of every (heap, policy) push of the first `heaps` improvable heaps into `out` (JSON lines,
     resumable: finished (seed, policy) rows are kept and skipped). progress(rows) after each heap."""
     for p in policies:
         check_push_policy(p)
+    params = params or StudyParams()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     rows = read_jsonl(out)
@@ -317,9 +319,9 @@ def summarize_fidelity(rows: list[dict]) -> dict:
 def format_fidelity(s: dict) -> str:
     a, g = s["agree"], s["gain_sign_agree"]
     lines = [f"{s['pushes']} pushes: " + ", ".join(f"{k} {v}" for k, v in sorted(s["status"].items())),
-             f"agree {a['k']}/{a['n']} = {100 * a['share']:.0f} % (Wilson 95 % {100 * a['ci95'][0]:.0f}-"
-             f"{100 * a['ci95'][1]:.0f} %); gain sign agrees {g['k']}/{g['n']} = {100 * g['share']:.0f} % "
-             f"({100 * g['ci95'][0]:.0f}-{100 * g['ci95'][1]:.0f} %)"]
+             (f"agree {a['k']}/{a['n']} = {100 * a['share']:.0f} % (Wilson 95 % {100 * a['ci95'][0]:.0f}-"
+              f"{100 * a['ci95'][1]:.0f} %); gain sign agrees {g['k']}/{g['n']} = {100 * g['share']:.0f} % "
+              f"({100 * g['ci95'][0]:.0f}-{100 * g['ci95'][1]:.0f} %)")]
     for key, label in (("agree_fine", "full vs primitive at 5 ms"),
                        ("gain_sign_agree_fine", "gain sign, full vs primitive at 5 ms"),
                        ("agree_fixed", "full vs primitive at 5 ms with the jaw's yaw aligned"),
