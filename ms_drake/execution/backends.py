@@ -265,8 +265,8 @@ class FullBackend(_Base):
             ik, limits, _ = self.ik[arm]
             q_now = np.asarray(hold[f"{arm}.position"], float)
             # Straight back up to 5 cm above the walls after the push: the joint motion back to park,
-            # which does not avoid collisions, starts above the bin (from 5 cm above the push it
-            # dragged objects and caught on the walls).
+            # which does not avoid collisions, starts above the bin (one from 5 cm above the push
+            # can drag objects and catch on the walls).
             ws = self.workspace
             clear = max(0.05, ws.floor_z + ws.wall_height + 0.05 - float(a[2]))
             # The closed jaw is symmetric under a half turn about the tool axis: either yaw pushes

@@ -30,7 +30,7 @@ Two diagnostic sides explain disagreements (both primitive, the same legs and sp
   fine   PrimitiveBackend at a 5 ms plant step (FINE_STEP) instead of the study's 10 ms: at 10 ms the
          compliant contact launches a pushed object (a box pushed 7.5 cm at 0.15 m/s jumps 1 cm and
          ends 3.6 cm to the side, turned 15 degrees; at 5 ms or 2 ms it slides 6.7 cm straight, as
-         on the YuMi: tests/test_push_fidelity.py);
+         on the YuMi: sims/push_fidelity_box.py);
   fixed  AlignedPrimitiveBackend at 5 ms: also the jaw's yaw as PrimitiveBackend intends.
          PrimitiveBackend commands the push's yaw as the floating gripper's yaw joint, but that
          chain gives R = Rx(roll) Ry(pitch) Rz(yaw) (floating_gripper_positions), so with roll = pi
