@@ -98,7 +98,7 @@ def main(argv=None):
         tau = kendalltau(vals["drake"], vals["bullet"])
         out["rank"][key] = {"drake": order["drake"], "bullet": order["bullet"], "kendall_tau": float(tau.statistic),
                             "p": float(tau.pvalue)}
-        print(f"\nby {key}: Drake {' > '.join(order['drake'])}\n{'':>{len(key) + 4}}Bullet {' > '.join(order['bullet'])}"
+        print(f"\nby {key} (best first): Drake {' > '.join(order['drake'])}\n{'':>{len(key) + 4}}Bullet {' > '.join(order['bullet'])}"
               f"\n  Kendall tau {tau.statistic:.2f} (p = {tau.pvalue:.3f})")
     print("\n| pair (a vs b) | engine | a only / b only solved (sign test p) | mean actions a - b on both solved (Wilcoxon p) |")
     print("|---|---|---|---|")
