@@ -281,20 +281,13 @@ class IndexedGraspPlanner(LeafSystem):
             i, k = np.nonzero(ok)
             order = np.lexsort((-down[i, k], -q[i, k]))[: self.max_checks]
             across = np.cross(ap[i[order], k[order]], a[i[order]])
-            reach_left = self.max_reach_checks
-            for j, y in zip(order, across):
-                n, m = i[j], k[j]
-                if not scene.hits(self.gripper.jaw(c[n], a[n], ap[n, m], gs.jaw_width[n], y)):
-                    g = ParallelJawGrasp(c[n], a[n], ap[n, m], gs.jaw_width[n]).to_grasp(
-                        float(q[n, m]), self.jaw_model, oid)
-                    if self.reach is not None:
-                        reach_left -= 1
-                        if not self.reach(g):
-                            if reach_left == 0:
-                                break
-                            continue
-                    out.append(g)
-                    break
+            g = self._first_reached(
+                ParallelJawGrasp(c[i[j]], a[i[j]], ap[i[j], k[j]], gs.jaw_width[i[j]]).to_grasp(
+                    float(q[i[j], k[j]]), self.jaw_model, oid)
+                for j, y in zip(order, across)
+                if not scene.hits(self.gripper.jaw(c[i[j]], a[i[j]], ap[i[j], k[j]], gs.jaw_width[i[j]], y)))
+            if g is not None:
+                out.append(g)
         if "suction" in self.kinds and len(gs.suction_point):
             p = gs.suction_point @ R.T + t
             ap = -(gs.suction_normal @ R.T)
@@ -303,19 +296,21 @@ class IndexedGraspPlanner(LeafSystem):
             ok = (down >= self.cos_tilt) & (q >= self.min_quality) & self._reachable(p)
             idx = np.nonzero(ok)[0]
             order = idx[np.lexsort((-down[idx], -q[idx]))][: self.max_checks]
-            reach_left = self.max_reach_checks
-            for n in order:
-                if not scene.hits(self.gripper.suction(p[n], ap[n])):
-                    g = SuctionGrasp(p[n], ap[n]).to_grasp(float(q[n]), "suction", oid)
-                    if self.reach is not None:
-                        reach_left -= 1
-                        if not self.reach(g):
-                            if reach_left == 0:
-                                break
-                            continue
-                    out.append(g)
-                    break
+            g = self._first_reached(SuctionGrasp(p[n], ap[n]).to_grasp(float(q[n]), "suction", oid)
+                                    for n in order if not scene.hits(self.gripper.suction(p[n], ap[n])))
+            if g is not None:
+                out.append(g)
         return tuple(out)
+
+    def _first_reached(self, free_grasps):
+        """The first of the collision-free grasps (best first) the robot reaches: without `reach`
+        the first; with it, among at most `max_reach_checks` of them; None when there is none."""
+        for checks, g in enumerate(free_grasps, start=1):
+            if self.reach is None or self.reach(g):
+                return g
+            if checks >= self.max_reach_checks:
+                return None
+        return None
 
     def _calc(self, context, output):
         masks = self.masks_port.Eval(context)
