@@ -267,3 +267,24 @@ def test_state_checks_use_the_convex_hull_not_its_box():
     sc = state_scene((bar, small), BIN)
     assert sc.checker._distance(0, 1, np.zeros(3)) > 0.02
     assert sc.clearance(1, np.array([-1.0, 0.0]), 0.1) > 0.02  # it can slide under the bar's box corner
+
+
+def test_every_planner_pushes_at_least_the_minimum_height_above_the_floor():
+    """A 2 cm box would be pushed at 1 cm (half its height): every planner raises the tool centre
+    to MIN_PUSH_HEIGHT (the YuMi's fingertips and IK floor margin); a 5 cm one at 2.5 cm."""
+    from ms_drake.pushing import MIN_PUSH_HEIGHT, PushParams, obstacle_map, plan_pushes, push_height
+
+    assert MIN_PUSH_HEIGHT == 0.02 and P.min_push_height == PushParams().min_push_height == MIN_PUSH_HEIGHT
+    assert push_height(0.1, 0.12) == pytest.approx(0.12) and push_height(0.1, 0.15) == pytest.approx(0.125)
+    assert push_height(0.1, 0.3) == pytest.approx(0.1 + P.max_push_height)
+    for sz, z in ((0.02, MIN_PUSH_HEIGHT), (0.05, 0.025)):
+        objs = (box("a", -0.1, 0.0, sz=sz), box("b", 0.1, 0.05, sz=sz))
+        d, masks = depth_of(objs)
+        pushes = [plan_policy_push(pol, sc, P, seed=1) for sc in _scenes(objs).values() for pol in POLICIES]
+        pushes += list(plan_pushes(d, masks, CAM, BIN))
+        pushes = [p for p in pushes if p is not None]
+        assert len(pushes) >= 8
+        for p in pushes:
+            assert p.start[2] == p.end[2] == pytest.approx(z, abs=2e-3)
+    with pytest.raises(PushError, match="min_push_height"):
+        PolicyParams(min_push_height=0.04)

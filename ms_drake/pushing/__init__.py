@@ -2,12 +2,15 @@
 system; the five push policies of Ch. 4 (`plan_policy_push`) and the PushPolicySystem."""
 
 from ms_drake.pushing.free_space import (
+    MAX_PUSH_HEIGHT,
+    MIN_PUSH_HEIGHT,
     ObstacleMap,
     PushError,
     PushParams,
     obstacle_map,
     plan_free_space_push,
     plan_pushes,
+    push_height,
 )
 from ms_drake.pushing.planner import PushPlanner
 from ms_drake.pushing.policies import (
@@ -22,6 +25,8 @@ from ms_drake.pushing.policies import (
 from ms_drake.pushing.policy_system import PushPolicySystem
 
 __all__ = [
+    "MAX_PUSH_HEIGHT",
+    "MIN_PUSH_HEIGHT",
     "POLICIES",
     "ObstacleMap",
     "PolicyParams",
@@ -36,5 +41,6 @@ __all__ = [
     "plan_free_space_push",
     "plan_policy_push",
     "plan_pushes",
+    "push_height",
     "state_scene",
 ]

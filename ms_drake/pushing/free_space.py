@@ -24,8 +24,7 @@ How it is done here (choices recorded where the text is silent):
     from above, as it descends vertically) touches no obstacle; the end is the point of the line
     nearest to p', at most `max_length` from p and with the gripper still `gripper_radius` off the
     walls; the push must carry the gripper at least `min_travel` past the object's centre;
-  * the push runs at constant height: half the object's height, clamped to
-    [`min_push_height`, `max_push_height`] above the floor.
+  * the push runs at constant height: `push_height`, as every push policy's.
 """
 
 from __future__ import annotations
@@ -45,6 +44,25 @@ class PushError(MsDrakeError, ValueError):
     """A push planner was configured or fed with impossible values."""
 
 
+# The lowest tool-centre height of a push above the bin floor [m]. The YuMi's closed jaw reaches
+# 1.5 cm below its tool centre and its IK keeps the fingertips 5 mm off the floor, so the arm
+# cannot execute a push whose tool centre is below 2 cm (the floating jaw of the primitive mode
+# would press its fingertips into the floor there).
+MIN_PUSH_HEIGHT = 0.02
+MAX_PUSH_HEIGHT = 0.03
+
+
+def push_height(floor_z: float, object_top: float, min_height: float = MIN_PUSH_HEIGHT,
+                max_height: float = MAX_PUSH_HEIGHT) -> float:
+    """World z of the tool centre for pushing an object whose top is at `object_top`: half the
+    object's height above the floor, clamped to [min_height, max_height] above it. Every push
+    planner (PushPlanner's free-space push and the Ch. 4 policies) takes its height from here."""
+    if not 0.0 <= min_height <= max_height:
+        raise PushError(f"push heights: give 0 <= min_push_height <= max_push_height, got {min_height} and "
+                        f"{max_height}")
+    return float(floor_z) + float(np.clip(0.5 * (float(object_top) - float(floor_z)), min_height, max_height))
+
+
 @dataclass(frozen=True)
 class PushParams:
     gripper_radius: float = 0.025  # closed parallel jaw seen from above (fingers 36 x 20 mm + pads)
@@ -56,13 +74,14 @@ class PushParams:
     max_length: float = 0.20
     min_travel: float = 0.03
     max_backoff: float = 0.12  # how far behind the object's footprint a start is searched
-    min_push_height: float = 0.005
-    max_push_height: float = 0.03
+    min_push_height: float = MIN_PUSH_HEIGHT  # tool centre above the floor (push_height)
+    max_push_height: float = MAX_PUSH_HEIGHT
 
     def __post_init__(self):
         for name in ("gripper_radius", "resolution", "max_length"):
             if getattr(self, name) <= 0:
                 raise PushError(f"PushParams.{name} must be > 0, got {getattr(self, name)}")
+        push_height(0.0, 0.0, self.min_push_height, self.max_push_height)
 
 
 @dataclass(frozen=True, eq=False)
@@ -135,8 +154,8 @@ def plan_free_space_push(omap: ObstacleMap, object_points: np.ndarray, params: P
     if len(object_points) < 3:
         return None
     c = object_points[:, :2].mean(axis=0)
-    height = float(np.percentile(object_points[:, 2], 90) - omap.floor_z)
-    z = omap.floor_z + float(np.clip(0.5 * height, params.min_push_height, params.max_push_height))
+    z = push_height(omap.floor_z, float(np.percentile(object_points[:, 2], 90)), params.min_push_height,
+                    params.max_push_height)
     target = omap.most_free_point()
     d0 = target - c
     if np.linalg.norm(d0) < 1e-6:

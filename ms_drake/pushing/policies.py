@@ -1,7 +1,9 @@
 """The five linear push policies of Ch. 4.4 (lines 644-692), from full state or from a depth image.
 
 Every policy returns one `Push` (a segment at constant height, world frame) or None when it finds
-no collision-free push. The policies see the scene through a `PushScene`: per object its centre
+no collision-free push. The height is `free_space.push_height`: half the object's height, at
+least `min_push_height` (2 cm: the YuMi's fingertips and its IK's floor margin) and at most
+`max_push_height` above the floor. The policies see the scene through a `PushScene`: per object its centre
 (centre of mass from full state; the centroid of its segmented points from an image, Ch. 4.4
 "the centroid of the segmented cluster"), its footprint (xy of its hull vertices / of its points)
 and its height range, and a clearance checker:
@@ -53,7 +55,7 @@ import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
 from ms_drake.geometry import PinholeCamera, Workspace, depth_array
-from ms_drake.pushing.free_space import PushError
+from ms_drake.pushing.free_space import MAX_PUSH_HEIGHT, MIN_PUSH_HEIGHT, PushError, push_height
 from ms_drake.types import InstanceMasks, ObjectGeometry, Push
 
 POLICIES = ("quasi_random", "boundary_shear", "free_space", "max_clearance", "cluster_diffusion")
@@ -82,8 +84,8 @@ class PolicyParams:
     max_angle: float = np.radians(90.0)
     l2_penalty: float = 2.0  # 1/m: free-space point regulariser
     grid: float = 0.01  # m: free-space point grid
-    min_push_height: float = 0.005
-    max_push_height: float = 0.03
+    min_push_height: float = MIN_PUSH_HEIGHT  # tool centre above the floor (free_space.push_height)
+    max_push_height: float = MAX_PUSH_HEIGHT
     resolution: float = 0.004  # image grid cell
     min_height: float = 0.004  # image points this far above the floor are objects
     max_cluster: int = 3
@@ -95,6 +97,7 @@ class PolicyParams:
                 raise PushError(f"PolicyParams.{name} must be > 0, got {getattr(self, name)}")
         if self.directions < 4:
             raise PushError(f"PolicyParams.directions must be >= 4, got {self.directions}")
+        push_height(0.0, 0.0, self.min_push_height, self.max_push_height)
 
 
 @dataclass(frozen=True, eq=False)
@@ -404,12 +407,6 @@ def _clip_inside(scene: PushScene, xy: np.ndarray, radius) -> np.ndarray:
     return c + np.clip(xy - c, -half, half)
 
 
-def _height(scene: PushScene, i: int, params: PolicyParams) -> float:
-    o = scene.objects[i]
-    floor = scene.workspace.floor_z
-    return floor + float(np.clip(0.5 * (o.top - floor), params.min_push_height, params.max_push_height))
-
-
 def make_push(scene: PushScene, i: int, d, travel: float, params: PolicyParams,
               check: bool = True) -> Push | None:
     """The jaw's segment that pushes object i by `travel` along unit d (None if not valid)."""
@@ -417,7 +414,7 @@ def make_push(scene: PushScene, i: int, d, travel: float, params: PolicyParams,
     d = _unit(d)
     c = o.center[:2]
     r = params.gripper_radius
-    z = _height(scene, i, params)
+    z = push_height(scene.workspace.floor_z, o.top, params.min_push_height, params.max_push_height)
     t_back = float(np.max((c - o.footprint) @ d))
     contact = t_back + r  # jaw centre distance behind c when it touches the footprint
     start = c - (contact + params.start_gap) * d
