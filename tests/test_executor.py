@@ -187,23 +187,29 @@ def test_one_search_step_full_yumi(heap5):
     assert (res.success, res.stop_reason, res.failure) == (False, "horizon", "horizon")
 
 
-@pytest.mark.parametrize("direction", [(1.0, 0.0), (1.0, 1.0), (-1.0, 2.0)])
+@pytest.mark.parametrize("direction", [(1.0, 0.0), (0.0, -1.0), (1.0, 1.0), (-1.0, 2.0), (-3.0, -1.0)])
 def test_the_primitive_push_leads_with_the_jaws_broad_side(direction):
-    """The floating base's chain is Rx(roll) Ry(pitch) Rz(yaw): the commanded pose along the push
-    must be Rz(yaw) Rx(pi) with the jaw's x axis (the fingers' closing direction) across the push."""
-    from scipy.spatial.transform import Rotation
+    """Forward kinematics of the floating base (the chain Rx(roll) Ry(pitch) Rz(yaw)) at the commanded
+    positions along the push: the tool points down and the jaw's closing axis (x of its body frame,
+    along which its broad side lies) is perpendicular to the push direction, diagonal pushes included."""
+    from pydrake.multibody.plant import MultibodyPlant
 
+    from ms_drake.paths import make_parser
+    from ms_drake.station.robots import add_floating_gripper
+
+    plant = MultibodyPlant(1e-3)
+    base, grip = add_floating_gripper(plant, make_parser(plant), "parallel_jaw")
+    plant.Finalize()
+    ctx = plant.CreateDefaultContext()
     d = np.array([*direction, 0.0]) / np.linalg.norm(direction)
     a = np.array([0.0, 0.0, 0.02])
     b = backend()
     motion = b.plan(Action("push", push=Push(tuple(a), tuple(a + 0.08 * d), "a")), {"floating.position": b.park}, 0)
     path = motion.commands["floating.position"]
     for t in np.linspace(path.t[1], path.t[4], 7):  # above the start, down, along the push, up
-        R = Rotation.from_euler("XYZ", path(t)[3:]).as_matrix()
+        q = path(t)
+        assert abs(q[5]) <= 0.5 * np.pi + 1e-9  # the shorter of the two equivalent yaws
+        plant.SetPositions(ctx, base, q)
+        R = plant.GetFrameByName("body", grip).CalcPoseInWorld(ctx).rotation().matrix()
         assert R[:, 2] @ [0, 0, -1] == pytest.approx(1.0, abs=1e-9)  # tool pointing down
-        if direction[1] != 0.0 and abs(R[:, 0] @ d) > 1e-9:
-            pytest.xfail("PrimitiveBackend._q commands the push's yaw as the floating chain's yaw joint, which "
-                         "turns the jaw by minus its value (docs/BENCHMARKS.md, push study, full fidelity); the "
-                         "push study's data and Table C.1's push rows were made with it: the fix goes with their "
-                         "re-run")
         assert abs(R[:, 0] @ d) < 1e-9  # closing axis across the push: the broad side leads

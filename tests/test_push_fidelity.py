@@ -9,14 +9,13 @@ from ms_drake.experiments.push_fidelity import (
     FidelityPair,
     agreement,
     gain_sign,
-    mirror_deg,
     summarize_fidelity,
     wilson,
     yaw_change,
 )
 from ms_drake.experiments.push_study import PushWorld, StudyParams, _mesh
 from ms_drake.scenes.heaps import heap_to_dict
-from ms_drake.types import Heap, ObjectPose, Push
+from ms_drake.types import Heap, ObjectPose
 
 BOX = "procedural/box_117"  # 5.3 x 4.5 x 3.4 cm
 X0, Y0 = -0.06, -0.05  # in the YuMi's reach (the bin centre is at 0.55 m from its base)
@@ -39,14 +38,11 @@ def test_agreement_by_hand():
     assert 0.49 < lo < 0.5 and 0.94 < hi < 0.95  # the textbook Wilson interval of 8/10
 
 
-def test_yaw_change_and_mirror():
+def test_yaw_change():
     R0 = RotationMatrix.MakeXRotation(0.3).matrix()
     assert yaw_change(R0, RotationMatrix.MakeZRotation(0.5).matrix() @ R0) == pytest.approx(0.5)
     # rolling about a horizontal axis has no yaw
     assert yaw_change(R0, RotationMatrix.MakeYRotation(1.0).matrix() @ R0) == pytest.approx(0.0, abs=1e-9)
-    assert mirror_deg(Push((0, 0, 0.02), (0.1, 0, 0.02))) == pytest.approx(0.0)
-    assert mirror_deg(Push((0, 0, 0.02), (0.1, 0.1, 0.02))) == pytest.approx(90.0)
-    assert mirror_deg(Push((0, 0, 0.02), (0, -0.1, 0.02))) == pytest.approx(0.0)
 
 
 def _box_record():
@@ -67,8 +63,8 @@ def box_pair():
 
 def test_yumi_push_moves_the_box_as_the_primitive_does(box_pair):
     pair = box_pair
-    # along +x (the primitive jaw's yaw is right on the axes), from 4.5 cm behind the centre to
-    # 3 cm past it, tcp 2.5 cm above the floor (fingertips 1 cm above it)
+    # along +x, from 4.5 cm behind the centre to 3 cm past it, tcp 2.5 cm above the floor
+    # (fingertips 1 cm above it)
     push = {"start": [X0 - 0.045, Y0, 0.025], "end": [X0 + 0.03, Y0, 0.025], "object": pair.ids[0]}
     row = pair.compare("quasi_random", push)
     assert row["status"] == "ok", row.get("plan_status")
@@ -76,15 +72,13 @@ def test_yumi_push_moves_the_box_as_the_primitive_does(box_pair):
     full = row["full"]["motion"][oid]
     assert 0.04 < full["dxy"][0] < 0.08  # pushed forward by about the 7.5 cm segment minus the gap
     assert abs(full["dxy"][1]) < 0.01 and abs(full["yaw"]) < 0.1 and not full["left"]  # straight
-    # The primitive jaw at 5 ms (the study's legs and speeds) slides it the same way; the study's
-    # 10 ms step launches it (module docstring), so only its forward motion is checked.
-    for side in ("fine", "fixed"):
-        m = row[side]["motion"][oid]
-        assert abs(m["dist"] - full["dist"]) < 0.01 and row[f"per_object_{side}"][oid]["gap"] < 0.01
-        assert row[f"agree_{side}"] is True
-    assert row["primitive"]["motion"][oid]["dxy"][0] > 0.04
+    # The study's primitive jaw (5 ms) slides it the same way; the 10 ms step launches it (module
+    # docstring), so only its forward motion is checked.
+    m = row["primitive"]["motion"][oid]
+    assert abs(m["dist"] - full["dist"]) < 0.01 and row["per_object"][oid]["gap"] < 0.01 and row["agree"] is True
+    assert row["coarse"]["motion"][oid]["dxy"][0] > 0.04
     s = summarize_fidelity([row])
-    assert s["status"] == {"ok": 1} and s["agree_fine"]["k"] == 1 and s["agree"]["n"] == 1
+    assert s["status"] == {"ok": 1} and s["agree"]["k"] == 1 and s["agree"]["n"] == 1
 
 
 def test_push_out_of_reach_is_unreachable(box_pair):
@@ -94,6 +88,16 @@ def test_push_out_of_reach_is_unreachable(box_pair):
     assert row["status"] == "unreachable" and row["plan_status"] == "unreachable"
     assert row["agree"] is None and row["gain_sign_agree"] is None
     assert row["primitive"]["status"] == "ok"  # the floating jaw goes anywhere
-    assert "fine" not in row and "fixed" not in row  # the diagnostic sides only where the YuMi pushed
+    assert "coarse" not in row  # the diagnostic side only where the YuMi pushed
     s = summarize_fidelity([row])
     assert s["status"] == {"unreachable": 1} and s["agree"]["n"] == 0
+
+
+def test_the_study_and_the_pushing_selectors_push_at_the_same_plant_step():
+    from ms_drake.execution import PRIMITIVE_PUSH_TIME_STEP
+    from ms_drake.experiments.rollout import primitive_time_step
+    from ms_drake.policies.bin_selectors import POLICIES as SELECTORS, PUSHING
+
+    assert StudyParams().time_step == PRIMITIVE_PUSH_TIME_STEP == 0.005
+    for p in SELECTORS:
+        assert primitive_time_step(p) == (PRIMITIVE_PUSH_TIME_STEP if p in PUSHING else 0.01)

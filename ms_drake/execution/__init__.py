@@ -3,6 +3,7 @@ gripper's evaluated grasp primitive; full: IK + ruckig through the station's dri
 
 from ms_drake.execution.backends import (  # noqa: F401
     FIDELITIES,
+    PRIMITIVE_PUSH_TIME_STEP,
     FullBackend,
     PrimitiveBackend,
     grasp_tool_pose,

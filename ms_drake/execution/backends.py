@@ -32,6 +32,14 @@ from ms_drake.scenario import resolve_robot_config
 from ms_drake.types import Action, ActionOutcome
 
 FIDELITIES = ("primitive", "full")
+# The plant step at which the primitive push agrees with the YuMi's [s]. At 10 ms (7 ms too) the
+# compliant contact between the floating jaw and a pushed object launches it: a box pushed 7.5 cm
+# along x ends 3.3 cm to the side, turned 98 degrees, pushed along the diagonal it flies 23 cm
+# (slower pushes at 10 ms do no better, nor did the "similar" and "sap" contact approximations in
+# a trial); at 6, 5 and 2 ms it moves as on the YuMi (6.6 cm straight; 7.2 cm along the
+# diagonal, turned 13-20 degrees): sims/push_fidelity_box.py. The push study and the search's
+# pushing selectors simulate at this step; the other selectors keep 10 ms (they never push).
+PRIMITIVE_PUSH_TIME_STEP = 0.005
 
 
 def _smooth(a: np.ndarray, b: np.ndarray, s: float) -> np.ndarray:
@@ -114,7 +122,14 @@ class PrimitiveBackend(_Base):
                 "floating_jaw.force_limit": [self.push_force]}
 
     def _q(self, tcp, yaw):
-        return np.array([tcp[0], tcp[1], tcp[2] + self.tcp_offset, np.pi, 0.0, yaw])
+        """Floating-base positions putting the tcp at `tcp` with the tool pointing down and the
+        jaw's world yaw `yaw` (R_WG = Rz(yaw) Rx(pi), FullBackend's push pose). The base's chain
+        is R_WG = Rx(roll) Ry(pitch) Rz(q_yaw) (floating_gripper_positions), and
+        Rx(pi) Rz(q) = Rz(-q) Rx(pi): the yaw joint is commanded -yaw, folded into (-pi/2, pi/2]
+        (the closed jaw is symmetric under a half turn about the tool axis)."""
+        q_yaw = -float(yaw)
+        q_yaw = q_yaw - np.pi * np.ceil((q_yaw - 0.5 * np.pi) / np.pi)
+        return np.array([tcp[0], tcp[1], tcp[2] + self.tcp_offset, np.pi, 0.0, q_yaw])
 
     def plan(self, action: Action, hold: dict, step: int, poses=None):
         if action.kind == "grasp":

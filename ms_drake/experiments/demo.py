@@ -25,6 +25,7 @@ from ms_drake.experiments.rollout import (
     SCENARIOS,
     SearchParams,
     build_search,
+    primitive_time_step,
     run_search,
 )
 from ms_drake.experiments.scene_images import (
@@ -105,7 +106,8 @@ def run_demo(out: Path, seed: int = DEMO_SEED, objects: int = 15, policy: str = 
     meshcat = None
     if meshcat_html:
         meshcat = Meshcat()
-    params = SearchParams(policy=policy, fidelity="primitive", horizon=horizon, seed=seed, time_step=0.01)
+    params = SearchParams(policy=policy, fidelity="primitive", horizon=horizon, seed=seed,
+                          time_step=primitive_time_step(policy))
     scenario = load_scenario(None, SCENARIOS["primitive"])
     system = build_search(scenario, heap, params, meshcat=meshcat)
     res = run_search(system, heap, params, keep_frames=True, meshcat=meshcat)

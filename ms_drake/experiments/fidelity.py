@@ -33,7 +33,7 @@ from ms_drake.execution import (
     remove_objects,
 )
 from ms_drake.experiments.harness import cached_heap
-from ms_drake.experiments.rollout import SearchParams, build_search, run_search
+from ms_drake.experiments.rollout import SearchParams, build_search, primitive_time_step, run_search
 from ms_drake.geometry import Workspace, as_rigid_transform
 from ms_drake.parallel import run_jobs
 from ms_drake.scenario import load_scenario
@@ -58,11 +58,11 @@ class Attempt:
 
 def primitive_attempts(heap, policy: str = "largest", seed: int | None = None, max_attempts: int | None = None,
                        scenario_name: str = "FloatingGripperBin", **kw) -> tuple[list[Attempt], object]:
-    """Search `heap` in the primitive mode (the rollout's settings: 10 ms steps, the grasp-set
+    """Search `heap` in the primitive mode (the rollout's settings: its plant step, the grasp-set
     planner) and return its grasp attempts, each with the scene before it, and the RolloutResult.
     max_attempts: keep the first K grasp attempts (the search runs to its end regardless)."""
     seed = heap.seed if seed is None else seed
-    kw.setdefault("time_step", 0.01)
+    kw.setdefault("time_step", primitive_time_step(policy))
     params = SearchParams(policy=policy, fidelity="primitive", seed=seed, **kw)
     system = build_search(load_scenario(None, scenario_name), heap, params)
     names = {o.model_name: k for k, o in enumerate(station_objects(system.plant))}

@@ -7,8 +7,9 @@ Per (heap, policy) whose record holds a push (`ms-drake data push-heaps`):
              into both worlds: PushWorld(fidelity="primitive") and PushWorld(fidelity="full");
   push       the record's push (start, end, object): the policy's plan on that state;
   primitive  PushWorld.execute_push in FloatingGripperBin: the floating closed jaw at 0.15 m/s along
-             the segment, 10 ms steps, then the 0.5 s settle (the study's own execution, run again
-             here so both sides come from this code);
+             the segment, broad side leading, at the study's plant step (StudyParams.time_step,
+             PRIMITIVE_PUSH_TIME_STEP = 5 ms), then the 0.5 s settle (the study's own execution,
+             run again here so both sides come from this code);
   full       the same Push by FullBackend in YuMiBin at the scenario's 2 ms plant step: the right
              arm's closed jaw (tool pointing down, broad side leading, as the primitive jaw) at the
              push's height along the segment (plan_push, <= 0.1 m/s), from the arm's park
@@ -26,19 +27,11 @@ that grows with how far it travels (the study's pushes are 3-25 cm long); a pure
 call a 20 cm push that ends 3 cm short a disagreement, and one that moves 1 cm either way an
 agreement. Each object's yaw change (the twist about the world z axis of R_after R_before^T, so
 a cylinder rolling about its horizontal axis has none) is reported in both, not used.
-Two diagnostic sides explain disagreements (both primitive, the same legs and speeds):
-  fine   PrimitiveBackend at a 5 ms plant step (FINE_STEP) instead of the study's 10 ms: at 10 ms the
-         compliant contact launches a pushed object (a box pushed 7.5 cm at 0.15 m/s jumps 1 cm and
-         ends 3.6 cm to the side, turned 15 degrees; at 5 ms or 2 ms it slides 6.7 cm straight, as
-         on the YuMi: sims/push_fidelity_box.py);
-  fixed  AlignedPrimitiveBackend at 5 ms: also the jaw's yaw as PrimitiveBackend intends.
-         PrimitiveBackend commands the push's yaw as the floating gripper's yaw joint, but that
-         chain gives R = Rx(roll) Ry(pitch) Rz(yaw) (floating_gripper_positions), so with roll = pi
-         the jaw's world yaw is minus the command: the broad side leads only for pushes along the
-         bin's x or y axis; a push at angle theta turns the jaw by 2 theta (mod 180 degrees,
-         `mirror_deg`), and at 45 degrees its 13 cm palm lies along the push.
-They run only where the YuMi executed the push. The study's data (push-heaps) were made with
-PrimitiveBackend at 10 ms, so "primitive" is the side the agreement is about.
+One diagnostic side, run only where the YuMi executed the push:
+  coarse  the primitive side at a 10 ms plant step (COARSE_STEP, the search's non-pushing
+          selectors'): at 10 ms the compliant contact launches a pushed object (a box pushed 7.5 cm
+          along x ends 3.3 cm to the side, turned 98 degrees; at 5 ms and on the YuMi it slides
+          6.6 cm straight: sims/push_fidelity_box.py), the reason the pushes run at 5 ms.
 Gain sign: sign(Q*_o after - Q*_o before) in {-1, 0, +1} (|gain| <= 1e-9 counts as 0), Q*_o by the
 study's GraspSets (StudyParams(), seeded by the heap's seed, so both sides score the same grasp
 samples of an object in a given tilt); `gain_sign_agree` when the two signs are equal.
@@ -74,8 +67,8 @@ from ms_drake.types import Action, Heap, Push
 AGREE_ABS = 0.02  # m
 AGREE_REL = 0.25  # of the primitive displacement
 GAIN_EPS = 1e-9
-FINE_STEP = 0.005  # s, the diagnostic primitive sides' plant step
-SIDES = ("full", "primitive", "fine", "fixed")  # executed in this order
+COARSE_STEP = 0.01  # s, the diagnostic primitive side's plant step
+SIDES = ("full", "primitive", "coarse")  # executed in this order
 
 
 def yaw_change(R0: np.ndarray, R1: np.ndarray) -> float:
@@ -118,22 +111,6 @@ def agreement(prim: dict, full: dict, abs_tol: float = AGREE_ABS, rel_tol: float
     return all(v["ok"] for v in per.values()), per
 
 
-class AlignedPrimitiveBackend(PrimitiveBackend):
-    """PrimitiveBackend whose jaw's world yaw is the intended one (module docstring): with roll = pi
-    the floating chain's yaw joint turns the jaw by minus its value, so it is commanded -yaw."""
-
-    def _q(self, tcp, yaw):
-        return super()._q(tcp, -yaw)
-
-
-def mirror_deg(push: Push) -> float:
-    """How far PrimitiveBackend's jaw is turned from the intended yaw for this push, in [0, 90]
-    degrees (2 theta folded; the jaw is symmetric under a half turn)."""
-    d = np.subtract(push.end, push.start)
-    e = np.degrees(2 * np.arctan2(d[1], d[0])) % 180.0
-    return float(min(e, 180.0 - e))
-
-
 class FidelityPair:
     """The two worlds of one heap record, its state loaded in both, its before metrics."""
 
@@ -147,11 +124,8 @@ class FidelityPair:
         self.seed, self.params = int(rec["seed"]), params
         self.worlds = {}
         for side in SIDES:
-            p = params if side in ("full", "primitive") else replace(params, time_step=FINE_STEP)
+            p = replace(params, time_step=COARSE_STEP) if side == "coarse" else params
             w = PushWorld(heap, p, fidelity="full" if side == "full" else "primitive")
-            if side == "fixed":
-                b = w.backend
-                w.backend = AlignedPrimitiveBackend(b.objects, b.workspace, b.tcp_offset)
             w.set_state(rec["state"])
             self.worlds[side] = (w, w.snapshot())
         self.build_cpu_s = time.process_time() - c
@@ -183,17 +157,17 @@ class FidelityPair:
                 "motion": object_motion(w, self.ids, self.c0, self.R0)}
 
     def compare(self, policy: str, push_rec: dict, recorded_gain: float | None = None) -> dict:
-        """One row: the policy's recorded push in the three worlds and their agreement."""
+        """One row: the policy's recorded push in the worlds of SIDES and their agreement."""
         push = Push(tuple(push_rec["start"]), tuple(push_rec["end"]), push_rec.get("object", ""))
         res = {}
-        for side in SIDES:  # the diagnostic sides only where the YuMi executed the push
+        for side in SIDES:  # the diagnostic side only where the YuMi executed the push
             if side in ("full", "primitive") or res["full"]["status"] == "ok":
                 res[side] = self.execute(side, push)
         prim, full = res["primitive"], res["full"]
         row = {"seed": self.seed, "policy": policy, "push": push_rec, "objects": len(self.ids),
                "before_overall": self.before["overall"], "recorded_overall_gain": recorded_gain,
                "push_length": float(np.linalg.norm(np.subtract(push.end, push.start)[:2])),
-               "mirror_deg": mirror_deg(push), **res,
+               "push_height": float(push.start[2]) - self.worlds["primitive"][0].workspace.floor_z, **res,
                "cpu_s": full["cpu_s"], "primitive_cpu_s": prim["cpu_s"], "build_cpu_s": self.build_cpu_s}
         if any(r["status"] != "ok" for r in res.values()):
             bad = next(side for side in SIDES if side in res and res[side]["status"] != "ok")
@@ -204,11 +178,9 @@ class FidelityPair:
         sf = gain_sign(full["overall_gain"])
         row.update(status="ok", agree=bool(agree), per_object=per, gain_sign=[gain_sign(prim["overall_gain"]), sf],
                    gain_sign_agree=gain_sign(prim["overall_gain"]) == sf)
-        for side in ("fine", "fixed"):
-            a, per_side = agreement(res[side]["motion"], full["motion"])
-            row.update({f"agree_{side}": bool(a), f"per_object_{side}": per_side,
-                        f"gain_sign_agree_{side}": gain_sign(res[side]["overall_gain"]) == sf})
-        row["agree_primitive_fixed"] = bool(agreement(prim["motion"], res["fixed"]["motion"])[0])
+        a, per_side = agreement(res["coarse"]["motion"], full["motion"])
+        row.update(agree_coarse=bool(a), per_object_coarse=per_side,
+                   gain_sign_agree_coarse=gain_sign(res["coarse"]["overall_gain"]) == sf)
         return row
 
 
@@ -288,11 +260,8 @@ def summarize_fidelity(rows: list[dict]) -> dict:
 
     ok = [r for r in rows if r["status"] == "ok"]
     out = {"pushes": len(rows), "status": {}, "agree": share(ok, "agree"),
-           "gain_sign_agree": share(ok, "gain_sign_agree"), "agree_fine": share(ok, "agree_fine"),
-           "gain_sign_agree_fine": share(ok, "gain_sign_agree_fine"), "agree_fixed": share(ok, "agree_fixed"),
-           "gain_sign_agree_fixed": share(ok, "gain_sign_agree_fixed"),
-           "agree_primitive_fixed": share(ok, "agree_primitive_fixed"),
-           "agree_small_mirror": share([r for r in ok if r["mirror_deg"] <= 20.0], "agree"), "policies": {}}
+           "gain_sign_agree": share(ok, "gain_sign_agree"), "agree_coarse": share(ok, "agree_coarse"),
+           "gain_sign_agree_coarse": share(ok, "gain_sign_agree_coarse"), "policies": {}}
     for r in rows:
         out["status"][r["status"]] = out["status"].get(r["status"], 0) + 1
     rec = [r for r in rows if r["primitive"].get("status") == "ok" and r.get("recorded_overall_gain") is not None]
@@ -322,12 +291,8 @@ def format_fidelity(s: dict) -> str:
              (f"agree {a['k']}/{a['n']} = {100 * a['share']:.0f} % (Wilson 95 % {100 * a['ci95'][0]:.0f}-"
               f"{100 * a['ci95'][1]:.0f} %); gain sign agrees {g['k']}/{g['n']} = {100 * g['share']:.0f} % "
               f"({100 * g['ci95'][0]:.0f}-{100 * g['ci95'][1]:.0f} %)")]
-    for key, label in (("agree_fine", "full vs primitive at 5 ms"),
-                       ("gain_sign_agree_fine", "gain sign, full vs primitive at 5 ms"),
-                       ("agree_fixed", "full vs primitive at 5 ms with the jaw's yaw aligned"),
-                       ("gain_sign_agree_fixed", "gain sign, full vs that"),
-                       ("agree_primitive_fixed", "primitive (study) vs fixed"),
-                       ("agree_small_mirror", "full vs primitive, jaw mirror <= 20 deg"),
+    for key, label in (("agree_coarse", "full vs primitive at 10 ms"),
+                       ("gain_sign_agree_coarse", "gain sign, full vs primitive at 10 ms"),
                        ("rerun_sign_matches_record", "primitive rerun's gain sign = the data step's")):
         v = s[key]
         lines.append(f"  {label}: {v['k']}/{v['n']} ({100 * v['ci95'][0]:.0f}-{100 * v['ci95'][1]:.0f} %)")

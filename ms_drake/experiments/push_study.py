@@ -1,7 +1,8 @@
 """The linear push policies study of Ch. 4: metrics, improvable heaps (Algorithm 1), the benchmark.
 
 Physics: the primitive mode's floating closed jaw (FloatingGripperBin, PrimitiveBackend) moves
-along the push segment in Drake (10 ms steps, the primitive mode's): from its park pose beside
+along the push segment in Drake (5 ms steps, PRIMITIVE_PUSH_TIME_STEP: the search's pushing
+selectors' step, where the push agrees with the YuMi's): from its park pose beside
 the bin to above the start, down, along the segment, up and back, commanded through the station's
 floating-gripper driver; then `settle` s. Objects that leave the bin are out of the after state.
 
@@ -52,7 +53,7 @@ from pydrake.multibody.math import SpatialVelocity
 from pydrake.systems.analysis import Simulator
 from scipy.stats import f_oneway
 
-from ms_drake.execution import FullBackend, Motion, PrimitiveBackend, remove_objects
+from ms_drake.execution import PRIMITIVE_PUSH_TIME_STEP, FullBackend, Motion, PrimitiveBackend, remove_objects
 from ms_drake.execution.backends import tcp_offset_of
 from ms_drake.experiments.heap_grasps import (
     _coal_shape,
@@ -116,7 +117,7 @@ class StudyParams:
     min_objects: int = 4
     max_objects: int = 10
     settle: float = 0.5
-    time_step: float = 0.01
+    time_step: float = PRIMITIVE_PUSH_TIME_STEP  # where the primitive push agrees with the YuMi's
 
 
 # --------------------------------------------------------------------------- physics

@@ -22,7 +22,7 @@ from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
 from pydrake.systems.framework import DiagramBuilder
 
 from ms_drake.errors import MsDrakeError
-from ms_drake.execution import FIDELITIES, ExecutionError, remove_objects
+from ms_drake.execution import FIDELITIES, PRIMITIVE_PUSH_TIME_STEP, ExecutionError, remove_objects
 from ms_drake.perception.occupancy import TargetBox, TargetMesh
 from ms_drake.policies.bin_search import (
     BinSearchController,
@@ -31,7 +31,7 @@ from ms_drake.policies.bin_search import (
     SimulationInfo,
     connect_controller,
 )
-from ms_drake.policies.bin_selectors import check_policy
+from ms_drake.policies.bin_selectors import PUSHING, check_policy
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap, scenario_with_heap, set_heap_poses
 from ms_drake.station import MakeStation, get_plant, station_objects
@@ -69,8 +69,10 @@ class SearchParams:
     # or "analytic" (the ground-truth generator). The oracle always uses "analytic" with the
     # target's true pose: it is the labelled upper bound that reads privileged state.
     occupancy: str = "learned"
-    # Plant step [s]; None keeps the scenario's (2 ms). The primitive mode only needs the heap to
-    # settle and the closed jaw to push, so it runs at 10 ms like the heap generator (our choice).
+    # Plant step [s]; None keeps the scenario's (2 ms). `rollout` sets the primitive mode's
+    # (primitive_time_step): the heap only needs to settle, so 10 ms like the heap generator (our
+    # choice), and 5 ms for the selectors that push, where the closed jaw's push agrees with the
+    # YuMi's (PRIMITIVE_PUSH_TIME_STEP).
     time_step: float | None = None
     # Discrete contact approximation; None (default) keeps the scenario's ("lagged"), the physics
     # station_check validates. History: with the station's former rigid objects (point contact on
@@ -314,12 +316,19 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
     return res
 
 
+def primitive_time_step(policy: str) -> float:
+    """The primitive mode's plant step for selector `policy` [s]: PRIMITIVE_PUSH_TIME_STEP for the
+    pushing selectors (their push agrees with the YuMi's there, the push study's), 10 ms else."""
+    check_policy(policy)
+    return PRIMITIVE_PUSH_TIME_STEP if policy in PUSHING else 0.01
+
+
 def rollout(policy: str, objects: int, seed: int, fidelity: str = "primitive", horizon: int | None = None,
             heap=None, keep_frames: bool = False, meshcat=None, scenario_name: str | None = None,
             **kw) -> RolloutResult:
     """Generate heap `seed` (N objects, BinHeap15's bin) and search it with `policy` on the station
     of `scenario_name` (default: FloatingGripperBin for primitive, YuMiBin for full fidelity)."""
-    kw.setdefault("time_step", 0.01 if fidelity == "primitive" else None)
+    kw.setdefault("time_step", primitive_time_step(policy) if fidelity == "primitive" else None)
     params = SearchParams(policy=policy, fidelity=fidelity, horizon=horizon, seed=seed, **kw)
     if heap is None:
         heap = generate_heap(load_scenario(None, "BinHeap15"), objects, seed, params=SEARCH_HEAPS)
