@@ -384,7 +384,8 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
                  protocol: str = typer.Option("ch7", "--protocol", help="Heaps: ch7 (N objects of the scenario's "
                                               "set) | xray (Table 8.2: the target dropped first under N = 14 mesh "
                                               "objects unseen in training; H = 10) | xray_hidden (the same, "
-                                              "target fully hidden at the start)"),
+                                              "target fully hidden at the start) | xray_ycb (as xray, the "
+                                              "occluders unseen YCB and packaged objects)"),
                  segmenter: str = typer.Option("ground_truth", "--segmenter", help="Instance masks: ground_truth "
                                                "(label image) | euclidean | region_growing | learned (depth)"),
                  detector: str = typer.Option("color", "--detector", help="Target detector: color (HSV, red "

@@ -7,8 +7,8 @@ Per policy (ms_drake.experiments.harness.summarize): success with its bootstrap 
 action quartiles over successes, failures; the paired sign test of every pair
 (harness.paired_comparison) and, on the heaps both solve, a sign test on who needed fewer
 actions; the seen fraction of the target at the start splits the heaps
-(heap.visible_ratios, from --heap-dir) when given; the Fig. 8.6 histogram and the cumulative
-successes (harness.plot) of the common heaps into --out.
+(heap.visible_ratios, from --heap-dir: the heap files of the records' protocol) when given; the
+Fig. 8.6 histogram and the cumulative successes (harness.plot) of the common heaps into --out.
 """
 
 import argparse
@@ -56,7 +56,8 @@ def main():
     if args.heap_dir is not None:
         seen = {}
         for k in common:
-            h = load_heap(args.heap_dir / f"heap_xray_N{recs[args.files[0]][0]['objects']}_s{k}.json")
+            first = recs[args.files[0]][0]
+            h = load_heap(args.heap_dir / f"heap_{first.get('protocol', 'xray')}_N{first['objects']}_s{k}.json")
             seen[k] = h.visible_ratios[h.target_index]
         v = np.array(list(seen.values()))
         print(f"target seen fraction at the start: 0 in {(v == 0).sum()}, < 0.1 in {(v < 0.1).sum()}, "

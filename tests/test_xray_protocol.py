@@ -1,22 +1,32 @@
-"""The heap protocols of Table 8.2 (ms_drake.experiments.xray): `xray` and `xray_hidden`."""
+"""The heap protocols of Table 8.2 (ms_drake.experiments.xray): `xray`, `xray_hidden`, `xray_ycb`."""
 
 import dataclasses
 
+import numpy as np
 import pytest
 
 from ms_drake.experiments.rollout import SearchParams, build_search
-from ms_drake.experiments.xray import PROTOCOLS, XRAY_HEAPS, XRAY_TARGET, _names, xray_heap
+from ms_drake.experiments.xray import (
+    PROTOCOLS,
+    XRAY_HEAPS,
+    XRAY_TARGET,
+    _names,
+    xray_heap,
+    xray_occluders,
+    xray_ycb_occluders,
+)
+from ms_drake.objects import get_object, get_object_set
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import HeapError, generate_heap, set_heap_poses
 from ms_drake.station.robots import set_arm_positions
 
 
 def test_protocols_name_the_hidden_variant():
-    assert PROTOCOLS == ("ch7", "xray", "xray_hidden")
+    assert PROTOCOLS == ("ch7", "xray", "xray_hidden", "xray_ycb")
 
 
 def test_xray_hidden_heap_starts_with_the_target_hidden_from_the_station_camera():
-    heap = xray_heap(6001, hidden=True)
+    heap = xray_heap(6001, protocol="xray_hidden")
     assert heap.target == XRAY_TARGET and heap.target_index == 0
     assert heap.visible_ratios[0] == 0.0
     # what the search's own camera and target detector see: no target
@@ -36,3 +46,29 @@ def test_an_impossible_visibility_request_ends_in_a_clear_error():
     with pytest.raises(HeapError, match=r"max_target_seen=-1\.0.*2 attempts|2 attempts.*max_target_seen=-1\.0"):
         generate_heap(load_scenario(None, "BinHeap15"), 3, 7, params=params,
                       names_fn=lambda rng: _names(rng, 2), target_first=True)
+
+
+def test_xray_ycb_occluders_are_unseen_ycb_models_and_packaged_objects():
+    pool = xray_ycb_occluders()
+    assert len(pool) == len(set(pool))
+    sets = [name.split("/")[0] for name in pool]
+    assert sets.count("procedural") == 13 and all(n.startswith("procedural/packaged_") for n in pool[-13:])
+    ycb_unseen = get_object_set("ycb_unseen")
+    assert {o.name for o in ycb_unseen.objects}.isdisjoint(get_object_set("ycb").names())
+    assert {f"ycb_unseen/{n}" for n in ycb_unseen.names()} <= set(pool)
+    # never in the occupancy network's training heaps, which draw from the train splits
+    assert all(get_object(n).split == "test" for n in pool)
+    assert set(pool).isdisjoint(xray_occluders()[9:])  # no random_urdfs blob (xray's pool: ycb test, then blobs)
+
+
+def test_xray_ycb_heap_holds_the_target_under_14_occluders_of_its_pool_and_is_deterministic():
+    heap = xray_heap(5000, protocol="xray_ycb")
+    names = [o.name for o in heap.objects]
+    assert len(names) == 15 and names[0] == XRAY_TARGET == heap.target and heap.target_index == 0
+    assert set(names[1:]) <= set(xray_ycb_occluders())
+    # a pure function of the seed (a small heap, twice); the xray protocol draws from its own pool
+    small = [xray_heap(5001, occluders=3, protocol="xray_ycb") for _ in range(2)]
+    assert small[0].objects == small[1].objects and small[0].visible_ratios == small[1].visible_ratios
+    assert set(_names(np.random.default_rng([5000, 0]), 14)[1:]) <= set(xray_occluders())
+    with pytest.raises(ValueError, match="xray_ycb"):
+        xray_heap(5000, protocol="ch7")

@@ -50,7 +50,8 @@ def cached_heap(objects: int, seed: int, heap_dir: str | None, protocol: str = "
     function of (protocol, N, seed); the file is written atomically). protocol "ch7": N objects of
     the scenario's set (heap_N<N>_s<seed>.json); "xray": the target dropped first under N unseen
     mesh objects (ms_drake.experiments.xray; heap_xray_N<N>_s<seed>.json); "xray_hidden": those
-whose target starts fully hidden (heap_xray_hidden_N<N>_s<seed>.json). engine (HEAP_ENGINES):
+whose target starts fully hidden (heap_xray_hidden_N<N>_s<seed>.json); "xray_ycb": the target under
+unseen YCB and packaged objects (heap_xray_ycb_N<N>_s<seed>.json). engine (HEAP_ENGINES):
 the "ch7" heaps' drop physics; Bullet heaps are heap_bullet_N<N>_s<seed>.json."""
     if protocol not in PROTOCOLS:
         raise ValueError(f"protocol {protocol!r} unknown; choose one of {', '.join(PROTOCOLS)}")
@@ -64,7 +65,7 @@ the "ch7" heaps' drop physics; Bullet heaps are heap_bullet_N<N>_s<seed>.json.""
     path = Path(heap_dir) / f"{stem}.json" if heap_dir else None
     if path is not None and path.exists():
         return load_heap(path)
-    heap = (xray_heap(seed, objects, hidden=protocol == "xray_hidden") if protocol in XRAY_PROTOCOLS else
+    heap = (xray_heap(seed, objects, protocol) if protocol in XRAY_PROTOCOLS else
             generate_heap(load_scenario(None, "BinHeap15"), objects, seed, params=HEAP_ENGINES[engine]))
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -27,6 +27,16 @@ hidden from the overhead camera (its seen fraction is 0), as the reference's clo
 its heaps says ("heaps containing 15-25 objects that fully occlude the target object", Ch. 8.5).
 Under `xray` the target's seen fraction is 0 in about one heap in eight, so a `xray_hidden` heap
 takes about eight drops (`XRAY_HIDDEN_HEAPS.max_attempts` bounds them).
+
+`--protocol xray_ycb`: the same heaps (target first, the lid, sigma 4 cm, Bullet + polish, H = 10)
+with the reference's kind of occluders (line 1503: "46 YCB objects and 13 packaged YCB objects",
+household objects the network never saw): drawn uniformly (with replacement) from every YCB model
+the occupancy network never saw -- the set `ycb_unseen` (the YCB models outside the committed
+`ycb` subset, all of them test split; tools/convert_objects.py --exclude-set ycb) and the test
+split of `ycb` -- and 13 packaged objects, the first 13 packaged objects of the `procedural` test
+split (a box or cylinder on a cardboard backing; not YCB models: no YCB model with a backing
+exists here). The pool is 52 YCB models + 13 packaged (`xray_ycb_occluders`), against the
+reference's 46 + 13; `xray` draws from 9 YCB models and 22 random_urdfs blobs (4-20 cm).
 """
 
 from __future__ import annotations
@@ -44,8 +54,10 @@ XRAY_TARGET = "targets/lid"
 XRAY_OBJECTS = 14
 XRAY_HORIZON = 10
 XRAY_OCCLUDER_SETS = ("ycb", "random_urdfs")
-PROTOCOLS = ("ch7", "xray", "xray_hidden")
-XRAY_PROTOCOLS = ("xray", "xray_hidden")
+XRAY_YCB_SETS = ("ycb_unseen", "ycb")  # every object of the first (all test split), the test split of the others
+XRAY_YCB_PACKAGED = 13  # packaged occluders, as the reference's 13 packaged YCB objects
+PROTOCOLS = ("ch7", "xray", "xray_hidden", "xray_ycb")
+XRAY_PROTOCOLS = ("xray", "xray_hidden", "xray_ycb")
 XRAY_HEAPS = HeapParams(engine="bullet", polish_time=0.5, offset_sigma=0.04)
 XRAY_HIDDEN_HEAPS = dataclasses.replace(XRAY_HEAPS, max_target_seen=0.0, max_attempts=80)
 
@@ -56,14 +68,29 @@ def xray_occluders() -> tuple[str, ...]:
     return tuple(o.full_name for s in XRAY_OCCLUDER_SETS for o in get_object_set(s).split("test"))
 
 
-def _names(rng: np.random.Generator, occluders: int) -> list[str]:
-    pool = xray_occluders()
+@functools.cache
+def xray_ycb_occluders() -> tuple[str, ...]:
+    """Full names of the `xray_ycb` protocol's occluders: the YCB models the occupancy network
+    never saw (all of `ycb_unseen`, the test split of `ycb`), then `XRAY_YCB_PACKAGED` packaged
+    objects of the procedural test split (in index order)."""
+    ycb = [o.full_name for s in XRAY_YCB_SETS for o in get_object_set(s).split("test")]
+    packaged = [o.full_name for o in get_object_set("procedural").split("test") if o.name.startswith("packaged_")]
+    return tuple(ycb + packaged[:XRAY_YCB_PACKAGED])
+
+
+def _names(rng: np.random.Generator, occluders: int, pool: tuple[str, ...] | None = None) -> list[str]:
+    pool = pool if pool is not None else xray_occluders()
     return [XRAY_TARGET] + [pool[i] for i in rng.integers(0, len(pool), size=occluders)]
 
 
-def xray_heap(seed: int, occluders: int = XRAY_OBJECTS, hidden: bool = False):
-    """Heap `seed` of the protocol: the target dropped first, then `occluders` unseen mesh objects;
-    hidden: only a heap whose target starts fully hidden (protocol `xray_hidden`)."""
+def xray_heap(seed: int, occluders: int = XRAY_OBJECTS, protocol: str = "xray"):
+    """Heap `seed` of a protocol of XRAY_PROTOCOLS: the target dropped first, then `occluders`
+    unseen mesh objects (`xray`, and `xray_hidden`: only a heap whose target starts fully hidden)
+    or unseen YCB and packaged objects (`xray_ycb`)."""
+    if protocol not in XRAY_PROTOCOLS:
+        raise ValueError(f"protocol {protocol!r} is not an X-Ray heap protocol; choose one of "
+                         f"{', '.join(XRAY_PROTOCOLS)}")
+    pool = xray_ycb_occluders() if protocol == "xray_ycb" else xray_occluders()
     return generate_heap(load_scenario(None, "BinHeap15"), occluders + 1, seed,
-                         params=XRAY_HIDDEN_HEAPS if hidden else XRAY_HEAPS,
-                         names_fn=functools.partial(_names, occluders=occluders), target_first=True)
+                         params=XRAY_HIDDEN_HEAPS if protocol == "xray_hidden" else XRAY_HEAPS,
+                         names_fn=functools.partial(_names, occluders=occluders, pool=pool), target_first=True)
