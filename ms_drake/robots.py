@@ -202,9 +202,12 @@ ROBOTS: dict[str, RobotSpec] = {
     ),
     "yumi": RobotSpec(
         "yumi", "robots/yumi/yumi.sdf", "yumi_body",
-        # Homes: tools pointing down 30 cm above the near half of a bin 0.55 m in front (by IK).
-        arms={"yumi_right": _yumi_arm("r", "parallel_jaw", (-1.109, -0.708, 0.322, 1.067, 0.532, 0.116, 0.851)),
-              "yumi_left": _yumi_arm("l", "suction_cup", (0.558, -0.759, -0.017, 1.074, 0.99, 0.378, 0.816))},
+        # Homes (the park at a bin station, by IK; sims/yumi_reach_probe.py): tools pointing down,
+        # tcps 0.25 m in front of the base, 0.30 m to either side, 0.30 m up -- out of the
+        # overhead camera's view of a bin whose centre is 0.45 m in front (YuMiBin); every
+        # joint at least 0.3 rad from its limits.
+        arms={"yumi_right": _yumi_arm("r", "parallel_jaw", (-0.541, -0.79, -0.897, 1.041, -0.024, 0.114, 0.521)),
+              "yumi_left": _yumi_arm("l", "suction_cup", (0.307, -1.184, 0.906, 1.081, 1.257, 0.486, 1.46))},
     ),
     "fetch": RobotSpec(
         "fetch", "robots/fetch/fetch.sdf", "base_origin",

@@ -18,7 +18,7 @@ from ms_drake.scenes.heaps import heap_to_dict
 from ms_drake.types import Heap, ObjectPose
 
 BOX = "procedural/box_117"  # 5.3 x 4.5 x 3.4 cm
-X0, Y0 = -0.06, -0.05  # in the YuMi's reach (the bin centre is at 0.55 m from its base)
+X0, Y0 = -0.06, -0.05  # in the YuMi's reach (the bin centre is at 0.45 m from its base)
 
 
 def _motion(center, dist, left=False):
