@@ -120,3 +120,19 @@ def test_a_reached_grasp_is_lifted_by_the_yumi(attempts4):
     _, attempts, _ = attempts4
     r = replay_full(attempts[0])
     assert r.lifted and r.message == "" and r.rise > 0.075
+
+
+def test_pick_reach_keeps_the_arm_clear_of_the_scene(yumi_reach):
+    # a straight-down suction grasp the left arm reaches; a box 13-23 cm above the grasp point
+    # (above the 11.2 cm suction tool, where the wrist is) blocks it, the same box beside it does not
+    s = load_scenario(None, "BinHeap15")
+    ws = Workspace.from_scenario(s)
+    g = Grasp("suction", (-0.1, 0.1, 0.05), (0, 0, -1))
+    planner = IndexedGraspPlanner({}, {}, environment_parts(s), ws, 64, 48)
+    above = planner.scene((_box("wrist", (0.1, 0.1, 0.1), (-0.1, 0.1, 0.05 + 0.175)),))
+    beside = planner.scene((_box("wrist", (0.1, 0.1, 0.1), (0.15, -0.15, 0.05 + 0.175)),))
+    assert not planner.scene(()).hits(planner.gripper.suction(g.center, g.approach))
+    assert not above.hits(planner.gripper.suction(g.center, g.approach))  # the tool itself is free
+    blocked = yumi_reach.arm_blocked
+    assert yumi_reach(g) and yumi_reach(g, beside)
+    assert not yumi_reach(g, above) and yumi_reach.arm_blocked == blocked + 1

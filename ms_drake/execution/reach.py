@@ -3,46 +3,126 @@ pre-grasp from the park configuration, the straight approach, the straight lift;
 turned by pi about its axis) without simulating it, so a grasp planner can keep only the grasps
 the robot reaches -- the primitive mode then executes the grasps the robot would (issue #15, "The
 two fidelities agree").
+
+Given the scene (the IndexedGraspPlanner's coal Scene of the objects and the bin), a reached
+grasp must also keep the arm clear of it: the arm's links (not the gripper, which the planner
+checks itself) at `approach_samples` configurations along the planned approach, from the
+pre-grasp to the grasp, may not intersect any object. The gripper alone being free is not
+enough: the wrist behind a tilted suction tool or a jaw runs into the neighbouring objects, and
+the approach then stops short of the grasp.
 """
 
 from __future__ import annotations
 
+import numpy as np
+import trimesh
+from pydrake.geometry import Convex, Mesh, SceneGraph
+
 from ms_drake.execution.backends import FullBackend, grasp_tool_pose
-from ms_drake.geometry import Workspace
+from ms_drake.geometry import Workspace, coal_convex
 from ms_drake.planning.sequences import plan_pick
 from ms_drake.types import Grasp
 
 
+def _hull_part(shape, X_BG: np.ndarray):
+    """(coal convex, 4x4 pose in the body frame, bounding radius) of a Convex / Mesh shape's
+    convex hull, its vertices centred so that the bounding sphere is tight."""
+    mesh = shape.GetConvexHull()
+    hull = trimesh.convex.convex_hull(np.array([mesh.vertex(i) for i in range(mesh.num_vertices())]))  # triangulated
+    v = np.asarray(hull.vertices, float)
+    c = v.mean(axis=0)
+    T = np.eye(4)
+    T[:3, 3] = c
+    return coal_convex(v - c, hull.faces), X_BG @ T, float(np.max(np.linalg.norm(v - c, axis=1)))
+
+
+class ArmLinks:
+    """The collision geometry of one arm's links (the bodies its joints move, convex hulls in
+    coal) on the IK plant, placed at arm configurations as planner parts."""
+
+    def __init__(self, ik, diagram):
+        plant = ik.plant
+        sg = next(s for s in diagram.GetSystems() if isinstance(s, SceneGraph))
+        inspector = sg.model_inspector()
+        self.ik = ik
+        self.parts = []  # (body, coal shape, X_BG 4x4, radius)
+        for joint in ik.joints:
+            body = joint.child_body()
+            for gid in plant.GetCollisionGeometriesForBody(body):
+                shape = inspector.GetShape(gid)
+                if not isinstance(shape, (Convex, Mesh)):
+                    raise ValueError(f"ArmLinks: link {body.name()!r} has a collision shape of type "
+                                     f"{type(shape).__name__}; only Convex / Mesh links are supported")
+                X_BG = inspector.GetPoseInFrame(gid).GetAsMatrix4()
+                self.parts.append((body, *_hull_part(shape, X_BG)))
+
+    def at(self, q_arm) -> list:
+        """[(coal shape, 3x3 rotation, world centre, radius)] of the links at arm configuration q_arm."""
+        plant, ctx = self.ik.plant, self.ik.context
+        old = plant.GetPositions(ctx).copy()
+        q = old.copy()
+        q[self.ik.idx] = q_arm
+        plant.SetPositions(ctx, q)
+        out = []
+        for body, shape, X_BG, r in self.parts:
+            X = plant.EvalBodyPoseInWorld(ctx, body).GetAsMatrix4() @ X_BG
+            out.append((shape, X[:3, :3], X[:3, 3].copy(), r))
+        plant.SetPositions(ctx, old)  # the IK solves with the other joints at the context's values
+        return out
+
+
 class PickReach:
-    """reach(grasp) -> True when the robot of `scenario` plans a pick of it from park (the
-    FullBackend's arms, park configurations and pick settings). `checks` counts the calls and
-    `reached` the grasps found reachable.
+    """reach(grasp[, scene]) -> True when the robot of `scenario` plans a pick of it from park
+    (the FullBackend's arms, park configurations and pick settings) and, given a scene
+    (ms_drake.grasping.indexed.Scene), its arm's links stay clear of the scene along the approach
+    (module docstring). `checks` counts the calls, `reached` the grasps found reachable and
+    `arm_blocked` those whose plan exists but whose arm runs into the scene.
 
     The pre-grasp IK is solved from the park configuration only, without the random restarts:
     the backend's IK tries that same seed first (and its straight lines have no restarts), so a
     grasp reached here is reached by the backend whatever state its random restarts are in;
     a grasp only a random restart reaches is left out (conservative)."""
 
-    def __init__(self, scenario, seed: int = 0):
+    checks_scene = True  # IndexedGraspPlanner passes its Scene
+
+    def __init__(self, scenario, seed: int = 0, approach_samples: int = 5):
         self.backend = FullBackend(scenario, {}, Workspace.from_scenario(scenario), seed=seed)
         for ik, _, _ in self.backend.ik.values():
             ik.restarts = 0
-        self.checks = self.reached = 0
+        self.links = {arm: ArmLinks(ik, keep[0])
+                      for (arm, (ik, _, _)), keep in zip(self.backend.ik.items(), self.backend._keep)}
+        self.approach_samples = int(approach_samples)
+        self.checks = self.reached = self.arm_blocked = 0
 
-    def status(self, grasp: Grasp) -> str:
-        """"ok", the IK status of the failing step, or "no_<kind>_gripper"."""
+    def plan(self, grasp: Grasp):
+        """The backend's pick plan of the grasp from park, or the string "no_<kind>_gripper"."""
         b = self.backend
         tool = b.jaw if grasp.kind == "parallel_jaw" else b.suction
         if tool is None:
             return f"no_{grasp.kind}_gripper"
         arm, port = tool
         ik, limits, q_home = b.ik[arm]
-        plan = plan_pick(ik, limits, q_home, grasp_tool_pose(grasp), arm, port, grasp.kind, lift=b.lift,
+        return plan_pick(ik, limits, q_home, grasp_tool_pose(grasp), arm, port, grasp.kind, lift=b.lift,
                          speed=b.speed, close_time=b.close_time, hold_time=b.hold_time)
-        return plan.status
 
-    def __call__(self, grasp: Grasp) -> bool:
+    def status(self, grasp: Grasp) -> str:
+        """"ok", the IK status of the failing step, or "no_<kind>_gripper"."""
+        plan = self.plan(grasp)
+        return plan if isinstance(plan, str) else plan.status
+
+    def arm_hits(self, plan, scene) -> bool:
+        """True when the plan's arm links intersect the scene somewhere along its approach."""
+        tl = plan.timeline
+        t0, t1 = tl.marks["approach"], tl.marks["contact"]
+        links = self.links[plan.arm]
+        return any(scene.hits(links.at(tl.value(t))) for t in np.linspace(t0, t1, self.approach_samples))
+
+    def __call__(self, grasp: Grasp, scene=None) -> bool:
         self.checks += 1
-        ok = self.status(grasp) == "ok"
+        plan = self.plan(grasp)
+        ok = not isinstance(plan, str) and plan.success
+        if ok and scene is not None and self.arm_hits(plan, scene):
+            self.arm_blocked += 1
+            ok = False
         self.reached += ok
         return ok

@@ -6,10 +6,12 @@ suction cup) from that very scene with that very grasp, and both outcomes are co
 
 One record per attempt (`attempt_records`): seed, step, grasp kind, object, quality, the
 primitive outcome (a draw with probability = quality), the full outcome (lifted, the executor's
-message: "" / "not_lifted" / "plan_failed:<ik status>", how far the object rose), CPU seconds.
+message: "" / "not_lifted" / "plan_failed:<ik status>", how far the object rose, the load of
+the other objects on the grasped one before the approach: `object_load`), CPU seconds.
 `summarize` gives per-attempt success in each fidelity, their agreement (both lifted or both
-not) with Wilson 95 % intervals, and the agreement of the full outcome with the primitive's
-expected outcome (quality >= 0.5).
+not) with Wilson 95 % intervals, the agreement of the full outcome with the primitive's
+expected outcome (quality >= 0.5), and the rates for objects other objects press down apart
+(the grasp qualities are those of the object alone; the physical cup lifts the load too).
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ from ms_drake.geometry import Workspace, as_rigid_transform
 from ms_drake.parallel import run_jobs
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import ObjectPose, scenario_with_heap, set_heap_poses
-from ms_drake.station import MakeStation, get_plant, station_objects
+from ms_drake.station import MakeStation, get_plant, get_scene_graph, station_objects
 from ms_drake.station.robots import set_arm_positions
 from ms_drake.types import Action, Grasp
 
@@ -99,6 +101,33 @@ class Replay:
     rise: float  # m the grasped object rose by the outcome check (nan if never executed)
     sim_seconds: float
     cpu_seconds: float
+    load: float = float("nan")  # N, vertical force of the other objects on the grasped one before the approach
+    pressed_by: int = 0  # other objects pressing on it from above (downward force > 0.1 N)
+
+
+def object_load(plant, inspector, plant_context, body_index: int) -> tuple[float, int]:
+    """(net vertical force [N] the other objects exert on body `body_index`, how many of them push
+    it down by more than 0.1 N): negative when objects rest on it. From the plant's contact
+    results (hydroelastic and point contacts); the robot, its grippers and the environment are
+    not objects (bodies of model instances whose name starts with "obj")."""
+    res = plant.get_contact_results_output_port().Eval(plant_context)
+
+    def is_object(b):
+        return plant.GetModelInstanceName(plant.get_body(b).model_instance()).startswith("obj")
+
+    forces = {}  # other body -> vertical force on body_index
+    pairs = [(plant.GetBodyFromFrameId(inspector.GetFrameId(c.contact_surface().id_M())).index(),
+              plant.GetBodyFromFrameId(inspector.GetFrameId(c.contact_surface().id_N())).index(),
+              c.F_Ac_W().translational()[2]) for c in map(res.hydroelastic_contact_info,
+                                                          range(res.num_hydroelastic_contacts()))]
+    pairs += [(c.bodyB_index(), c.bodyA_index(), c.contact_force()[2])  # contact_force acts on B
+              for c in map(res.point_pair_contact_info, range(res.num_point_pair_contacts()))]
+    for a, b, fz in pairs:  # fz acts on the first body of the pair
+        if int(a) == body_index and is_object(b):
+            forces[int(b)] = forces.get(int(b), 0.0) + fz
+        elif int(b) == body_index and is_object(a):
+            forces[int(a)] = forces.get(int(a), 0.0) - fz
+    return float(sum(forces.values())), sum(f < -0.1 for f in forces.values())
 
 
 def build_replay(attempt: Attempt, scenario_name: str = "YuMiBin", seed: int = 0):
@@ -127,19 +156,26 @@ def build_replay(attempt: Attempt, scenario_name: str = "YuMiBin", seed: int = 0
     return simulator, station, executor, backend
 
 
-def replay_full(attempt: Attempt, scenario_name: str = "YuMiBin", max_sim_time: float = 30.0) -> Replay:
-    """Execute the attempt's grasp in full fidelity from its scene, up to the outcome check."""
+def replay_full(attempt: Attempt, scenario_name: str = "YuMiBin", max_sim_time: float = 30.0,
+                load_time: float = 0.15) -> Replay:
+    """Execute the attempt's grasp in full fidelity from its scene, up to the outcome check. The
+    load of the other objects on the grasped one (`object_load`) is read once the arm has held
+    its park for `load_time` s (the pick plan rests 0.2 s at park before it moves)."""
     t_cpu = time.process_time()
-    simulator, _, executor, backend = build_replay(attempt, scenario_name, seed=attempt.seed)
+    simulator, station, executor, backend = build_replay(attempt, scenario_name, seed=attempt.seed)
     context = simulator.get_mutable_context()
     ex_ctx = executor.GetMyContextFromRoot(context)
     body = backend.objects.get(attempt.grasp.object_id)
     z0 = as_rigid_transform(executor.poses_port.Eval(ex_ctx)[body], "pose").translation()[2]
-    k, t, history = 0, 0.0, ()
+    plant = get_plant(station)
+    inspector = get_scene_graph(station).model_inspector()
+    k, t, history, load = 0, 0.0, (), (float("nan"), 0)
     while t < max_sim_time:
         k += 1
         t = k * executor.period
         simulator.AdvanceTo(t)
+        if math.isnan(load[0]) and t >= load_time:
+            load = object_load(plant, inspector, plant.GetMyContextFromRoot(context), body)
         history = executor.GetOutputPort("history").Eval(ex_ctx)
         if history:
             break
@@ -149,7 +185,7 @@ def replay_full(attempt: Attempt, scenario_name: str = "YuMiBin", max_sim_time: 
         rise = float(as_rigid_transform(pose, "pose").translation()[2] - z0)
     out = history[0] if history else None
     return Replay(bool(out and out.success), out.message if out else "timeout", rise, float(t),
-                  time.process_time() - t_cpu)
+                  time.process_time() - t_cpu, *load)
 
 
 # ------------------------------------------------------------------------------------ benchmark
@@ -173,7 +209,8 @@ def heap_job(job: tuple) -> list[dict]:
                      "center": [float(v) for v in g.center], "approach": [float(v) for v in g.approach],
                      "width": float(g.width), "primitive_lifted": a.primitive_lifted, "full_lifted": r.lifted,
                      "full_message": r.message, "full_rise": None if math.isnan(r.rise) else r.rise,
-                     "full_sim_seconds": r.sim_seconds, "full_cpu_seconds": r.cpu_seconds})
+                     "full_sim_seconds": r.sim_seconds, "full_cpu_seconds": r.cpu_seconds,
+                     "full_load": r.load, "full_pressed_by": r.pressed_by})
     recs.append({"kind": "heap", "seed": int(seed), "objects": int(objects), "reach": reach, "policy": policy,
                  "primitive_success": bool(res.success), "primitive_actions": int(res.actions),
                  "primitive_grasps": sum(1 for k in res.action_kinds if k == "grasp"),
@@ -246,7 +283,8 @@ def _rate(k: int, n: int) -> dict:
 def summarize(recs: list[dict]) -> dict:
     """Per-attempt success in each fidelity, agreement (both lifted or both not), the full
     outcome against the primitive's expected one (quality >= 0.5), the full failures by message,
-    and the primitive searches' success."""
+    the same rates by grasp kind and by load (objects pressed down by others or not), and the
+    primitive searches' success."""
     att = [r for r in recs if r.get("kind") == "attempt"]
     heaps = [r for r in recs if r.get("kind") == "heap"]
     n = len(att)
@@ -264,10 +302,18 @@ def summarize(recs: list[dict]) -> dict:
         by_kind[kind] = {"primitive": _rate(sum(r["primitive_lifted"] for r in a), len(a)),
                          "full": _rate(sum(r["full_lifted"] for r in a), len(a)),
                          "agreement": _rate(sum(r["primitive_lifted"] == r["full_lifted"] for r in a), len(a))}
+    by_load = {}  # attempts on objects other objects press down (records with full_pressed_by) and the rest
+    for name, sel in (("pressed", lambda r: r["full_pressed_by"] > 0), ("free", lambda r: r["full_pressed_by"] == 0)):
+        a = [r for r in att if "full_pressed_by" in r and sel(r)]
+        if a:
+            by_load[name] = {"primitive": _rate(sum(r["primitive_lifted"] for r in a), len(a)),
+                             "full": _rate(sum(r["full_lifted"] for r in a), len(a)),
+                             "agreement": _rate(sum(r["primitive_lifted"] == r["full_lifted"] for r in a), len(a))}
     return {"heaps": len(heaps), "attempts": n, "primitive": _rate(prim, n), "full": _rate(full, n),
             "difference_points": 100.0 * (prim - full) / n if n else float("nan"),
             "agreement": _rate(agree, n), "agreement_with_quality": _rate(expect, n),
             "full_failures": dict(sorted(messages.items(), key=lambda kv: -kv[1])), "by_kind": by_kind,
+            "by_load": by_load,
             "primitive_search": _rate(sum(r["primitive_success"] for r in heaps), len(heaps)),
             "full_cpu_seconds_per_attempt": float(np.mean([r["full_cpu_seconds"] for r in att])) if att else 0.0}
 
@@ -285,6 +331,6 @@ def format_summary(s: dict) -> str:
              f"  full failures: {s['full_failures']}",
              f"  primitive search success: {r(s['primitive_search'])}",
              f"  full CPU s per attempt: {s['full_cpu_seconds_per_attempt']:.1f}"]
-    for kind, k in s["by_kind"].items():
+    for kind, k in list(s["by_kind"].items()) + [(f"object {n}", v) for n, v in s.get("by_load", {}).items()]:
         lines.append(f"  {kind}: primitive {r(k['primitive'])}, full {r(k['full'])}, agreement {r(k['agreement'])}")
     return "\n".join(lines)

@@ -19,7 +19,8 @@ object's cost). Objects without a grasp set, or whose set has no free grasp at t
 With `reach` (a callable Grasp -> bool, e.g. ms_drake.execution.reach.PickReach of a robot) a
 free grasp must also be one the robot reaches; at most `max_reach_checks` free candidates per
 kind and object are tried (each check is an IK plan, 20-250 ms); the fallback's grasps are
-checked too.
+checked too. A reach with a true `checks_scene` attribute is called as reach(grasp, scene) with
+the step's Scene (PickReach: the arm's links must stay clear of the objects along the approach).
 
 Broad phase: each shape carries a bounding sphere; coal.collide runs only on gripper-part /
 shape pairs whose spheres overlap.
@@ -281,11 +282,11 @@ class IndexedGraspPlanner(LeafSystem):
             i, k = np.nonzero(ok)
             order = np.lexsort((-down[i, k], -q[i, k]))[: self.max_checks]
             across = np.cross(ap[i[order], k[order]], a[i[order]])
-            g = self._first_reached(
+            g = self._first_reached(scene, (
                 ParallelJawGrasp(c[i[j]], a[i[j]], ap[i[j], k[j]], gs.jaw_width[i[j]]).to_grasp(
                     float(q[i[j], k[j]]), self.jaw_model, oid)
                 for j, y in zip(order, across)
-                if not scene.hits(self.gripper.jaw(c[i[j]], a[i[j]], ap[i[j], k[j]], gs.jaw_width[i[j]], y)))
+                if not scene.hits(self.gripper.jaw(c[i[j]], a[i[j]], ap[i[j], k[j]], gs.jaw_width[i[j]], y))))
             if g is not None:
                 out.append(g)
         if "suction" in self.kinds and len(gs.suction_point):
@@ -296,17 +297,24 @@ class IndexedGraspPlanner(LeafSystem):
             ok = (down >= self.cos_tilt) & (q >= self.min_quality) & self._reachable(p)
             idx = np.nonzero(ok)[0]
             order = idx[np.lexsort((-down[idx], -q[idx]))][: self.max_checks]
-            g = self._first_reached(SuctionGrasp(p[n], ap[n]).to_grasp(float(q[n]), "suction", oid)
-                                    for n in order if not scene.hits(self.gripper.suction(p[n], ap[n])))
+            g = self._first_reached(scene, (SuctionGrasp(p[n], ap[n]).to_grasp(float(q[n]), "suction", oid)
+                                            for n in order if not scene.hits(self.gripper.suction(p[n], ap[n]))))
             if g is not None:
                 out.append(g)
         return tuple(out)
 
-    def _first_reached(self, free_grasps):
+    def _reaches(self, grasp, scene: Scene) -> bool:
+        """`reach` of the grasp (True without one); a reach with `checks_scene` (PickReach) is
+        given the scene too, to keep the arm clear of it."""
+        if self.reach is None:
+            return True
+        return self.reach(grasp, scene) if getattr(self.reach, "checks_scene", False) else self.reach(grasp)
+
+    def _first_reached(self, scene: Scene, free_grasps):
         """The first of the collision-free grasps (best first) the robot reaches: without `reach`
         the first; with it, among at most `max_reach_checks` of them; None when there is none."""
         for checks, g in enumerate(free_grasps, start=1):
-            if self.reach is None or self.reach(g):
+            if self._reaches(g, scene):
                 return g
             if checks >= self.max_reach_checks:
                 return None
@@ -318,11 +326,14 @@ class IndexedGraspPlanner(LeafSystem):
         geoms = {o.id: o for o in objects}
         state = {}
 
+        def scene():  # built once per step, on the first lookup
+            if "scene" not in state:
+                state["scene"] = self.scene(objects)
+            return state["scene"]
+
         def plan_one(oid):
             if oid in self.sets:
-                if "scene" not in state:  # built once per step, on the first lookup
-                    state["scene"] = self.scene(objects)
-                grasps = self.plan_object(oid, geoms, state["scene"])
+                grasps = self.plan_object(oid, geoms, scene())
                 if grasps:
                     return grasps
             if self.fallback is None:
@@ -330,6 +341,6 @@ class IndexedGraspPlanner(LeafSystem):
             if "depth" not in state:  # no set, or no free grasp in it: the image planners
                 state["depth"] = np.asarray(self.depth_port.Eval(context).data, float)[..., 0]
             grasps = self.fallback.plan_object(state["depth"], masks, geoms, oid)
-            return grasps if self.reach is None else tuple(g for g in grasps if self.reach(g))
+            return grasps if self.reach is None else tuple(g for g in grasps if self._reaches(g, scene()))
 
         output.set_value(LazyGrasps(plan_one, masks.ids))
