@@ -127,7 +127,7 @@ def object_load(plant, inspector, plant_context, body_index: int) -> tuple[float
             forces[int(b)] = forces.get(int(b), 0.0) + fz
         elif int(b) == body_index and is_object(a):
             forces[int(a)] = forces.get(int(a), 0.0) - fz
-    return float(sum(forces.values())), sum(f < -0.1 for f in forces.values())
+    return float(sum(forces.values())), int(sum(f < -0.1 for f in forces.values()))
 
 
 def build_replay(attempt: Attempt, scenario_name: str = "YuMiBin", seed: int = 0):
