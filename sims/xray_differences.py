@@ -3,7 +3,8 @@
     .venv/bin/python sims/xray_differences.py --a FILE_A.jsonl --b FILE_B.jsonl --heap-dir DIR --out DIR [--max 4]
 
 For each heap one policy solves and the other does not (ms_drake.experiments.harness.paired_comparison),
-both rollouts are rerun with their frames (the same seeds: bit-identical searches) and every step's
+both rollouts are rerun with their frames (the same seeds, heap protocol and grasp planner as the
+records: bit-identical searches) and every step's
 panels (masks and target, X-Ray's occupancy, the action; ms_drake.experiments.demo.frame_image)
 are stacked into <out>/<policy>_s<seed>.png; a line per rollout lists its actions.
 """
@@ -32,14 +33,17 @@ def main():
     args = ap.parse_args()
     ra, rb = read_records(args.a), read_records(args.b)
     pa, pb = ra[0]["policy"], rb[0]["policy"]
+    protocol = ra[0].get("protocol", "xray")
+    grasp_planner = ra[0].get("grasp_planner", "image")  # a record without the key: image planners
     cmp = paired_comparison(ra, rb)
     camera = PinholeCamera.from_config(load_scenario(None, "FloatingGripperBin").cameras["overhead"])
     args.out.mkdir(parents=True, exist_ok=True)
     for seeds in (cmp["only_a"][:args.max], cmp["only_b"][:args.max]):
         for seed in seeds:
-            heap = cached_heap(XRAY_OBJECTS, seed, args.heap_dir, "xray")
+            heap = cached_heap(XRAY_OBJECTS, seed, args.heap_dir, protocol)
             for policy in (pa, pb):
-                r = rollout(policy, XRAY_OBJECTS, seed, horizon=XRAY_HORIZON, heap=heap, keep_frames=True)
+                r = rollout(policy, XRAY_OBJECTS, seed, horizon=XRAY_HORIZON, heap=heap, keep_frames=True,
+                            grasp_planner=grasp_planner)
                 pic = np.concatenate([frame_image(f, camera) for f in r.frames], axis=0)
                 path = args.out / f"{policy}_s{seed}.png"
                 cv2.imwrite(str(path), cv2.resize(pic, None, fx=0.5, fy=0.5)[:, :, ::-1])
