@@ -65,7 +65,7 @@ def test_executor_alone_latches_only_when_idle_and_records_outcomes():
 def test_an_action_ends_once_the_scene_is_at_rest():
     grasp = Action("grasp", grasp=Grasp("parallel_jaw", (0, 0, 0.02), (0, 0, -1), quality=1.0, object_id="a"))
 
-    def run(moving: bool, connected: bool = True):
+    def run(moving: bool, connected: bool = True, finger: bool = False, removed_moves: bool = False):
         ex = ActionExecutor(backend(), period=0.05)
         ctx = ex.CreateDefaultContext()
         ex.action_port.FixValue(ctx, grasp)
@@ -73,7 +73,10 @@ def test_an_action_ends_once_the_scene_is_at_rest():
         ends = None
         for k in range(1, 14):
             if connected:
-                ex.poses_port.FixValue(ctx, poses(a=(0.005 * k if moving else 0.0, 0.0, 0.02)))
+                X = poses(a=(0.005 * k if removed_moves else 0.0, 0.0, 0.02),
+                          b=(0.05 + (0.005 * k if moving else 0.0), 0.0, 0.02))
+                # body 3: a robot body (not an object of the backend), chattering by 16 mm
+                ex.poses_port.FixValue(ctx, X + [RigidTransform([0.3 + 0.016 * (k % 2 if finger else 0), 0.0, 0.2])])
             sim.AdvanceTo(0.05 * k)
             st = ex.GetOutputPort("status").Eval(ctx)
             if ends is None and st.steps == 1 and not st.busy:
@@ -83,6 +86,9 @@ def test_an_action_ends_once_the_scene_is_at_rest():
     assert run(moving=False) == pytest.approx(0.2)  # at rest: ends after still_time, not the 0.5 s settle
     assert run(moving=True) == pytest.approx(0.55)  # a body keeps moving 5 mm per update: the full settle
     assert run(moving=False, connected=False) == pytest.approx(0.55)  # no body poses: the full settle
+    # only the heap is watched: neither a chattering robot body nor the lifted (removed) object
+    assert run(moving=False, finger=True) == pytest.approx(0.2)
+    assert run(moving=False, removed_moves=True) == pytest.approx(0.2)
 
 
 def test_grasp_success_follows_quality_and_seed():

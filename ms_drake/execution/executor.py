@@ -92,7 +92,7 @@ class _State:
     history: tuple = ()
     removed: tuple = ()
     stop_reason: str = ""
-    last_poses: np.ndarray | None = None  # body poses (N, 12) at the previous update
+    last_poses: dict | None = None  # watched body index -> pose (12,) at the previous update
     still_since: float | None = None  # time from which every body has been at rest
 
 
@@ -108,6 +108,10 @@ class ActionExecutor(LeafSystem):
     which every body has moved by less than `still_distance` [m] and `still_angle` [rad] between
     consecutive updates for `still_time` s; otherwise at its full duration (the backend's
     `settle` bound). Needs the body_poses input; without it motions run their full duration.
+    Only the heap is watched: the backend's `objects` not yet removed (a backend without
+    `objects`, e.g. the shelf's, has every body watched). The robot's own bodies are
+    not (a closed jaw's fingers chatter against each other by ~16 mm per update at 10 ms steps,
+    which kept every settle running to its bound).
     The defaults (2 mm and 3 degrees per 50 ms) call "at rest" a heap whose rigid objects chatter
     in place on their point contacts (up to ~1 rad/s of angular jitter at 10 ms steps), which a
     tighter bound would never see end."""
@@ -168,14 +172,21 @@ class ActionExecutor(LeafSystem):
         """Track rest (updates s.last_poses / s.still_since); True when the motion may end now."""
         if poses is None or s.motion is None or s.motion.settle_from is None:
             return False
-        P = np.array([np.concatenate([X.translation(), X.rotation().matrix().ravel()]) for X in poses])
-        prev, s.last_poses = s.last_poses, P
-        if t - s.t0 < s.motion.settle_from - 1e-9 or prev is None or prev.shape != P.shape:
+        objects = getattr(self.backend, "objects", None)  # {id: body index}; without it: every body
+        watched = ([b for oid, b in objects.items() if oid not in s.removed and b < len(poses)]
+                   if objects is not None else range(len(poses)))
+        now = {b: np.concatenate([poses[b].translation(), poses[b].rotation().matrix().ravel()]) for b in watched}
+        prev, s.last_poses = s.last_poses, now
+        if t - s.t0 < s.motion.settle_from - 1e-9 or prev is None or not set(now) <= set(prev):
             s.still_since = None
             return False
+        # The bodies watched at both updates (an object removed in between drops out).
+        P = np.array([now[b] for b in now]).reshape(-1, 12)
+        Q = np.array([prev[b] for b in now]).reshape(-1, 12)
         # Rotation change bound: |R_a - R_b|_F = 2 sqrt(2) sin(theta / 2) ~ sqrt(2) theta.
-        moved = np.linalg.norm(P[:, :3] - prev[:, :3], axis=1).max() > self.still_distance or \
-            np.linalg.norm(P[:, 3:] - prev[:, 3:], axis=1).max() > np.sqrt(2.0) * self.still_angle
+        moved = len(P) > 0 and (
+            np.linalg.norm(P[:, :3] - Q[:, :3], axis=1).max() > self.still_distance
+            or np.linalg.norm(P[:, 3:] - Q[:, 3:], axis=1).max() > np.sqrt(2.0) * self.still_angle)
         if moved:
             s.still_since = None
             return False
