@@ -91,6 +91,26 @@ def test_an_action_ends_once_the_scene_is_at_rest():
     assert run(moving=False, removed_moves=True) == pytest.approx(0.2)
 
 
+def test_extracting_the_target_ends_the_action_at_its_check():
+    """The target's successful grasp ends the search: no settle of the heap after it (the other
+    objects keep moving here, which would otherwise run the full 0.5 s settle)."""
+    def run(object_id):
+        ex = ActionExecutor(backend(), period=0.05)
+        ctx = ex.CreateDefaultContext()
+        ex.action_port.FixValue(ctx, Action("grasp", grasp=Grasp("suction", (0, 0, 0.02), (0, 0, -1), quality=1.0,
+                                                                 object_id=object_id)))
+        sim = Simulator(ex, ctx)
+        for k in range(1, 14):
+            ex.poses_port.FixValue(ctx, poses(a=(0.005 * k, 0.0, 0.02), b=(0.05 + 0.005 * k, 0.0, 0.02)))
+            sim.AdvanceTo(0.05 * k)
+            st = ex.GetOutputPort("status").Eval(ctx)
+            if st.steps == 1 and not st.busy:
+                return 0.05 * k
+
+    assert run("b") == pytest.approx(0.1)  # the target: idle at the check, one update after the start
+    assert run("a") == pytest.approx(0.55)  # another object: the heap settles (here: the full bound)
+
+
 def test_grasp_success_follows_quality_and_seed():
     def run(q, seed):
         b = backend(seed)

@@ -209,7 +209,11 @@ class ActionExecutor(LeafSystem):
                 new = [r for r in dict.fromkeys([out.removed_object, *gone]) if r and r not in s.removed]
                 s.removed = s.removed + tuple(new)
                 s.checked = True
-            if s.checked and (dt >= s.motion.duration - 1e-9 or settled):
+            # The search is over once the target is out (its grasp succeeded): the heap's settle
+            # after it changes nothing, so the action ends at its check.
+            extracted = s.checked and s.history[-1].success and s.history[-1].action.kind == "grasp" and \
+                bool(s.history[-1].removed_object) and s.history[-1].removed_object == getattr(self.backend, "target_id", "")
+            if s.checked and (dt >= s.motion.duration - 1e-9 or settled or extracted):
                 s.hold = s.motion.values(s.motion.duration, s.hold)
                 s.phase, s.motion, s.action = "idle", None, None
                 s.last_poses, s.still_since = None, None
