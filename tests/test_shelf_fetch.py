@@ -124,6 +124,21 @@ def test_feasible_selector_skips_what_the_fetch_cannot_do(hard_scene):
     assert stop.kind == "stop" and "feasible on the Fetch" in stop.reason
 
 
+def test_suction_out_of_reach_is_ruled_out_by_its_pull_out(hard_scene):
+    """Every placement of an object whose lift and pull-out the Fetch cannot do is infeasible with
+    the planner's status, found by one plan of the shared start (ShelfBackend.pulls_out)."""
+    scene, backend, geometry, dist = hard_scene
+    best = FetchFeasibleSelector("bluction_dar", Foss(geometry), backend, ShelfPolicyParams(seed=7)).rules.select(
+        scene, dist, ()).shelf
+    assert best.kind == "suction"
+    status = backend.feasible(best, scene)
+    assert status != "ok" and status == backend.plan_scene(best, backend.q_park, scene)
+    # Here the lift and pull-out fail (cached), so no placement of the object is planned in full.
+    pulls = [k for k in backend._feasible if k[0] == "pull" and k[1] == best.object_id]
+    assert pulls and all(backend._feasible[k] == status for k in pulls)
+    assert not any(k[0] == "suction" and k[1] == best.object_id for k in backend._feasible)
+
+
 def test_feasible_selector_alone_fixed_inputs(hard_scene):
     scene, backend, geometry, dist = hard_scene
     sel = FetchFeasibleSelector("bluction_dar", Foss(geometry), backend, ShelfPolicyParams(seed=7))

@@ -16,7 +16,9 @@ from ms_drake.policies.shelf import (
     ShelfPolicySelector,
     _View,
     history_min,
+    like_key,
     mask_extents,
+    nil_effect,
     oracle_plan,
     push_locked,
     segment,
@@ -98,6 +100,43 @@ def test_refused_actions_are_not_proposed_again(foss):
     assert second.kind == "shelf" and second.shelf != first.shelf
     # After an executed action the refusals are forgotten.
     assert rules.select(SQUEEZED, dist, (refused, ActionOutcome(second, True))).shelf == first.shelf
+
+
+def test_an_action_that_moved_nothing_is_not_repeated_on_the_unchanged_object(foss):
+    dist = under(foss, SQUEEZED, "a")
+    on_robot = ShelfPolicies("bluction_dar", foss, ShelfPolicyParams(psi=1.0, nil_move=0.01))
+    first = on_robot.select(SQUEEZED, dist)
+    assert (first.shelf.kind, first.shelf.object_id) == ("suction", "a")
+    # Executed in SQUEEZED (its Action.scene); "a" then lies 4 mm from where it was: a nil effect.
+    done = ActionOutcome(Action("shelf", shelf=first.shelf, scene=SQUEEZED), True, message="agree=1")
+    a = SQUEEZED.object("a")
+    nudged = ShelfScene((a.moved(a.x + 0.004, a.y),) + SQUEEZED.objects[1:], SQUEEZED.target, 0)
+    assert nil_effect((done,), nudged, 0.01) == {like_key(first.shelf)}
+    again = on_robot.select(nudged, dist, (done,))
+    assert again.kind == "shelf" and like_key(again.shelf) != like_key(first.shelf)
+    # FOSS's rules (nil_move 0) and an action without its scene (FOSS's rollouts) keep the suction.
+    assert like_key(ShelfPolicies("bluction_dar", foss, ShelfPolicyParams(psi=1.0)).select(
+        nudged, dist, (done,)).shelf) == like_key(first.shelf)
+    assert nil_effect((ActionOutcome(first, True),), nudged, 0.01) == set()
+    # Once the object has changed (moved 5 cm since), the action may come back.
+    moved = ShelfScene((a.moved(a.x + 0.05, a.y),) + SQUEEZED.objects[1:], SQUEEZED.target, 0)
+    later = ActionOutcome(Action("shelf", shelf=again.shelf, scene=nudged), True, message="agree=1")
+    assert nil_effect((done, later), moved, 0.01) == set()
+    # An action that moved its object 3 cm had an effect; a plan failure executed nothing.
+    assert nil_effect((done,), moved, 0.01) == set()
+    failed = ActionOutcome(Action("shelf", shelf=first.shelf, scene=SQUEEZED), False, message="plan_failed:unreachable")
+    assert nil_effect((failed,), nudged, 0.01) == set()
+
+
+def test_actions_moving_their_object_less_than_min_move_are_not_proposed(foss):
+    dist = under(foss, SQUEEZED, "a")
+    rules = ShelfPolicies("bluction_dar", foss, ShelfPolicyParams(psi=100.0))
+    best = rules.select(SQUEEZED, dist).shelf
+    assert best.kind == "push"  # a short push to the neighbour
+    m = rules.displacement(SQUEEZED, best) + 1e-3
+    other = ShelfPolicies("bluction_dar", foss, ShelfPolicyParams(psi=100.0, min_move=m)).select(SQUEEZED, dist)
+    assert other.kind == "shelf" and other.shelf != best
+    assert rules.displacement(SQUEEZED, other.shelf) >= m
 
 
 def test_random_is_seeded(foss):

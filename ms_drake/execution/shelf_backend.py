@@ -271,12 +271,56 @@ class ShelfBackend:
         """"ok" when the Fetch can execute ShelfAction `a` from its park pose in `scene` (the
         planner's status otherwise). Cached by the action and the scene's footprints to 1 mm, so
         a scene observed again after an action re-plans only what changed."""
-        key = (a.kind, a.object_id, round(a.dx, 3), round(a.dy, 3),
-               tuple((b.id, round(b.x, 3), round(b.y, 3)) for b in scene.objects))
+        footprints = tuple((b.id, round(b.x, 3), round(b.y, 3)) for b in scene.objects)
+        if a.kind == "suction" and any(b.id == a.object_id for b in scene.objects):
+            o = scene.object(a.object_id)
+            lift = self.suction_lift(scene, o, self.foss.placement_center(o, a.dx, a.dy)) + self._sag(o)
+            reach = self.pulls_out(o, lift, footprints)
+            if reach != "ok":
+                return reach
+        key = (a.kind, a.object_id, round(a.dx, 3), round(a.dy, 3), footprints)
         if key not in self._feasible:
             m = self.plan_scene(a, self.q_park, scene)
             self._feasible[key] = m if isinstance(m, str) else "ok"
         return self._feasible[key]
+
+    def pulls_out(self, o: ShelfObject, lift: float, footprints: tuple) -> str:
+        """"ok" when the Fetch, from its park pose, reaches O's front face with the cup (the joint
+        motion to the staging point, the line in), lifts it by `lift` (the held object's sag
+        included) and pulls it out of the shelf: the start that every suction of O with that lift
+        shares, whatever its placement, so one plan rules out all of them when it fails. The
+        planner's status otherwise; cached by O, the lift and the scene's `footprints` (feasible's)."""
+        key = ("pull", o.id, round(lift, 3), footprints)
+        if key not in self._feasible:
+            stage, touch = self._suction_approach(o)
+            up = touch + [0.0, 0.0, lift]
+            pulled = up + [0.0, self._pulled_y(o) - o.y, 0.0]
+            tl = self._stage(self.cup_ik, self.q_park, stage)
+            if isinstance(tl, str):
+                self._feasible[key] = tl
+            else:
+                trajs, q = self._path(self.cup_ik, tl.final(), [stage, touch, up, pulled],
+                                      [self.speed, self.slow_speed, self.speed])
+                self._feasible[key] = trajs if q is None else "ok"
+        return self._feasible[key]
+
+    def _pulled_y(self, o: ShelfObject) -> float:
+        """O's centre y when pulled out: its back 2 cm in front of the shelf, or as far as the Fetch
+        reaches (the tool's tip `max_pull` in front of the front plane)."""
+        return max(-self.half[1] - 0.02 - 0.5 * o.depth, -self.half[1] - self.max_pull + 0.002 + 0.5 * o.depth)
+
+    def _sag(self, o: ShelfObject) -> float:
+        """The held object hangs tilted on the cup's compliant lip, its back lower than its front:
+        the lift grows by its depth times sin(sag) so that its back clears what FOSS's lift clears."""
+        return float(o.depth * np.sin(np.deg2rad(self.sag_deg)))
+
+    def _suction_approach(self, o: ShelfObject):
+        """(staging point, contact point) of the cup for a suction of O, world frame: level with
+        a point 2 cm below O's top, in front of the shelf and on O's front face."""
+        z_cup = max(o.height - 0.02, self.r_shaft + 0.003)
+        stage = self.world([o.x, -self.half[1] - self.staging, z_cup])
+        touch = self.world([o.x, o.y - 0.5 * o.depth - 0.002, z_cup])
+        return stage, touch
 
     def _finish(self, ik, tl: Timeline, q_out, out_point, last_point):
         """Leave the shelf straight along -y to the staging point, then the joint motion to park."""
@@ -375,13 +419,10 @@ class ShelfBackend:
         return float(min(lift, self.half[2] * 2 - p.top_clearance - o.height))
 
     def _plan_suction(self, o: ShelfObject, a, q_now, lift: float, scene: ShelfScene):
-        face = o.y - 0.5 * o.depth
-        z_cup = max(o.height - 0.02, self.r_shaft + 0.003)
+        stage, touch = self._suction_approach(o)
+        z_cup = stage[2] - self.origin[2]
         goal_x, goal_y = self.foss.placement_center(o, a.dx, a.dy)
-        y_stage = -self.half[1] - self.staging
-        # O's centre when pulled out: its back 2 cm in front of the shelf, or as far as the Fetch
-        # reaches (the tool's tip `max_pull` in front of the front plane).
-        y_out_obj = max(-self.half[1] - 0.02 - 0.5 * o.depth, -self.half[1] - self.max_pull + 0.002 + 0.5 * o.depth)
+        y_out_obj = self._pulled_y(o)
         # Across at the pulled-out depth: over every occluder the sweep there meets.
         lift2 = lift
         x0, x1 = min(o.x, goal_x) - 0.5 * o.width, max(o.x, goal_x) + 0.5 * o.width
@@ -389,15 +430,11 @@ class ShelfBackend:
             if b.id != o.id and b.x + 0.5 * b.width > x0 and b.x - 0.5 * b.width < x1 and \
                     b.y - 0.5 * b.depth < y_out_obj + 0.5 * o.depth and b.y + 0.5 * b.depth > y_out_obj - 0.5 * o.depth:
                 lift2 = max(lift2, b.height + self.foss.params.lift_clearance)
-        # The held object hangs tilted on the cup's compliant lip, its back lower than its front:
-        # lift more by its depth times sin(sag) so that its back clears what FOSS's lift clears.
-        sag = o.depth * np.sin(np.deg2rad(self.sag_deg))
+        sag = self._sag(o)
         lift, lift2 = lift + sag, lift2 + sag
         if z_cup + lift2 + self.r_shaft + self.cfg.blade_height > 2 * self.half[2] - 0.005:
             return "shelf_top"  # the raised blade would hit the shelf's top
         ik = self.cup_ik
-        stage = self.world([o.x, y_stage, z_cup])
-        touch = self.world([o.x, face - 0.002, z_cup])
         up = touch + [0.0, 0.0, lift]
         pulled = up + [0.0, y_out_obj - o.y, 0.0]
         raised = pulled + [0.0, 0.0, lift2 - lift]

@@ -93,6 +93,9 @@ class ShelfPolicyParams:
     oracle_max_nodes: int = 500  # A*'s expansions per stage; each greedy fallback gets three times as many
     oracle_max_seconds: float = 8.0  # CPU seconds of one plan (A* and fallback together)
     oracle_placements: int = 4
+    # The distribution policies on a robot, whose actions place objects to within ~1-2 cm (0: off, as in FOSS):
+    min_move: float = 0.0  # m: candidates FOSS moves their object less than this are not proposed
+    nil_move: float = 0.0  # m: an executed action that moved its object less than this is not repeated (nil_effect)
 
 
 def check_shelf_policy(name: str) -> str:
@@ -568,8 +571,48 @@ def _rejected(history) -> set:
     return out
 
 
+def like_key(a: ShelfAction) -> tuple:
+    """What an action that changed nothing rules out: a suction of the object (the same grasp,
+    whatever the placement) or a push of it in the same direction."""
+    return a.kind, a.object_id, float(np.sign(a.dx)) if a.kind == "push" else 0.0
+
+
+def footprint_change(p, q) -> float:
+    """The largest change [m] of an object's footprint centre or size between two observations."""
+    return max(abs(p.x - q.x), abs(p.y - q.y), abs(p.width - q.width), abs(p.depth - q.depth), abs(p.height - q.height))
+
+
+def nil_effect(history, scene: ShelfScene, tolerance: float) -> set:
+    """`like_key`s of the executed shelf actions whose observed effect was nil and whose object is
+    unchanged since: the object's footprint moved less than `tolerance` [m] between the scene the
+    action was chosen in (Action.scene) and the next observation (the next action's scene, or
+    `scene` after the last), and `scene` shows it within `tolerance` of where that observation did.
+    Such an action (an object lying toppled that neither tool moves, a re-placement the cup drops
+    where it was) would do nothing again, with whatever numbers FOSS proposes for it next. Actions
+    without a scene (FOSS's rollouts) and plan failures (nothing executed) do not count."""
+    hist = tuple(history)
+    out = set()
+    for i, o in enumerate(hist):
+        a = shelf_action(o.action)
+        before = o.action.scene
+        if a is None or before is None or o.message.startswith("plan_failed"):
+            continue
+        after = next((h.action.scene for h in hist[i + 1:] if h.action.scene is not None), scene)
+        seen = {b.id: b for b in before.objects}, {b.id: b for b in after.objects}, {b.id: b for b in scene.objects}
+        if any(a.object_id not in objs for objs in seen):
+            continue
+        p, q, now = (objs[a.object_id] for objs in seen)
+        if footprint_change(p, q) < tolerance and footprint_change(q, now) < tolerance:
+            out.add(like_key(a))
+    return out
+
+
 class ShelfPolicies:
-    """The decision rules (module docstring), with the oracles' plan cache (keyed by scene content)."""
+    """The decision rules (module docstring), with the oracles' plan cache (keyed by scene content).
+    On a robot (params.min_move, params.nil_move > 0) the distribution policies also drop the
+    candidates that FOSS moves their object less than min_move (a placement within the robot's
+    precision of where the object is) and those like an executed action whose effect was nil
+    (`nil_effect`), before ranking."""
 
     CACHE = 4096
 
@@ -594,6 +637,11 @@ class ShelfPolicies:
         seg = segment(self.foss.geometry, scene)
         suction = self.policy in ("random", "bluction_dar")
         actions = [a for a in self.foss.actions(seg.known, suction=suction) if _action_key(a) not in rejected]
+        if self.params.nil_move > 0:
+            nil = nil_effect(history, scene, self.params.nil_move)
+            actions = [a for a in actions if like_key(a) not in nil]
+        if self.params.min_move > 0:
+            actions = [a for a in actions if self.displacement(seg.known, a) >= self.params.min_move]
         if not actions:
             return Action("stop", reason=f"{self.policy}: no feasible action")
         if self.policy == "random":
@@ -606,6 +654,14 @@ class ShelfPolicies:
             scores = np.where([a.kind == "suction" for a in actions], scores / self.params.psi, scores)
         best = int(np.argmax(scores))  # the first of equals: pushes before suction, object order
         return Action("shelf", shelf=actions[best], reason=f"{self.policy}: score {scores[best]:.4g}")
+
+    def displacement(self, scene: ShelfScene, a: ShelfAction) -> float:
+        """How far [m] FOSS moves the object of `a` (a push: |dx|; a suction: to its placement)."""
+        if a.kind == "push":
+            return abs(a.dx)
+        o = scene.object(a.object_id)
+        gx, gy = self.foss.placement_center(o, a.dx, a.dy)
+        return float(np.hypot(gx - o.x, gy - o.y))
 
     def _oracle(self, scene: ShelfScene, steps: int, rejected: set) -> Action:
         suction = self.policy == "oracle_ps"

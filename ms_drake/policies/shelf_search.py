@@ -61,6 +61,8 @@ from ms_drake.policies.shelf import (
     ShelfPolicyParams,
     ShelfPolicySelector,
     check_shelf_policy,
+    footprint_change,
+    like_key,
     segment,
 )
 from ms_drake.shelf_geometry import ShelfGeometry
@@ -75,7 +77,12 @@ class ShelfSearchParams:
     and selector's update period [s]; speed / push_speed / slow_speed: the tool's Cartesian speed limits [m/s]
     (ShelfBackend);
     fetch_feasible: choose the policy's best action the Fetch can execute (FetchFeasibleSelector,
-    checking at most `max_candidates` in the policy's order) instead of its best action in FOSS."""
+    checking at most `max_candidates` in the policy's order) instead of its best action in FOSS;
+    min_move / nil_move [m]: the distribution policies drop the candidates that FOSS moves their
+    object less than min_move and, with ground-truth perception, those like an executed action that
+    moved its object less than nil_move while the object is unchanged (ShelfPolicyParams;
+    ms_drake.policies.shelf.nil_effect; perception "depth" judges by the image instead,
+    `refuse_like_unchanged`)."""
 
     policy: str = "bluction_dar"
     horizon: int | None = None
@@ -87,12 +94,17 @@ class ShelfSearchParams:
     push_speed: float = 0.12
     slow_speed: float = 0.15
     fetch_feasible: bool = True
-    max_candidates: int = 60
+    max_candidates: int = 1000
+    min_move: float = 0.01
+    nil_move: float = 0.01
 
     def __post_init__(self):
         check_shelf_policy(self.policy)
         if int(self.max_candidates) < 1:
             raise ControllerError(f"max_candidates must be >= 1, got {self.max_candidates!r}")
+        if not (self.min_move >= 0 and self.nil_move >= 0):
+            raise ControllerError(f"min_move and nil_move are distances in m (>= 0; 0: off), got min_move="
+                                  f"{self.min_move!r}, nil_move={self.nil_move!r}")
         if self.horizon is not None and int(self.horizon) < 1:
             raise ControllerError(f"horizon must be >= 1 action (or None for 2n), got {self.horizon!r}")
         if not self.period > 0:
@@ -142,8 +154,7 @@ def same_scene(a: ShelfScene, b: ShelfScene, tolerance: float = 0.01) -> bool:
         return False
     key = lambda o: o.x
     for p, q in zip(sorted(a.objects, key=key), sorted(b.objects, key=key)):
-        if p.kind != q.kind or max(abs(p.x - q.x), abs(p.y - q.y), abs(p.width - q.width), abs(p.depth - q.depth),
-                                   abs(p.height - q.height)) > tolerance:
+        if p.kind != q.kind or footprint_change(p, q) > tolerance:
             return False
     return True
 
@@ -164,10 +175,7 @@ def seen_outcomes(history, scene: ShelfScene, tolerance: float = 0.01) -> tuple:
     return tuple(out)
 
 
-def _unchanged_key(a) -> tuple:
-    """What an action that changed nothing rules out: a suction of the object (the same grasp,
-    whatever the placement) or a push of it in the same direction."""
-    return a.kind, a.object_id, float(np.sign(a.dx)) if a.kind == "push" else 0.0
+_unchanged_key = like_key
 
 
 def refuse_like_unchanged(foss: Foss, scene: ShelfScene, history) -> list:
@@ -202,7 +210,7 @@ class FetchFeasibleSelector(ShelfPolicySelector):
     ports as ShelfPolicySelector."""
 
     def __init__(self, policy: str, foss: Foss, backend: ShelfBackend, params: ShelfPolicyParams | None = None,
-                 period: float = 1.0, max_candidates: int = 60, judge_by_scene: bool = False):
+                 period: float = 1.0, max_candidates: int = 1000, judge_by_scene: bool = False):
         super().__init__(policy, foss, params, period=period, per_action=True)
         self.judge_by_scene = bool(judge_by_scene)
         if int(max_candidates) < 1:
@@ -320,7 +328,8 @@ def MakeShelfSearchController(scenario, params: ShelfSearchParams | None = None,
         occupancy = builder.AddNamedSystem("occupancy_estimator", ShelfOccupancyEstimator(geometry, target_size))
         scene = observer.GetOutputPort("scene")
         builder.Connect(scene, occupancy.GetInputPort("scene"))
-    policy_params = ShelfPolicyParams(psi=params.psi, seed=params.seed, horizon=params.horizon)
+    policy_params = ShelfPolicyParams(psi=params.psi, seed=params.seed, horizon=params.horizon,
+                                      min_move=params.min_move, nil_move=0.0 if depth else params.nil_move)
     if params.fetch_feasible:
         selector = FetchFeasibleSelector(params.policy, foss, backend, policy_params, period=params.period,
                                          max_candidates=params.max_candidates, judge_by_scene=depth)
