@@ -73,6 +73,7 @@ from ms_drake.experiments.push_fidelity import (
     summarize_fidelity,
 )
 from ms_drake.experiments.push_study import (
+    StudyParams,
     format_push_table,
     plot_push,
     read_jsonl,
@@ -487,17 +488,21 @@ def data_push_heaps(count: int = typer.Option(..., "--count", min=1, help="Heaps
                     out: Path = typer.Option(..., "--out", help="Output folder (heaps.jsonl; resumes)"),
                     seed_start: int = typer.Option(0, "--seed-start", min=0, help="First heap seed (S)"),
                     workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers"),
+                    object_set: str = typer.Option("", "--object-set",
+                                                   help="Object set of the heaps (default: BinHeap15's, procedural)"),
                     ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
                     ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address")):
     """Improvable heaps (Ch. 4, Algorithm 1): drop, grasp until stuck, run the five push policies;
     one record per heap, `improvable` when some policy raises the overall grasp quality."""
+    if object_set:
+        get_object_set(object_set)  # an unknown name fails here, listing the sets
     with tqdm(total=count, desc="push heaps", unit="heap") as bar:
         def tick(r):
             if not r.ok:
                 tqdm.write(f"seed {r.job[0]}: {r.error.splitlines()[-1] if r.error else 'failed'}")
             bar.update(1)
         s = write_push_heaps(count, out, seed_start, workers=workers, use_ray=ray or ray_address is not None,
-                             ray_address=ray_address, bar=tick)
+                             ray_address=ray_address, params=StudyParams(object_set=object_set), bar=tick)
     if s["resumed"]:
         typer.echo(f"resumed: {s['resumed']} of {count} heaps already in {s['path']}")
     typer.echo(f"{s['dropped']} heaps dropped, {s['recorded']} stuck (recorded), {s['improvable']} improvable "

@@ -14,7 +14,9 @@ from ms_drake.experiments.push_study import (
     run_policy,
     separation_gain,
     state_metrics,
+    study_heap,
     summarize_push,
+    write_push_heaps,
 )
 from ms_drake.geometry import Workspace
 from ms_drake.pushing import POLICIES
@@ -126,3 +128,32 @@ def test_metrics_do_not_depend_on_the_states_measured_before(pair_world):
     again = state_metrics(w, used)
     assert again["per_object"] == fresh["per_object"]
     assert (again["jaw"], again["suction"]) == (fresh["jaw"], fresh["suction"])
+
+
+def test_mesh_object_heaps_score_and_collide_with_convex_parts():
+    """StudyParams.object_set: a household-mesh heap (YCB, convex collision parts) is drawn from
+    that set, its grasps are scored on the closed meshes, and the collision check sees the convex
+    parts (a neighbour pressed against an object prunes grasps there)."""
+    params = StudyParams(object_set="ycb", grasps=20, robust_samples=0)
+    heap, n = study_heap(3, params)
+    assert len(heap.objects) == n and all(o.name.startswith("ycb/") for o in heap.objects)
+    cube = "ycb/077_rubiks_cube"
+    v = np.asarray(_mesh(cube).vertices)
+    assert _mesh(cube).is_watertight
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    ex, z = hi[0] - lo[0], -lo[2] + 0.001
+    cx, cy = 0.5 * (hi[0] + lo[0]), 0.5 * (hi[1] + lo[1])
+    objs = tuple(ObjectPose(cube, (1.0, 0.0, 0.0, 0.0, x - cx, -cy, z)) for x in (-0.5 * ex - 0.0005, 0.5 * ex + 0.0005))
+    w = PushWorld(Heap(seed=0, environment="bin", objects=objs), params)
+    w.advance(0.2)
+    sets = GraspSets(params, seed=0)
+    both = sets.qualities(w)
+    alone = sets.qualities(w, ids=[w.ids[0]])
+    assert 0.0 < alone["overall"] <= 1.0  # a cube on the floor has a grasp
+    assert both["per_object"][w.ids[0]][0] <= alone["per_object"][w.ids[0]][0] + 1e-12
+
+
+def test_push_heaps_folder_keeps_one_object_set(tmp_path):
+    (tmp_path / "heaps.jsonl").write_text('{"seed": 0, "object_set": "", "stop": "cleared", "improvable": false}\n')
+    with pytest.raises(ValueError, match="object set"):
+        write_push_heaps(1, tmp_path, seed_start=0, params=StudyParams(object_set="ycb"))

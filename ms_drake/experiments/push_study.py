@@ -41,7 +41,7 @@ import json
 import os
 import time
 import zlib
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import coal
@@ -64,6 +64,8 @@ from ms_drake.experiments.heap_grasps import (
 from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.grasping.evaluator import GraspEvaluator
 from ms_drake.grasping.grasp import SuctionGrasp
+from ms_drake.grasping.indexed import object_parts
+from ms_drake.grasping.meshes import object_mesh
 from ms_drake.grasping.samplers import sample_antipodal_grasps, sample_suction_grasps
 from ms_drake.grasping.suction import SuctionEvaluator
 from ms_drake.objects import get_object
@@ -95,8 +97,9 @@ WORLD_SCENARIOS = {"primitive": "FloatingGripperBin", "full": "YuMiBin"}  # Push
 
 @functools.lru_cache(maxsize=512)
 def _mesh(name: str):
-    """An object's trimesh (built once per process: the registry builds it anew on every call)."""
-    return get_object(name).trimesh()
+    """An object's watertight trimesh (cached; mesh-set objects repaired or closed by
+    grasping.meshes.object_mesh, procedural ones as they are)."""
+    return object_mesh(name)
 
 
 @functools.lru_cache(maxsize=4)
@@ -118,6 +121,10 @@ class StudyParams:
     max_objects: int = 10
     settle: float = 0.5
     time_step: float = PRIMITIVE_PUSH_TIME_STEP  # where the primitive push agrees with the YuMi's
+    # The heaps' object set ("" = BinHeap15's, procedural). Algorithm 1 leaves procedural heaps
+    # stuck mostly on one lying cylinder that no push makes graspable; household meshes ("ycb")
+    # leave several objects, as the reference's (see docs/BENCHMARKS.md, push study).
+    object_set: str = ""
 
 
 # --------------------------------------------------------------------------- physics
@@ -304,10 +311,13 @@ def _bin_shapes(scenario) -> list:
 
 
 def _object_shapes(oid: str, name: str, X: np.ndarray) -> list:
+    """The object's collision shapes at pose X (primitives, and convex hulls of mesh parts: the
+    grasp planner's `object_parts`)."""
     out = []
-    for sh in get_object(name).collisions:
-        T = _shape_pose(X, sh.pose)
-        out.append(_prepared(_coal_shape(sh), T[:3, :3], T[:3, 3]))
+    for shape, T, c, r in object_parts(name):
+        TW = X @ T
+        sphere = None if isinstance(shape, (coal.Box, coal.Cylinder, coal.Sphere)) else (X[:3, :3] @ c + X[:3, 3], r)
+        out.append(_prepared(shape, TW[:3, :3], TW[:3, 3], sphere))
     return out
 
 
@@ -319,8 +329,12 @@ def _half(shape) -> np.ndarray:
     return np.full(3, float(shape.radius))
 
 
-def _prepared(shape, R: np.ndarray, p: np.ndarray) -> tuple:
-    """(shape, coal pose, world AABB lo, hi): the AABB skips coal calls that cannot collide."""
+def _prepared(shape, R: np.ndarray, p: np.ndarray, sphere=None) -> tuple:
+    """(shape, coal pose, world AABB lo, hi): the AABB skips coal calls that cannot collide.
+    sphere: (world centre, radius) bounding a shape that is not a primitive (a convex hull)."""
+    if sphere is not None:
+        c, r = np.asarray(sphere[0], float), float(sphere[1])
+        return shape, coal.Transform3s(R, p), c - r, c + r
     e = np.abs(R) @ _half(shape)
     return shape, coal.Transform3s(R, p), p - e, p + e
 
@@ -538,17 +552,23 @@ def grasp_until_stuck(world: PushWorld, sets: GraspSets, seed: int, params: Stud
         world.advance(params.settle)
 
 
+def study_heap(seed: int, params: StudyParams) -> tuple[Heap, int]:
+    """(heap `seed` of the study, its object count): N drawn from the seed, objects of
+    `params.object_set`; no target in this study."""
+    n = _heap_size(seed, params)
+    heap = generate_heap(copy.deepcopy(_scenario("BinHeap15")), n, seed, object_set=params.object_set or None)
+    return Heap(heap.seed, heap.environment, heap.objects), n
+
+
 def improvable_heap(seed: int, params: StudyParams = StudyParams(), policies=POLICIES) -> dict:
     """One heap through Algorithm 1 and the five policies: a JSON-able record (module docstring)."""
     t_wall, t_cpu = time.perf_counter(), time.process_time()
-    n = _heap_size(seed, params)
-    heap = generate_heap(copy.deepcopy(_scenario("BinHeap15")), n, seed)
-    heap = Heap(heap.seed, heap.environment, heap.objects)  # no target in this study
+    heap, n = study_heap(seed, params)
     world = PushWorld(heap, params)
     world.advance(params.settle)  # the dropped heap at rest in the station's contact model
     sets = GraspSets(params, seed)
     reason, before, grasps = grasp_until_stuck(world, sets, seed, params)
-    rec = {"seed": int(seed), "objects_dropped": n, "grasps": grasps, "stop": reason,
+    rec = {"seed": int(seed), "object_set": params.object_set, "objects_dropped": n, "grasps": grasps, "stop": reason,
            "objects": before["objects"], "heap": heap_to_dict(heap), "improvable": False}
     if reason == "cleared":
         rec.update(seconds=time.perf_counter() - t_wall, cpu_seconds=time.process_time() - t_cpu)
@@ -610,6 +630,10 @@ def write_push_heaps(count: int, out_dir: Path, seed_start: int = 0, workers: in
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / HEAPS_FILE
     recs = read_jsonl(path)
+    other = sorted({r.get("object_set", "") for r in recs} - {params.object_set})
+    if other:
+        raise ValueError(f"{path} holds heaps of object set(s) {', '.join(repr(o) for o in other)}, not "
+                         f"{params.object_set!r}: write to another folder or pass that object set")
     _rewrite_clean(path, recs)
     done = {int(r["seed"]) for r in recs}
     seeds = [k for k in range(seed_start, seed_start + count) if k not in done]
@@ -666,7 +690,7 @@ def run_push_bench(policy: str, heaps: int, seed_start: int, out: Path, heap_dir
     done = {(int(r["seed"]), r["policy"]) for r in rows}
     todo = [h for h in improvable_records(heap_dir, heaps, seed_start) if (int(h["seed"]), policy) not in done]
     if rerun:
-        jobs = [(int(h["seed"]), policy, asdict(params)) for h in todo]
+        jobs = [(int(h["seed"]), policy, asdict(replace(params, object_set=h.get("object_set", "")))) for h in todo]
         for r in run_jobs(rerun_job, jobs, workers=workers):
             if r.ok:
                 row = bench_row(r.value, policy, r.value["policies"][policy], "rerun")
@@ -811,9 +835,7 @@ def push_example_figure(seed: int, out: Path, params: StudyParams = StudyParams(
     policy the overhead image before (its push drawn as an arrow, tail = the jaw's start) and after
     the push, with the overall / jaw / suction gains. Returns the policies' gains."""
     matplotlib.use("Agg")
-    n = _heap_size(seed, params)
-    heap = generate_heap(copy.deepcopy(_scenario("BinHeap15")), n, seed)
-    heap = Heap(heap.seed, heap.environment, heap.objects)
+    heap, _ = study_heap(seed, params)
     world = PushWorld(heap, params, cameras=True)
     world.advance(params.settle)
     sets = GraspSets(params, seed)
