@@ -158,6 +158,11 @@ def test_controller_uses_the_feasible_selector(scenario, hard_scene):
     sim = ShelfSimulationInfo(backend.bodies, scene.target.id)
     c = MakeShelfSearchController(scenario, ShelfSearchParams(policy="bluction_dar", seed=7), sim=sim)
     assert isinstance(c.GetSubsystemByName("policy_selector"), FetchFeasibleSelector)
+    rules = c.GetSubsystemByName("policy_selector").rules.params
+    assert (rules.min_move, rules.nil_move) == (0.01, 0.01)
+    der3 = MakeShelfSearchController(scenario, ShelfSearchParams(policy="der3", seed=7), sim=sim)
+    rules = der3.GetSubsystemByName("policy_selector").rules.params
+    assert (rules.min_move, rules.nil_move) == (0.0, 0.0)  # DER-3 keeps its rule
     c2 = MakeShelfSearchController(scenario, ShelfSearchParams(policy="bluction_dar", fetch_feasible=False), sim=sim)
     assert not isinstance(c2.GetSubsystemByName("policy_selector"), FetchFeasibleSelector)
     with pytest.raises(ControllerError, match="max_candidates"):

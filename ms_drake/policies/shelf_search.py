@@ -78,9 +78,9 @@ class ShelfSearchParams:
     (ShelfBackend);
     fetch_feasible: choose the policy's best action the Fetch can execute (FetchFeasibleSelector,
     checking at most `max_candidates` in the policy's order) instead of its best action in FOSS;
-    min_move / nil_move [m]: the distribution policies drop the candidates that FOSS moves their
-    object less than min_move and, with ground-truth perception, those like an executed action that
-    moved its object less than nil_move while the object is unchanged (ShelfPolicyParams;
+    min_move / nil_move [m] (Bluction-DAR, NIL_RULE_POLICIES): the policy drops the candidates
+    that FOSS moves their object less than min_move and, with ground-truth perception, those like an
+    executed action that moved its object less than nil_move while the object is unchanged (ShelfPolicyParams;
     ms_drake.policies.shelf.nil_effect; perception "depth" judges by the image instead,
     `refuse_like_unchanged`)."""
 
@@ -278,6 +278,7 @@ class ShelfSearchSelector(ShelfPolicySelector):
 
 
 PERCEPTIONS = ("ground_truth", "depth")
+NIL_RULE_POLICIES = ("bluction_dar",)  # the policies ShelfSearchParams.min_move / nil_move apply to
 
 
 def MakeShelfSearchController(scenario, params: ShelfSearchParams | None = None,
@@ -328,8 +329,11 @@ def MakeShelfSearchController(scenario, params: ShelfSearchParams | None = None,
         occupancy = builder.AddNamedSystem("occupancy_estimator", ShelfOccupancyEstimator(geometry, target_size))
         scene = observer.GetOutputPort("scene")
         builder.Connect(scene, occupancy.GetInputPort("scene"))
+    # The nil-action rules are Bluction-DAR's on the Fetch (DER-3 and the others keep their rules as measured).
+    nil_rules = params.policy in NIL_RULE_POLICIES
     policy_params = ShelfPolicyParams(psi=params.psi, seed=params.seed, horizon=params.horizon,
-                                      min_move=params.min_move, nil_move=0.0 if depth else params.nil_move)
+                                      min_move=params.min_move if nil_rules else 0.0,
+                                      nil_move=params.nil_move if nil_rules and not depth else 0.0)
     if params.fetch_feasible:
         selector = FetchFeasibleSelector(params.policy, foss, backend, policy_params, period=params.period,
                                          max_candidates=params.max_candidates, judge_by_scene=depth)
