@@ -386,7 +386,9 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
                                               "set) | xray (Table 8.2: the target dropped first under N = 14 mesh "
                                               "objects unseen in training; H = 10) | xray_hidden (the same, "
                                               "target fully hidden at the start) | xray_ycb (as xray, the "
-                                              "occluders unseen YCB and packaged objects)"),
+                                              "occluders unseen YCB and packaged objects) | xray_occluded (xray_ycb's "
+                                              "occluders, every object offset from the heap centre at sigma 8 cm, "
+                                              "the target fully hidden at the start)"),
                  segmenter: str = typer.Option("ground_truth", "--segmenter", help="Instance masks: ground_truth "
                                                "(label image) | euclidean | region_growing | learned (depth)"),
                  detector: str = typer.Option("color", "--detector", help="Target detector: color (HSV, red "

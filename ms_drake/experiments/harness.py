@@ -51,7 +51,8 @@ def cached_heap(objects: int, seed: int, heap_dir: str | None, protocol: str = "
     the scenario's set (heap_N<N>_s<seed>.json); "xray": the target dropped first under N unseen
     mesh objects (ms_drake.experiments.xray; heap_xray_N<N>_s<seed>.json); "xray_hidden": those
 whose target starts fully hidden (heap_xray_hidden_N<N>_s<seed>.json); "xray_ycb": the target under
-unseen YCB and packaged objects (heap_xray_ycb_N<N>_s<seed>.json). engine (HEAP_ENGINES):
+unseen YCB and packaged objects (heap_xray_ycb_N<N>_s<seed>.json); "xray_occluded": those spread as
+Section 8.3's heaps with the target fully hidden (heap_xray_occluded_N<N>_s<seed>.json). engine (HEAP_ENGINES):
 the "ch7" heaps' drop physics; Bullet heaps are heap_bullet_N<N>_s<seed>.json."""
     if protocol not in PROTOCOLS:
         raise ValueError(f"protocol {protocol!r} unknown; choose one of {', '.join(PROTOCOLS)}")

@@ -137,6 +137,14 @@ class HeapParams:
     # target_first only: an attempt counts only if the target's seen fraction from the overhead
     # camera is at most this (1: any heap; 0: the target starts fully hidden)
     max_target_seen: float = 1.0
+    # target_first only: the target lies at the heap's centre (True) or at an offset drawn like the
+    # other objects' (False: the reference's Section 8.3 heaps, every object offset from the centre)
+    target_at_centre: bool = True
+    # engine="bullet" with a polish and max_target_seen < 1: an attempt whose target is seen more than
+    # max_target_seen + this after the Bullet drop is rejected before the polish (which moves
+    # objects by mm to cm), saving the polish's CPU on attempts that would be rejected anyway
+    # (None: no screen, every attempt is polished; the screen changes which attempt a seed keeps)
+    prescreen_margin: float | None = None
     # Objects that left the bin are dropped again (a new pose from step 2's distributions, released
     # on top of the heap) for at most this many rounds; an attempt that still misses one is
     # rejected and resampled, so a heap of N objects holds N (0: objects that leave are removed)
@@ -182,7 +190,7 @@ def sample_drop_plan(names: list[str], scenario: Scenario, rng: np.random.Genera
                      params: HeapParams, flat_first: bool = False) -> list[DropItem]:
     """Orientation and planar position of every object (step 2); flat_first: the first object
     lies as modelled (its thinnest extent along z for a flat target), turned by a random yaw, at
-    the heap's centre (the others scatter around it)."""
+    the heap's centre (the others scatter around it) unless params.target_at_centre is False."""
     size = scenario.environment.resolved_size()
     c = np.clip(rng.normal(0.0, params.center_sigma, 2), -params.center_max, params.center_max)
     plan = []
@@ -195,7 +203,7 @@ def sample_drop_plan(names: list[str], scenario: Scenario, rng: np.random.Genera
         lo, hi = v.min(axis=0), v.max(axis=0)
         half = np.maximum(0.5 * size[:2] - 0.5 * (hi - lo)[:2], 0.0)
         offset = rng.normal(0.0, params.offset_sigma, 2)
-        if flat_first and k == 0:
+        if flat_first and k == 0 and params.target_at_centre:
             offset = np.zeros(2)
         xy = np.clip(c + offset, -half, half) - 0.5 * (hi + lo)[:2]
         plan.append(DropItem(R, xy, lo, hi))
@@ -495,6 +503,15 @@ def _settle(world, names: list[str], placed: list[int], origin: np.ndarray, size
                        f"moving at {np.abs(v[k, 3:]).max():.3f} m/s, {np.abs(v[k, :3]).max():.2f} rad/s)")
 
 
+def _target_seen(world, names, origin, size) -> float:
+    """Seen fraction from the overhead camera of object 0 (the target), 1 if it is not over the bin."""
+    rel = world.poses()[0].translation() - origin
+    if 0 in world.left or np.any(np.abs(rel[:2]) > 0.5 * size[:2]):
+        return 1.0
+    modal, amodal = visible_ratios(world, names, [0], world.camera)
+    return float(min(modal[0] / amodal[0], 1.0)) if amodal[0] > 0 else 1.0
+
+
 def generate_heap(scenario: Scenario, num_objects: int, seed: int, object_set: str | None = None,
                   params: HeapParams | None = None, return_diagnostics: bool = False, names_fn=None,
                   target_first: bool = False):
@@ -563,6 +580,14 @@ def generate_heap(scenario: Scenario, num_objects: int, seed: int, object_set: s
                 else:
                     world.set_pose(i, engine.pose(i))
             engine.close()
+            if (ok and polish and target_first and params.prescreen_margin is not None and params.max_target_seen < 1.0
+                    and world.sensor is not None):
+                seen = _target_seen(world, names, origin, size)
+                if seen > params.max_target_seen + params.prescreen_margin:
+                    reasons.append(f"attempt {attempt}: the target is {100 * seen:.0f} % seen after the drop, before "
+                                   f"the polish (HeapParams.max_target_seen={params.max_target_seen}, "
+                                   f"prescreen_margin={params.prescreen_margin})")
+                    continue
             if ok and polish:  # best effort: the heap stands as Bullet left it if it has not settled
                 ok, _, reason = _settle(world, names, list(range(len(names))), origin, size, wall, params,
                                         params.polish_time, params.min_final_time, phases, "polish")
