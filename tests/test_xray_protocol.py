@@ -1,4 +1,5 @@
-"""The heap protocols of Table 8.2 (ms_drake.experiments.xray): `xray`, `xray_hidden`, `xray_ycb`."""
+"""The heap protocols of Table 8.2 (ms_drake.experiments.xray): `xray`, `xray_hidden`, `xray_ycb`,
+`xray_occluded`."""
 
 import dataclasses
 
@@ -9,6 +10,7 @@ from ms_drake.experiments.rollout import SearchParams, build_search
 from ms_drake.experiments.xray import (
     PROTOCOLS,
     XRAY_HEAPS,
+    XRAY_OCCLUDED_HEAPS,
     XRAY_TARGET,
     _names,
     xray_heap,
@@ -17,12 +19,12 @@ from ms_drake.experiments.xray import (
 )
 from ms_drake.objects import get_object, get_object_set
 from ms_drake.scenario import load_scenario
-from ms_drake.scenes.heaps import HeapError, generate_heap, set_heap_poses
+from ms_drake.scenes.heaps import HeapError, HeapParams, generate_heap, sample_drop_plan, set_heap_poses
 from ms_drake.station.robots import set_arm_positions
 
 
 def test_protocols_name_the_hidden_variant():
-    assert PROTOCOLS == ("ch7", "xray", "xray_hidden", "xray_ycb")
+    assert PROTOCOLS == ("ch7", "xray", "xray_hidden", "xray_ycb", "xray_occluded")
 
 
 def test_xray_hidden_heap_starts_with_the_target_hidden_from_the_station_camera():
@@ -72,3 +74,26 @@ def test_xray_ycb_heap_holds_the_target_under_14_occluders_of_its_pool_and_is_de
     assert set(_names(np.random.default_rng([5000, 0]), 14)[1:]) <= set(xray_occluders())
     with pytest.raises(ValueError, match="xray_ycb"):
         xray_heap(5000, protocol="ch7")
+
+
+def test_xray_occluded_heap_hides_the_target_among_xray_ycb_occluders():
+    heap, diag = generate_heap(load_scenario(None, "BinHeap15"), 15, 5002, params=XRAY_OCCLUDED_HEAPS,
+                               names_fn=lambda rng: _names(rng, 14, xray_ycb_occluders()), target_first=True,
+                               return_diagnostics=True)
+    again = xray_heap(5002, protocol="xray_occluded")
+    assert heap.objects == again.objects and heap.visible_ratios == again.visible_ratios
+    assert heap.target == XRAY_TARGET and heap.target_index == 0 and heap.visible_ratios[0] == 0.0
+    assert {o.name for o in heap.objects[1:]} <= set(xray_ycb_occluders())
+    # every rejected attempt is on record with its reason
+    assert len(diag.rejected_reasons) == diag.attempts - 1
+
+
+def test_the_target_is_offset_like_the_others_only_when_not_at_centre():
+    scenario = load_scenario(None, "BinHeap15")
+    names = _names(np.random.default_rng(0), 5)
+    centred = sample_drop_plan(names, scenario, np.random.default_rng(1), HeapParams(), flat_first=True)
+    spread = sample_drop_plan(names, scenario, np.random.default_rng(1), HeapParams(target_at_centre=False),
+                              flat_first=True)
+    # the same draws: the occluders are where they were, the target moves off the centre
+    assert all(np.allclose(a.xy, b.xy) for a, b in zip(centred[1:], spread[1:]))
+    assert not np.allclose(centred[0].xy, spread[0].xy)
