@@ -12,6 +12,7 @@ from pydrake.multibody.tree import BodyIndex
 from ms_drake.execution.shelf_backend import ShelfBackend, ShelfBody
 from ms_drake.experiments.shelf_physics import (
     ShelfPhysicsError,
+    _refused,
     _skipped,
     action_agreement,
     build_shelf_physics,
@@ -159,14 +160,16 @@ def test_controller_uses_the_feasible_selector(scenario, hard_scene):
     c = MakeShelfSearchController(scenario, ShelfSearchParams(policy="bluction_dar", seed=7), sim=sim)
     assert isinstance(c.GetSubsystemByName("policy_selector"), FetchFeasibleSelector)
     rules = c.GetSubsystemByName("policy_selector").rules.params
-    assert (rules.min_move, rules.nil_move) == (0.01, 0.01)
+    assert (rules.min_move, rules.nil_move, rules.revisit) == (0.01, 0.01, 0.01)
     der3 = MakeShelfSearchController(scenario, ShelfSearchParams(policy="der3", seed=7), sim=sim)
     rules = der3.GetSubsystemByName("policy_selector").rules.params
-    assert (rules.min_move, rules.nil_move) == (0.0, 0.0)  # DER-3 keeps its rule
+    assert (rules.min_move, rules.nil_move, rules.revisit) == (0.0, 0.0, 0.0)  # DER-3 keeps its rule
     c2 = MakeShelfSearchController(scenario, ShelfSearchParams(policy="bluction_dar", fetch_feasible=False), sim=sim)
     assert not isinstance(c2.GetSubsystemByName("policy_selector"), FetchFeasibleSelector)
     with pytest.raises(ControllerError, match="max_candidates"):
         ShelfSearchParams(max_candidates=0)
+    with pytest.raises(ControllerError, match="revisit=-0.01"):
+        ShelfSearchParams(revisit=-0.01)
 
 
 def test_time_step_and_skipped_counts(scenario):
@@ -176,6 +179,9 @@ def test_time_step_and_skipped_counts(scenario):
     with pytest.raises(ShelfPhysicsError, match="time_step"):
         with_time_step(scenario, 0.0)
     assert _skipped("bluction_dar: score 0.1 (3 Fetch-infeasible skipped)") == 3 and _skipped("random") == 0
+    reasons = ["bluction_dar: score 0.1 [refused: nil_move 2, min_move 5, revisit 1] (3 Fetch-infeasible skipped)",
+               "bluction_dar: score 0.2 [refused: nil_move 0, min_move 4, revisit 0]", "random"]
+    assert _refused(reasons) == {"nil_move": 2, "min_move": 9, "revisit": 1} and _refused(["random"]) == {}
 
 
 def test_action_agreement_counts_what_each_action_toppled():

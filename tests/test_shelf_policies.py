@@ -1,5 +1,6 @@
 """Shelf policies (Ch. 9.4.3-9.4.4) and the ShelfPolicySelector system."""
 
+import dataclasses
 import time
 
 import numpy as np
@@ -21,6 +22,7 @@ from ms_drake.policies.shelf import (
     nil_effect,
     oracle_plan,
     push_locked,
+    returns,
     segment,
     support_reduction,
 )
@@ -128,6 +130,18 @@ def test_an_action_that_moved_nothing_is_not_repeated_on_the_unchanged_object(fo
     assert nil_effect((failed,), nudged, 0.01) == set()
 
 
+def test_the_nil_rule_compares_centres_not_footprint_sizes(foss):
+    # A toppled object observed again: its footprint (rotated bounding box) 3 cm wider, its centre
+    # 2 mm off. The action moved it 2 mm: nil, however the footprint's size changed.
+    dist = under(foss, SQUEEZED, "a")
+    first = ShelfPolicies("bluction_dar", foss, ShelfPolicyParams(psi=1.0)).select(SQUEEZED, dist)
+    done = ActionOutcome(Action("shelf", shelf=first.shelf, scene=SQUEEZED), True, message="agree=1")
+    a = SQUEEZED.object("a")
+    lying = ShelfObject("a", a.kind, a.x + 0.002, a.y, a.width + 0.03, a.depth - 0.02, a.height - 0.05)
+    resized = ShelfScene((lying,) + SQUEEZED.objects[1:], SQUEEZED.target, 0)
+    assert nil_effect((done,), resized, 0.01) == {like_key(first.shelf)}
+
+
 def test_actions_moving_their_object_less_than_min_move_are_not_proposed(foss):
     dist = under(foss, SQUEEZED, "a")
     rules = ShelfPolicies("bluction_dar", foss, ShelfPolicyParams(psi=100.0))
@@ -137,6 +151,30 @@ def test_actions_moving_their_object_less_than_min_move_are_not_proposed(foss):
     other = ShelfPolicies("bluction_dar", foss, ShelfPolicyParams(psi=100.0, min_move=m)).select(SQUEEZED, dist)
     assert other.kind == "shelf" and other.shelf != best
     assert rules.displacement(SQUEEZED, other.shelf) >= m
+
+
+def test_a_candidate_leading_back_to_an_observed_scene_is_not_proposed(foss):
+    # "a" stands 1 mm from "r"; a suction takes it 19 cm left, and the push to the neighbour would
+    # take it back: a two-step cycle of states.
+    start = ShelfScene((box("a", 0.089, -0.175, w=0.12), box("l", -0.3, -0.175), box("r", 0.2, -0.175)),
+                       box("target", 0.09, 0.2, 0.06, 0.06, 0.06), 0)
+    away, = (a for a in foss.actions(segment(foss.geometry, start).known)
+             if (a.kind, a.object_id) == ("suction", "a") and np.allclose((a.dx, a.dy), (-0.191, 0.075)))
+    left = foss.moved(start, away)
+    done = (ActionOutcome(Action("shelf", shelf=away, scene=start), True, message="agree=1"),)
+    dist = under(foss, left, "a")
+    was = start.object("a")
+    params = ShelfPolicyParams(psi=100.0, min_move=0.01, nil_move=0.01)
+    back = ShelfPolicies("bluction_dar", foss, params).select(left, dist, done)
+    assert back.shelf.kind == "push" and back.shelf.dx > 0  # without the rule: the return
+    rules = ShelfPolicies("bluction_dar", foss, dataclasses.replace(params, revisit=0.01))
+    assert np.hypot(*np.subtract(rules.predicted_centre(left, back.shelf), (was.x, was.y))) < 0.01
+    other = rules.select(left, dist, done)
+    assert other.kind == "shelf" and other.shelf != back.shelf and "revisit 1]" in other.reason
+    assert np.hypot(*np.subtract(rules.predicted_centre(left, other.shelf), (was.x, was.y))) >= 0.01
+    # Without the suction in the history (or in FOSS, revisit 0) the push is a new state.
+    assert rules.select(left, dist).shelf == back.shelf
+    assert returns(done, left, 0.01)["a"] == [(was.x, was.y), (left.object("a").x, left.object("a").y)]
 
 
 def test_random_is_seeded(foss):

@@ -19,7 +19,8 @@
   steps), the estimate it chose matched to a true occluder (footprint IoU, `associate`), and FOSS's
   prediction on the estimated scene the action was planned in.
 - `run_shelf_physics_bench(...)`: `ms-drake bench shelf-physics`: one JSON line per scene (seed,
-  occluders, policy, perception, success, steps, agreement, ...), flushed and fsync'ed, resumable.
+  occluders, policy, perception, success, steps, agreement, `refused`: the candidates each of the
+  controller's robot rules dropped, ...), flushed and fsync'ed, resumable.
 - `physics_table(records)`: the Table 9.2 analogue.
 - `replay_shelf_action(scene, action, density)`: one shelf action planned from the park pose and
   played open loop on the station (no controller), with a log of the acted-on object (sealed,
@@ -292,6 +293,7 @@ def run_shelf_physics(system: ShelfPhysicsSystem, scene: ShelfScene, params: She
                actions_taken=[[o.action.shelf.kind, o.action.shelf.object_id, round(o.action.shelf.dx, 4),
                                round(o.action.shelf.dy, 4)] for o in history],
                skipped=sum(_skipped(o.action.reason) for o in history),
+               refused=_refused(o.action.reason for o in history),
                fetch_feasible=bool(params.fetch_feasible), time_step=float(system.plant.time_step()),
                visible_fraction=float(visible), failure=failure, stop_reason=reason, error=error,
                sim_seconds=float(context.get_time()), seconds=time.perf_counter() - t_wall,
@@ -337,6 +339,17 @@ def _skipped(reason: str) -> int:
     """Candidates FetchFeasibleSelector skipped before an action ("... (k Fetch-infeasible skipped)")."""
     m = re.search(r"\((\d+) Fetch-infeasible skipped\)", reason or "")
     return int(m.group(1)) if m else 0
+
+
+def _refused(reasons) -> dict:
+    """Candidates the policy's robot rules dropped, summed over the actions, per rule: the reasons'
+    "[refused: nil_move 0, min_move 12, revisit 1]" (ms_drake.policies.shelf.ShelfPolicies)."""
+    out: dict = {}
+    for reason in reasons:
+        m = re.search(r"\[refused: ([^\]]*)\]", reason or "")
+        for rule, n in re.findall(r"(\w+) (\d+)", m.group(1) if m else ""):
+            out[rule] = out.get(rule, 0) + int(n)
+    return out
 
 
 def shelf_physics_rollout(policy: str, seed: int, occluders: int | None = None, horizon: int | None = None,

@@ -96,6 +96,7 @@ class ShelfPolicyParams:
     # The distribution policies on a robot, whose actions place objects to within ~1-2 cm (0: off, as in FOSS):
     min_move: float = 0.0  # m: candidates FOSS moves their object less than this are not proposed
     nil_move: float = 0.0  # m: an executed action that moved its object less than this is not repeated (nil_effect)
+    revisit: float = 0.0  # m: candidates FOSS predicts to lead back to an observed scene (within this) are not proposed
 
 
 def check_shelf_policy(name: str) -> str:
@@ -582,11 +583,18 @@ def footprint_change(p, q) -> float:
     return max(abs(p.x - q.x), abs(p.y - q.y), abs(p.width - q.width), abs(p.depth - q.depth), abs(p.height - q.height))
 
 
+def centre_distance(p, q) -> float:
+    """How far [m] an object's footprint centre lies between two observations (the backend's
+    "moved"); a lying object's footprint (its rotated bounding box) may change size where it is."""
+    return float(np.hypot(p.x - q.x, p.y - q.y))
+
+
 def nil_effect(history, scene: ShelfScene, tolerance: float) -> set:
     """`like_key`s of the executed shelf actions whose observed effect was nil and whose object is
-    unchanged since: the object's footprint moved less than `tolerance` [m] between the scene the
-    action was chosen in (Action.scene) and the next observation (the next action's scene, or
-    `scene` after the last), and `scene` shows it within `tolerance` of where that observation did.
+    unchanged since: the object's footprint centre moved less than `tolerance` [m] between the
+    scene the action was chosen in (Action.scene) and the next observation (the next action's
+    scene, or `scene` after the last), and `scene` shows it within `tolerance` of where that
+    observation did (`centre_distance`: the footprint's size is not compared).
     Such an action (an object lying toppled that neither tool moves, a re-placement the cup drops
     where it was) would do nothing again, with whatever numbers FOSS proposes for it next. Actions
     without a scene (FOSS's rollouts) and plan failures (nothing executed) do not count."""
@@ -602,17 +610,38 @@ def nil_effect(history, scene: ShelfScene, tolerance: float) -> set:
         if any(a.object_id not in objs for objs in seen):
             continue
         p, q, now = (objs[a.object_id] for objs in seen)
-        if footprint_change(p, q) < tolerance and footprint_change(q, now) < tolerance:
+        if centre_distance(p, q) < tolerance and centre_distance(q, now) < tolerance:
             out.add(like_key(a))
+    return out
+
+
+def returns(history, scene: ShelfScene, tolerance: float) -> dict:
+    """{object id: [(x, y), ...]}: where one object's footprint centre would take the search back to
+    a scene it has observed (every Action.scene of the history, and `scene`): an observed scene with
+    the same objects as `scene` in which every object but that one lies within `tolerance` [m] of
+    where `scene` shows it contributes that object's centre there (all objects' centres when none
+    differs: staying is a return too)."""
+    now = {o.id: o for o in scene.objects}
+    out: dict = {}
+    for seen in [o.action.scene for o in history if o.action.scene is not None] + [scene]:
+        then = {o.id: o for o in seen.objects}
+        if then.keys() != now.keys():
+            continue
+        differ = [k for k in now if centre_distance(now[k], then[k]) >= tolerance]
+        if len(differ) <= 1:
+            for k in differ or now:
+                out.setdefault(k, []).append((then[k].x, then[k].y))
     return out
 
 
 class ShelfPolicies:
     """The decision rules (module docstring), with the oracles' plan cache (keyed by scene content).
-    On a robot (params.min_move, params.nil_move > 0) the distribution policies also drop the
-    candidates that FOSS moves their object less than min_move (a placement within the robot's
-    precision of where the object is) and those like an executed action whose effect was nil
-    (`nil_effect`), before ranking."""
+    On a robot (params.min_move, params.nil_move, params.revisit > 0) the distribution policies also
+    drop, before ranking, the candidates like an executed action whose effect was nil
+    (`nil_effect`), those FOSS moves their object less than min_move (a placement within the
+    robot's precision of where the object is) and those FOSS predicts to lead back to a scene
+    observed in this search (`returns`: no revisit of states, e.g. an object sucked away and pushed
+    back in turn). The action's reason counts the candidates each rule dropped, in that order."""
 
     CACHE = 4096
 
@@ -637,31 +666,47 @@ class ShelfPolicies:
         seg = segment(self.foss.geometry, scene)
         suction = self.policy in ("random", "bluction_dar")
         actions = [a for a in self.foss.actions(seg.known, suction=suction) if _action_key(a) not in rejected]
+        dropped = []
+
+        def drop(rule: str, keep) -> None:
+            nonlocal actions
+            kept = [a for a in actions if keep(a)]
+            dropped.append(f"{rule} {len(actions) - len(kept)}")
+            actions = kept
+
         if self.params.nil_move > 0:
             nil = nil_effect(history, scene, self.params.nil_move)
-            actions = [a for a in actions if like_key(a) not in nil]
+            drop("nil_move", lambda a: like_key(a) not in nil)
         if self.params.min_move > 0:
-            actions = [a for a in actions if self.displacement(seg.known, a) >= self.params.min_move]
+            drop("min_move", lambda a: self.displacement(seg.known, a) >= self.params.min_move)
+        if self.params.revisit > 0:
+            back = returns(tuple(history), scene, self.params.revisit)
+            drop("revisit", lambda a: all(np.hypot(*np.subtract(self.predicted_centre(seg.known, a), c))
+                                          >= self.params.revisit for c in back.get(a.object_id, ())))
+        refused = f" [refused: {', '.join(dropped)}]" if dropped else ""
         if not actions:
-            return Action("stop", reason=f"{self.policy}: no feasible action")
+            return Action("stop", reason=f"{self.policy}: no feasible action{refused}")
         if self.policy == "random":
             rng = np.random.default_rng([int(self.params.seed), len(tuple(history)), 0x5A17])
-            return Action("shelf", shelf=actions[int(rng.integers(len(actions)))], reason="random")
+            return Action("shelf", shelf=actions[int(rng.integers(len(actions)))], reason=f"random{refused}")
         if self.policy == "der3":
             scores = -der_scores(self.foss, seg, dist, self.params.lookahead, actions)
         else:
             scores = support_reduction(self.foss.geometry, seg, dist, actions)
             scores = np.where([a.kind == "suction" for a in actions], scores / self.params.psi, scores)
         best = int(np.argmax(scores))  # the first of equals: pushes before suction, object order
-        return Action("shelf", shelf=actions[best], reason=f"{self.policy}: score {scores[best]:.4g}")
+        return Action("shelf", shelf=actions[best], reason=f"{self.policy}: score {scores[best]:.4g}{refused}")
+
+    def predicted_centre(self, scene: ShelfScene, a: ShelfAction) -> tuple[float, float]:
+        """Where FOSS puts the footprint centre of the object of `a` (a push moves it in x only)."""
+        o = scene.object(a.object_id)
+        return (o.x + a.dx, o.y) if a.kind == "push" else self.foss.placement_center(o, a.dx, a.dy)
 
     def displacement(self, scene: ShelfScene, a: ShelfAction) -> float:
         """How far [m] FOSS moves the object of `a` (a push: |dx|; a suction: to its placement)."""
-        if a.kind == "push":
-            return abs(a.dx)
         o = scene.object(a.object_id)
-        gx, gy = self.foss.placement_center(o, a.dx, a.dy)
-        return float(np.hypot(gx - o.x, gy - o.y))
+        x, y = self.predicted_centre(scene, a)
+        return float(np.hypot(x - o.x, y - o.y))
 
     def _oracle(self, scene: ShelfScene, steps: int, rejected: set) -> Action:
         suction = self.policy == "oracle_ps"

@@ -78,11 +78,13 @@ class ShelfSearchParams:
     (ShelfBackend);
     fetch_feasible: choose the policy's best action the Fetch can execute (FetchFeasibleSelector,
     checking at most `max_candidates` in the policy's order) instead of its best action in FOSS;
-    min_move / nil_move [m] (Bluction-DAR, NIL_RULE_POLICIES): the policy drops the candidates
+    min_move / nil_move / revisit [m] (Bluction-DAR, NIL_RULE_POLICIES): the policy drops the candidates
     that FOSS moves their object less than min_move and, with ground-truth perception, those like an
     executed action that moved its object less than nil_move while the object is unchanged (ShelfPolicyParams;
     ms_drake.policies.shelf.nil_effect; perception "depth" judges by the image instead,
-    `refuse_like_unchanged`)."""
+    `refuse_like_unchanged`) and, with ground-truth perception too, those FOSS predicts to lead back
+    to a scene observed in the search, every object's centre within `revisit`
+    (ms_drake.policies.shelf.returns)."""
 
     policy: str = "bluction_dar"
     horizon: int | None = None
@@ -97,14 +99,15 @@ class ShelfSearchParams:
     max_candidates: int = 1000
     min_move: float = 0.01
     nil_move: float = 0.01
+    revisit: float = 0.01
 
     def __post_init__(self):
         check_shelf_policy(self.policy)
         if int(self.max_candidates) < 1:
             raise ControllerError(f"max_candidates must be >= 1, got {self.max_candidates!r}")
-        if not (self.min_move >= 0 and self.nil_move >= 0):
-            raise ControllerError(f"min_move and nil_move are distances in m (>= 0; 0: off), got min_move="
-                                  f"{self.min_move!r}, nil_move={self.nil_move!r}")
+        if not (self.min_move >= 0 and self.nil_move >= 0 and self.revisit >= 0):
+            raise ControllerError(f"min_move, nil_move and revisit are distances in m (>= 0; 0: off), got min_move="
+                                  f"{self.min_move!r}, nil_move={self.nil_move!r}, revisit={self.revisit!r}")
         if self.horizon is not None and int(self.horizon) < 1:
             raise ControllerError(f"horizon must be >= 1 action (or None for 2n), got {self.horizon!r}")
         if not self.period > 0:
@@ -278,7 +281,7 @@ class ShelfSearchSelector(ShelfPolicySelector):
 
 
 PERCEPTIONS = ("ground_truth", "depth")
-NIL_RULE_POLICIES = ("bluction_dar",)  # the policies ShelfSearchParams.min_move / nil_move apply to
+NIL_RULE_POLICIES = ("bluction_dar",)  # the policies ShelfSearchParams.min_move / nil_move / revisit apply to
 
 
 def MakeShelfSearchController(scenario, params: ShelfSearchParams | None = None,
@@ -333,7 +336,8 @@ def MakeShelfSearchController(scenario, params: ShelfSearchParams | None = None,
     nil_rules = params.policy in NIL_RULE_POLICIES
     policy_params = ShelfPolicyParams(psi=params.psi, seed=params.seed, horizon=params.horizon,
                                       min_move=params.min_move if nil_rules else 0.0,
-                                      nil_move=params.nil_move if nil_rules and not depth else 0.0)
+                                      nil_move=params.nil_move if nil_rules and not depth else 0.0,
+                                      revisit=params.revisit if nil_rules and not depth else 0.0)
     if params.fetch_feasible:
         selector = FetchFeasibleSelector(params.policy, foss, backend, policy_params, period=params.period,
                                          max_candidates=params.max_candidates, judge_by_scene=depth)
