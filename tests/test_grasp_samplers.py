@@ -141,3 +141,33 @@ def test_suction_sampler():
     assert all(abs(g.point[2] - 0.015) < 1e-9 for g in gs)
     with pytest.raises(Exception):
         ParallelJawGrasp([0, 0, 0], [0, 0, 0], [1, 0, 0], 0.05)
+
+
+def test_suction_candidates_whose_cup_would_land_on_a_taller_neighbour_are_dropped():
+    # camera 0.8 m above a floor (z = 0), looking down; a 5 mm plate (the mask) with a 3 cm block
+    # lying over its right part (x > 0): only the plate's left part is seen
+    f, W, H = 500.0, 200, 160
+    K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]])
+    X_WC = np.eye(4)
+    X_WC[:3, :3] = np.diag([1.0, -1.0, -1.0])  # camera z down, x along world x
+    X_WC[2, 3] = 0.8
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+
+    def height(x, y):
+        h = np.zeros_like(x)
+        h = np.where((np.abs(x) < 0.05) & (np.abs(y) < 0.03), 0.005, h)  # the plate
+        return np.where((x > 0.0) & (x < 0.06) & (np.abs(y) < 0.05), 0.03, h)  # the block on it
+
+    # depth of the plane z = h under each pixel: x = (u - cx) z_c / f, z_c = 0.8 - h (two passes)
+    zc = np.full((H, W), 0.8)
+    for _ in range(3):
+        x, y = (u - W / 2) * zc / f, -(v - H / 2) * zc / f
+        zc = 0.8 - height(x, y)
+    x, y = (u - W / 2) * zc / f, -(v - H / 2) * zc / f
+    mask = (np.abs(x) < 0.05) & (np.abs(y) < 0.03) & (height(x, y) < 0.01)
+    free = sample_suction_grasps_depth(zc, K, X_WC, mask, 40, seed=0)
+    checked = sample_suction_grasps_depth(zc, K, X_WC, mask, 40, seed=0, cup_radius=0.015, clearance=0.005)
+    xs = np.array([g.point[0] for g in free])
+    assert xs.min() < -0.02 and xs.max() > -0.01  # without the check: up to the block's edge (x = 0)
+    assert checked and all(g.point[0] < -0.015 + 0.002 for g in checked)  # a cup radius away from it
+    assert all(abs(g.point[1]) < 0.03 and abs(g.point[2] - 0.005) < 1e-3 for g in checked)

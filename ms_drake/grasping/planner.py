@@ -62,12 +62,14 @@ class GraspPlanner(LeafSystem):
 
     model: point | soft_point | elliptical | reach | mfe | 6dfc | suction.
     evaluator_params: keyword arguments of GraspEvaluator (or SuctionEvaluator for suction),
-    e.g. {"friction": 0.6, "closing_force": 20.0}."""
+    e.g. {"friction": 0.6, "closing_force": 20.0}. cup_clearance (suction): a candidate whose cup
+    would land on a seen neighbour more than this above the contact point is dropped
+    (`sample_suction_grasps_depth`; None: no check)."""
 
     def __init__(self, camera_info: CameraInfo, X_WC=None, model: str = "soft_point", num_samples: int = 30,
                  robust_samples: int = 0, seed: int = 0, evaluator_params: dict | None = None,
                  max_width: float = 0.1, default_mass: float = 0.2, candidate_pool: int = 3,
-                 jaw_margin: float = 0.01):
+                 jaw_margin: float = 0.01, cup_clearance: float | None = 0.005):
         super().__init__()
         if model not in MODELS and model != "suction":
             raise GraspError(f"GraspPlanner model {model!r} unknown; choose one of {', '.join(MODELS)}, suction")
@@ -93,6 +95,7 @@ class GraspPlanner(LeafSystem):
         if not (0 <= jaw_margin < 0.5 * max_width):
             raise GraspError(f"GraspPlanner jaw_margin must be in [0, max_width / 2), got {jaw_margin!r}")
         self.jaw_margin = float(jaw_margin)
+        self.cup_clearance = None if cup_clearance is None else float(cup_clearance)
         self.friction = params.get("friction", 0.5)
         self._mesh_cache: dict = {}
 
@@ -147,7 +150,10 @@ class GraspPlanner(LeafSystem):
             oid = masks.ids[k]
             seed = base_seed * 100003 + k
             if self.model == "suction":
-                cands = sample_suction_grasps_depth(depth, K, X_WC, mask, self.num_samples, seed=seed)
+                cands = sample_suction_grasps_depth(
+                    depth, K, X_WC, mask, self.num_samples, seed=seed,
+                    cup_radius=None if self.cup_clearance is None else self.evaluator.cup_radius,
+                    clearance=self.cup_clearance or 0.0)
             else:
                 cands = self.jaw_candidates(depth, mask, X_WC, seed, K)
             if not cands:
@@ -287,7 +293,7 @@ class LazyGraspPlanner(LeafSystem):
         threshold, so only the masks it reaches are planned (every mask when nothing qualifies);
       * per object: each mask is planned alone on the crop of the depth image around it (the
         bounding box + `margin` pixels, for jaw models also + `crop_margin` metres at the mask's
-        nearest depth; intrinsics shifted accordingly) with the sampling seed `object_seed(seed, id)`; the
+        nearest depth, for suction too when it checks the cup's clearance (cup and stem: 11 cm); intrinsics shifted accordingly) with the sampling seed `object_seed(seed, id)`; the
         samplers read the mask and its neighbourhood only (the jaw sampler looks up to ~7 cm
         around it for the fingers and the palm), so the crop gives the same candidates as the
         whole image (tests/test_rollout.py checks it) -- a GraspPlanner on the whole image
@@ -334,10 +340,13 @@ class LazyGraspPlanner(LeafSystem):
             K = p.K
             if geom is not None:
                 pad = self.margin
-                if getattr(p, "model", "") != "suction":  # the jaw sampler looks around the mask
+                # the jaw sampler looks around the mask for the fingers, the suction sampler for the cup
+                reach = (self.crop_margin if getattr(p, "model", "") != "suction" or p.cup_clearance is not None
+                         else 0.0)
+                if reach > 0:
                     z = depth[rows, cols]
                     z = z[np.isfinite(z) & (z > 0)]
-                    pad += int(np.ceil(self.crop_margin * max(K[0, 0], K[1, 1]) / z.min())) if len(z) else max(H, W)
+                    pad += int(np.ceil(reach * max(K[0, 0], K[1, 1]) / z.min())) + 1 if len(z) else max(H, W)
                 y0, y1 = max(rows.min() - pad, 0), min(rows.max() + pad + 1, H)
                 x0, x1 = max(cols.min() - pad, 0), min(cols.max() + pad + 1, W)
                 crop_depth = np.ascontiguousarray(depth[y0:y1, x0:x1])

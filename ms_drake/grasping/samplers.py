@@ -415,9 +415,16 @@ def _fill_max(H: np.ndarray) -> np.ndarray:
 
 
 def sample_suction_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.ndarray, mask: np.ndarray,
-                                count: int, seed: int = 0, dedupe_distance: float = 0.003):
+                                count: int, seed: int = 0, dedupe_distance: float = 0.003,
+                                cup_radius: float | None = None, clearance: float = 0.005,
+                                cup_length: float = 0.112):
     """Suction grasps at mask pixels: point = deprojected pixel, approach = minus the depth normal.
-    X_WC: camera pose (RigidTransform or 4x4 array)."""
+    X_WC: camera pose (RigidTransform or 4x4 array). cup_radius: when given, a candidate is
+    collision-free only if no seen point off the mask lies within `cup_radius` of its approach
+    axis between `clearance` and `cup_length` (cup and stem) above the contact point along the
+    axis (the cup would land on a neighbour: an object lying on the grasped one, or a taller one
+    beside it); the others are dropped (the reference's simulated grasps are executed only when
+    collision-free, line 1505)."""
     X_WC = as_matrix4(X_WC, "X_WC")
     rng = np.random.default_rng(seed)
     valid = mask & np.isfinite(depth) & (depth > 0)
@@ -426,6 +433,10 @@ def sample_suction_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.ndarr
     ok = valid & np.all(np.isfinite(N), axis=-1)
     rows, cols = np.nonzero(ok)
     R, t = X_WC[:3, :3], X_WC[:3, 3]
+    others = None
+    if cup_radius is not None:
+        off = ~mask & np.isfinite(depth) & (depth > 0)
+        others = P[off] @ R.T + t  # seen points of everything else, world frame
     out, kept = [], []
     for i in rng.permutation(len(rows))[: 40 * max(count, 1)]:
         if len(out) >= count:
@@ -434,5 +445,23 @@ def sample_suction_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.ndarr
         if any(np.linalg.norm(p - k) < dedupe_distance for k in kept):
             continue
         kept.append(p)
+        if others is not None and len(others) and _cup_blocked(others, p, R @ N[rows[i], cols[i]], cup_radius,
+                                                                clearance, cup_length):
+            continue
         out.append(SuctionGrasp(p, -(R @ N[rows[i], cols[i]])))
     return out
+
+
+def _cup_blocked(points: np.ndarray, p: np.ndarray, normal: np.ndarray, radius: float, clearance: float,
+                 length: float) -> bool:
+    """Whether a point of `points` lies within `radius` of the axis through p along `normal` (the
+    outward surface normal, towards the approaching cup), between `clearance` and `length` above p
+    on it."""
+    n = normal / np.linalg.norm(normal)
+    d = points - p
+    h = d @ n
+    up = (h > clearance) & (h < length)
+    if not up.any():
+        return False
+    d, h = d[up], h[up]
+    return bool(np.any(np.einsum("ij,ij->i", d, d) - h * h < radius * radius))
