@@ -436,7 +436,7 @@ def sample_suction_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.ndarr
     others = None
     if cup_radius is not None:
         off = ~mask & np.isfinite(depth) & (depth > 0)
-        others = P[off] @ R.T + t  # seen points of everything else, world frame
+        others = cKDTree(P[off] @ R.T + t)  # seen points of everything else, world frame
     out, kept = [], []
     for i in rng.permutation(len(rows))[: 40 * max(count, 1)]:
         if len(out) >= count:
@@ -445,19 +445,26 @@ def sample_suction_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.ndarr
         if any(np.linalg.norm(p - k) < dedupe_distance for k in kept):
             continue
         kept.append(p)
-        if others is not None and len(others) and _cup_blocked(others, p, R @ N[rows[i], cols[i]], cup_radius,
+        if others is not None and others.n and _cup_blocked(others, p, R @ N[rows[i], cols[i]], cup_radius,
                                                                 clearance, cup_length):
             continue
         out.append(SuctionGrasp(p, -(R @ N[rows[i], cols[i]])))
     return out
 
 
-def _cup_blocked(points: np.ndarray, p: np.ndarray, normal: np.ndarray, radius: float, clearance: float,
+def _cup_blocked(points, p: np.ndarray, normal: np.ndarray, radius: float, clearance: float,
                  length: float) -> bool:
-    """Whether a point of `points` lies within `radius` of the axis through p along `normal` (the
-    outward surface normal, towards the approaching cup), between `clearance` and `length` above p
-    on it."""
+    """Whether a point of `points` (an (M, 3) array or a scipy cKDTree of one) lies within `radius`
+    of the axis through p along `normal` (the outward surface normal, towards the approaching
+    cup), between `clearance` and `length` above p on it."""
     n = normal / np.linalg.norm(normal)
+    if isinstance(points, cKDTree):  # only the points near the axis: balls every `radius` along it
+        s = np.arange(clearance, length + radius, radius)
+        near = points.query_ball_point(p + s[:, None] * n, 1.12 * radius)
+        idx = np.unique(np.concatenate([np.asarray(i, int) for i in near])) if len(near) else []
+        if not len(idx):
+            return False
+        points = points.data[idx]
     d = points - p
     h = d @ n
     up = (h > clearance) & (h < length)
