@@ -181,7 +181,7 @@ def test_learned_estimator_alone():
 
 
 def test_learned_estimator_in_the_xray_controller_without_privileged_state():
-    heap = xray_heap(5003, occluders=4)  # the target seen and graspable at the start
+    heap = xray_heap(5002, occluders=4)  # the target seen and graspable (collision-free) at the start
     assert heap.target == XRAY_TARGET and heap.target_index == 0
     system = build_search(load_scenario(None, "FloatingGripperBin"), heap, SearchParams(policy="xray", horizon=2,
                                                                                         time_step=0.01))
