@@ -1,4 +1,5 @@
-"""simulate_grasp: compliant hydroelastic jaws close, lift and report (one plant per call)."""
+"""simulate_grasp: compliant hydroelastic jaws close, lift and report (one plant per call); its
+CancelWeight system alone and wired to a plant."""
 
 import numpy as np
 import pytest
@@ -6,7 +7,7 @@ import trimesh
 
 from ms_drake.grasping import GraspError, ParallelJawGrasp
 from ms_drake.errors import ScenarioError
-from ms_drake.grasping.physics import label_grasp, simulate_grasp
+from ms_drake.grasping.physics import CancelWeight, label_grasp, simulate_grasp
 from ms_drake.robots import PadConfig
 
 BOX = trimesh.creation.box(extents=(0.04, 0.06, 0.03))
@@ -54,3 +55,44 @@ def test_the_physics_pad_is_the_station_jaws_pad():
     shape, X_FP = _pad_shape(pad)  # the default rectangle: a box, `length` along the approach
     assert (shape.width(), shape.depth(), shape.height()) == (pad.length, pad.width, pad.thickness)
     np.testing.assert_allclose(X_FP.translation(), [0, 0, -0.5 * pad.thickness])
+
+
+def test_cancel_weight_alone_pushes_up_until_its_time():
+    from pydrake.multibody.tree import BodyIndex
+
+    cancel = CancelWeight(BodyIndex(3), [0.01, 0.0, 0.02], [0.0, 0.0, -4.9], until=0.35)
+    ctx = cancel.CreateDefaultContext()
+    (F,) = cancel.GetOutputPort("forces").Eval(ctx)
+    assert F.body_index == BodyIndex(3)
+    np.testing.assert_array_equal(F.p_BoBq_B, [0.01, 0.0, 0.02])
+    np.testing.assert_array_equal(F.F_Bq_W.translational(), [0.0, 0.0, 4.9])
+    np.testing.assert_array_equal(F.F_Bq_W.rotational(), np.zeros(3))
+    ctx.SetTime(0.35)
+    (F,) = cancel.GetOutputPort("forces").Eval(ctx)
+    np.testing.assert_array_equal(F.F_Bq_W.translational(), np.zeros(3))
+
+
+def test_cancel_weight_wired_holds_a_free_body_until_its_time():
+    """A free body with its weight cancelled for 0.2 s stays put, then falls freely."""
+    from pydrake.math import RigidTransform
+    from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlantConfig
+    from pydrake.multibody.tree import SpatialInertia
+    from pydrake.systems.analysis import Simulator
+    from pydrake.systems.framework import DiagramBuilder
+
+    builder = DiagramBuilder()
+    plant, _ = AddMultibodyPlant(MultibodyPlantConfig(time_step=1e-3), builder)
+    body = plant.AddRigidBody("ball", SpatialInertia.SolidSphereWithMass(0.5, 0.02))
+    plant.Finalize()
+    weight = 0.5 * plant.gravity_field().gravity_vector()
+    cancel = builder.AddSystem(CancelWeight(body.index(), np.zeros(3), weight, until=0.2))
+    builder.Connect(cancel.get_output_port(), plant.get_applied_spatial_force_input_port())
+    diagram = builder.Build()
+    sim = Simulator(diagram)
+    pc = plant.GetMyMutableContextFromRoot(sim.get_mutable_context())
+    plant.SetFreeBodyPose(pc, body, RigidTransform([0, 0, 1.0]))
+    sim.AdvanceTo(0.2)
+    assert plant.EvalBodyPoseInWorld(pc, body).translation()[2] == pytest.approx(1.0, abs=1e-9)
+    sim.AdvanceTo(0.4)
+    fall = 0.5 * 9.81 * 0.2 ** 2  # 0.2 s of free fall
+    assert 1.0 - plant.EvalBodyPoseInWorld(pc, body).translation()[2] == pytest.approx(fall, rel=0.02)

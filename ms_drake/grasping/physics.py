@@ -122,6 +122,29 @@ def _perturb(grasp: ParallelJawGrasp, friction: float, mass: float, rng, sigma_t
     return g, max(0.05, friction + rng.normal(scale=sigma_f)), mass * max(0.1, 1 + rng.normal(scale=sigma_m))
 
 
+class CancelWeight(LeafSystem):
+    """Output ``forces`` (list of one ExternallyAppliedSpatialForce, for the plant's applied spatial
+    force input): on body `body_index` at its point `p_BoBq_B` (the centre of mass), the force
+    -`weight_W` (the body's weight m g in world, N) while the time is before `until` [s], zero from
+    then on."""
+
+    def __init__(self, body_index, p_BoBq_B, weight_W, until: float):
+        super().__init__()
+        self.DeclareAbstractOutputPort("forces", lambda: AbstractValue.Make([ExternallyAppliedSpatialForce()]),
+                                       self._calc)
+        self.body_index = body_index
+        self.p_BoBq_B = np.asarray(p_BoBq_B, float).reshape(3)
+        self.weight_W = np.asarray(weight_W, float).reshape(3)
+        self.until = float(until)
+
+    def _calc(self, context, out):
+        F = ExternallyAppliedSpatialForce()
+        F.body_index = self.body_index
+        F.p_BoBq_B = self.p_BoBq_B
+        F.F_Bq_W = SpatialForce(np.zeros(3), -self.weight_W if context.get_time() < self.until else np.zeros(3))
+        out.set_value([F])
+
+
 def simulate_grasp(mesh, X_WO, grasp: ParallelJawGrasp, mass: float, *, pad: PadConfig | None = None,
                    closing_force: float = 10.0, friction: float | None = None, com=None,
                    lift_height: float = 0.08, slip_tolerance: float = 0.02, close_speed: float = 0.15,
@@ -222,24 +245,9 @@ def simulate_grasp(mesh, X_WO, grasp: ParallelJawGrasp, mass: float, *, pad: Pad
     src = builder.AddSystem(ConstantVectorSource(np.array([closed, closed, close_speed, close_speed])))
     builder.Connect(src.get_output_port(), plant.get_desired_state_input_port(fing_mi))
 
-    g_vec = plant.gravity_field().gravity_vector()
-
-    class Weightless(LeafSystem):
-        """Cancels the object's weight until closing ends."""
-
-        def __init__(self):
-            super().__init__()
-            self.DeclareAbstractOutputPort("forces", lambda: AbstractValue.Make([ExternallyAppliedSpatialForce()]),
-                                           self._calc)
-
-        def _calc(self, context, out):
-            F = ExternallyAppliedSpatialForce()
-            F.body_index = body.index()
-            F.p_BoBq_B = com_O
-            F.F_Bq_W = SpatialForce(np.zeros(3), -mass * g_vec if context.get_time() < T_close else np.zeros(3))
-            out.set_value([F])
-
-    wl = builder.AddSystem(Weightless())
+    # the object is weightless until closing ends
+    weight = mass * plant.gravity_field().gravity_vector()
+    wl = builder.AddSystem(CancelWeight(body.index(), com_O, weight, T_close))
     builder.Connect(wl.get_output_port(), plant.get_applied_spatial_force_input_port())
     if meshcat is not None:
         AddDefaultVisualization(builder, meshcat)
