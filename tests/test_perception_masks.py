@@ -1,4 +1,5 @@
-"""Perception basics: AmodalMasks, TargetAmodalMask, silhouettes, point clouds — alone and wired."""
+"""Perception basics: AmodalMasks, TargetAmodalMask, silhouettes, point clouds — alone and wired
+(TargetAmodalMask in the oracle's bin-search controller)."""
 
 import copy
 
@@ -97,3 +98,33 @@ def test_target_amodal_mask_alone_picks_the_target_or_nothing():
     system.get_input_port().FixValue(ctx, InstanceMasks(masks[:1], ("a",), np.ones(1)))
     out = system.get_output_port().Eval(ctx)
     assert out.shape == (6, 8) and not out.any()  # the target was removed
+
+
+def test_target_amodal_mask_wired_in_the_oracle_controller(small_heap):
+    """The oracle's bin-search diagram: station body_poses -> AmodalMasks -> TargetAmodalMask ->
+    PolicySelector.target_amodal; the mask is the target's silhouette at its pose in the plant."""
+    from ms_drake.experiments.rollout import SearchParams, _set_initial, build_search
+    from ms_drake.scenario import load_scenario
+
+    system = build_search(load_scenario(None, "FloatingGripperBin"), small_heap,
+                          SearchParams(policy="oracle", seed=5, time_step=0.01))
+    subsystems = {type(sub).__name__: sub for sub in system.controller.GetSystems()}
+    pick, amodal, selector = subsystems["TargetAmodalMask"], subsystems["AmodalMasks"], subsystems["PolicySelector"]
+    assert pick.target_id == system.target_id
+    ctx = system.diagram.CreateDefaultContext()
+    _set_initial(system, ctx, small_heap)
+    mask = pick.get_output_port().Eval(pick.GetMyContextFromRoot(ctx))
+    full = amodal.get_output_port().Eval(amodal.GetMyContextFromRoot(ctx))
+    assert mask.shape == (480, 640) and mask.dtype == bool and mask.sum() > 500
+    np.testing.assert_array_equal(mask, full.masks[full.ids.index(system.target_id)])
+    np.testing.assert_array_equal(selector.GetInputPort("target_amodal").Eval(selector.GetMyContextFromRoot(ctx)), mask)
+    visible = system.output(ctx, "masks")  # the label image's masks: the target's visible part lies inside
+    seen = visible.masks[visible.ids.index(system.target_id)]
+    assert (seen & mask).sum() >= 0.97 * seen.sum() > 0
+    # the target moved out of the camera's view (behind it): an empty mask of the image's size
+    plant = system.plant
+    body = next(o for o in station_objects(plant) if o.model_name == system.target_id).body_index
+    plant.SetFreeBodyPose(plant.GetMyMutableContextFromRoot(ctx), plant.get_body(body),
+                          RigidTransform([0.0, 0.0, 5.0]))
+    gone = pick.get_output_port().Eval(pick.GetMyContextFromRoot(ctx))
+    assert gone.shape == (480, 640) and not gone.any()

@@ -175,6 +175,31 @@ def test_an_action_after_which_the_camera_sees_no_change_is_not_repeated(scenari
     assert refuse_like_unchanged(foss, seen, (o, done)) == []  # something changed since
 
 
+def test_shelf_search_selector_alone_returns_the_policys_action_with_its_scene(scenario):
+    seen = ShelfScene((OCC, SIDE))  # what a segmenter reports: the occluders, no target
+    geometry = ShelfGeometry.from_scenario(scenario)
+    occupancy = ground_truth_occupancy(geometry, SCENE)
+    for judge in (False, True):
+        sel = ShelfSearchSelector("bluction_dar", Foss(geometry), ShelfPolicyParams(), judge_by_scene=judge)
+        ctx = sel.CreateDefaultContext()
+        with pytest.raises(ControllerError, match="ShelfSearchSelector.*scene"):
+            sel.GetOutputPort("action").Eval(ctx)
+        sel.GetInputPort("scene").FixValue(ctx, seen)
+        sel.GetInputPort("occupancy").FixValue(ctx, occupancy)
+        first = sel.GetOutputPort("action").Eval(ctx)  # history unconnected: the first step
+        best = sel.rules.select(seen, occupancy.image_x, ())
+        assert first.kind == "shelf" and first == dataclasses.replace(best, scene=seen)
+        # executed, and the camera sees the same scene: with judge_by_scene the policy moves on
+        sel.GetInputPort("history").FixValue(ctx, (ActionOutcome(first, True, message="agree=nan executed"),))
+        again = sel.GetOutputPort("action").Eval(ctx)
+        assert again.kind == "shelf" and again.scene == seen and (again.shelf != first.shelf) == judge
+    # nothing to act on: "stop", which carries no scene
+    sel.GetInputPort("scene").FixValue(ctx, ShelfScene(()))
+    sel.GetInputPort("history").FixValue(ctx, ())
+    stop = sel.GetOutputPort("action").Eval(ctx)
+    assert stop.kind == "stop" and stop.scene is None
+
+
 def test_depth_controller_bad_inputs(scenario):
     bodies = {o.id: ShelfBody(k, o) for k, o in enumerate((OCC, TARGET))}
     with pytest.raises(ControllerError, match="without sim="):

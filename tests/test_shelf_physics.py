@@ -1,10 +1,12 @@
 """Shelf search on the Fetch in physics: ShelfBackend alone (plans reach the commanded poses),
-MakeShelfSearchController alone (fixed inputs) and wired to the FetchShelf station (one push moves
-the pushed object along x), bad inputs."""
+ShelfSceneObserver alone (fixed body poses) and wired to the FetchShelf station, MakeShelfSearchController
+alone (fixed inputs) and wired to the FetchShelf station (one push moves the pushed object along x),
+bad inputs."""
 
 import numpy as np
 import pytest
 from pydrake.math import RigidTransform
+from pydrake.multibody.tree import BodyIndex
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
 from pydrake.systems.sensors import ImageDepth32F, ImageRgba8U
 
@@ -26,6 +28,7 @@ from ms_drake.planning import ik_pose
 from ms_drake.policies.bin_search import ControllerError
 from ms_drake.policies.shelf_search import (
     MakeShelfSearchController,
+    ShelfSceneObserver,
     ShelfSearchParams,
     ShelfSimulationInfo,
 )
@@ -118,6 +121,55 @@ def test_backend_bad_inputs(scenario, backend):
         ShelfBackend(load_scenario(None, "YuMiBin"), {}, "")
     with pytest.raises(ExecutionError, match="target_id"):
         ShelfBackend(scenario, {}, "target")
+
+
+def test_scene_observer_alone_reads_the_body_poses():
+    origin = (0.8, -0.1, 0.45)  # the shelf floor's centre in world
+    bodies = {o.id: ShelfBody(k + 1, o) for k, o in enumerate((OCC, SIDE, TARGET))}  # body 0: the world
+    observer = ShelfSceneObserver(ShelfSimulationInfo(bodies, "target"), origin)
+    ctx = observer.CreateDefaultContext()
+    with pytest.raises(ControllerError, match="connect body_poses"):
+        observer.GetOutputPort("scene").Eval(ctx)
+    moved = OCC.moved(OCC.x + 0.05, OCC.y - 0.02)
+    poses = [RigidTransform()] + [RigidTransform(np.add(origin, [o.x, o.y, o.height / 2]))
+                                  for o in (moved, SIDE, TARGET)]
+    observer.GetInputPort("body_poses").FixValue(ctx, poses)
+    scene = observer.GetOutputPort("scene").Eval(ctx)
+    assert [o.id for o in scene.objects] == ["occ00", "occ01"] and scene.target.id == "target"
+    for got, want in zip(scene.objects + (scene.target,), (moved, SIDE, TARGET)):
+        assert got.kind == want.kind and (got.width, got.depth, got.height) == (want.width, want.depth, want.height)
+        assert (got.x, got.y) == (pytest.approx(want.x, abs=1e-12), pytest.approx(want.y, abs=1e-12))
+    # toppled onto its side (90 degrees about x): its footprint is the rotated box
+    from pydrake.math import RollPitchYaw
+
+    poses[1] = RigidTransform(RollPitchYaw(np.pi / 2, 0, 0), np.add(origin, [0.1, -0.1, OCC.depth / 2]))
+    observer.GetInputPort("body_poses").FixValue(ctx, poses)
+    lying = observer.GetOutputPort("scene").Eval(ctx).object("occ00")
+    assert (lying.x, lying.y) == (pytest.approx(0.1), pytest.approx(-0.1))
+    assert (lying.width, lying.depth, lying.height) == (pytest.approx(OCC.width), pytest.approx(OCC.height),
+                                                        pytest.approx(OCC.depth))
+
+
+def test_scene_observer_wired_to_the_station(scenario):
+    """In the simulated station's diagram the observer reads the plant's body poses: the objects
+    where set_initial put them, and where an object is moved to."""
+    system = build_shelf_physics(scenario, SCENE, ShelfSearchParams(policy="dar"))
+    observer = system.controller.GetSubsystemByName("scene_observer")
+    assert isinstance(observer, ShelfSceneObserver)
+    ctx = system.diagram.CreateDefaultContext()
+    set_initial(system, ctx, SCENE)
+    octx = observer.GetMyContextFromRoot(ctx)
+    scene = observer.GetOutputPort("scene").Eval(octx)
+    assert [o.id for o in scene.objects] == ["occ00", "occ01"] and scene.target.id == "target"
+    for got, want in zip(scene.objects + (scene.target,), SCENE.objects + (SCENE.target,)):
+        assert abs(got.x - want.x) < 1e-9 and abs(got.y - want.y) < 1e-9 and got.kind == want.kind
+    assert system.controller.GetOutputPort("scene").Eval(system.controller.GetMyContextFromRoot(ctx)) == scene
+    pc = system.plant.GetMyMutableContextFromRoot(ctx)
+    body = system.plant.get_body(BodyIndex(system.sim.bodies["occ01"].body_index))
+    origin = np.asarray(scenario.environment.position, float)
+    system.plant.SetFreeBodyPose(pc, body, RigidTransform(origin + [0.2, -0.05, SIDE.height / 2]))
+    side = observer.GetOutputPort("scene").Eval(octx).object("occ01")
+    assert (side.x, side.y) == (pytest.approx(0.2), pytest.approx(-0.05))
 
 
 def test_controller_alone_fixed_inputs(scenario):

@@ -192,6 +192,28 @@ def test_associate_names_estimates_after_the_true_objects(shelf):
     assert system.GetOutputPort("scene").Eval(context) == named
 
 
+def test_associate_wired_in_the_depth_search_diagram(shelf):
+    """FossSystem -> ShelfDepthCamera -> ShelfSegmenter -> AssociateShelfObjects -> the policy: the
+    policy's scene is the segmenter's estimate with the true objects' ids."""
+    from ms_drake.experiments.shelf import build_shelf_search
+    from ms_drake.foss import Foss
+
+    scenario, geometry = shelf
+    truth = generate_shelf_scene(geometry, 3, 8).scene
+    diagram = build_shelf_search(Foss(geometry), truth, "dar", perception="depth")
+    names, seg = diagram.GetSubsystemByName("associate"), diagram.GetSubsystemByName("segmenter")
+    assert isinstance(names, AssociateShelfObjects)
+    context = diagram.CreateDefaultContext()
+    estimate = seg.GetOutputPort("scene").Eval(seg.GetMyContextFromRoot(context))
+    named = names.GetOutputPort("scene").Eval(names.GetMyContextFromRoot(context))
+    assert named == associate(estimate, truth) and len(named.objects) == len(estimate.objects) >= 3
+    assert {o.id for o in named.objects} <= {o.id for o in truth.objects}
+    policy = diagram.GetSubsystemByName("policy")
+    assert policy.GetInputPort("scene").Eval(policy.GetMyContextFromRoot(context)) == named
+    action = diagram.GetOutputPort("action").Eval(context)
+    assert action.kind == "shelf" and action.shelf.object_id in {o.id for o in named.objects}
+
+
 def test_foss_search_with_depth_perception():
     """The policy sees only the segmenter's objects of each render, and still finds the target."""
     record = shelf_rollout("bluction_dar", 8, 0, perception="depth")
