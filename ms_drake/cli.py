@@ -143,6 +143,21 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
                   help="Robot mechanical search in Drake.")
 
 ScenarioFile = typer.Option(None, "--scenario-file", help="Scenario YAML (default: diagrams/scenarios.yaml)")
+# Options several commands share (typer reads an option's declaration without changing it).
+JsonlOut = typer.Option(..., "--out", help="Output .jsonl (appended to; resumes)")
+Ray = typer.Option(False, "--ray", help="Run on a local Ray cluster")
+RayAddress = typer.Option(None, "--ray-address", help="Ray cluster address")
+DatasetSeed = typer.Option(0, "--seed", min=0, help="Dataset seed")
+TrainingSeed = typer.Option(0, "--seed", min=0, help="Seed")
+TorchThreads = typer.Option(1, "--threads", min=1, help="torch threads")
+
+
+def _workers(help: str = "Parallel workers", max: Optional[int] = 64):
+    return typer.Option(1, "--workers", min=1, max=max, help=help)
+
+
+def _seed_start(help: str, default: int = 0):
+    return typer.Option(default, "--seed-start", min=0, help=help)
 
 
 def _write_json(out: Path, value) -> None:
@@ -157,6 +172,66 @@ def _fail(msg: str, code: int = 2):
 
 def _scenario(file: Optional[Path], name: str):
     return load_scenario(file, name)
+
+
+def _choose(option: str, value, choices, quote: bool = True) -> None:
+    """Fail unless `value` (given with `option`) is one of `choices`; `quote`: show it as a repr."""
+    if value not in choices:
+        shown = repr(value) if quote else value
+        _fail(f"{option} {shown}: choose one of {', '.join(choices)}")
+
+
+def _need_jsonl(out: Path) -> None:
+    if out.suffix != ".jsonl":
+        _fail(f"--out {out}: give a .jsonl file")
+
+
+def _need_results(files, command: str = "") -> None:
+    """Fail unless every result file exists; `command` (e.g. "bench search") is the one that writes them."""
+    missing = [str(f) for f in files if not f.exists()]
+    if missing:
+        hint = f"; run `ms-drake {command} ... --out FILE.jsonl` first" if command else ""
+        _fail(f"no such result file: {', '.join(missing)}{hint}")
+
+
+def _echo_written(written: dict) -> None:
+    for k, v in written.items():
+        typer.echo(f"  {k:18s} {v}")
+
+
+def _job_bar(total: int, desc: str, unit: str, name=None):
+    """A tqdm bar and a progress callback for `run_jobs` results: each result ticks the bar; a failed one
+    prints `<name(job)>: <last line of its error> (rerun to retry)` (default name: `<unit> <job[1]>`)."""
+    bar = tqdm(total=total, desc=desc, unit=unit)
+    name = name or (lambda job: f"{unit} {job[1]}")
+
+    def progress(r):
+        bar.update(1)
+        if not r.ok:
+            tqdm.write(f"{name(r.job)}: {r.error.strip().splitlines()[-1]} (rerun to retry)")
+
+    return bar, progress
+
+
+def _epoch_bar(epochs: int):
+    """A tqdm bar over each epoch's batches and the training progress callback `(epoch, b, n, loss)` for it."""
+    bar = tqdm(desc="training", unit="batch")
+
+    def progress(epoch, b, n, loss):
+        if b == 0:
+            bar.reset(total=n)
+            bar.set_description(f"epoch {epoch + 1}/{epochs}")
+        bar.update(1)
+        bar.set_postfix(loss=f"{loss:.4f}")
+
+    return bar, progress
+
+
+def _echo_trained(out: Path, meta: dict, epochs: int, loss_format: str = ".5f") -> None:
+    """Each epoch's loss and time from a training's meta, then where the weights went."""
+    for h in meta["history"]:
+        typer.echo(f"epoch {h['epoch']}: loss {h['loss']:{loss_format}} ({h['seconds']:.0f} s)")
+    typer.echo(f"wrote {out} ({meta['epochs_done']} of {epochs} epochs, {meta['seconds'] / 60:.1f} min)")
 
 
 @app.command()
@@ -183,15 +258,13 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
     if kind not in ("bin", "shelf", "rearrange"):
         _fail(f"demo {kind!r}: choose bin, shelf or rearrange")
     if kind == "rearrange":
-        if method not in REARRANGE_METHODS:
-            _fail(f"--method {method}: choose one of {', '.join(REARRANGE_METHODS)}")
+        _choose("--method", method, REARRANGE_METHODS, quote=False)
         out = out or Path("out/demo_rearrange")
         t = time.perf_counter()
         typer.echo(f"moving the target past the barrier with MPPI ({method}) on the Panda ...")
         written = run_rearrange_demo(out, method=method, seed=REARRANGE_DEMO_SEED if seed is None else seed,
                                      meshcat_html=meshcat, log=typer.echo)
-        for k, v in written.items():
-            typer.echo(f"  {k:18s} {v}")
+        _echo_written(written)
         typer.echo(f"done in {time.perf_counter() - t:.1f} s")
         return
     if kind == "shelf":
@@ -200,16 +273,14 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
         objects = SHELF_DEMO_OCCLUDERS if objects is None else objects
         if not 2 <= objects <= 12:
             _fail(f"--objects {objects}: a shelf scene has 2 to 12 occluders")
-        if perception not in SHELF_CONTROLLER_PERCEPTIONS:
-            _fail(f"--perception {perception}: choose one of {', '.join(SHELF_CONTROLLER_PERCEPTIONS)}")
+        _choose("--perception", perception, SHELF_CONTROLLER_PERCEPTIONS, quote=False)
         out = out or Path("out/demo_shelf")
         t = time.perf_counter()
         typer.echo(f"searching shelf scene {seed} ({objects} occluders) with {policy} on the Fetch "
                    f"({perception} perception) ...")
         written = run_shelf_demo(out, seed=seed, occluders=objects, policy=policy, horizon=horizon,
                                  meshcat_html=meshcat, log=typer.echo, perception=perception)
-        for k, v in written.items():
-            typer.echo(f"  {k:18s} {v}")
+        _echo_written(written)
         typer.echo(f"wrote {len(written)} files to {out} in {time.perf_counter() - t:.1f} s")
         return
     out = out or Path("out/demo")
@@ -222,8 +293,7 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
     typer.echo(f"generating a {objects}-object heap (seed {seed}) and searching it with {policy} ...")
     written = run_demo(out, seed=seed, objects=objects, policy=policy, horizon=horizon, meshcat_html=meshcat,
                        log=typer.echo)
-    for k, v in written.items():
-        typer.echo(f"  {k:18s} {v}")
+    _echo_written(written)
     typer.echo(f"wrote {len(written)} files to {out} in {time.perf_counter() - t:.1f} s")
 
 
@@ -237,8 +307,7 @@ def scene(scenario: str = typer.Argument(..., help="Scenario name, e.g. BinHeap1
     s = _scenario(scenario_file, scenario)
     heap = make_scene(s, seed, objects)
     written = write_scene_images(s, heap, out)
-    for k, v in written.items():
-        typer.echo(f"  {k:18s} {v}")
+    _echo_written(written)
 
 
 def _read_done(path: Path) -> set[int]:
@@ -287,9 +356,9 @@ def heap_job(job: tuple) -> dict:
 @app.command()
 def heaps(objects: int = typer.Option(15, "--objects", min=1, max=60, help="Objects per heap (N)"),
           count: int = typer.Option(10, "--count", min=1, help="Number of heaps (K)"),
-          seed_start: int = typer.Option(0, "--seed-start", min=0, help="First seed (S)"),
-          workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers (W)"),
-          out: Path = typer.Option(..., "--out", help="Output .jsonl (appended to; resumes)"),
+          seed_start: int = _seed_start("First seed (S)"),
+          workers: int = _workers("Parallel workers (W)"),
+          out: Path = JsonlOut,
           object_set: Optional[str] = typer.Option(None, "--object-set", help="Object set (default: scenario's)"),
           scenario: str = typer.Option("BinHeap15", help="Scenario name"),
           scenario_file: Optional[Path] = ScenarioFile,
@@ -298,15 +367,14 @@ def heaps(objects: int = typer.Option(15, "--objects", min=1, max=60, help="Obje
           polish: float = typer.Option(0.0, "--polish", min=0.0, max=5.0,
                                        help="With bullet: then settle up to this many simulated seconds in the "
                                             "compliant Drake drop world (0.5: heaps at rest in the bin stations)"),
-          ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
-          ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address")):
+          ray: bool = Ray,
+          ray_address: Optional[str] = RayAddress):
     """Generate heaps for seeds S..S+K-1 in parallel, one JSON line per heap (resumable)."""
 
     s = _scenario(scenario_file, scenario)  # validate before starting workers
     if object_set:
         get_object_set(object_set)
-    if out.suffix != ".jsonl":
-        _fail(f"--out {out}: give a .jsonl file")
+    _need_jsonl(out)
     if engine not in (None, "bullet", "drake"):
         _fail(f"--engine {engine}: use bullet or drake")
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -372,13 +440,13 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
                  objects: Optional[int] = typer.Option(None, "--objects", min=1, max=60,
                                                        help="Objects per heap (N; default 15, xray: 14 besides the target)"),
                  heaps_: int = typer.Option(10, "--heaps", min=1, help="Number of heaps (K)"),
-                 seed_start: int = typer.Option(0, "--seed-start", min=0, help="First heap seed (S)"),
-                 workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers (W)"),
-                 out: Path = typer.Option(..., "--out", help="Output .jsonl (appended to; resumes)"),
+                 seed_start: int = _seed_start("First heap seed (S)"),
+                 workers: int = _workers("Parallel workers (W)"),
+                 out: Path = JsonlOut,
                  fidelity: str = typer.Option("primitive", "--fidelity", help="primitive | full"),
                  horizon: Optional[int] = typer.Option(None, "--horizon", min=1, help="Action budget (default 2N)"),
-                 ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
-                 ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address"),
+                 ray: bool = Ray,
+                 ray_address: Optional[str] = RayAddress,
                  heap_dir: Optional[Path] = typer.Option(
                      None, "--heap-dir", help="Folder of cached heaps (heap_N<N>_s<seed>.json), shared by "
                      "runs of several policies so they search the same heaps; made on first use"),
@@ -403,18 +471,14 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
                                                  f"{' | '.join(HEAP_ENGINES)} (Bullet: ~4x cheaper per heap)")):
     """Search heaps S..S+K-1 with a policy; one JSON line per rollout (resumable), then a summary."""
     check_policy(policy)
-    if heap_engine not in HEAP_ENGINES:
-        _fail(f"--heap-engine {heap_engine!r}: choose one of {', '.join(HEAP_ENGINES)}")
-    if grasp_planner and grasp_planner not in GRASP_PLANNERS:
-        _fail(f"--grasp-planner {grasp_planner!r}: choose one of {', '.join(GRASP_PLANNERS)}")
-    if push_policy and push_policy not in PUSH_POLICIES:
-        _fail(f"--push-policy {push_policy!r}: choose one of {', '.join(PUSH_POLICIES)}")
-    if segmenter not in SEGMENTATION_BACKENDS:
-        _fail(f"--segmenter {segmenter!r}: choose one of {', '.join(SEGMENTATION_BACKENDS)}")
-    if detector not in DETECTOR_BACKENDS:
-        _fail(f"--detector {detector!r}: choose one of {', '.join(DETECTOR_BACKENDS)}")
-    if protocol not in PROTOCOLS:
-        _fail(f"--protocol {protocol!r}: choose one of {', '.join(PROTOCOLS)}")
+    _choose("--heap-engine", heap_engine, HEAP_ENGINES)
+    if grasp_planner:
+        _choose("--grasp-planner", grasp_planner, GRASP_PLANNERS)
+    if push_policy:
+        _choose("--push-policy", push_policy, PUSH_POLICIES)
+    _choose("--segmenter", segmenter, SEGMENTATION_BACKENDS)
+    _choose("--detector", detector, DETECTOR_BACKENDS)
+    _choose("--protocol", protocol, PROTOCOLS)
     if heap_engine != "drake" and protocol != "ch7":
         _fail(f"--heap-engine {heap_engine}: only with --protocol ch7 (the {protocol} heaps are dropped with Bullet "
               "and settled in Drake)")
@@ -422,10 +486,8 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
         objects = XRAY_OBJECTS if protocol in XRAY_PROTOCOLS else 15
     if protocol in XRAY_PROTOCOLS and horizon is None:
         horizon = XRAY_HORIZON
-    if fidelity not in FIDELITIES:
-        _fail(f"--fidelity {fidelity!r}: choose one of {', '.join(FIDELITIES)}")
-    if out.suffix != ".jsonl":
-        _fail(f"--out {out}: give a .jsonl file")
+    _choose("--fidelity", fidelity, FIDELITIES)
+    _need_jsonl(out)
 
     def progress(rec):
         typer.echo(f"seed {rec['seed']}: {'success' if rec['success'] else rec['failure']} after "
@@ -446,9 +508,7 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
 def bench_plot(files: list[Path] = typer.Argument(..., help="Result .jsonl files (ms-drake bench search)"),
                out: Path = typer.Option(Path("out/bench"), "--out", help="Output folder for the PNGs")):
     """Cumulative successes vs actions (Fig. 7.4 B) and the actions histogram (Fig. 8.6) as PNG."""
-    missing = [str(f) for f in files if not f.exists()]
-    if missing:
-        _fail(f"no such result file: {', '.join(missing)}; run `ms-drake bench search ... --out FILE.jsonl` first")
+    _need_results(files, "bench search")
     for p in plot(files, out):
         typer.echo(f"wrote {p}")
 
@@ -488,12 +548,12 @@ app.add_typer(data_app, name="data")
 @data_app.command("push-heaps")
 def data_push_heaps(count: int = typer.Option(..., "--count", min=1, help="Heaps to drop (seeds S..S+N-1)"),
                     out: Path = typer.Option(..., "--out", help="Output folder (heaps.jsonl; resumes)"),
-                    seed_start: int = typer.Option(0, "--seed-start", min=0, help="First heap seed (S)"),
-                    workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers"),
+                    seed_start: int = _seed_start("First heap seed (S)"),
+                    workers: int = _workers(),
                     object_set: str = typer.Option("", "--object-set",
                                                    help="Object set of the heaps (default: BinHeap15's, procedural)"),
-                    ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
-                    ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address")):
+                    ray: bool = Ray,
+                    ray_address: Optional[str] = RayAddress):
     """Improvable heaps (Ch. 4, Algorithm 1): drop, grasp until stuck, run the five push policies;
     one record per heap, `improvable` when some policy raises the overall grasp quality."""
     if object_set:
@@ -516,18 +576,16 @@ def data_push_heaps(count: int = typer.Option(..., "--count", min=1, help="Heaps
 @bench_app.command("push")
 def bench_push(policy: str = typer.Option(..., "--policy", help=f"Push policy: {' | '.join(PUSH_POLICIES)}"),
                heaps_: int = typer.Option(400, "--heaps", min=1, help="Improvable heaps (the first N, by seed)"),
-               seed_start: int = typer.Option(0, "--seed-start", min=0, help="Lowest heap seed (S)"),
-               out: Path = typer.Option(..., "--out", help="Output .jsonl (appended to; resumes)"),
+               seed_start: int = _seed_start("Lowest heap seed (S)"),
+               out: Path = JsonlOut,
                heap_dir: Path = typer.Option(Path("out/push_heaps"), "--heap-dir",
                                              help="Folder of `ms-drake data push-heaps`"),
-               workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers (--rerun)"),
+               workers: int = _workers("Parallel workers (--rerun)"),
                rerun: bool = typer.Option(False, "--rerun", help="Execute the push again instead of taking "
                                           "the data step's execution of the policy on the heap")):
     """One JSON line per improvable heap: seed, policy, separation / jaw / suction / overall gain."""
-    if policy not in PUSH_POLICIES:
-        _fail(f"--policy {policy!r}: choose one of {', '.join(PUSH_POLICIES)}")
-    if out.suffix != ".jsonl":
-        _fail(f"--out {out}: give a .jsonl file")
+    _choose("--policy", policy, PUSH_POLICIES)
+    _need_jsonl(out)
     if not (heap_dir / "heaps.jsonl").exists():
         _fail(f"--heap-dir {heap_dir}: no heaps.jsonl; run `ms-drake data push-heaps --out {heap_dir}` first")
     s = run_push_bench(policy, heaps_, seed_start, out, heap_dir, workers=workers, rerun=rerun)
@@ -544,9 +602,7 @@ def bench_push_table(files: list[Path] = typer.Argument(..., help="Result .jsonl
                                                             "analogues (PNG) into this folder"),
                      json_out: Optional[Path] = typer.Option(None, "--json", help="Write the summary as JSON")):
     """Mean +- standard error per policy and metric on the heaps every policy has, one-way ANOVA per metric."""
-    missing = [str(f) for f in files if not f.exists()]
-    if missing:
-        _fail(f"no such result file: {', '.join(missing)}; run `ms-drake bench push ... --out FILE.jsonl` first")
+    _need_results(files, "bench push")
     rows = [r for f in files for r in read_jsonl(f)]
     s = summarize_push(rows)
     typer.echo(format_push_table(s))
@@ -559,11 +615,11 @@ def bench_push_table(files: list[Path] = typer.Argument(..., help="Result .jsonl
 
 @bench_app.command("push-fidelity")
 def bench_push_fidelity(heaps_: int = typer.Option(400, "--heaps", min=1, help="Improvable heaps (the first N, by seed)"),
-                        seed_start: int = typer.Option(0, "--seed-start", min=0, help="Lowest heap seed (S)"),
+                        seed_start: int = _seed_start("Lowest heap seed (S)"),
                         heap_dirs: list[Path] = typer.Option(..., "--heap-dir", help="Folder of `ms-drake data "
                                                              "push-heaps` (repeat for several)"),
-                        out: Path = typer.Option(..., "--out", help="Output .jsonl (appended to; resumes)"),
-                        workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers"),
+                        out: Path = JsonlOut,
+                        workers: int = _workers(),
                         policies: Optional[list[str]] = typer.Option(None, "--policy", help="Push policies "
                                                                      f"(repeat; default all): {' | '.join(PUSH_POLICIES)}"),
                         json_out: Optional[Path] = typer.Option(None, "--json", help="Write the summary as JSON")):
@@ -572,8 +628,7 @@ def bench_push_fidelity(heaps_: int = typer.Option(400, "--heaps", min=1, help="
     bad = [p for p in policies or [] if p not in PUSH_POLICIES]
     if bad:
         _fail(f"--policy {', '.join(bad)}: choose from {', '.join(PUSH_POLICIES)}")
-    if out.suffix != ".jsonl":
-        _fail(f"--out {out}: give a .jsonl file")
+    _need_jsonl(out)
     missing = [str(d) for d in heap_dirs if not (d / "heaps.jsonl").exists()]
     if missing:
         _fail(f"--heap-dir {', '.join(missing)}: no heaps.jsonl; run `ms-drake data push-heaps --out DIR` first")
@@ -598,11 +653,11 @@ def bench_push_fidelity(heaps_: int = typer.Option(400, "--heaps", min=1, help="
 @bench_app.command("fidelity")
 def bench_fidelity(heaps_: int = typer.Option(50, "--heaps", min=1, help="Heaps (seeds S..S+K-1)"),
                    objects: int = typer.Option(10, "--objects", min=1, help="Objects per heap (N)"),
-                   seed_start: int = typer.Option(5000, "--seed-start", min=0, help="Lowest heap seed (S)"),
+                   seed_start: int = _seed_start("Lowest heap seed (S)", 5000),
                    heap_dir: Optional[Path] = typer.Option(None, "--heap-dir", help="Heap cache folder (shared "
                                                            "with `bench search --heap-dir`)"),
-                   out: Path = typer.Option(..., "--out", help="Output .jsonl (appended to; resumes)"),
-                   workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers"),
+                   out: Path = JsonlOut,
+                   workers: int = _workers(),
                    attempts: int = typer.Option(2, "--attempts", min=1, help="First K grasp attempts per heap"),
                    reach: str = typer.Option("YuMiBin", "--reach", help="The primitive search keeps only grasps "
                                              "this scenario's robot reaches ('' for none)"),
@@ -610,8 +665,7 @@ def bench_fidelity(heaps_: int = typer.Option(50, "--heaps", min=1, help="Heaps 
     """The primitive search's first grasp attempts per heap, each replayed on the YuMi (full
     fidelity) from the same scene with the same grasp: one JSON line per attempt (primitive and
     full outcome, CPU s), per-attempt success in each fidelity and their agreement."""
-    if out.suffix != ".jsonl":
-        _fail(f"--out {out}: give a .jsonl file")
+    _need_jsonl(out)
     with tqdm(total=heaps_, desc="fidelity", unit="heap") as bar:
         s = run_fidelity(heaps_, seed_start, out, objects=objects, heap_dir=str(heap_dir) if heap_dir else None,
                          workers=workers, max_attempts=attempts, reach=reach,
@@ -638,12 +692,12 @@ def bench_shelf(ctx: typer.Context,
                 occluders: list[int] = typer.Option([4, 6, 8, 10], "--occluders",
                                                     help="Occluder counts (2-12), e.g. --occluders 4 6 8 10"),
                 scenes: int = typer.Option(100, "--scenes", min=1, help="Scenes per occluder count (K)"),
-                seed_start: int = typer.Option(0, "--seed-start", min=0, help="First scene seed (S)"),
-                out: Path = typer.Option(..., "--out", help="Output .jsonl (appended to; resumes)"),
-                workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers (W)"),
+                seed_start: int = _seed_start("First scene seed (S)"),
+                out: Path = JsonlOut,
+                workers: int = _workers("Parallel workers (W)"),
                 horizon: Optional[int] = typer.Option(None, "--horizon", min=1, help="Action budget (default 2n)"),
-                ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
-                ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address"),
+                ray: bool = Ray,
+                ray_address: Optional[str] = RayAddress,
                 perception: str = typer.Option("ground_truth", "--perception",
                                                help="ground_truth (FOSS's scene, analytic occupancy), learned "
                                                     "(learned occupancy of depth renders) or depth (also the "
@@ -651,11 +705,9 @@ def bench_shelf(ctx: typer.Context,
     """Shelf search in FOSS (Table 9.1): scenes S..S+K-1 for each occluder count, ground-truth (or
     learned) occupancy; one JSON line per search (resumable), then success rates and median steps."""
     check_shelf_policy(policy)
-    if perception not in SHELF_PERCEPTIONS:
-        _fail(f"--perception {perception}: choose one of {', '.join(SHELF_PERCEPTIONS)}")
+    _choose("--perception", perception, SHELF_PERCEPTIONS, quote=False)
     counts = _occluder_counts(occluders, ctx.args)
-    if out.suffix != ".jsonl":
-        _fail(f"--out {out}: give a .jsonl file")
+    _need_jsonl(out)
     bar = tqdm(total=len(counts) * scenes, desc=policy, unit="scene")
 
     def progress(rec):
@@ -679,12 +731,12 @@ def bench_shelf(ctx: typer.Context,
 @bench_app.command("shelf-physics")
 def bench_shelf_physics(policy: str = typer.Option(..., "--policy", help=f"Shelf policy: {', '.join(SHELF_POLICIES)}"),
                         scenes: int = typer.Option(10, "--scenes", min=1, help="Scenes (N)"),
-                        seed_start: int = typer.Option(0, "--seed-start", min=0, help="First scene seed (S)"),
-                        out: Path = typer.Option(..., "--out", help="Output .jsonl (appended to; resumes)"),
+                        seed_start: int = _seed_start("First scene seed (S)"),
+                        out: Path = JsonlOut,
                         occluders: Optional[list[int]] = typer.Option(None, "--occluders",
                                                                       help="Occluder counts cycled over the seeds "
                                                                            "(default: drawn from the seed)"),
-                        workers: int = typer.Option(1, "--workers", min=1, help="Local worker processes"),
+                        workers: int = _workers("Local worker processes", max=None),
                         foss_choice: bool = typer.Option(False, "--foss-choice",
                                                          help="Choose by FOSS alone (no check on the Fetch's "
                                                               "planner before acting)"),
@@ -695,10 +747,8 @@ def bench_shelf_physics(policy: str = typer.Option(..., "--policy", help=f"Shelf
     """Shelf search on the Fetch in Drake physics (Table 9.2 analogue): scenes S..S+N-1; one JSON
     line per scene (seed, occluders, policy, perception, success, steps, physics-FOSS agreement); resumable."""
     check_shelf_policy(policy)
-    if perception not in SHELF_CONTROLLER_PERCEPTIONS:
-        _fail(f"--perception {perception}: choose one of {', '.join(SHELF_CONTROLLER_PERCEPTIONS)}")
-    if out.suffix != ".jsonl":
-        _fail(f"--out {out}: give a .jsonl file")
+    _choose("--perception", perception, SHELF_CONTROLLER_PERCEPTIONS, quote=False)
+    _need_jsonl(out)
     if occluders and any(not 2 <= n <= 12 for n in occluders):
         _fail(f"--occluders {occluders}: shelf scenes have 2 to 12 occluders")
     run_shelf_physics_bench(policy, scenes, seed_start, out, occluders, workers=workers, log=typer.echo,
@@ -713,9 +763,9 @@ def bench_rearrange(method: Optional[str] = typer.Option(None, "--method",
                                                          help=f"Collision checker: {', '.join(REARRANGE_METHODS)}"),
                     scenes: int = typer.Option(10, "--scenes", min=1, help="Scenes (N)"),
                     objects: int = typer.Option(10, "--objects", min=1, max=20, help="Objects per scene (K)"),
-                    seed_start: int = typer.Option(0, "--seed-start", min=0, help="First scene seed (S)"),
-                    out: Path = typer.Option(..., "--out", help="Output .jsonl (appended to; resumes)"),
-                    workers: int = typer.Option(1, "--workers", min=1, help="Local worker processes"),
+                    seed_start: int = _seed_start("First scene seed (S)"),
+                    out: Path = JsonlOut,
+                    workers: int = _workers("Local worker processes", max=None),
                     trajectories: int = typer.Option(300, "--trajectories", min=1, help="MPPI samples T"),
                     horizon: int = typer.Option(40, "--horizon", min=1, help="MPPI horizon H"),
                     table: bool = typer.Option(False, "--table", help="Only print the table of --out")):
@@ -723,10 +773,9 @@ def bench_rearrange(method: Optional[str] = typer.Option(None, "--method",
     each moved (two attempts) to elsewhere on the table by the MPPI controller with the given collision
     checker; one JSON line per scene (grasps attempted / successful, placements, sim minutes, cpu
     seconds); resumable. --table: the table of every method in --out."""
-    if not table and method not in REARRANGE_METHODS:
-        _fail(f"--method {method}: choose one of {', '.join(REARRANGE_METHODS)}")
-    if out.suffix != ".jsonl":
-        _fail(f"--out {out}: give a .jsonl file")
+    if not table:
+        _choose("--method", method, REARRANGE_METHODS, quote=False)
+    _need_jsonl(out)
     if not table:
         run_rearrange_bench(method, scenes, seed_start, out, objects=objects, workers=workers, log=typer.echo,
                             trajectories=trajectories, horizon=horizon)
@@ -741,9 +790,7 @@ def bench_shelf_physics_table(files: list[Path] = typer.Argument(..., help="Resu
                                                              help="The records of this controller perception "
                                                                   "(ground_truth or depth)")):
     """The Table 9.2 analogue (markdown) from physics shelf result files."""
-    missing = [str(f) for f in files if not f.exists()]
-    if missing:
-        _fail(f"no such result file: {', '.join(missing)}")
+    _need_results(files)
     recs = physics_records(files, perception)
     typer.echo(physics_table(recs))
 
@@ -752,9 +799,7 @@ def bench_shelf_physics_table(files: list[Path] = typer.Argument(..., help="Resu
 def bench_shelf_table(files: list[Path] = typer.Argument(..., help="Result .jsonl files (ms-drake bench shelf)"),
                       plot_dir: Optional[Path] = typer.Option(None, "--plot", help="Also write the figure here")):
     """Table 9.1 (markdown) from shelf result files, and optionally its figure."""
-    missing = [str(f) for f in files if not f.exists()]
-    if missing:
-        _fail(f"no such result file: {', '.join(missing)}; run `ms-drake bench shelf ... --out FILE.jsonl` first")
+    _need_results(files, "bench shelf")
     recs = shelf_records(files)
     typer.echo(shelf_table(recs))
     if plot_dir is not None:
@@ -765,11 +810,11 @@ def bench_shelf_table(files: list[Path] = typer.Argument(..., help="Result .json
 def bench_shelf_segmentation_cmd(
         scenes: int = typer.Option(100, "--scenes", min=1, help="Scenes per occluder count"),
         occluders: list[int] = typer.Option([4, 6, 8, 10], "--occluders", help="Occluder counts (repeat)"),
-        seed_start: int = typer.Option(0, "--seed-start", min=0, help="First scene seed"),
+        seed_start: int = _seed_start("First scene seed"),
         out: Path = typer.Option(..., "--out", help="Result .jsonl (one line per scene; resumes)"),
         noise: float = typer.Option(0.0, "--noise", min=0.0, help="Depth noise std [m]"),
         dropout: float = typer.Option(0.0, "--dropout", min=0.0, max=0.99, help="Fraction of pixels lost"),
-        workers: int = typer.Option(1, "--workers", min=1, help="Local worker processes"),
+        workers: int = _workers("Local worker processes", max=None),
         use_ray: bool = typer.Option(False, "--ray", help="Run on Ray")):
     """How well the ShelfSegmenter recovers Table 9.1's scenes from the front camera's depth image."""
     bad = [n for n in occluders if not 2 <= n <= 12]
@@ -782,7 +827,7 @@ def bench_shelf_segmentation_cmd(
 
 @bench_app.command("shelf-scenes")
 def bench_shelf_scenes_cmd(count: int = typer.Option(1000, "--count", min=1, help="Scenes"),
-                           seed_start: int = typer.Option(0, "--seed-start", min=0, help="First scene seed")):
+                           seed_start: int = _seed_start("First scene seed")):
     """CPU time per generated shelf scene (one core): median, p90, max, per occluder count."""
     r = bench_shelf_scenes(count, seed_start)
     typer.echo(f"{r['scenes']} scenes: median {r['median_ms']:.2f} ms, p90 {r['p90_ms']:.2f} ms, max "
@@ -793,23 +838,17 @@ def bench_shelf_scenes_cmd(count: int = typer.Option(1000, "--count", min=1, hel
 @data_app.command("shelf")
 def data_shelf(count: int = typer.Option(..., "--count", min=1, help="Scenes (N)"),
                out: Path = typer.Option(..., "--out", help="Output folder (shard_<k>.npz; resumes)"),
-               seed_start: int = typer.Option(0, "--seed-start", min=0, help="First scene seed"),
+               seed_start: int = _seed_start("First scene seed"),
                shard_size: int = typer.Option(100, "--shard-size", min=1, help="Scenes per shard"),
                depth: bool = typer.Option(True, "--depth/--no-depth", help="Render the Drake depth image of each scene"),
                depth_block: int = typer.Option(1, "--depth-block", min=1, help="Store depth averaged over BxB blocks"),
-               workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers"),
-               ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
-               ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address")):
+               workers: int = _workers(),
+               ray: bool = Ray,
+               ray_address: Optional[str] = RayAddress):
     """Shelf scenes with their ground-truth target distributions (floor 2D, image-x 1D) and depth
     images, sharded; shards already written are kept."""
     t0 = time.perf_counter()
-    bar = tqdm(total=(count + shard_size - 1) // shard_size, desc="shards", unit="shard")
-
-    def progress(r):
-        bar.update(1)
-        if not r.ok:
-            tqdm.write(f"shard {r.job[1]}: {r.error.strip().splitlines()[-1]} (rerun to retry)")
-
+    bar, progress = _job_bar((count + shard_size - 1) // shard_size, "shards", "shard")
     res = write_shelf_dataset(out, count, seed_start, shard_size, depth, workers, ray or ray_address is not None,
                               ray_address, progress, depth_block)
     bar.close()
@@ -832,7 +871,7 @@ def data_grasps(objects: str = typer.Option(..., "--objects", help="Object set: 
                 robust: int = typer.Option(4, "--robust", min=1, help="Robust trials per grasp (and approach)"),
                 seed: int = typer.Option(0, "--seed", min=0, help="Sampling seed"),
                 limit: Optional[int] = typer.Option(None, "--limit", min=1, help="Only the first K objects"),
-                workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers")):
+                workers: int = _workers()):
     """Pre-computed jaw and suction grasps with their robust quality, one npz per object;
     objects already done with the same parameters are kept (resume)."""
     if objects not in [*available_sets(), "targets"]:
@@ -841,13 +880,7 @@ def data_grasps(objects: str = typer.Option(..., "--objects", help="Object set: 
                     "--suction", str(suction), "--robust", str(robust), "--seed", str(seed)]
                    + (["--limit", str(limit)] if limit else []) + (["--out", str(out)] if out else []))
     n = len(get_object_set(objects).objects[:limit])
-    bar = tqdm(total=n, desc=f"{objects} grasp sets", unit="object")
-
-    def progress(r):
-        bar.update(1)
-        if not r.ok:
-            tqdm.write(f"{r.job[0]}: {r.error.strip().splitlines()[-1]} (rerun to retry)")
-
+    bar, progress = _job_bar(n, f"{objects} grasp sets", "object", name=lambda job: job[0])
     try:
         man = write_grasp_sets(objects, out, workers, limit, cmd, progress, model=model, jaw=jaw, suction=suction,
                                robust_samples=robust, seed=seed)
@@ -868,12 +901,12 @@ def data_grasps(objects: str = typer.Option(..., "--objects", help="Object set: 
 @data_app.command("occupancy")
 def data_occupancy(count: int = typer.Option(..., "--count", min=1, help="Images (N), rounded up to whole shards"),
                    out: Path = typer.Option(..., "--out", help="Output folder (shard_<k>_<split>.npz; resumes)"),
-                   seed: int = typer.Option(0, "--seed", min=0, help="Dataset seed"),
+                   seed: int = DatasetSeed,
                    views: int = typer.Option(8, "--views", min=1, help="Camera views (images) per heap"),
                    heaps_per_shard: int = typer.Option(4, "--heaps-per-shard", min=1, help="Heaps per shard"),
-                   workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers"),
-                   ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
-                   ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address"),
+                   workers: int = _workers(),
+                   ray: bool = Ray,
+                   ray_address: Optional[str] = RayAddress,
                    target: Optional[list[str]] = typer.Option(None, "--target", help="Out-of-set box target "
                                                               "'L,W,T' in metres (repeatable), e.g. 0.06,0.06,0.005, or a "
                                                               "cylinder lying flat 'cyl:L,D', e.g. cyl:0.15,0.015"),
@@ -889,13 +922,7 @@ def data_occupancy(count: int = typer.Option(..., "--count", min=1, help="Images
         _fail(f"--target {target}: give three numbers L,W,T per box target, two (cyl:L,D) per cylinder")
     t0 = time.perf_counter()
     per = views * heaps_per_shard
-    bar = tqdm(total=-(-count // per), desc="shards", unit="shard")
-
-    def progress(r):
-        bar.update(1)
-        if not r.ok:
-            tqdm.write(f"shard {r.job[1]}: {r.error.strip().splitlines()[-1]} (rerun to retry)")
-
+    bar, progress = _job_bar(-(-count // per), "shards", "shard")
     res = write_occupancy_dataset(out, count, seed, views, heaps_per_shard, workers,
                                   ray or ray_address is not None, ray_address, progress, targets=targets,
                                   test_only=test_only)
@@ -915,7 +942,7 @@ def train_occupancy_cmd(data: Path = typer.Option(..., "--data", help="Dataset f
                         out: Path = typer.Option(Path("models/weights/occupancy.pt"), "--out", help="Weights file"),
                         epochs: int = typer.Option(12, "--epochs", min=1, help="Epochs (cosine schedule over all)"),
                         batch: int = typer.Option(32, "--batch", min=1, help="Batch size"),
-                        seed: int = typer.Option(0, "--seed", min=0, help="Seed"),
+                        seed: int = TrainingSeed,
                         threads: int = typer.Option(1, "--threads", min=1, help="torch threads (1: on a shared "
                                                     "machine 2 threads were 5x slower, their OpenMP workers spinning)"),
                         max_minutes: float = typer.Option(60.0, "--max-minutes", help="Stop after the epoch that "
@@ -927,16 +954,7 @@ def train_occupancy_cmd(data: Path = typer.Option(..., "--data", help="Dataset f
                         init: Optional[Path] = typer.Option(None, "--init", help="Start from these weights "
                                                             "(fine-tuning; their network configuration)")):
     """Train the occupancy network; resumes from OUT.ckpt; writes OUT (weights + meta)."""
-    bar = tqdm(desc="training", unit="batch")
-
-    def progress(epoch, b, n, loss):
-        bar.total = n
-        if b == 0:
-            bar.reset(total=n)
-            bar.set_description(f"epoch {epoch + 1}/{epochs}")
-        bar.update(1)
-        bar.set_postfix(loss=f"{loss:.4f}")
-
+    bar, progress = _epoch_bar(epochs)
     cmd = " ".join(["ms-drake", "train", "occupancy", "--data", str(data), "--out", str(out), "--epochs", str(epochs),
                     "--batch", str(batch), "--seed", str(seed), "--threads", str(threads), "--lr", str(lr),
                     "--positive-weight", str(positive_weight)] + (["--init", str(init)] if init else []))
@@ -946,18 +964,14 @@ def train_occupancy_cmd(data: Path = typer.Option(..., "--data", help="Dataset f
                            max_minutes=max_minutes, progress=progress, command=cmd, lr=lr,
                            positive_weight=positive_weight, init=init)
     bar.close()
-    for h in meta["history"]:
-        typer.echo(f"epoch {h['epoch']}: loss {h['loss']:.5f} ({h['seconds']:.0f} s)")
-    typer.echo(f"wrote {out} ({meta['epochs_done']} of {epochs} epochs, {meta['seconds'] / 60:.1f} min)")
+    _echo_trained(out, meta, epochs)
 
 
 @bench_app.command("paired")
 def bench_paired(a: Path = typer.Argument(..., help="Result .jsonl of policy A"),
                  b: Path = typer.Argument(..., help="Result .jsonl of policy B (the same heaps)")):
     """Paired sign test of success, A vs B, on the heaps both files hold."""
-    missing = [str(f) for f in (a, b) if not f.exists()]
-    if missing:
-        _fail(f"no such result file: {', '.join(missing)}; run `ms-drake bench search ... --out FILE.jsonl` first")
+    _need_results((a, b), "bench search")
     r = paired_comparison(read_records(a), read_records(b))
     typer.echo(f"{r['heaps']} heaps: only A {len(r['only_a'])}, only B {len(r['only_b'])}, both {r['both']}, "
                f"neither {r['neither']}; two-sided sign test p = {r['p']:.3g}")
@@ -999,28 +1013,18 @@ def train_shelf_occupancy_cmd(
         out: Path = typer.Option(Path("models/weights/shelf_occupancy.pt"), "--out", help="Weights file"),
         epochs: int = typer.Option(8, "--epochs", min=1, help="Epochs (cosine schedule over all)"),
         batch: int = typer.Option(32, "--batch", min=1, help="Batch size"),
-        seed: int = typer.Option(0, "--seed", min=0, help="Seed"),
+        seed: int = TrainingSeed,
         threads: int = typer.Option(1, "--threads", min=1, help="torch threads (1 on this shared machine)"),
         max_minutes: float = typer.Option(30.0, "--max-minutes", help="Stop after the epoch that ends past this")):
     """Train the shelf occupancy network; resumes from OUT.ckpt; writes OUT (weights + meta)."""
-    bar = tqdm(desc="training", unit="batch")
-
-    def progress(epoch, b, n, loss):
-        if b == 0:
-            bar.reset(total=n)
-            bar.set_description(f"epoch {epoch + 1}/{epochs}")
-        bar.update(1)
-        bar.set_postfix(loss=f"{loss:.4f}")
-
+    bar, progress = _epoch_bar(epochs)
     cmd = " ".join(["ms-drake", "train", "shelf-occupancy", "--data", str(data), "--out", str(out), "--epochs",
                     str(epochs), "--batch", str(batch), "--seed", str(seed), "--threads", str(threads),
                     "--max-minutes", f"{max_minutes:g}"])
     meta = train_shelf_occupancy(data, out, epochs=epochs, batch=batch, seed=seed, threads=threads,
                                  max_minutes=max_minutes, progress=progress, command=cmd)
     bar.close()
-    for h in meta["history"]:
-        typer.echo(f"epoch {h['epoch']}: loss {h['loss']:.4f} ({h['seconds']:.0f} s)")
-    typer.echo(f"wrote {out} ({meta['epochs_done']} of {epochs} epochs, {meta['seconds'] / 60:.1f} min)")
+    _echo_trained(out, meta, epochs, loss_format=".4f")
 
 
 @bench_app.command("shelf-occupancy")
@@ -1054,25 +1058,19 @@ def bench_shelf_occupancy_cmd(
 @data_app.command("segmentation")
 def data_segmentation(count: int = typer.Option(..., "--count", min=1, help="Images (N), rounded up to whole shards"),
                       out: Path = typer.Option(..., "--out", help="Output folder (shard_<k>_<split>.npz/.json; resumes)"),
-                      seed: int = typer.Option(0, "--seed", min=0, help="Dataset seed"),
+                      seed: int = DatasetSeed,
                       views: int = typer.Option(4, "--views", min=1, help="Camera views (images) per heap"),
                       heaps_per_shard: int = typer.Option(8, "--heaps-per-shard", min=1, help="Heaps per shard"),
                       noise: float = typer.Option(0.0, "--noise", min=0.0, help="Gaussian depth noise sigma, m"),
                       dropout: float = typer.Option(0.0, "--dropout", min=0.0, max=0.99,
                                                     help="Missing-pixel rate (half single pixels, half at edges)"),
-                      workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers"),
-                      ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
-                      ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address")):
+                      workers: int = _workers(),
+                      ray: bool = Ray,
+                      ray_address: Optional[str] = RayAddress):
     """WISDOM-Sim-like depth images of heaps with modal masks (COCO JSON), split by image and by
     object, sharded; shards already written are kept."""
     t0 = time.perf_counter()
-    bar = tqdm(total=-(-count // (views * heaps_per_shard)), desc="shards", unit="shard")
-
-    def progress(r):
-        bar.update(1)
-        if not r.ok:
-            tqdm.write(f"shard {r.job[1]}: {r.error.strip().splitlines()[-1]} (rerun to retry)")
-
+    bar, progress = _job_bar(-(-count // (views * heaps_per_shard)), "shards", "shard")
     res = write_segmentation_dataset(out, count, seed, views, heaps_per_shard, workers, ray or ray_address is not None,
                                      ray_address, progress, noise=noise, dropout=dropout)
     bar.close()
@@ -1103,21 +1101,13 @@ def train_segmentation_cmd(
                                     "half the images of a batch (the writer's sensor model)"),
         dropout: float = typer.Option(0.0, "--dropout", min=0.0, max=0.99, help="Augmentation: missing-pixel rate "
                                       "on the same images"),
-        seed: int = typer.Option(0, "--seed", min=0, help="Seed"),
-        threads: int = typer.Option(1, "--threads", min=1, help="torch threads"),
+        seed: int = TrainingSeed,
+        threads: int = TorchThreads,
         max_minutes: float = typer.Option(60.0, "--max-minutes", help="Stop after the epoch that would end past "
                                           "this wall time")):
     """Train the depth segmentation network; resumes from OUT.ckpt; writes OUT (weights + meta) after
     every epoch."""
-    bar = tqdm(desc="training", unit="batch")
-
-    def progress(epoch, b, n, loss):
-        if b == 0:
-            bar.reset(total=n)
-            bar.set_description(f"epoch {epoch + 1}/{epochs}")
-        bar.update(1)
-        bar.set_postfix(loss=f"{loss:.4f}")
-
+    bar, progress = _epoch_bar(epochs)
     cmd = " ".join(["ms-drake", "train", "segmentation", "--data", str(data), "--out", str(out), "--epochs",
                     str(epochs), "--batch", str(batch), "--lr", str(lr), "--seed", str(seed), "--threads",
                     str(threads)] + (["--max-images", str(max_images)] if max_images else [])
@@ -1132,16 +1122,14 @@ def train_segmentation_cmd(
                               steps_per_epoch=steps_per_epoch, init=init, object_fraction=object_fraction,
                               noise=noise, dropout=dropout)
     bar.close()
-    for h in meta["history"]:
-        typer.echo(f"epoch {h['epoch']}: loss {h['loss']:.5f} ({h['seconds']:.0f} s)")
-    typer.echo(f"wrote {out} ({meta['epochs_done']} of {epochs} epochs, {meta['seconds'] / 60:.1f} min)")
+    _echo_trained(out, meta, epochs)
 
 
 @bench_app.command("collision")
 def bench_collision_cmd(
         method: str = typer.Option(..., "--method", help="net | pointnet_grid | coal_reconstruction | sdf"),
         scenes: int = typer.Option(50, "--scenes", min=1, help="Held-out scenes (2,048 queries each)"),
-        seed_start: int = typer.Option(100000, "--seed-start", min=0, help="Seed of the first scene"),
+        seed_start: int = _seed_start("Seed of the first scene", 100000),
         out: Optional[Path] = typer.Option(None, "--out", help="Write the result (method, accuracy, ap, "
                                            "us_per_query, queries) as JSON"),
         cache: Optional[Path] = typer.Option(None, "--cache", help="Keep / reuse the scenes in this folder"),
@@ -1150,8 +1138,7 @@ def bench_collision_cmd(
                                                "collision_pointnet_grid.pt)"),
         threads: int = typer.Option(1, "--threads", min=1, help="torch threads (net)")):
     """Table 6.1: collision accuracy, AP and CPU time per query of one method on held-out scenes."""
-    if method not in COLLISION_METHODS:
-        _fail(f"--method {method!r}: choose one of {', '.join(COLLISION_METHODS)}")
+    _choose("--method", method, COLLISION_METHODS)
     bar = tqdm(total=scenes, desc=method, unit="scene")
     res = bench_collision(method, scenes, seed_start, cache, weights, threads, progress=lambda k: bar.update(1))
     bar.close()
@@ -1168,20 +1155,18 @@ def bench_mppi_cmd(
                                    "coal_reconstruction | sdf"),
         planner: str = typer.Option("ours", "--planner", help="ours | ours_lazy | pytorch_mppi (the `bench` extra)"),
         scenes: int = typer.Option(5, "--scenes", min=1, help="Held-out tabletop scenes"),
-        seed_start: int = typer.Option(100000, "--seed-start", min=0, help="Seed of the first scene"),
+        seed_start: int = _seed_start("Seed of the first scene", 100000),
         trajectories: int = typer.Option(300, "--trajectories", min=1, help="T (the reference: 300)"),
         horizon: int = typer.Option(40, "--horizon", min=1, help="H (the reference: 40)"),
         steps: int = typer.Option(5, "--steps", min=1, help="MPPI calls per scene (fewer when the goal is reached)"),
         out: Optional[Path] = typer.Option(None, "--out", help="Write the records (one per scene) as JSON"),
         cache: Optional[Path] = typer.Option(None, "--cache", help="Keep / reuse the scenes in this folder"),
         weights: Optional[Path] = typer.Option(None, "--weights", help="Network weights (default: shipped)"),
-        threads: int = typer.Option(1, "--threads", min=1, help="torch threads")):
+        threads: int = TorchThreads):
     """Speed of one MPPI call on the Panda (T x H waypoints, every link and the gripper checked
     against the scene cloud): CPU ms per call and rate, ours or pytorch_mppi's."""
-    if method not in COLLISION_METHODS:
-        _fail(f"--method {method!r}: choose one of {', '.join(COLLISION_METHODS)}")
-    if planner not in MPPI_PLANNERS:
-        _fail(f"--planner {planner!r}: choose one of {', '.join(MPPI_PLANNERS)}")
+    _choose("--method", method, COLLISION_METHODS)
+    _choose("--planner", planner, MPPI_PLANNERS)
     bar = tqdm(total=scenes, desc=f"{planner} {method}", unit="scene")
     recs = bench_mppi(method, scenes, seed_start, trajectories, horizon, steps, planner, cache, weights, threads,
                       progress=lambda r: bar.update(1))
@@ -1199,9 +1184,9 @@ def bench_mppi_cmd(
 def bench_segmentation_cmd(
         backend: str = typer.Option(..., "--backend", help="euclidean | region_growing | learned | ground_truth"),
         images: int = typer.Option(100, "--images", min=1, help="Held-out images (one heap each)"),
-        seed_start: int = typer.Option(100000, "--seed-start", min=0, help="Seed of the first image"),
+        seed_start: int = _seed_start("Seed of the first image", 100000),
         out: Optional[Path] = typer.Option(None, "--out", help="Write the result (backend, ap, ar, images) as JSON"),
-        workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers"),
+        workers: int = _workers(),
         noise: float = typer.Option(0.0, "--noise", min=0.0, help="Gaussian depth noise sigma, m"),
         dropout: float = typer.Option(0.0, "--dropout", min=0.0, max=0.99, help="Missing-pixel rate"),
         weights: Optional[Path] = typer.Option(None, "--weights", help="Learned backend's weights (default: shipped)"),
@@ -1227,21 +1212,15 @@ def bench_segmentation_cmd(
 @data_app.command("collision")
 def data_collision(count: int = typer.Option(..., "--count", min=1, help="Scenes, rounded up to whole shards"),
                    out: Path = typer.Option(..., "--out", help="Output folder (shard_<k>_<split>.npz; resumes)"),
-                   seed: int = typer.Option(0, "--seed", min=0, help="Dataset seed"),
-                   workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers"),
-                   ray: bool = typer.Option(False, "--ray", help="Run on a local Ray cluster"),
-                   ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster address")):
+                   seed: int = DatasetSeed,
+                   workers: int = _workers(),
+                   ray: bool = Ray,
+                   ray_address: Optional[str] = RayAddress):
     """Tabletop scenes (point cloud from the PandaTable camera) with a query object and 2,048 poses
     along 64 trajectories labelled by exact mesh collision (Ch. 6); split by scene and object;
     shards already written are kept."""
     t0 = time.perf_counter()
-    bar = tqdm(total=-(-count // COLLISION_SCENES_PER_SHARD), desc="shards", unit="shard")
-
-    def progress(r):
-        bar.update(1)
-        if not r.ok:
-            tqdm.write(f"shard {r.job[1]}: {r.error.strip().splitlines()[-1]} (rerun to retry)")
-
+    bar, progress = _job_bar(-(-count // COLLISION_SCENES_PER_SHARD), "shards", "shard")
     res = write_collision_dataset(out, count, seed, workers, ray or ray_address is not None, ray_address, progress)
     bar.close()
     per = f"; {res['cpu'] / res['scenes']:.2f} CPU-s per scene" if res["scenes"] else ""
@@ -1255,19 +1234,13 @@ def data_collision(count: int = typer.Option(..., "--count", min=1, help="Scenes
 @data_app.command("matcher")
 def data_matcher(heaps: int = typer.Option(..., "--heaps", min=1, help="Heaps, rounded up to whole shards"),
                  out: Path = typer.Option(..., "--out", help="Output folder (matcher_<k>_<split>.npz; resumes)"),
-                 seed: int = typer.Option(0, "--seed", min=0, help="Dataset seed"),
+                 seed: int = DatasetSeed,
                  heaps_per_shard: int = typer.Option(10, "--heaps-per-shard", min=1, help="Heaps per shard"),
-                 workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers")):
+                 workers: int = _workers()):
     """Colour heap images with object crops and template views of every object, for the siamese
     target matcher; split by object; shards already written are kept."""
     t0 = time.perf_counter()
-    bar = tqdm(total=-(-heaps // heaps_per_shard), desc="shards", unit="shard")
-
-    def progress(r):
-        bar.update(1)
-        if not r.ok:
-            tqdm.write(f"shard {r.job[1]}: {r.error.strip().splitlines()[-1]} (rerun to retry)")
-
+    bar, progress = _job_bar(-(-heaps // heaps_per_shard), "shards", "shard")
     res = write_matcher_dataset(out, heaps, seed, heaps_per_shard, workers, progress)
     bar.close()
     typer.echo(f"{res['written']} shards ({res['crops']} object crops) written, {res['skipped']} already there, "
@@ -1281,8 +1254,8 @@ def train_collision_cmd(
         data: Path = typer.Option(..., "--data", help="Dataset folder (ms-drake data collision)"),
         out: Path = typer.Option(Path("models/weights/collision.pt"), "--out", help="Weights file"),
         epochs: int = typer.Option(20, "--epochs", min=1, help="Passes over the training scenes"),
-        seed: int = typer.Option(0, "--seed", min=0, help="Seed"),
-        threads: int = typer.Option(1, "--threads", min=1, help="torch threads"),
+        seed: int = TrainingSeed,
+        threads: int = TorchThreads,
         lr: float = typer.Option(1e-3, "--lr", min=0.0, help="Adam learning rate"),
         max_minutes: float = typer.Option(90.0, "--max-minutes", min=0.1, help="Stop after the epoch that "
                                           "would pass this wall time"),
@@ -1331,21 +1304,13 @@ def train_matcher_cmd(
         steps: int = typer.Option(150, "--steps", min=1, help="Batches per epoch"),
         batch: int = typer.Option(64, "--batch", min=2, help="Pairs per batch (half positive)"),
         lr: float = typer.Option(1e-3, "--lr", help="Adam learning rate (cosine decay to 0)"),
-        seed: int = typer.Option(0, "--seed", min=0, help="Seed"),
-        threads: int = typer.Option(1, "--threads", min=1, help="torch threads"),
+        seed: int = TrainingSeed,
+        threads: int = TorchThreads,
         max_minutes: float = typer.Option(15.0, "--max-minutes", help="Stop after the epoch that would end past "
                                           "this wall time")):
     """Train the siamese target matcher; resumes from OUT.ckpt; writes OUT (weights + meta) after
     every epoch."""
-    bar = tqdm(desc="training", unit="batch")
-
-    def progress(epoch, b, n, loss):
-        if b == 0:
-            bar.reset(total=n)
-            bar.set_description(f"epoch {epoch + 1}/{epochs}")
-        bar.update(1)
-        bar.set_postfix(loss=f"{loss:.4f}")
-
+    bar, progress = _epoch_bar(epochs)
     cmd = " ".join(["ms-drake", "train", "matcher", "--data", str(data), "--out", str(out), "--epochs", str(epochs),
                     "--steps", str(steps), "--batch", str(batch), "--lr", str(lr), "--seed", str(seed),
                     "--threads", str(threads)])
@@ -1363,26 +1328,19 @@ def train_matcher_cmd(
 def bench_target_detection_cmd(
         backend: str = typer.Option(..., "--backend", help="color | template | learned"),
         images: int = typer.Option(300, "--images", min=1, help="Images (N)"),
-        seed_start: int = typer.Option(0, "--seed-start", min=0, help="First image seed (S)"),
+        seed_start: int = _seed_start("First image seed (S)"),
         out: Path = typer.Option(..., "--out", help="Result .json (per-image lines go to the .jsonl beside it; "
                                  "resumes)"),
-        workers: int = typer.Option(1, "--workers", min=1, max=64, help="Parallel workers"),
+        workers: int = _workers(),
         weights: Optional[Path] = typer.Option(None, "--weights", help="Matcher weights (learned; default: shipped)"),
         scene_dir: Optional[Path] = typer.Option(None, "--scene-dir", help="Folder caching the rendered images "
                                                  "(scene_<seed>.npz), shared by the runs of several backends")):
     """Target detection on held-out heaps with the target 20-80 % occluded (half of them with a second
     red object): precision, recall, F1, also on the shared-colour subset."""
-    if backend not in DETECTOR_BACKENDS:
-        _fail(f"--backend {backend!r}: choose one of {', '.join(DETECTOR_BACKENDS)}")
+    _choose("--backend", backend, DETECTOR_BACKENDS)
     if out.suffix != ".json":
         _fail(f"--out {out}: give a .json file")
-    bar = tqdm(total=images, desc=backend, unit="image")
-
-    def progress(r):
-        bar.update(1)
-        if not r.ok:
-            tqdm.write(f"image {r.job[1]}: {r.error.strip().splitlines()[-1]} (rerun to retry)")
-
+    bar, progress = _job_bar(images, backend, "image")
     res = bench_target_detection(backend, images, seed_start, out, workers, weights, progress, scene_dir)
     bar.close()
     for name, m in (("all", res), ("shared colour", res["shared_colour"]), ("distinct colours", res["distinct_colour"])):
