@@ -40,6 +40,7 @@ import numpy as np
 
 from ms_drake.errors import PerceptionError
 from ms_drake.paths import models_dir
+from ms_drake.perception.weights import load_network
 
 WINDOW = 192  # full-resolution pixels of the crop window
 SIZE = 64  # crop side after averaging (WINDOW / 3)
@@ -127,20 +128,8 @@ def make_net(config: MatcherConfig = MatcherConfig()):
 
 def load_matcher(path: Path | str | None = None):
     """(network in eval mode, checkpoint dict) from a weights file of `ms-drake train matcher`."""
-    import torch  # optional heavy dependency: only the learned matcher needs it
-
-    p = Path(path) if path is not None else default_weights()
-    if not p.is_file():
-        raise PerceptionError(f"matcher weights {p} not found; make them with `ms-drake data matcher --heaps 400 "
-                              f"--out DATA` then `ms-drake train matcher --data DATA --out {p}`")
-    ck = torch.load(p, map_location="cpu", weights_only=False)
-    if "model" not in ck or "config" not in ck:
-        raise PerceptionError(f"{p} is not a matcher checkpoint (no 'model'/'config'); retrain it with "
-                              "`ms-drake train matcher`")
-    net = make_net(MatcherConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in ck["config"].items()}))
-    net.load_state_dict(ck["model"])
-    net.eval()
-    return net, ck
+    return load_network(path, default_weights, "matcher", "matcher --heaps 400", lambda config: make_net(
+        MatcherConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in config.items()})))
 
 
 class LearnedMatcher:

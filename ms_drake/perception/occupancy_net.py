@@ -49,6 +49,7 @@ import numpy as np
 from ms_drake.errors import PerceptionError
 from ms_drake.objects.registry import TARGET_AREA, TARGET_RATIOS, target_box_size  # noqa: F401 (re-exported)
 from ms_drake.paths import models_dir
+from ms_drake.perception.weights import load_network
 
 FULL_SHAPE = (480, 640)
 CROP = (48, 64, 384, 512)  # top, left, height, width in the full image
@@ -226,20 +227,8 @@ def ratio_loss(pred, target, ratio_index, support=None, floor=None, positive_wei
 
 def load_model(path: Path | str | None = None):
     """(model in eval mode, checkpoint dict) from a weights file written by `ms-drake train occupancy`."""
-    import torch  # optional heavy dependency: only the learned backend needs it
-
-    p = Path(path) if path is not None else default_weights()
-    if not p.is_file():
-        raise PerceptionError(f"occupancy weights {p} not found; make them with `ms-drake data occupancy --count "
-                              f"5000 --out DATA` then `ms-drake train occupancy --data DATA --out {p}`")
-    ck = torch.load(p, map_location="cpu", weights_only=False)
-    if "model" not in ck or "config" not in ck:
-        raise PerceptionError(f"{p} is not an occupancy checkpoint (no 'model'/'config'); retrain it with "
-                              "`ms-drake train occupancy`")
-    net = make_net(NetConfig(**ck["config"]))
-    net.load_state_dict(ck["model"])
-    net.eval()
-    return net, ck
+    return load_network(path, default_weights, "occupancy", "occupancy --count 5000",
+                        lambda config: make_net(NetConfig(**config)))
 
 
 class LearnedOccupancy:

@@ -45,6 +45,7 @@ from scipy import ndimage
 
 from ms_drake.errors import PerceptionError
 from ms_drake.paths import models_dir
+from ms_drake.perception.weights import load_network
 from ms_drake.perception.occupancy_net import CROP, DEPTH_UNIT, FULL_SHAPE
 from ms_drake.types import InstanceMasks
 
@@ -213,20 +214,8 @@ def full_resolution_masks(labels: np.ndarray, scores: np.ndarray, min_pixels: in
 
 def load_model(path: Path | str | None = None):
     """(model in eval mode, checkpoint dict) from a weights file written by `ms-drake train segmentation`."""
-    import torch  # optional heavy dependency: only the learned backend needs it
-
-    p = Path(path) if path is not None else default_weights()
-    if not p.is_file():
-        raise PerceptionError(f"segmentation weights {p} not found; make them with `ms-drake data segmentation "
-                              f"--count 4000 --out DATA` then `ms-drake train segmentation --data DATA --out {p}`")
-    ck = torch.load(p, map_location="cpu", weights_only=False)
-    if "model" not in ck or "config" not in ck:
-        raise PerceptionError(f"{p} is not a segmentation checkpoint (no 'model'/'config'); retrain it with "
-                              "`ms-drake train segmentation`")
-    net = make_net(NetConfig(**ck["config"]))
-    net.load_state_dict(ck["model"])
-    net.eval()
-    return net, ck
+    return load_network(path, default_weights, "segmentation", "segmentation --count 4000",
+                        lambda config: make_net(NetConfig(**config)))
 
 
 class LearnedSegmentation:
