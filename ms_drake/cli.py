@@ -58,11 +58,7 @@ from ms_drake.experiments.matcher_learning import train_matcher
 from ms_drake.experiments.mppi_bench import PLANNERS as MPPI_PLANNERS
 from ms_drake.experiments.mppi_bench import bench_mppi
 from ms_drake.experiments.occupancy_data import write_occupancy_dataset
-from ms_drake.experiments.occupancy_learning import (
-    bench_occupancy,
-    train_occupancy,
-    write_json,
-)
+from ms_drake.experiments.occupancy_learning import bench_occupancy, train_occupancy
 from ms_drake.experiments.fidelity import format_summary as format_fidelity_summary
 from ms_drake.experiments.fidelity import run_fidelity
 from ms_drake.experiments.picks import TASKS, run_pick
@@ -95,7 +91,6 @@ from ms_drake.experiments.segmentation_learning import (
     bench_segmentation,
     train_segmentation,
 )
-from ms_drake.experiments.segmentation_learning import write_json as write_seg_json
 from ms_drake.experiments.shelf import PERCEPTIONS as SHELF_PERCEPTIONS
 from ms_drake.experiments.shelf import (
     bench_shelf_scenes,
@@ -109,7 +104,6 @@ from ms_drake.experiments.shelf_learning import (
     bench_shelf_occupancy,
     train_shelf_occupancy,
 )
-from ms_drake.experiments.shelf_learning import write_json as write_shelf_json
 from ms_drake.experiments.shelf_physics import DEMO_OCCLUDERS as SHELF_DEMO_OCCLUDERS
 from ms_drake.experiments.shelf_physics import DEMO_SEED as SHELF_DEMO_SEED
 from ms_drake.experiments.shelf_physics import (
@@ -1000,7 +994,7 @@ def bench_occupancy_cmd(data: Path = typer.Option(..., "--data", help="Dataset f
     typer.echo(f"inference: {res['ms_per_image']:.1f} ms wall, {res['cpu_ms_per_image']:.1f} ms CPU per image (median "
                f"of {res['timed']}, one torch thread, preprocessing and upsampling included)")
     if out is not None:
-        write_json(out, res)
+        _write_json(out, res)
         typer.echo(f"wrote {out}")
 
 
@@ -1047,7 +1041,7 @@ def bench_shelf_occupancy_cmd(
     typer.echo(f"inference: {res['ms_per_image']:.1f} ms per image (median of {res['timed']}, p90 "
                f"{res['ms_p90']:.1f}; one torch thread, from the 480 x 640 depth image)")
     if out is not None:
-        write_shelf_json(out, res)
+        _write_json(out, res)
         typer.echo(f"wrote {out}")
 
 
@@ -1201,7 +1195,7 @@ def bench_segmentation_cmd(
                f"images ({res['gt']} masks, {res['dt']} detections); median {res['seconds_median'] * 1000:.0f} ms "
                "per image")
     if out is not None:
-        write_seg_json(out, res)
+        _write_json(out, res)
         typer.echo(f"wrote {out}")
 
 

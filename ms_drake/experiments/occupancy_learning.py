@@ -23,7 +23,6 @@ pixel count for the negatives' rate only).
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -225,11 +224,6 @@ def metrics_table(d: dict, pred: np.ndarray, ratios=(1, 2, 5, 10)) -> list[dict]
                          iou=float(np.mean(m["iou"][sel])), mse=float(np.mean(m["mse"][sel])),
                          hidden=int((d["visible"][sel] == 0).sum())))
     return rows
-
-
-def write_json(path, obj) -> None:
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    Path(path).write_text(json.dumps(obj, indent=1))
 
 
 def bench_occupancy(data, weights=None, scaling: bool = False, timed: int = 50, seed: int = 0) -> dict:

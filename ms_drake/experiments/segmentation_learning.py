@@ -23,7 +23,6 @@ image; COCO mask AP (IoU 0.50:0.95), AP50 and AR@100 by pycocotools over all ima
 
 from __future__ import annotations
 
-import json
 import os
 import statistics
 import time
@@ -433,9 +432,3 @@ def bench_segmentation(backend: str, images: int, seed_start: int, workers: int 
                 dropout=dropout, seconds_median=statistics.median(secs) if secs else 0.0,
                 cpu_seconds_median=statistics.median([r["cpu_seconds"] for r in ok]) if ok else 0.0,
                 weights=None if weights is None else str(weights))
-
-
-def write_json(path, obj) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(obj, indent=1))

@@ -26,7 +26,6 @@ for each image's own target size and for all three sizes:
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -226,9 +225,3 @@ def bench_shelf_occupancy(data, weights=None, timed: int = 50, seed: int = 0) ->
                 weights=str(weights) if weights else "models/weights/shelf_occupancy.pt", rows=rows, overall=overall,
                 ms_per_image=float(np.median(ms)), ms_p90=float(np.percentile(ms, 90)), timed=len(ms),
                 train_meta={k: v for k, v in model.meta.items() if k != "history"})
-
-
-def write_json(path, obj) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(obj, indent=1))
