@@ -32,6 +32,7 @@ import numpy as np
 from ms_drake.errors import DatasetError
 from ms_drake.experiments.occupancy_data import load_dataset
 from ms_drake.experiments.training import (
+    fit_batch,
     resume,
     save_atomically,
     save_checkpoint,
@@ -102,21 +103,13 @@ def train_steps(net, opt, x, y, ratio, steps: int = 1, diag: np.ndarray | None =
     diag (n,): target diagonals [m] for the seen-target constraint (None: no constraint)."""
     import torch  # optional heavy dependency: only the learned occupancy needs it
 
-    net.train()
     x = np.asarray(x, np.float32)
     xt, yt, rt = torch.from_numpy(x), torch.from_numpy(np.asarray(y, np.float32)), \
         torch.from_numpy(np.asarray(ratio, np.int64))
     sup = flo = None
     if diag is not None:
         sup, flo = (torch.from_numpy(a) for a in batch_constraint(x, diag))
-    losses = []
-    for _ in range(steps):
-        opt.zero_grad()
-        loss = ratio_loss(net(xt), yt, rt, sup, flo, positive_weight)
-        loss.backward()
-        opt.step()
-        losses.append(loss.item())
-    return losses
+    return fit_batch(net, opt, lambda: ratio_loss(net(xt), yt, rt, sup, flo, positive_weight), steps)
 
 
 def make_optimizer(net, lr: float = 1e-3, weight_decay: float = 5e-4):

@@ -44,6 +44,7 @@ from ms_drake.experiments.segmentation_data import (
     sensor_model,
 )
 from ms_drake.experiments.training import (
+    fit_batch,
     resume,
     save_atomically,
     save_checkpoint,
@@ -116,16 +117,8 @@ def train_steps(net, opt, x, y, steps: int = 1) -> list[float]:
     the losses before each step."""
     import torch  # optional heavy dependency: only the learned segmenter needs it
 
-    net.train()
     xt, yt = torch.from_numpy(np.asarray(x, np.float32)), torch.from_numpy(np.asarray(y, np.int64))
-    losses = []
-    for _ in range(steps):
-        opt.zero_grad()
-        loss = segmentation_loss(net(xt), yt)
-        loss.backward()
-        opt.step()
-        losses.append(loss.item())
-    return losses
+    return fit_batch(net, opt, lambda: segmentation_loss(net(xt), yt), steps)
 
 
 def object_subset(names, fraction: float, seed: int = 0) -> set[str]:

@@ -34,6 +34,7 @@ import numpy as np
 from ms_drake.errors import DatasetError
 from ms_drake.experiments.occupancy_learning import occupancy_metrics
 from ms_drake.experiments.training import (
+    fit_batch,
     resume,
     save_atomically,
     save_checkpoint,
@@ -103,16 +104,8 @@ def train_steps(net, opt, x, y, steps: int = 1) -> list[float]:
     """`steps` optimizer steps on one fixed batch (numpy arrays); the losses before each step."""
     import torch  # optional heavy dependency: only the learned shelf occupancy needs it
 
-    net.train()
     xt, yt = torch.from_numpy(np.asarray(x, np.float32)), torch.from_numpy(np.asarray(y, np.float32))
-    losses = []
-    for _ in range(steps):
-        opt.zero_grad()
-        loss = distribution_loss(net(xt), yt)
-        loss.backward()
-        opt.step()
-        losses.append(loss.item())
-    return losses
+    return fit_batch(net, opt, lambda: distribution_loss(net(xt), yt), steps)
 
 
 def train_shelf_occupancy(data, out, epochs: int = 8, batch: int = 32, seed: int = 0, threads: int = 1,

@@ -1,5 +1,6 @@
 """What every training entry point shares (`ms-drake train occupancy`, `ms-drake train
-shelf-occupancy`): the seeded, deterministic torch set-up, atomic saves, and the checkpoint a
+shelf-occupancy`): the seeded, deterministic torch set-up, optimizer steps on one fixed batch
+(the learned models' overfitting checks), atomic saves, and the checkpoint a
 killed run resumes from (`FILE.ckpt` next to the weights; it holds the settings it was made with
 and refuses to resume under others)."""
 
@@ -19,6 +20,20 @@ def torch_setup(seed: int, threads: int):
     torch.set_num_threads(max(1, int(threads)))
     torch.use_deterministic_algorithms(True, warn_only=True)
     return torch
+
+
+def fit_batch(net, opt, loss, steps: int) -> list[float]:
+    """`steps` optimizer steps of `net` on `loss()` (a closure over one fixed batch, evaluating `net`);
+    the losses before each step."""
+    net.train()
+    losses = []
+    for _ in range(steps):
+        opt.zero_grad()
+        value = loss()
+        value.backward()
+        opt.step()
+        losses.append(value.item())
+    return losses
 
 
 def save_atomically(torch, obj, path: Path) -> None:
