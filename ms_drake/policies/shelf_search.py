@@ -199,6 +199,21 @@ def refuse_like_unchanged(foss: Foss, scene: ShelfScene, history) -> list:
             for a in candidates if _unchanged_key(a) in like]
 
 
+def _search_inputs(selector: ShelfPolicySelector, context) -> tuple:
+    """(scene, history, distribution) that FetchFeasibleSelector and ShelfSearchSelector choose from:
+    their scene and history inputs (the history read through `seen_outcomes` and
+    `refuse_like_unchanged` when the selector judges by scene) and P'_n (None for the oracle)."""
+    if not selector.scene_port.HasValue(context):
+        raise ControllerError(f"{type(selector).__name__}({selector.policy!r}): connect the scene input")
+    scene = selector.scene_port.Eval(context)
+    history = tuple(selector.history_port.Eval(context)) if selector.history_port.HasValue(context) else ()
+    if selector.judge_by_scene:
+        history = seen_outcomes(history, scene)
+        history = history + tuple(refuse_like_unchanged(selector.rules.foss, scene, history))
+    dist = None if selector.rules.policy.startswith("oracle") else selector._current(context).image_x
+    return scene, history, dist
+
+
 class FetchFeasibleSelector(ShelfPolicySelector):
     """The ShelfPolicySelector (per action) whose action is the policy's best one that the Fetch can
     execute: the reference's "first kinematically feasible action" (lines 1643-1672) checked with
@@ -236,14 +251,7 @@ class FetchFeasibleSelector(ShelfPolicySelector):
                                      "on the Fetch")
 
     def _calc_action(self, context, output):
-        if not self.scene_port.HasValue(context):
-            raise ControllerError(f"FetchFeasibleSelector({self.policy!r}): connect the scene input")
-        scene = self.scene_port.Eval(context)
-        history = tuple(self.history_port.Eval(context)) if self.history_port.HasValue(context) else ()
-        if self.judge_by_scene:
-            history = seen_outcomes(history, scene)
-            history = history + tuple(refuse_like_unchanged(self.rules.foss, scene, history))
-        dist = None if self.rules.policy.startswith("oracle") else self._current(context).image_x
+        scene, history, dist = _search_inputs(self, context)
         key = (tuple((b.id, round(b.x, 4), round(b.y, 4)) for b in scene.objects), len(history),
                None if dist is None else np.asarray(dist).tobytes())
         if self._memo is None or self._memo[0] != key:
@@ -268,14 +276,7 @@ class ShelfSearchSelector(ShelfPolicySelector):
         self.judge_by_scene = bool(judge_by_scene)
 
     def _calc_action(self, context, output):
-        if not self.scene_port.HasValue(context):
-            raise ControllerError(f"ShelfSearchSelector({self.policy!r}): connect the scene input")
-        scene = self.scene_port.Eval(context)
-        history = tuple(self.history_port.Eval(context)) if self.history_port.HasValue(context) else ()
-        if self.judge_by_scene:
-            history = seen_outcomes(history, scene)
-            history = history + tuple(refuse_like_unchanged(self.rules.foss, scene, history))
-        dist = None if self.rules.policy.startswith("oracle") else self._current(context).image_x
+        scene, history, dist = _search_inputs(self, context)
         action = self.rules.select(scene, dist, history)
         output.set_value(dataclasses.replace(action, scene=scene) if action.kind == "shelf" else action)
 
