@@ -34,20 +34,18 @@ import zlib
 import coal
 import numpy as np
 import trimesh
-from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
-from pydrake.systems.sensors import ImageDepth32F
 from scipy.spatial.transform import Rotation
 
 from ms_drake.geometry import Workspace, as_matrix4, coal_convex
 from ms_drake.grasping.grasp import GraspError, ParallelJawGrasp, SuctionGrasp
 from ms_drake.grasping.grasp_sets import GraspSet
-from ms_drake.grasping.planner import LazyGraspPlanner, LazyGrasps
+from ms_drake.grasping.planner import LazyGraspPlanner, LazyGrasps, declare_lazy_grasp_ports
 from ms_drake.objects import get_object
 from ms_drake.paths import PACKAGE_NAME, models_dir
 from ms_drake.robots import ParallelJawConfig, SuctionCupConfig
 from ms_drake.station.environments import _boxes
-from ms_drake.types import Grasp, InstanceMasks
+from ms_drake.types import Grasp
 
 # (coal shape, 4x4 pose in the owner's frame, bounding-sphere centre in that frame, radius)
 Part = tuple
@@ -211,12 +209,8 @@ class IndexedGraspPlanner(LeafSystem):
                  jaw: ParallelJawConfig | None = None, cup: SuctionCupConfig | None = None, jaw_model: str = "",
                  reach=None, max_reach_checks: int = 8):
         super().__init__()
-        self.depth_port = self.DeclareAbstractInputPort("depth_image", AbstractValue.Make(ImageDepth32F(width, height)))
-        self.masks_port = self.DeclareAbstractInputPort("masks", AbstractValue.Make(InstanceMasks.empty(height, width)))
-        self.objects_port = self.DeclareAbstractInputPort("objects", AbstractValue.Make(()))
-        self.grasps_port = self.DeclareAbstractOutputPort(
-            "grasps", lambda: AbstractValue.Make(LazyGrasps(lambda oid: (), ())), self._calc,
-            prerequisites_of_calc={self.all_input_ports_ticket()})
+        self.depth_port, self.masks_port, self.objects_port, self.grasps_port = declare_lazy_grasp_ports(
+            self, width, height, self._calc)
         bad = [k for k in kinds if k not in ("parallel_jaw", "suction")]
         if bad or not kinds:
             raise GraspError(f"IndexedGraspPlanner kinds {tuple(kinds)!r}: use 'parallel_jaw' and / or 'suction'")

@@ -279,6 +279,18 @@ class LazyGrasps(Mapping):
         return tuple(self._memo)
 
 
+def declare_lazy_grasp_ports(system: LeafSystem, width: int, height: int, calc) -> tuple:
+    """Declare on `system` the ports of a lazy grasp planner (LazyGraspPlanner, IndexedGraspPlanner):
+    inputs depth_image, masks and objects; output grasps, a LazyGrasps that `calc(context, output)`
+    makes whenever an input changes. Returns the (depth_image, masks, objects, grasps) ports."""
+    depth = system.DeclareAbstractInputPort("depth_image", AbstractValue.Make(ImageDepth32F(width, height)))
+    masks = system.DeclareAbstractInputPort("masks", AbstractValue.Make(InstanceMasks.empty(height, width)))
+    objects = system.DeclareAbstractInputPort("objects", AbstractValue.Make(()))
+    grasps = system.DeclareAbstractOutputPort("grasps", lambda: AbstractValue.Make(LazyGrasps(lambda oid: (), ())),
+                                              calc, prerequisites_of_calc={system.all_input_ports_ticket()})
+    return depth, masks, objects, grasps
+
+
 class LazyGraspPlanner(LeafSystem):
     """Grasp planning of the bin-search rollouts, on demand per object; wraps GraspPlanners.
 
@@ -313,12 +325,8 @@ class LazyGraspPlanner(LeafSystem):
     def __init__(self, planners, width: int, height: int, seed: int = 0, margin: int = 8,
                  crop_margin: float = 0.12):
         super().__init__()
-        self.depth_port = self.DeclareAbstractInputPort("depth_image", AbstractValue.Make(ImageDepth32F(width, height)))
-        self.masks_port = self.DeclareAbstractInputPort("masks", AbstractValue.Make(InstanceMasks.empty(height, width)))
-        self.objects_port = self.DeclareAbstractInputPort("objects", AbstractValue.Make(()))
-        self.grasps_port = self.DeclareAbstractOutputPort(
-            "grasps", lambda: AbstractValue.Make(LazyGrasps(lambda oid: (), ())), self._calc,
-            prerequisites_of_calc={self.all_input_ports_ticket()})
+        self.depth_port, self.masks_port, self.objects_port, self.grasps_port = declare_lazy_grasp_ports(
+            self, width, height, self._calc)
         self.planners = list(planners)
         for p in self.planners:
             if not isinstance(p, GraspPlanner):
