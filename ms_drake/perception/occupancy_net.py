@@ -73,10 +73,12 @@ def nearest_ratio(length: float, width: float) -> tuple[int, float]:
     return k, float(np.sqrt(length * width / TARGET_AREA))
 
 
-def _crop(a: np.ndarray) -> np.ndarray:
+def crop_image(a: np.ndarray, user: str = "the learned occupancy") -> np.ndarray:
+    """The CROP window of a full (480, 640, ...) overhead image; PerceptionError naming `user` (the
+    network that needs the crop) for an image of another size."""
     t, l, h, w = CROP
     if a.shape[:2] != FULL_SHAPE:
-        raise PerceptionError(f"image is {a.shape[1]}x{a.shape[0]}; the learned occupancy works on "
+        raise PerceptionError(f"image is {a.shape[1]}x{a.shape[0]}; {user} works on "
                               f"{FULL_SHAPE[1]}x{FULL_SHAPE[0]} overhead images")
     return a[t:t + h, l:l + w]
 
@@ -88,19 +90,19 @@ def block_mean(a: np.ndarray) -> np.ndarray:
 
 def working_inputs(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """(3, 96, 128) float32 network input from a full depth image (m) and modal mask."""
-    d = _crop(np.asarray(depth, np.float32)).copy()
+    d = crop_image(np.asarray(depth, np.float32)).copy()
     ok = np.isfinite(d) & (d > 0)
     fill = float(d[ok].max()) if ok.any() else 1.0
     d[~ok] = fill
     d = block_mean(d)
     d = (d - np.median(d)) / DEPTH_UNIT
-    m = block_mean(_crop(np.asarray(mask, np.float32)))
+    m = block_mean(crop_image(np.asarray(mask, np.float32)))
     return np.stack([m, d, d]).astype(np.float32)
 
 
 def working_target(rho: np.ndarray) -> np.ndarray:
     """A full-resolution distribution -> (96, 128) working map scaled to a maximum of 1."""
-    r = block_mean(_crop(np.asarray(rho, np.float64)))
+    r = block_mean(crop_image(np.asarray(rho, np.float64)))
     mx = r.max()
     return (r / mx if mx > 0 else r).astype(np.float32)
 

@@ -43,10 +43,9 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from ms_drake.errors import PerceptionError
 from ms_drake.paths import models_dir
 from ms_drake.perception.weights import load_network
-from ms_drake.perception.occupancy_net import CROP, DEPTH_UNIT, FULL_SHAPE
+from ms_drake.perception.occupancy_net import CROP, DEPTH_UNIT, FULL_SHAPE, crop_image
 from ms_drake.types import InstanceMasks
 
 BLOCK = 2
@@ -62,11 +61,7 @@ def default_weights() -> Path:
 
 
 def _crop(a: np.ndarray) -> np.ndarray:
-    t, l, h, w = CROP
-    if a.shape[:2] != FULL_SHAPE:
-        raise PerceptionError(f"image is {a.shape[1]}x{a.shape[0]}; the learned segmenter works on "
-                              f"{FULL_SHAPE[1]}x{FULL_SHAPE[0]} overhead images")
-    return a[t:t + h, l:l + w]
+    return crop_image(a, "the learned segmenter")
 
 
 def working_inputs(depth: np.ndarray) -> np.ndarray:
