@@ -21,11 +21,11 @@ import os
 import time
 from pathlib import Path
 
-import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
 from scipy.stats import binomtest
 
+from ms_drake.experiments.figures import figure_dir, save_png
 from ms_drake.experiments.rollout import rollout
 from ms_drake.experiments.xray import PROTOCOLS, XRAY_PROTOCOLS, xray_heap
 from ms_drake.parallel import run_jobs
@@ -333,14 +333,11 @@ def format_summary(policy: str, s: dict) -> str:
 def plot(files: list[Path], out_dir: Path) -> list[Path]:
     """Fig. 7.4 B (cumulative successes vs actions, one curve per policy) and Fig. 8.6 (histogram
     of actions per successful rollout) as PNG. Returns the written paths."""
-    matplotlib.use("Agg")
-
     by_policy: dict[str, list[dict]] = {}
     for f in files:
         for r in final_records(read_records(Path(f))):
             by_policy.setdefault(f"{r.get('policy')} (N={r.get('objects')})", []).append(r)
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = figure_dir(out_dir)
     fig, ax = plt.subplots(figsize=(6, 4))
     top = max([int(r["actions"]) for rs in by_policy.values() for r in rs] or [1])
     xs = np.arange(0, top + 1)
@@ -351,10 +348,7 @@ def plot(files: list[Path], out_dir: Path) -> list[Path]:
     ax.set_ylabel("cumulative successes")
     ax.set_title("Successful searches within k actions (cf. Fig. 7.4 B)")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    p1 = out_dir / "cumulative_successes.png"
-    fig.savefig(p1, dpi=120)
-    plt.close(fig)
+    p1 = save_png(fig, out_dir / "cumulative_successes.png")
     fig, ax = plt.subplots(figsize=(6, 4))
     bins = np.arange(0.5, top + 1.5)
     for name, rs in sorted(by_policy.items()):
@@ -363,8 +357,5 @@ def plot(files: list[Path], out_dir: Path) -> list[Path]:
     ax.set_ylabel("successful rollouts")
     ax.set_title("Actions per successful search (cf. Fig. 8.6)")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    p2 = out_dir / "actions_histogram.png"
-    fig.savefig(p2, dpi=120)
-    plt.close(fig)
+    p2 = save_png(fig, out_dir / "actions_histogram.png")
     return [p1, p2]

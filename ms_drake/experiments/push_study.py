@@ -55,6 +55,7 @@ from scipy.stats import f_oneway
 
 from ms_drake.execution import PRIMITIVE_PUSH_TIME_STEP, FullBackend, Motion, PrimitiveBackend, remove_objects
 from ms_drake.execution.backends import tcp_offset_of
+from ms_drake.experiments.figures import figure_dir, save_png
 from ms_drake.experiments.heap_grasps import (
     _coal_shape,
     _shape_pose,
@@ -756,46 +757,31 @@ def format_push_table(s: dict) -> str:
 
 def plot_push(s: dict, out_dir: Path) -> list[Path]:
     """Fig. 4.2 (every metric per policy) and Fig. 4.3 (jaw vs suction per policy) as PNG."""
-    matplotlib.use("Agg")
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = figure_dir(out_dir)
     pols = list(s["policies"])
     labels = {"quasi_random": "Quasi-random", "boundary_shear": "Boundary shear", "free_space": "Free space",
               "max_clearance": "Max clearance", "cluster_diffusion": "Cluster diffusion"}
     names = {"separation_gain": "Mean object separation gain", "jaw_gain": "Parallel-jaw quality gain",
              "suction_gain": "Suction quality gain", "overall_gain": "Overall quality gain"}
-    paths = []
-    fig, ax = plt.subplots(figsize=(9, 4))
-    w = 0.8 / len(METRICS)
     x = np.arange(len(pols))
-    for k, m in enumerate(METRICS):
-        ax.bar(x + (k - 1.5) * w, [s["policies"][p][m]["mean"] for p in pols], w,
-               yerr=[s["policies"][p][m]["se"] for p in pols], capsize=2, label=names[m])
-    ax.set_xticks(x, [labels[p] for p in pols])
-    ax.axhline(0, color="k", lw=0.5)
-    ax.set_ylabel("gain")
-    ax.set_title(f"Push policies on {s['heaps']} improvable heaps (Fig. 4.2 analogue)")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    p1 = out_dir / "push_policies_fig4_2.png"
-    fig.savefig(p1, dpi=120)
-    plt.close(fig)
-    paths.append(p1)
-    fig, ax = plt.subplots(figsize=(8, 4))
-    for k, m in enumerate(("jaw_gain", "suction_gain")):
-        ax.bar(x + (k - 0.5) * 0.35, [s["policies"][p][m]["mean"] for p in pols], 0.35,
-               yerr=[s["policies"][p][m]["se"] for p in pols], capsize=2, label=names[m])
-    ax.set_xticks(x, [labels[p] for p in pols])
-    ax.axhline(0, color="k", lw=0.5)
-    ax.set_ylabel("quality gain")
-    ax.set_title("Parallel jaw vs suction (Fig. 4.3 analogue)")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    p2 = out_dir / "push_policies_fig4_3.png"
-    fig.savefig(p2, dpi=120)
-    plt.close(fig)
-    paths.append(p2)
-    return paths
+
+    def bars(metrics, width: float, figsize, ylabel: str, title: str, name: str) -> Path:
+        """Mean +- standard error of `metrics` per policy, side by side, into out_dir/name."""
+        fig, ax = plt.subplots(figsize=figsize)
+        for k, m in enumerate(metrics):
+            ax.bar(x + (k - (len(metrics) - 1) / 2) * width, [s["policies"][p][m]["mean"] for p in pols], width,
+                   yerr=[s["policies"][p][m]["se"] for p in pols], capsize=2, label=names[m])
+        ax.set_xticks(x, [labels[p] for p in pols])
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_ylabel(ylabel)
+        ax.set_title(title)
+        ax.legend(fontsize=8)
+        return save_png(fig, out_dir / name)
+
+    return [bars(METRICS, 0.8 / len(METRICS), (9, 4), "gain",
+                 f"Push policies on {s['heaps']} improvable heaps (Fig. 4.2 analogue)", "push_policies_fig4_2.png"),
+            bars(("jaw_gain", "suction_gain"), 0.35, (8, 4), "quality gain",
+                 "Parallel jaw vs suction (Fig. 4.3 analogue)", "push_policies_fig4_3.png")]
 
 
 def planning_speed(heaps: int = 20, seed_start: int = 0, objects: int = 8, repeats: int = 3) -> dict:
@@ -878,11 +864,9 @@ def push_example_figure(seed: int, out: Path, params: StudyParams = StudyParams(
             a.axis("off")
     fig.suptitle(f"heap {seed}: {before['objects']} objects, Q*o = {before['overall']:.2f} before "
                  f"(top: planned push; bottom: after)", fontsize=10)
-    fig.tight_layout()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
+    save_png(fig, out, dpi=100)
     return out_gains
 
 

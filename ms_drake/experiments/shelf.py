@@ -32,13 +32,13 @@ import os
 import time
 from pathlib import Path
 
-import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 
 from ms_drake.errors import MsDrakeError
+from ms_drake.experiments.figures import figure_dir, save_png
 from ms_drake.experiments.harness import final_records, read_records, summarize
 from ms_drake.experiments.shelf_segmentation import AssociateShelfObjects
 from ms_drake.foss import Foss, FossSystem
@@ -270,9 +270,7 @@ def shelf_table(recs: list[dict], policies=SHELF_POLICIES) -> str:
 
 def plot_shelf(recs: list[dict], out_dir) -> Path:
     """Success rate (with bootstrap 95 % intervals) and median steps against the occluder count."""
-    matplotlib.use("Agg")
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = figure_dir(out_dir)
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
     for p in SHELF_POLICIES:
         mine = [r for r in recs if r["policy"] == p]
@@ -293,11 +291,7 @@ def plot_shelf(recs: list[dict], out_dir) -> Path:
     a2.set_xlabel("occluders")
     a2.set_ylabel("steps of successful searches (median, IQR)")
     a1.legend(fontsize=7)
-    fig.tight_layout()
-    path = out_dir / "shelf_table91.png"
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_png(fig, out_dir / "shelf_table91.png")
 
 
 def bench_shelf_scenes(count: int, seed_start: int = 0, target_size=DEFAULT_TARGET) -> dict:
