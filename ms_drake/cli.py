@@ -141,6 +141,7 @@ ScenarioFile = typer.Option(None, "--scenario-file", help="Scenario YAML (defaul
 JsonlOut = typer.Option(..., "--out", help="Output .jsonl (appended to; resumes)")
 Ray = typer.Option(False, "--ray", help="Run on a local Ray cluster")
 RayAddress = typer.Option(None, "--ray-address", help="Ray cluster address")
+JsonSummary = typer.Option(None, "--json", help="Write the summary as JSON")
 DatasetSeed = typer.Option(0, "--seed", min=0, help="Dataset seed")
 TrainingSeed = typer.Option(0, "--seed", min=0, help="Seed")
 TorchThreads = typer.Option(1, "--threads", min=1, help="torch threads")
@@ -594,7 +595,7 @@ def bench_push(policy: str = typer.Option(..., "--policy", help=f"Push policy: {
 def bench_push_table(files: list[Path] = typer.Argument(..., help="Result .jsonl files (ms-drake bench push)"),
                      figures: Optional[Path] = typer.Option(None, "--figures", help="Write Fig. 4.2 / 4.3 "
                                                             "analogues (PNG) into this folder"),
-                     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the summary as JSON")):
+                     json_out: Optional[Path] = JsonSummary):
     """Mean +- standard error per policy and metric on the heaps every policy has, one-way ANOVA per metric."""
     _need_results(files, "bench push")
     rows = [r for f in files for r in read_jsonl(f)]
@@ -616,7 +617,7 @@ def bench_push_fidelity(heaps_: int = typer.Option(400, "--heaps", min=1, help="
                         workers: int = _workers(),
                         policies: Optional[list[str]] = typer.Option(None, "--policy", help="Push policies "
                                                                      f"(repeat; default all): {' | '.join(PUSH_POLICIES)}"),
-                        json_out: Optional[Path] = typer.Option(None, "--json", help="Write the summary as JSON")):
+                        json_out: Optional[Path] = JsonSummary):
     """Each policy's recorded push on the YuMi (full fidelity) and in the primitive mode from the same
     state: one JSON line per (heap, policy) with status, agree, gain_sign_agree, object motions, CPU s."""
     bad = [p for p in policies or [] if p not in PUSH_POLICIES]
@@ -655,7 +656,7 @@ def bench_fidelity(heaps_: int = typer.Option(50, "--heaps", min=1, help="Heaps 
                    attempts: int = typer.Option(2, "--attempts", min=1, help="First K grasp attempts per heap"),
                    reach: str = typer.Option("YuMiBin", "--reach", help="The primitive search keeps only grasps "
                                              "this scenario's robot reaches ('' for none)"),
-                   json_out: Optional[Path] = typer.Option(None, "--json", help="Write the summary as JSON")):
+                   json_out: Optional[Path] = JsonSummary):
     """The primitive search's first grasp attempts per heap, each replayed on the YuMi (full
     fidelity) from the same scene with the same grasp: one JSON line per attempt (primitive and
     full outcome, CPU s), per-attempt success in each fidelity and their agreement."""
