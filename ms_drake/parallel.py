@@ -147,3 +147,20 @@ def run_jobs(fn: Callable, jobs: Iterable, workers: int = 1, use_ray: bool = Fal
         yield from _run_ray(fn, jobs, workers, ray_address, max_tasks_per_child)
     else:
         yield from _run_local(fn, jobs, workers, max_tasks_per_child)
+
+
+def run_shard_jobs(fn: Callable, jobs: Iterable, res: dict, sums=(), progress=None, **run_kwargs) -> dict:
+    """Run dataset shard jobs (`run_jobs(fn, jobs, **run_kwargs)`; a job's shard index is job[1]) and
+    count them into `res`: a written shard adds 1 to res["written"] and its value's `sums` keys to
+    res's; a failed one is appended to res["failed"] as (shard index, [last line of its error]).
+    progress(result) after each. Returns `res`."""
+    for r in run_jobs(fn, jobs, **run_kwargs):
+        if r.ok:
+            res["written"] += 1
+            for key in sums:
+                res[key] += r.value.get(key, 0)
+        else:
+            res["failed"].append((r.job[1], (r.error or "").strip().splitlines()[-1:]))
+        if progress is not None:
+            progress(r)
+    return res

@@ -54,7 +54,7 @@ from ms_drake.experiments.segmentation_data import OBJECT_SETS, ground_truth, he
 from ms_drake.geometry import PinholeCamera
 from ms_drake.objects import TARGET_RGBA
 from ms_drake.objects.registry import _PALETTE
-from ms_drake.parallel import run_jobs
+from ms_drake.parallel import run_jobs, run_shard_jobs
 from ms_drake.perception.matcher_net import crop
 from ms_drake.perception.target import TargetDetector, Template
 from ms_drake.scenario import load_scenario
@@ -220,16 +220,7 @@ def write_matcher_dataset(out, heaps: int, seed: int = 0, heaps_per_shard: int =
     jobs = [(str(out), k, int(seed), heaps_per_shard) for k in range(shards)
             if not (out / f"matcher_{k:05d}_{shard_split(k)}.npz").exists()]
     res = dict(shards=shards, skipped=shards - len(jobs), written=0, crops=0, cpu=0.0, failed=[])
-    for r in run_jobs(matcher_shard_job, jobs, workers=workers):
-        if r.ok:
-            res["written"] += 1
-            res["crops"] += r.value["crops"]
-            res["cpu"] += r.value.get("cpu", 0.0)
-        else:
-            res["failed"].append((r.job[1], (r.error or "").strip().splitlines()[-1:]))
-        if progress is not None:
-            progress(r)
-    return res
+    return run_shard_jobs(matcher_shard_job, jobs, res, ("crops", "cpu"), progress, workers=workers)
 
 
 def load_matcher_data(folder, split: str) -> dict:

@@ -54,7 +54,7 @@ from pydrake.systems.sensors import CameraInfo
 
 from ms_drake.errors import DatasetError, HeapError
 from ms_drake.geometry import PinholeCamera, Workspace
-from ms_drake.parallel import run_jobs
+from ms_drake.parallel import run_shard_jobs
 from ms_drake.paths import make_parser
 from ms_drake.perception.occupancy import (
     AnalyticOccupancy,
@@ -288,15 +288,8 @@ def write_occupancy_dataset(out, count: int, seed: int = 0, views: int = 8, heap
     jobs = [(str(out), k, int(seed), heaps_per_shard, views, tuple(sets), targets, test_only) for k in range(shards)]
     todo = [j for j in jobs if not (out / f"shard_{j[1]:05d}_{shard_split(j[1], test_only)}.npz").exists()]
     res = dict(shards=shards, skipped=shards - len(todo), written=0, failed=[])
-    for r in run_jobs(shard_job, todo, workers=workers, use_ray=use_ray, ray_address=ray_address,
-                      max_tasks_per_child=50):
-        if r.ok:
-            res["written"] += 1
-        else:
-            res["failed"].append((r.job[1], (r.error or "").strip().splitlines()[-1:]))
-        if progress is not None:
-            progress(r)
-    return res
+    return run_shard_jobs(shard_job, todo, res, progress=progress, workers=workers, use_ray=use_ray,
+                          ray_address=ray_address, max_tasks_per_child=50)
 
 
 def load_dataset(folder, split: str) -> dict:

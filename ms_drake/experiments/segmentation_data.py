@@ -55,7 +55,7 @@ from ms_drake.experiments.occupancy_data import (
     truncated_poisson,
 )
 from ms_drake.geometry import PinholeCamera
-from ms_drake.parallel import run_jobs
+from ms_drake.parallel import run_shard_jobs
 from ms_drake.perception.segmentation_net import (
     MIN_GT_PIXELS,
     working_inputs,
@@ -244,16 +244,8 @@ def write_segmentation_dataset(out, count: int, seed: int = 0, views: int = 4, h
             for k in range(shards)]
     todo = [j for j in jobs if not (out / f"shard_{j[1]:05d}_{shard_split(j[1])}.npz").exists()]
     res = dict(shards=shards, skipped=shards - len(todo), written=0, failed=[], images=0, cpu=0.0)
-    for r in run_jobs(shard_job, todo, workers=workers, use_ray=use_ray, ray_address=ray_address,
-                      max_tasks_per_child=10):
-        if r.ok:
-            res["written"] += 1
-            res["images"] += r.value["images"]
-            res["cpu"] += r.value.get("cpu", 0.0)
-        else:
-            res["failed"].append((r.job[1], (r.error or "").strip().splitlines()[-1:]))
-        if progress is not None:
-            progress(r)
+    run_shard_jobs(shard_job, todo, res, ("images", "cpu"), progress, workers=workers, use_ray=use_ray,
+                   ray_address=ray_address, max_tasks_per_child=10)
     res["coco"] = [str(merge_coco(out, s)) for s in ("train", "test")]
     return res
 

@@ -42,7 +42,7 @@ from ms_drake.experiments.figures import figure_dir, save_png
 from ms_drake.experiments.harness import final_records, read_records, summarize
 from ms_drake.experiments.shelf_segmentation import AssociateShelfObjects
 from ms_drake.foss import Foss, FossSystem
-from ms_drake.parallel import run_jobs
+from ms_drake.parallel import run_jobs, run_shard_jobs
 from ms_drake.perception.shelf_occupancy import ShelfOccupancyEstimator
 from ms_drake.perception.shelf_occupancy_net import block_depth
 from ms_drake.perception.shelf_segmentation import ShelfSegmenter
@@ -378,12 +378,5 @@ def write_shelf_dataset(out_dir, count: int, seed_start: int = 0, shard_size: in
             skipped += 1
             continue
         jobs.append((str(out), index, first, n, depth, block))
-    written, failed = 0, []
-    for r in run_jobs(dataset_shard_job, jobs, workers=workers, use_ray=use_ray, ray_address=ray_address):
-        if r.ok:
-            written += 1
-        else:
-            failed.append((r.job[1], (r.error or "").strip().splitlines()[-1:]))
-        if progress is not None:
-            progress(r)
-    return dict(written=written, skipped=skipped, failed=failed)
+    return run_shard_jobs(dataset_shard_job, jobs, dict(written=0, skipped=skipped, failed=[]), progress=progress,
+                          workers=workers, use_ray=use_ray, ray_address=ray_address)
