@@ -167,6 +167,20 @@ def zoom(a: np.ndarray, factor: float, fill: float = 0.0) -> np.ndarray:
                                     borderValue=fill) for c in np.asarray(a, np.float32)])
 
 
+def unet_levels(x, enc, pool, up, dec):
+    """The U-Net levels of the occupancy and segmentation networks on features x: each encoder level
+    (max-pooled from the second on), then each decoder level on [upsampled, encoder skip]."""
+    import torch  # optional heavy dependency: only the learned backends need it
+
+    skips = []
+    for i, e in enumerate(enc):
+        x = e(x if i == 0 else pool(x))
+        skips.append(x)
+    for u, d, skip in zip(up, dec, reversed(skips[:-1])):
+        x = d(torch.cat([u(x), skip], dim=1))
+    return x
+
+
 @dataclass(frozen=True)
 class NetConfig:
     base: int = 8  # channels of the first level (x2 per level)
@@ -200,13 +214,7 @@ def make_net(config: NetConfig = NetConfig()):
             nn.init.constant_(self.head.bias, -3.0)
 
         def forward(self, x):
-            skips = []
-            for i, e in enumerate(self.enc):
-                x = e(x if i == 0 else self.pool(x))
-                skips.append(x)
-            for up, dec, skip in zip(self.up, self.dec, reversed(skips[:-1])):
-                x = dec(torch.cat([up(x), skip], dim=1))
-            return torch.sigmoid(self.head(x))
+            return torch.sigmoid(self.head(unet_levels(x, self.enc, self.pool, self.up, self.dec)))
 
     return OccupancyUNet(config)
 

@@ -45,7 +45,7 @@ from scipy import ndimage
 
 from ms_drake.paths import models_dir
 from ms_drake.perception.weights import load_network
-from ms_drake.perception.occupancy_net import CROP, DEPTH_UNIT, FULL_SHAPE, crop_image
+from ms_drake.perception.occupancy_net import CROP, DEPTH_UNIT, FULL_SHAPE, crop_image, unet_levels
 from ms_drake.types import InstanceMasks
 
 BLOCK = 2
@@ -139,13 +139,7 @@ def make_net(config: NetConfig = NetConfig()):
 
         def forward(self, x):
             f0 = self.stem(x)
-            x = self.down(f0)
-            skips = []
-            for i, e in enumerate(self.enc):
-                x = e(x if i == 0 else self.pool(x))
-                skips.append(x)
-            for up, dec, skip in zip(self.up, self.dec, reversed(skips[:-1])):
-                x = dec(torch.cat([up(x), skip], dim=1))
+            x = unet_levels(self.down(f0), self.enc, self.pool, self.up, self.dec)
             x = self.dec_fine(torch.cat([self.up_fine(x), f0], dim=1))
             return self.head(x)  # logits (N, 3, H, W)
 
