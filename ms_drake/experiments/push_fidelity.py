@@ -47,7 +47,6 @@ import numpy as np
 from pydrake.common.eigen_geometry import Quaternion  # noqa: F401  (RotationMatrix.ToQuaternion's type)
 from pydrake.math import RotationMatrix
 
-from ms_drake.execution import PrimitiveBackend
 from ms_drake.experiments.push_study import (
     HEAPS_FILE,
     GraspSets,
