@@ -109,6 +109,7 @@ from ms_drake.experiments.shelf_physics import DEMO_SEED as SHELF_DEMO_SEED
 from ms_drake.experiments.shelf_physics import (
     physics_records,
     physics_table,
+    physics_vs_foss,
     run_shelf_demo,
     run_shelf_physics_bench,
 )
@@ -783,11 +784,18 @@ def bench_shelf_physics_table(files: list[Path] = typer.Argument(..., help="Resu
                                                                          "(ms-drake bench shelf-physics)"),
                               perception: str = typer.Option("ground_truth", "--perception",
                                                              help="The records of this controller perception "
-                                                                  "(ground_truth or depth)")):
+                                                                  "(ground_truth or depth)"),
+                              foss: Optional[list[Path]] = typer.Option(
+                                  None, "--foss", help="FOSS result .jsonl (ms-drake bench shelf) of the same scenes: "
+                                                       "also the search outcome in physics against FOSS, paired")):
     """The Table 9.2 analogue (markdown) from physics shelf result files."""
     _need_results(files)
     recs = physics_records(files, perception)
     typer.echo(physics_table(recs))
+    if foss:
+        _need_results(foss, "bench shelf")
+        typer.echo("")
+        typer.echo(physics_vs_foss(recs, shelf_records(foss), tuple(dict.fromkeys(r["policy"] for r in recs))))
 
 
 @bench_app.command("shelf-table")

@@ -18,6 +18,7 @@ from ms_drake.experiments.shelf_physics import (
     build_shelf_physics,
     physics_records,
     physics_table,
+    physics_vs_foss,
     set_initial,
     with_time_step,
 )
@@ -199,6 +200,20 @@ def test_action_agreement_counts_what_each_action_toppled():
     assert "| all | physics = FOSS per action | 25 % (1/4) |" in table
     assert "| all | physics = FOSS, pushes | 50 % (1/2) |" in table and "| 1 of 5 steps |" in table
     assert "| all | physics = FOSS, suction moving >= 5 cm | 0 % (0/2) |" in table
+
+
+def test_physics_vs_foss_pairs_scenes_by_seed_and_occluders():
+    def rec(policy, n, seed, ok, **kw):
+        return dict(policy=policy, occluders=n, seed=seed, success=ok, **kw)
+    phys = [rec("bluction_dar", 8, 0, True), rec("bluction_dar", 10, 1, False), rec("bluction_dar", 12, 2, True),
+            rec("bluction_dar", 8, 3, True)]
+    foss = [rec("bluction_dar", 8, 0, True), rec("bluction_dar", 10, 1, True), rec("bluction_dar", 12, 2, False),
+            rec("bluction_dar", 10, 0, False),  # another scene: seed 0 with 10 occluders
+            rec("bluction_dar", 8, 3, False, perception="learned")]  # not the ground-truth FOSS run
+    table = physics_vs_foss(phys, foss, ("bluction_dar",))
+    assert "| Bluction-DAR | 3 | 2 | 2 | 1 | 1 (seeds 2) | 1 (seeds 1) | 1 |" in table
+    with pytest.raises(ShelfPhysicsError, match="bench shelf"):
+        physics_vs_foss(phys, [rec("der3", 8, 0, True)], ("bluction_dar",))
 
 
 def test_physics_records_one_per_policy_and_seed(tmp_path):

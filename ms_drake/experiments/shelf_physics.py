@@ -49,6 +49,7 @@ from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
+from scipy.stats import binomtest
 
 from ms_drake.errors import MsDrakeError
 from ms_drake.execution.shelf_backend import BLADE_UP, ShelfBackend, ShelfBody, agreement, observe
@@ -556,6 +557,36 @@ def physics_table(recs: list[dict], policies=("der3", "bluction_dar")) -> str:
                        ("push", "physics = FOSS, pushes"), ("suction", "physics = FOSS, suction"),
                        ("far", f"physics = FOSS, suction moving >= {100 * FAR_SUCTION:.0f} cm")):
         lines.append(f"| all | {label} | " + " | ".join(rows[key]) + " |")
+    return "\n".join(lines)
+
+
+def physics_vs_foss(phys: list[dict], foss: list[dict], policies=("der3", "bluction_dar")) -> str:
+    """The search outcome in physics against FOSS on the same scenes (markdown): per policy, the
+    scenes in both (same seed, occluder count and policy; ground-truth perception in FOSS), the
+    successes of each, the scenes only one of them solves, and the two-sided exact sign test on
+    those. Says whether the Fetch's failures are the policy's (FOSS fails too) or the physics'."""
+    names = {"der3": "DER-3", "bluction_dar": "Bluction-DAR", "dar": "DAR"}
+    lines = ["| policy | scenes | physics | FOSS | both | physics only | FOSS only | sign test p |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for p in policies:
+        a = {(r["occluders"], r["seed"]): bool(r["success"]) for r in phys if r["policy"] == p}
+        b = {(r["occluders"], r["seed"]): bool(r["success"]) for r in foss
+             if r["policy"] == p and r.get("perception", "ground_truth") == "ground_truth"}
+        keys = sorted(set(a) & set(b))
+        if not keys:
+            continue
+        only_a = [k for k in keys if a[k] and not b[k]]
+        only_b = [k for k in keys if b[k] and not a[k]]
+        n = len(only_a) + len(only_b)
+        pval = float(binomtest(len(only_a), n, 0.5).pvalue) if n else 1.0
+
+        def seeds(ks):
+            return f"{len(ks)}" + (" (seeds " + ", ".join(str(s) for _, s in ks) + ")" if ks else "")
+        lines.append(f"| {names.get(p, p)} | {len(keys)} | {sum(a[k] for k in keys)} | {sum(b[k] for k in keys)} | "
+                     f"{sum(a[k] and b[k] for k in keys)} | {seeds(only_a)} | {seeds(only_b)} | {pval:.2g} |")
+    if len(lines) == 2:
+        raise ShelfPhysicsError("no scene is in both the physics and the FOSS records (same seed, occluders, policy): "
+                                "run `ms-drake bench shelf` with the physics run's --occluders and --seed-start")
     return "\n".join(lines)
 
 
