@@ -10,6 +10,7 @@ from ms_drake.experiments.push_study import (
     PushWorld,
     StudyParams,
     _mesh,
+    format_push_table,
     mean_separation,
     run_policy,
     separation_gain,
@@ -106,8 +107,13 @@ def test_summary_means_and_anova():
         for k, p in enumerate(POLICIES):
             rows.append({"seed": s, "policy": p, "pushed": True, "separation_gain": 0.01 * k + 0.01 * rng.random(),
                          "jaw_gain": 0.1, "suction_gain": 0.0, "overall_gain": 0.1 + 0.05 * (p == "free_space")})
+    for r in rows:
+        r["objects"] = 1 if r["seed"] < 5 else 4
     rows.append({"seed": 99, "policy": "free_space", "pushed": True, **{m: 1.0 for m in METRICS}})  # not common
     s = summarize_push(rows)
+    assert s["by_objects"]["1"]["heaps"] == 5 and s["by_objects"][">=4"]["heaps"] == 15 and "2" not in s["by_objects"]
+    assert s["by_objects"][">=4"]["free_space"] == pytest.approx(0.15)
+    assert ">=4 (15)" in format_push_table(s)
     assert s["heaps"] == 20
     assert s["policies"]["free_space"]["overall_gain"]["mean"] == pytest.approx(0.15)
     assert s["policies"]["quasi_random"]["jaw_gain"]["se"] == pytest.approx(0.0)

@@ -730,6 +730,14 @@ def summarize_push(rows: list[dict]) -> dict:
         out["policies"][p]["overall_when_pushed"] = {
             "n": len(pushed), "mean": float(pushed.mean()) if len(pushed) else 0.0,
             "se": float(pushed.std(ddof=1) / np.sqrt(len(pushed))) if len(pushed) > 1 else 0.0}
+    # overall gain by the number of objects at the push (1, 2, 3, >= 4): where the policies differ
+    groups = {"1": (1, 1), "2": (2, 2), "3": (3, 3), ">=4": (4, 10**6)}
+    out["by_objects"] = {}
+    for g, (lo, hi) in groups.items():
+        seeds = [s for s in common if lo <= int(by[pols[0]][s].get("objects", 0)) <= hi]
+        if seeds:
+            out["by_objects"][g] = {"heaps": len(seeds), **{p: float(np.mean([by[p][s]["overall_gain"] for s in seeds]))
+                                                            for p in pols}}
     if len(pols) >= 2 and len(common) >= 2:
         for m in METRICS:
             groups = [np.array([by[p][s][m] for s in common], float) for p in pols]
@@ -752,6 +760,12 @@ def format_push_table(s: dict) -> str:
                      + f"  {w['mean']:+.3f} +- {w['se']:.3f} (n = {w['n']})")
     for m, a in s["anova"].items():
         lines.append(f"ANOVA {m}: F({a['df'][0]}, {a['df'][1]}) = {a['F']:.2f}, p = {a['p']:.2g}")
+    if s.get("by_objects"):
+        pols = list(s["policies"])
+        lines.append("mean overall gain by the objects at the push")
+        lines.append(f"{'objects (heaps)':18s} " + " ".join(f"{p:>18s}" for p in pols))
+        for g, v in s["by_objects"].items():
+            lines.append(f"{g + ' (' + str(v['heaps']) + ')':18s} " + " ".join(f"{v[p]:+18.3f}" for p in pols))
     return "\n".join(lines)
 
 
