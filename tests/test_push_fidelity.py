@@ -101,3 +101,28 @@ def test_the_study_and_the_pushing_selectors_push_at_the_same_plant_step():
     assert StudyParams().time_step == PRIMITIVE_PUSH_TIME_STEP == 0.005
     for p in SELECTORS:
         assert primitive_time_step(p) == (PRIMITIVE_PUSH_TIME_STEP if p in PUSHING else 0.01)
+
+
+def test_a_push_the_home_branch_cannot_line_up_is_planned_from_another_ik_solution():
+    # A push of the study's heaps (YCB seed 11, boundary shear) beside the bin's centre line: the
+    # IK solution nearest the park configuration cannot follow the straight lines (the arm would
+    # jump between branches); another solution of the 7-joint arm at the push's start can.
+    from pydrake.math import RigidTransform
+
+    from ms_drake.planning.cartesian import ik_pose
+    from ms_drake.planning.sequences import arm_ik, plan_push
+    from ms_drake.scenario import load_scenario
+
+    ik, limits, q_home, keep = arm_ik(load_scenario(None, "YuMiBin"), "yumi_right", seed=0)
+    a, b = np.array([-0.0600, 0.1020, 0.03]), np.array([-0.0554, 0.0720, 0.03])
+    d = b - a
+    R = RotationMatrix.MakeZRotation(np.arctan2(d[1], d[0]) + np.pi / 2) @ RotationMatrix.MakeXRotation(np.pi)
+    X = RigidTransform(R, a)
+    assert not plan_push(ik, limits, q_home, X, d, np.linalg.norm(d), "yumi_right", branches=1).success
+    plan = plan_push(ik, limits, q_home, X, d, np.linalg.norm(d), "yumi_right")
+    assert plan.success, plan.status
+    tl = plan.timeline
+    at_start = ik_pose(ik, tl.value(tl.marks["push"]))
+    at_end = ik_pose(ik, tl.value(tl.marks["pushed"]))
+    assert np.linalg.norm(at_start.translation() - a) < 3e-3 and np.linalg.norm(at_end.translation() - b) < 3e-3
+    assert at_start.rotation().InvertAndCompose(R).ToAngleAxis().angle() < 0.02

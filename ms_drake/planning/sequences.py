@@ -30,6 +30,8 @@ from ms_drake.planning import (
     plan_cartesian_line,
     plan_joint_motion,
 )
+from ms_drake.planning.cartesian import CartesianPlan
+from ms_drake.planning.trajectories import plan_path_motion
 from ms_drake.planning.trajectories import JointTrajectory
 from ms_drake.robots import station_robot_spec
 from ms_drake.scenario import resolve_robot_config
@@ -255,30 +257,52 @@ def plan_pick(ik, limits, q_home, X_grasp: RigidTransform, arm: str, gripper_por
     return PickPlan(True, "ok", arm, tl, commands, X_grasp)
 
 
-def plan_push(ik, limits, q_home, X_start: RigidTransform, direction, distance: float, arm: str,
-              gripper_port: str | None = None, approach: float = 0.10, retreat: float = 0.05,
-              speed: float = 0.1, blade: float = 0.0, settle: float = 0.3, from_home: bool = True) -> PickPlan:
-    """A straight push: down onto X_start (from `approach` above), `distance` along `direction`
-    (world), then up by `retreat`. For the bluction the blade is commanded to `blade` (down).
-    X_start: RigidTransform or 4x4 array."""
-    X_start = as_rigid_transform(X_start, "X_start")
-    above = RigidTransform(X_start.rotation(), X_start.translation() + [0, 0, approach])
-    res = ik.solve(above, q_seed=q_home)
+def _push_lines(ik, limits, q_seed, q_ref, X_start, u, distance, approach, retreat, speed):
+    """(q_above, down, push, up) of a push from X_start along unit u, planned from the push's
+    start configuration outwards (down is the line up from the start, reversed), or the failing
+    step's status."""
+    res = ik.solve(X_start, q_seed=q_seed)
     if not res.success:
-        return PickPlan(False, res.status, arm, X_target=X_start)
-    q_above = nearest_equivalent(ik, res.q, q_home)
-    down = plan_cartesian_line(ik, above, [0, 0, -approach], q_above, limits, max_speed=speed)
-    if not down.success:
-        return PickPlan(False, down.status, arm, X_target=X_start)
-    u = np.asarray(direction, float)
-    u = u / np.linalg.norm(u)
-    q_start = down.trajectory.final()
-    push = plan_cartesian_line(ik, ik_pose(ik, q_start), u * distance, q_start, limits, max_speed=speed)
+        return res.status
+    q_start = nearest_equivalent(ik, res.q, q_ref)
+    push = plan_cartesian_line(ik, X_start, u * distance, q_start, limits, max_speed=speed)
     if not push.success:
-        return PickPlan(False, push.status, arm, X_target=X_start)
+        return push.status
+    rise = plan_cartesian_line(ik, X_start, [0, 0, approach], q_start, limits, max_speed=speed)
+    if not rise.success:
+        return rise.status
+    down_qs = rise.qs[::-1]
+    down = CartesianPlan(True, "ok", down_qs, plan_path_motion(down_qs, limits, approach, max_speed=speed), 1.0)
     up = _line(ik, push.trajectory.final(), [0, 0, retreat], limits, speed)
     if not up.success:
-        return PickPlan(False, up.status, arm, X_target=X_start)
+        return up.status
+    return down_qs[0], down, push, up
+
+
+def plan_push(ik, limits, q_home, X_start: RigidTransform, direction, distance: float, arm: str,
+              gripper_port: str | None = None, approach: float = 0.10, retreat: float = 0.05,
+              speed: float = 0.1, blade: float = 0.0, settle: float = 0.3, from_home: bool = True,
+              branches: int = 4) -> PickPlan:
+    """A straight push: down onto X_start (from `approach` above), `distance` along `direction`
+    (world), then up by `retreat`. For the bluction the blade is commanded to `blade` (down).
+    X_start: RigidTransform or 4x4 array. The lines are planned from an IK solution at the push's
+    start; when they fail there (a joint limit or a jump of a redundant arm along the line), up to
+    `branches` - 1 other solutions (IK from random seeds, the IK's generator) are tried."""
+    X_start = as_rigid_transform(X_start, "X_start")
+    u = np.asarray(direction, float)
+    u = u / np.linalg.norm(u)
+    lo = np.where(np.isfinite(ik.lower), ik.lower, -np.pi)
+    hi = np.where(np.isfinite(ik.upper), ik.upper, np.pi)
+    failure = None
+    for k in range(max(1, int(branches))):
+        seed = np.asarray(q_home, float) if k == 0 else ik.rng.uniform(lo, hi)
+        lines = _push_lines(ik, limits, seed, q_home, X_start, u, distance, approach, retreat, speed)
+        if not isinstance(lines, str):
+            break
+        failure = failure or lines
+    else:
+        return PickPlan(False, failure, arm, X_target=X_start)
+    q_above, down, push, up = lines
     tl = _start(q_home, q_above, from_home, limits)
     tl.play(down.trajectory)
     tl.mark("push")
