@@ -287,15 +287,16 @@ def plan_push(ik, limits, q_home, X_start: RigidTransform, direction, distance: 
     (world), then up by `retreat`. For the bluction the blade is commanded to `blade` (down).
     X_start: RigidTransform or 4x4 array. The lines are planned from an IK solution at the push's
     start; when they fail there (a joint limit or a jump of a redundant arm along the line), up to
-    `branches` - 1 other solutions (IK from random seeds, the IK's generator) are tried."""
+    `branches` - 1 other solutions (IK from seeds drawn by a generator of its own, seeded 0, so
+    the same push gets the same plan whatever the IK solved before) are tried."""
     X_start = as_rigid_transform(X_start, "X_start")
     u = np.asarray(direction, float)
     u = u / np.linalg.norm(u)
     lo = np.where(np.isfinite(ik.lower), ik.lower, -np.pi)
     hi = np.where(np.isfinite(ik.upper), ik.upper, np.pi)
-    failure = None
+    failure, rng = None, np.random.default_rng(0)
     for k in range(max(1, int(branches))):
-        seed = np.asarray(q_home, float) if k == 0 else ik.rng.uniform(lo, hi)
+        seed = np.asarray(q_home, float) if k == 0 else rng.uniform(lo, hi)
         lines = _push_lines(ik, limits, seed, q_home, X_start, u, distance, approach, retreat, speed)
         if not isinstance(lines, str):
             break
