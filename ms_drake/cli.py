@@ -548,6 +548,11 @@ def data_push_heaps(count: int = typer.Option(..., "--count", min=1, help="Heaps
                     workers: int = _workers(),
                     object_set: str = typer.Option("", "--object-set",
                                                    help="Object set of the heaps (default: BinHeap15's, procedural)"),
+                    transfer_speed: Optional[float] = typer.Option(
+                        None, "--transfer-speed", min=0.01,
+                        help="m/s of the primitive jaw's two transfers between park and above the push (free space "
+                             "above the walls; default: the push's 0.5 m/s travel). 2.0 halves the push's CPU "
+                             "(sims/push_transfer_speed.py measures what it changes)"),
                     ray: bool = Ray,
                     ray_address: Optional[str] = RayAddress):
     """Improvable heaps (Ch. 4, Algorithm 1): drop, grasp until stuck, run the five push policies;
@@ -560,7 +565,8 @@ def data_push_heaps(count: int = typer.Option(..., "--count", min=1, help="Heaps
                 tqdm.write(f"seed {r.job[0]}: {r.error.splitlines()[-1] if r.error else 'failed'}")
             bar.update(1)
         s = write_push_heaps(count, out, seed_start, workers=workers, use_ray=ray or ray_address is not None,
-                             ray_address=ray_address, params=StudyParams(object_set=object_set), bar=tick)
+                             ray_address=ray_address,
+                             params=StudyParams(object_set=object_set, transfer_speed=transfer_speed), bar=tick)
     if s["resumed"]:
         typer.echo(f"resumed: {s['resumed']} of {count} heaps already in {s['path']}")
     typer.echo(f"{s['dropped']} heaps dropped, {s['recorded']} stuck (recorded), {s['improvable']} improvable "

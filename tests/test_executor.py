@@ -239,3 +239,20 @@ def test_the_primitive_push_leads_with_the_jaws_broad_side(direction):
         R = plant.GetFrameByName("body", grip).CalcPoseInWorld(ctx).rotation().matrix()
         assert R[:, 2] @ [0, 0, -1] == pytest.approx(1.0, abs=1e-9)  # tool pointing down
         assert abs(R[:, 0] @ d) < 1e-9  # closing axis across the push: the broad side leads
+
+
+def test_fast_transfers_shorten_only_the_legs_between_park_and_above_the_push():
+    push = Action("push", push=Push((0.0, 0.0, 0.02), (0.1, 0.0, 0.02), "a"))
+    slow = backend()
+    fast = PrimitiveBackend({"a": 1, "b": 2}, WS, tcp_offset=0.1, target_id="b", transfer_speed=2.0)
+    hold = slow.initial_commands()
+    ms, mf = slow.plan(push, hold, 0), fast.plan(push, hold, 0)
+    ps, pf = ms.commands["floating.position"], mf.commands["floating.position"]
+    legs_s, legs_f = np.diff(ps.t), np.diff(pf.t)
+    assert legs_f[0] < 0.3 * legs_s[0] and legs_f[4] < 0.3 * legs_s[4]  # park -> above, above -> park
+    np.testing.assert_allclose(legs_f[1:4], legs_s[1:4])  # down, along the segment, up: unchanged
+    for a, b in zip(ps.points, pf.points):  # the same waypoints
+        np.testing.assert_allclose(a, b)
+    assert mf.duration < ms.duration - 1.0
+    with pytest.raises(ValueError, match="transfer_speed"):
+        PrimitiveBackend({}, WS, tcp_offset=0.1, transfer_speed=0.0)

@@ -163,3 +163,5 @@ def test_push_heaps_folder_keeps_one_object_set(tmp_path):
     (tmp_path / "heaps.jsonl").write_text('{"seed": 0, "object_set": "", "stop": "cleared", "improvable": false}\n')
     with pytest.raises(ValueError, match="object set"):
         write_push_heaps(1, tmp_path, seed_start=0, params=StudyParams(object_set="ycb"))
+    with pytest.raises(ValueError, match="transfer speed"):
+        write_push_heaps(1, tmp_path, seed_start=0, params=StudyParams(transfer_speed=2.0))

@@ -8,7 +8,9 @@ PrimitiveBackend (floating gripper, large benchmarks):
          reference's simulation experiments do the same: a grasp is an evaluated primitive).
   push   the closed jaw moves along the push segment in simulation: park -> above the start
          (travel height above the walls) -> down to the start -> along the segment -> up -> park,
-         each leg a smooth (cosine) profile at `travel_speed` / `push_speed`; then `settle` s.
+         each leg a smooth (cosine) profile at `travel_speed` / `push_speed` (the two transfers
+         between park and above the segment, in free space above the walls, at `transfer_speed`
+         when given); then `settle` s.
 FullBackend (YuMi, Panda, floating gripper): IK + ruckig through ms_drake.planning.sequences
   (plan_pick / plan_push) from the arm's current configuration; parallel-jaw grasps and pushes on
   the arm with the jaw (compliant pads), suction grasps on the arm with the suction cup; a grasp
@@ -106,10 +108,13 @@ class PrimitiveBackend(_Base):
 
     def __init__(self, objects: dict, workspace, tcp_offset: float, target_id: str = "", seed: int = 0,
                  settle: float = 0.5, travel_speed: float = 0.5, push_speed: float = 0.15,
-                 travel_height: float = 0.10, push_force: float = 40.0):
+                 travel_height: float = 0.10, push_force: float = 40.0, transfer_speed: float | None = None):
         super().__init__(objects, workspace, target_id, seed, settle)
         self.tcp_offset = float(tcp_offset)
         self.travel_speed, self.push_speed = float(travel_speed), float(push_speed)
+        self.transfer_speed = self.travel_speed if transfer_speed is None else float(transfer_speed)
+        if self.transfer_speed <= 0:
+            raise ValueError(f"transfer_speed must be > 0 m/s, got {transfer_speed}")
         self.travel_z = workspace.floor_z + workspace.wall_height + float(travel_height)
         cx, cy = workspace.center_xy
         # Parked beside the bin, out of the overhead camera's view (our choice).
@@ -145,7 +150,7 @@ class PrimitiveBackend(_Base):
             park = np.asarray(hold["floating.position"], float)
             wp = [park, self._q([a[0], a[1], self.travel_z], yaw), self._q(a, yaw), self._q(b, yaw),
                   self._q([b[0], b[1], self.travel_z], yaw), self.park]
-            speeds = [self.travel_speed, self.travel_speed, self.push_speed, self.travel_speed, self.travel_speed]
+            speeds = [self.transfer_speed, self.travel_speed, self.push_speed, self.travel_speed, self.transfer_speed]
             dur = [max(np.linalg.norm(wp[i + 1][:3] - wp[i][:3]) / v, 0.15) for i, v in enumerate(speeds)]
             path = _Path(wp, dur)
             return Motion({"floating.position": path}, check_time=path.duration + self.settle,

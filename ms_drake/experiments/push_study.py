@@ -126,6 +126,9 @@ class StudyParams:
     # stuck mostly on one lying cylinder that no push makes graspable; household meshes ("ycb")
     # leave several objects, as the reference's (see docs/BENCHMARKS.md, push study).
     object_set: str = ""
+    # The primitive jaw's transfers between its park pose and above the push (free space above the
+    # walls) [m/s]; None = the push's travel speed (0.5 m/s), the study's recorded setting.
+    transfer_speed: float | None = None
 
 
 # --------------------------------------------------------------------------- physics
@@ -159,7 +162,8 @@ class PushWorld:
         self.workspace = Workspace.from_scenario(s)
         bodies = {o.model_name: int(o.body_index) for o in self.objects}
         if fidelity == "primitive":
-            self.backend = PrimitiveBackend(bodies, self.workspace, tcp_offset_of(self.plant))
+            self.backend = PrimitiveBackend(bodies, self.workspace, tcp_offset_of(self.plant),
+                                            transfer_speed=params.transfer_speed)
         else:
             self.backend = FullBackend(s, bodies, self.workspace)
         self.removed: set = set()
@@ -571,6 +575,8 @@ def improvable_heap(seed: int, params: StudyParams = StudyParams(), policies=POL
     reason, before, grasps = grasp_until_stuck(world, sets, seed, params)
     rec = {"seed": int(seed), "object_set": params.object_set, "objects_dropped": n, "grasps": grasps, "stop": reason,
            "objects": before["objects"], "heap": heap_to_dict(heap), "improvable": False}
+    if params.transfer_speed is not None:
+        rec["transfer_speed"] = params.transfer_speed
     if reason == "cleared":
         rec.update(seconds=time.perf_counter() - t_wall, cpu_seconds=time.process_time() - t_cpu)
         return rec
@@ -635,6 +641,10 @@ def write_push_heaps(count: int, out_dir: Path, seed_start: int = 0, workers: in
     if other:
         raise ValueError(f"{path} holds heaps of object set(s) {', '.join(repr(o) for o in other)}, not "
                          f"{params.object_set!r}: write to another folder or pass that object set")
+    speeds = sorted({str(r.get("transfer_speed")) for r in recs} - {str(params.transfer_speed)})
+    if speeds:
+        raise ValueError(f"{path} holds heaps pushed with transfer speed(s) {', '.join(speeds)} (None = the travel "
+                         f"speed), not {params.transfer_speed}: write to another folder or pass that speed")
     _rewrite_clean(path, recs)
     done = {int(r["seed"]) for r in recs}
     seeds = [k for k in range(seed_start, seed_start + count) if k not in done]
