@@ -584,13 +584,21 @@ def bench_push(policy: str = typer.Option(..., "--policy", help=f"Push policy: {
                                              help="Folder of `ms-drake data push-heaps`"),
                workers: int = _workers("Parallel workers (--rerun)"),
                rerun: bool = typer.Option(False, "--rerun", help="Execute the push again instead of taking "
-                                          "the data step's execution of the policy on the heap")):
+                                          "the data step's execution of the policy on the heap"),
+               from_state: bool = typer.Option(False, "--from-state", help="With --rerun: from the record's stored "
+                                               "state (no drop, no grasping) instead of Algorithm 1 from the seed"),
+               transfer_speed: Optional[float] = typer.Option(
+                   None, "--transfer-speed", min=0.01, help="With --rerun: m/s of the primitive jaw's transfers "
+                   "between park and above the push (default: the 0.5 m/s travel)")):
     """One JSON line per improvable heap: seed, policy, separation / jaw / suction / overall gain."""
     _choose("--policy", policy, PUSH_POLICIES)
     _need_jsonl(out)
     if not (heap_dir / "heaps.jsonl").exists():
         _fail(f"--heap-dir {heap_dir}: no heaps.jsonl; run `ms-drake data push-heaps --out {heap_dir}` first")
-    s = run_push_bench(policy, heaps_, seed_start, out, heap_dir, workers=workers, rerun=rerun)
+    if (from_state or transfer_speed is not None) and not rerun:
+        _fail("--from-state and --transfer-speed re-execute the pushes: add --rerun")
+    s = run_push_bench(policy, heaps_, seed_start, out, heap_dir, workers=workers, rerun=rerun,
+                       params=StudyParams(transfer_speed=transfer_speed), from_state=from_state)
     typer.echo(f"{policy}: {s['rows']} heaps in {out} ({s['new']} added; {s['available']} improvable heaps "
                f"available from seed {seed_start})")
     if s["available"] < heaps_:

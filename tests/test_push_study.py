@@ -1,5 +1,7 @@
 """The Ch. 4 push study: metrics, the physics push, determinism, the summary."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from pydrake.common.eigen_geometry import Quaternion  # noqa: F401
@@ -165,3 +167,22 @@ def test_push_heaps_folder_keeps_one_object_set(tmp_path):
         write_push_heaps(1, tmp_path, seed_start=0, params=StudyParams(object_set="ycb"))
     with pytest.raises(ValueError, match="transfer speed"):
         write_push_heaps(1, tmp_path, seed_start=0, params=StudyParams(transfer_speed=2.0))
+
+
+def test_bench_rerun_from_the_stored_state(tmp_path):
+    # The committed YCB records: the first improvable heap's quasi-random push re-executed from its
+    # stored poses (no drop, no grasping), with the fast transfers.
+    from ms_drake.experiments.push_study import improvable_records, read_jsonl, run_push_bench
+
+    src = Path(__file__).resolve().parents[1] / "docs" / "data" / "push_heaps_ycb"
+    rec = improvable_records(src, 1)[0]
+    out = tmp_path / "rows.jsonl"
+    s = run_push_bench("quasi_random", 1, 0, out, src, rerun=True, from_state=True,
+                       params=StudyParams(transfer_speed=2.0))
+    assert s["rows"] == 1 and s["new"] == 1
+    row = read_jsonl(out)[0]
+    assert row["source"] == "state" and row["seed"] == rec["seed"] and row["cpu_s"] > 0
+    # the state at rest scores as the data step scored it (same grasp samples, poses to 1 um)
+    assert row["before"]["overall"] == pytest.approx(rec["before"]["overall"])
+    assert row["pushed"] and row["push"]["object"] == rec["policies"]["quasi_random"]["push"]["object"]
+    assert run_push_bench("quasi_random", 1, 0, out, src, rerun=True, from_state=True)["new"] == 0  # resumes

@@ -688,11 +688,37 @@ def rerun_job(job: tuple) -> dict:
     return improvable_heap(int(seed), StudyParams(**params), policies=(policy,))
 
 
+def policies_from_state(rec: dict, params: StudyParams, policies=POLICIES) -> dict:
+    """`policies` on a heap record's stored state (its poses at rest): the study without Algorithm
+    1's drop and grasping. Returns {"before": metrics, "policies": {policy: run_policy's record},
+    "cpu_s": all of it (world, before, pushes, after)}. The stored poses are rounded to 1 um and
+    at rest, so a push from them is the data step's push up to that rounding."""
+    c = time.process_time()
+    params = replace(params, object_set=rec.get("object_set", params.object_set))
+    world = PushWorld(heap_from_dict(rec["heap"]), params)
+    world.set_state(rec["state"])
+    sets = GraspSets(params, int(rec["seed"]))
+    before = state_metrics(world, sets)
+    snap = world.snapshot()
+    results = {p: run_policy(world, snap, before, sets, p, int(rec["seed"])) for p in policies}
+    return {"before": {k: before[k] for k in ("D", "jaw", "suction", "overall")}, "policies": results,
+            "cpu_s": time.process_time() - c}
+
+
+def state_job(job: tuple) -> dict:
+    """(heap record, policies, StudyParams dict) -> policies_from_state (module-level for pools)."""
+    rec, policies, params = job
+    return policies_from_state(rec, StudyParams(**params), tuple(policies))
+
+
 def run_push_bench(policy: str, heaps: int, seed_start: int, out: Path, heap_dir: Path, workers: int = 1,
-                   rerun: bool = False, params: StudyParams = StudyParams(), progress=None) -> dict:
+                   rerun: bool = False, params: StudyParams = StudyParams(), progress=None,
+                   from_state: bool = False) -> dict:
     """Rows of `policy` on the first `heaps` improvable heaps (seed >= seed_start) of heap_dir into
     `out` (resumable). By default a row is the data step's own execution of the policy on that heap
-    (push-heaps runs all five to decide improvability); rerun=True executes it again."""
+    (push-heaps runs all five to decide improvability); rerun=True executes it again: Algorithm 1
+    from the seed, or with from_state from the record's stored state (policies_from_state; the
+    row's `cpu_s` is that job's CPU)."""
     check_push_policy(policy)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -700,7 +726,17 @@ def run_push_bench(policy: str, heaps: int, seed_start: int, out: Path, heap_dir
     _rewrite_clean(out, rows)
     done = {(int(r["seed"]), r["policy"]) for r in rows}
     todo = [h for h in improvable_records(heap_dir, heaps, seed_start) if (int(h["seed"]), policy) not in done]
-    if rerun:
+    if rerun and from_state:
+        jobs = [(h, (policy,), asdict(params)) for h in todo]
+        for r in run_jobs(state_job, jobs, workers=workers):
+            if r.ok:
+                h = dict(r.job[0], before=r.value["before"])
+                row = bench_row(h, policy, r.value["policies"][policy], "state")
+                row["cpu_s"] = r.value["cpu_s"]
+                _append(out, row)
+                if progress:
+                    progress(row)
+    elif rerun:
         jobs = [(int(h["seed"]), policy, asdict(replace(params, object_set=h.get("object_set", "")))) for h in todo]
         for r in run_jobs(rerun_job, jobs, workers=workers):
             if r.ok:
