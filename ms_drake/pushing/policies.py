@@ -221,13 +221,21 @@ class StateChecker:
             self.shapes.append((_convex(h - c), c))
         self._req = coal.DistanceRequest()
         self._d0: dict = {}  # (i, j) -> distance at rest (the same for every direction)
+        self._radius: dict = {}  # i -> the footprint's bounding-circle radius about its centre
+        self._eye = np.eye(3)
 
     def _distance(self, i: int, j: int, shift: np.ndarray) -> float:
         (a, ca), (b, cb) = self.shapes[i], self.shapes[j]
         res = coal.DistanceResult()
-        d = coal.distance(a, coal.Transform3s(np.eye(3), ca + shift), b, coal.Transform3s(np.eye(3), cb),
+        d = coal.distance(a, coal.Transform3s(self._eye, ca + shift), b, coal.Transform3s(self._eye, cb),
                           self._req, res)
         return float(d)
+
+    def _footprint_radius(self, scene: PushScene, i: int) -> float:
+        if i not in self._radius:
+            o = scene.objects[i]
+            self._radius[i] = float(np.max(np.linalg.norm(o.footprint - o.center[:2], axis=1)))
+        return self._radius[i]
 
     def clearance(self, scene: PushScene, i: int, d2: np.ndarray, limit: float, tol: float = 0.001,
                   step: float = 0.005) -> float:
@@ -239,8 +247,7 @@ class StateChecker:
                 continue
             # Footprints (bounding circles) that the sweep never reaches are skipped.
             rel = oj.center[:2] - oi.center[:2]
-            ri = np.max(np.linalg.norm(oi.footprint - oi.center[:2], axis=1))
-            rj = np.max(np.linalg.norm(oj.footprint - oj.center[:2], axis=1))
+            ri, rj = self._footprint_radius(scene, i), self._footprint_radius(scene, j)
             along = float(rel @ d2)
             across = abs(float(rel[0] * d2[1] - rel[1] * d2[0]))
             if across > ri + rj or along < -(ri + rj) or along > limit + ri + rj:
@@ -505,14 +512,25 @@ def free_space(scene: PushScene, params: PolicyParams, rng=None) -> Push | None:
 
 def max_clearance(scene: PushScene, params: PolicyParams, rng=None) -> Push | None:
     best, best_ratio = None, -np.inf
-    angles = 2 * np.pi * np.arange(params.directions) / params.directions
+    n = int(params.directions)
+    angles = 2 * np.pi * np.arange(n) / n
+    dirs = np.column_stack([np.cos(angles), np.sin(angles)])
+    if n % 2 == 0:  # exact opposites, so that a direction's backward clearance is another's forward one
+        dirs[n // 2:] = -dirs[:n // 2]
     for i in range(len(scene.objects)):
-        for a in angles:
-            d = np.array([np.cos(a), np.sin(a)])
-            back = max(scene.clearance(i, -d, params.max_travel), params.resolution)
+        memo: dict = {}
+
+        def clear(d):
+            key = (round(float(d[0]), 12), round(float(d[1]), 12))
+            if key not in memo:
+                memo[key] = scene.clearance(i, d, params.max_travel)
+            return memo[key]
+
+        for d in dirs:
+            back = max(clear(-d), params.resolution)
             if params.max_travel / back <= best_ratio:
                 continue  # even the longest forward clearance would not beat the best ratio
-            fwd = scene.clearance(i, d, params.max_travel)
+            fwd = clear(d)
             if fwd < params.min_clearance:
                 continue
             ratio = fwd / back
