@@ -50,7 +50,8 @@ def main():
     if not recs:
         ap.error(f"no improvable heap records in {a.heap_dir} (run `ms-drake data push-heaps` first)")
     a.out.parent.mkdir(parents=True, exist_ok=True)
-    done = {int(r["seed"]) for r in read_jsonl(a.out)} if a.out.exists() else set()
+    done = {int(r["seed"]) for r in read_jsonl(a.out) if r.get("transfer_speed") == a.transfer_speed} \
+        if a.out.exists() else set()
     params = asdict(StudyParams(transfer_speed=a.transfer_speed))
     jobs = [(r, POLICIES, params) for r in recs if int(r["seed"]) not in done]
     t0 = time.perf_counter()
