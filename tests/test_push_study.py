@@ -182,7 +182,9 @@ def test_bench_rerun_from_the_stored_state(tmp_path):
     assert s["rows"] == 1 and s["new"] == 1
     row = read_jsonl(out)[0]
     assert row["source"] == "state" and row["seed"] == rec["seed"] and row["cpu_s"] > 0
+    assert row["transfer_speed"] == 2.0
     # the state at rest scores as the data step scored it (same grasp samples, poses to 1 um)
     assert row["before"]["overall"] == pytest.approx(rec["before"]["overall"])
     assert row["pushed"] and row["push"]["object"] == rec["policies"]["quasi_random"]["push"]["object"]
-    assert run_push_bench("quasi_random", 1, 0, out, src, rerun=True, from_state=True)["new"] == 0  # resumes
+    again = dict(rerun=True, from_state=True, params=StudyParams(transfer_speed=2.0))
+    assert run_push_bench("quasi_random", 1, 0, out, src, **again)["new"] == 0  # resumes

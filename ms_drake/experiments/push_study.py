@@ -724,8 +724,17 @@ def run_push_bench(policy: str, heaps: int, seed_start: int, out: Path, heap_dir
     out.parent.mkdir(parents=True, exist_ok=True)
     rows = read_jsonl(out)
     _rewrite_clean(out, rows)
-    done = {(int(r["seed"]), r["policy"]) for r in rows}
+    speed = params.transfer_speed if rerun else None  # the data step's rows are at the recorded setting
+    done = {(int(r["seed"]), r["policy"]) for r in rows if r.get("transfer_speed") == speed}
     todo = [h for h in improvable_records(heap_dir, heaps, seed_start) if (int(h["seed"]), policy) not in done]
+
+    def add(row):
+        if speed is not None:
+            row["transfer_speed"] = speed
+        _append(out, row)
+        if progress:
+            progress(row)
+
     if rerun and from_state:
         jobs = [(h, (policy,), asdict(params)) for h in todo]
         for r in run_jobs(state_job, jobs, workers=workers):
@@ -733,24 +742,18 @@ def run_push_bench(policy: str, heaps: int, seed_start: int, out: Path, heap_dir
                 h = dict(r.job[0], before=r.value["before"])
                 row = bench_row(h, policy, r.value["policies"][policy], "state")
                 row["cpu_s"] = r.value["cpu_s"]
-                _append(out, row)
-                if progress:
-                    progress(row)
+                add(row)
     elif rerun:
         jobs = [(int(h["seed"]), policy, asdict(replace(params, object_set=h.get("object_set", "")))) for h in todo]
         for r in run_jobs(rerun_job, jobs, workers=workers):
             if r.ok:
                 row = bench_row(r.value, policy, r.value["policies"][policy], "rerun")
-                _append(out, row)
-                if progress:
-                    progress(row)
+                add(row)
     else:
         for h in todo:
             row = bench_row(h, policy, h["policies"][policy], "push-heaps")
-            _append(out, row)
-            if progress:
-                progress(row)
-    got = [r for r in read_jsonl(out) if r["policy"] == policy]
+            add(row)
+    got = [r for r in read_jsonl(out) if r["policy"] == policy and r.get("transfer_speed") == speed]
     return {"rows": len(got), "new": len(todo), "available": len(improvable_records(heap_dir, 10**9, seed_start))}
 
 
