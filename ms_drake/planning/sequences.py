@@ -257,6 +257,27 @@ def plan_pick(ik, limits, q_home, X_grasp: RigidTransform, arm: str, gripper_por
     return PickPlan(True, "ok", arm, tl, commands, X_grasp)
 
 
+def _push_lines_from_above(ik, limits, q_home, X_start, u, distance, approach, retreat, speed):
+    """(q_above, down, push, up) of a push planned from `approach` above its start (IK seeded with
+    q_home, then the straight lines down, along and up), or the failing step's status."""
+    above = RigidTransform(X_start.rotation(), X_start.translation() + [0, 0, approach])
+    res = ik.solve(above, q_seed=q_home)
+    if not res.success:
+        return res.status
+    q_above = nearest_equivalent(ik, res.q, q_home)
+    down = plan_cartesian_line(ik, above, [0, 0, -approach], q_above, limits, max_speed=speed)
+    if not down.success:
+        return down.status
+    push = plan_cartesian_line(ik, ik_pose(ik, down.trajectory.final()), u * distance, down.trajectory.final(),
+                               limits, max_speed=speed)
+    if not push.success:
+        return push.status
+    up = _line(ik, push.trajectory.final(), [0, 0, retreat], limits, speed)
+    if not up.success:
+        return up.status
+    return q_above, down, push, up
+
+
 def _push_lines(ik, limits, q_seed, q_ref, X_start, u, distance, approach, retreat, speed):
     """(q_above, down, push, up) of a push from X_start along unit u, planned from the push's
     start configuration outwards (down is the line up from the start, reversed), or the failing
@@ -285,24 +306,28 @@ def plan_push(ik, limits, q_home, X_start: RigidTransform, direction, distance: 
               branches: int = 4) -> PickPlan:
     """A straight push: down onto X_start (from `approach` above), `distance` along `direction`
     (world), then up by `retreat`. For the bluction the blade is commanded to `blade` (down).
-    X_start: RigidTransform or 4x4 array. The lines are planned from an IK solution at the push's
-    start; when they fail there (a joint limit or a jump of a redundant arm along the line), up to
-    `branches` - 1 other solutions (IK from seeds drawn by a generator of its own, seeded 0, so
-    the same push gets the same plan whatever the IK solved before) are tried."""
+    X_start: RigidTransform or 4x4 array. First the IK solution above the start nearest q_home and
+    the lines down, along and up from it; when a line fails there (a joint limit or a jump of a
+    redundant arm along it), the lines are planned outwards from up to `branches` IK solutions at
+    the push's start: the one from q_home, then others (seeds drawn by a generator of its own,
+    seeded 0, so the same push gets the same seeds whatever the IK solved before); branches=0
+    keeps to the first plan."""
     X_start = as_rigid_transform(X_start, "X_start")
     u = np.asarray(direction, float)
     u = u / np.linalg.norm(u)
+    lines = _push_lines_from_above(ik, limits, q_home, X_start, u, distance, approach, retreat, speed)
+    failure = lines if isinstance(lines, str) else None
     lo = np.where(np.isfinite(ik.lower), ik.lower, -np.pi)
     hi = np.where(np.isfinite(ik.upper), ik.upper, np.pi)
-    failure, rng = None, np.random.default_rng(0)
-    for k in range(max(1, int(branches))):
+    rng = np.random.default_rng(0)
+    for k in range(max(0, int(branches)) if failure else 0):
         seed = np.asarray(q_home, float) if k == 0 else rng.uniform(lo, hi)
         lines = _push_lines(ik, limits, seed, q_home, X_start, u, distance, approach, retreat, speed)
         if not isinstance(lines, str):
             break
-        failure = failure or lines
     else:
-        return PickPlan(False, failure, arm, X_target=X_start)
+        if failure:
+            return PickPlan(False, failure, arm, X_target=X_start)
     q_above, down, push, up = lines
     tl = _start(q_home, q_above, from_home, limits)
     tl.play(down.trajectory)
