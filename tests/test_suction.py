@@ -18,13 +18,19 @@ from ms_drake.station.suction import BODY_INDEX, GAP, HOLDING, SuctionCup, add_s
 from test_grippers import add_ground, box_sdf
 
 
-def _scene(X_W_cup: RigidTransform, box_xyz=(0, 0, 0.025)):
-    """Suction cup welded at X_W_cup (its body frame) above a free 5 cm box; returns evaluated inputs."""
+def plate_sdf(mass=0.08, size=(0.08, 0.08, 0.004)):
+    """A thin plate (a packaged object's backing): 8 x 8 cm, 4 mm thick."""
+    return box_sdf(mass).replace("0.05 0.05 0.05", " ".join(map(str, size)))
+
+
+def _scene(X_W_cup: RigidTransform, box_xyz=(0, 0, 0.025), sdf=None):
+    """Suction cup welded at X_W_cup (its body frame) above a free 5 cm box (or the model `sdf`,
+    its body named box); returns evaluated inputs."""
     builder = DiagramBuilder()
     plant, sg = AddMultibodyPlant(MultibodyPlantConfig(time_step=1e-3), builder)
     parser = make_parser(plant)
     cup = add_gripper(plant, parser, "suction_cup", plant.world_frame(), X_W_cup)
-    (box,) = parser.AddModelsFromString(box_sdf(0.2), "sdf")
+    (box,) = parser.AddModelsFromString(sdf or box_sdf(0.2), "sdf")
     plant.Finalize()
     diagram = builder.Build()
     ctx = diagram.CreateDefaultContext()
@@ -65,6 +71,18 @@ def test_holds_when_sealed_on_flat_face():
     assert np.linalg.norm(f) == pytest.approx(40.0)  # the full vacuum pull: the lip reaches the face all round
     total = sum(x.F_Bq_W.translational() for x in forces)
     np.testing.assert_allclose(total, 0, atol=1e-9)  # action = reaction
+
+
+@pytest.mark.parametrize("press", [0.001, 0.0025, 0.0035])
+def test_holds_a_thin_plate_with_the_lip_pressed_into_it(press):
+    """The lip pressed 1-3.5 mm into a 4 mm plate (top at z = 0.05): sealed, pulling it up. The
+    distance's gradient at the cup centre points to the plate's far side once the centre is past
+    the plate's middle (2 mm); the seal's normal is read from outside the face."""
+    system, poses, query, plate = _scene(_cup_above(-press), box_xyz=(0, 0, 0.048), sdf=plate_sdf())
+    state, forces = _eval(system, poses, query, on=True)
+    assert state[HOLDING] == 1 and state[BODY_INDEX] == plate
+    on_plate = next(f for f in forces if int(f.body_index) == plate)
+    assert on_plate.F_Bq_W.translational()[2] == pytest.approx(40.0)
 
 
 @pytest.mark.parametrize("case", ["off", "too_far", "tilted", "over_edge"])

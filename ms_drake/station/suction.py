@@ -9,7 +9,8 @@ Model (choices recorded here; the reference gives none beyond "seal feasibility"
   * Lip opening s: the largest signed distance from `rim_samples` lip points to that object: how
     far the lip stands off the face where it is farthest from it (a face tilted by t against the
     cup, pressed in at one side, stands off about 2 r sin(t) minus that press at the other).
-  * Seal: the surface normal is within `max_tilt` of the cup axis and s <= max_gap +
+  * Seal: the surface normal (seen from max_gap back along the axis, outside the face even when
+    the lip presses into a thin part) is within `max_tilt` of the cup axis and s <= max_gap +
     seal_tolerance. max_gap is the lip's reach (the bellows' travel: a cup whose lip stays within
     8 mm of the face all round keeps its vacuum, as the bellows follow the face); over the next
     seal_tolerance the lip leaks, and beyond it the seal is lost.
@@ -139,8 +140,14 @@ class SuctionCup(LeafSystem):
         if hit is None or hit[0].distance > self._max_gap:
             return None
         res, body = hit
-        # surface normal (gradient of the distance) must face the cup: -grad ~ z_C
-        if -np.dot(res.grad_W, z) < self._cos_tilt:
+        # The face's normal must face the cup (-normal ~ z_C). It is the distance's gradient seen from
+        # a point backed off along the cup axis by the lip's reach, outside the face: at the cup
+        # centre itself the gradient turns to the far side once the compliant lip presses the centre
+        # past the middle of a thin part (a packaged object's few-mm backing), which read as a lost
+        # seal for 10-30 ms at a time while the cup held the part.
+        back = self._nearest(query, p_WC - self._max_gap * z, body=body)
+        normal = (back[0] if back is not None else res).grad_W
+        if -np.dot(normal, z) < self._cos_tilt:
             return None
         rim = []
         for p_C in self._rim_C:
