@@ -35,6 +35,7 @@ from pathlib import Path
 from ms_drake.experiments.harness import (
     HEAP_ENGINES,
     action_breakdown,
+    failure_classes,
     final_records,
     format_summary,
     read_records,
@@ -126,14 +127,20 @@ def main(argv=None):
                                           args.grasp_planner or "indexed")
                 if recs:
                     rows.append((p, n, h, summarize(recs)))
-                    breakdown.append((p, n, action_breakdown(recs)))
+                    breakdown.append((p, n, action_breakdown(recs), failure_classes(recs)))
         print(table(rows))
         print("\n| policy | N | actions | grasps | pushes (share) | jaw grasps (success) | suction grasps (success) |")
         print("|---|---|---|---|---|---|---|")
-        for p, n, b in breakdown:
+        for p, n, b, _ in breakdown:
             jaw, suc = b["parallel_jaw"], b["suction"]
             print(f"| {p} | {n} | {b['actions']} | {b['grasps']} | {b['pushes']} ({100 * b['push_share']:.1f} %) "
                   f"| {jaw['grasps']} ({jaw['success_rate']:.2f}) | {suc['grasps']} ({suc['success_rate']:.2f}) |")
+        print("\n| policy | N | failures (share of rollouts) | (1) no action | (2) target removed | (3) horizon | other |")
+        print("|---|---|---|---|---|---|---|")
+        for p, n, _, f in breakdown:
+            cells = " | ".join(f"{f[c]['count']} ({100 * f[c]['share']:.0f} %)" if f["failures"] else "0"
+                               for c in ("no_action", "target_removed", "horizon", "other"))
+            print(f"| {p} | {n} | {f['failures']} ({100 * f['failure_share']:.1f} %) | {cells} |")
         return
     runs = [(p, n, result_file(args.out, p, n, args.horizon)) for n in args.objects for p in args.policies]
     t0, count = time.perf_counter(), [0]

@@ -7,6 +7,7 @@ import sys
 import numpy as np
 
 from ms_drake.experiments.harness import (
+    failure_classes,
     final_records,
     read_records,
     run_bench,
@@ -72,6 +73,19 @@ def test_summary_statistics():
     assert np.isclose(s["sem_actions"], np.std([k % 4 + 1 for k in range(40)], ddof=1) / np.sqrt(40))
     # A retried rollout replaces its failed line.
     assert final_records(recs[:1] + [dict(recs[0], success=False)])[0]["success"] is False
+
+
+def test_failures_in_the_reference_s_three_modes():
+    """Lines 1326-1328: (1) no action (every want-of-action stop, pushes that never made a grasp),
+    (2) the target removed, (3) the budget; the simulator's failures are "other"."""
+    fails = ["grasps_below_threshold"] * 5 + ["too_many_pushes"] * 3 + ["target_never_visible", "target_removed",
+                                                                       "horizon", "sim_blew_up"]
+    recs = [dict(success=False, failure=f) for f in fails] + [dict(success=True, failure="")] * 88
+    c = failure_classes(recs)
+    assert c["rollouts"] == 100 and c["failures"] == 12 and c["failure_share"] == 0.12
+    assert c["no_action"] == {"count": 9, "share": 0.75}
+    assert [c[k]["count"] for k in ("target_removed", "horizon", "other")] == [1, 1, 1]
+    assert failure_classes([dict(success=True)])["no_action"]["count"] == 0
 
 
 def test_bad_bench_input(tmp_path):

@@ -26,7 +26,7 @@ import numpy as np
 from scipy.stats import binomtest
 
 from ms_drake.experiments.figures import figure_dir, save_png
-from ms_drake.experiments.rollout import rollout
+from ms_drake.experiments.rollout import REFERENCE_FAILURE_CLASSES, rollout
 from ms_drake.experiments.xray import PROTOCOLS, XRAY_PROTOCOLS, xray_heap
 from ms_drake.parallel import run_jobs
 from ms_drake.scenario import load_scenario
@@ -316,6 +316,19 @@ def action_breakdown(recs: list[dict]) -> dict:
         ok = [s for r in recs for k, s in zip(r.get("grasp_kinds", []), r.get("action_successes", [])) if k == g]
         out[g] = {"grasps": len(ok), "success_rate": float(np.mean(ok)) if ok else float("nan")}
     out["with_kinds"] = sum(1 for r in recs if "grasp_kinds" in r)
+    return out
+
+
+def failure_classes(recs: list[dict]) -> dict:
+    """Failures in the reference's three modes (REFERENCE_FAILURE_CLASSES; lines 1326-1328: failures
+    6-12 % of the rollouts, 85-90 % of them "no action"): rollouts, failures and their share of the
+    rollouts, and per class its count and share of the failures."""
+    fails = [r.get("failure") or "unknown" for r in recs if not r["success"]]
+    out = {"rollouts": len(recs), "failures": len(fails),
+           "failure_share": len(fails) / len(recs) if recs else float("nan")}
+    for c in ("no_action", "target_removed", "horizon", "other"):
+        k = sum(1 for f in fails if REFERENCE_FAILURE_CLASSES.get(f, "other") == c)
+        out[c] = {"count": k, "share": k / len(fails) if fails else float("nan")}
     return out
 
 

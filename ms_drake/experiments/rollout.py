@@ -48,6 +48,16 @@ FAILURE_MODES = {
     "target_removed": "the target left the bin by accident",
     "timeout": "simulated time ran out before the search ended",
 }
+# The reference's three failure modes (lines 1326-1328) over ours: (1) "the policy fails to plan an
+# action" -- every stop for want of an action, and a run of pushes that never made a grasp possible
+# (the selector's stop after 3 of them); (2) "the target object is inadvertently removed";
+# (3) the 2N budget ran out. What the reference does not have (the simulator or a worker failed) is
+# "other".
+REFERENCE_FAILURE_CLASSES = {
+    "grasps_below_threshold": "no_action", "target_never_visible": "no_action", "empty_segmentation": "no_action",
+    "too_many_pushes": "no_action", "target_removed": "target_removed", "horizon": "horizon",
+    "sim_blew_up": "other", "worker_died": "other", "timeout": "other",
+}
 SCENARIOS = {"primitive": "FloatingGripperBin", "full": "YuMiBin"}
 
 
