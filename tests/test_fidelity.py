@@ -136,3 +136,32 @@ def test_pick_reach_keeps_the_arm_clear_of_the_scene(yumi_reach):
     blocked = yumi_reach.arm_blocked
     assert yumi_reach(g) and yumi_reach(g, beside)
     assert not yumi_reach(g, above) and yumi_reach.arm_blocked == blocked + 1
+
+
+def test_pick_reach_keeps_the_transit_from_park_clear(yumi_reach):
+    # a box where the cup passes halfway from park to the pre-grasp blocks the grasp (the grasp's
+    # own tool and approach are free); the same box in the bin's far corner, or the bin alone, does not
+    s = load_scenario(None, "BinHeap15")
+    ws = Workspace.from_scenario(s)
+    g = Grasp("suction", (-0.1, 0.1, 0.05), (0, 0, -1))
+    plan = yumi_reach.plan(g)
+    links = yumi_reach.links[plan.arm]
+    cup = links.at(plan.timeline.value(0.5 * plan.timeline.marks["approach"]), tool=True)[-1][2]
+    planner = IndexedGraspPlanner({}, {}, environment_parts(s), ws, 64, 48)
+    on_path = planner.scene((_box("box", (0.03, 0.03, 0.03), cup),))
+    aside = planner.scene((_box("box", (0.03, 0.03, 0.03), (0.2, -0.15, ws.floor_z + 0.015)),))  # far corner
+    assert not on_path.hits(planner.gripper.suction(g.center, g.approach))
+    blocked = yumi_reach.arm_blocked
+    assert yumi_reach(g, planner.scene(())) and yumi_reach(g, aside)
+    assert not yumi_reach(g, on_path) and yumi_reach.arm_blocked == blocked + 1
+
+
+def test_scene_hits_within_a_margin():
+    s = load_scenario(None, "BinHeap15")
+    ws = Workspace.from_scenario(s)
+    planner = IndexedGraspPlanner({}, {}, (), ws, 64, 48)
+    scene = planner.scene((_box("a", (0.04, 0.04, 0.04), (0.0, 0.0, 0.5)),))
+    probe = planner.scene((_box("b", (0.04, 0.04, 0.04), (0.055, 0.0, 0.5)),))  # 1.5 cm apart
+    parts = [(sh, T.getRotation(), T.getTranslation(), r) for sh, T, r in zip(probe.shapes, probe.transforms, probe.radii)]
+    assert not scene.hits(parts) and not scene.hits(parts, margin=0.01)
+    assert scene.hits(parts, margin=0.02)

@@ -5,18 +5,25 @@ the robot reaches -- the primitive mode then executes the grasps the robot would
 two fidelities agree").
 
 Given the scene (the IndexedGraspPlanner's coal Scene of the objects and the bin), a reached
-grasp must also keep the arm clear of it: the arm's links (not the gripper, which the planner
-checks itself) at `approach_samples` configurations along the planned approach, from the
-pre-grasp to the grasp, may not intersect any object. The gripper alone being free is not
-enough: the wrist behind a tilted suction tool or a jaw runs into the neighbouring objects, and
-the approach then stops short of the grasp.
+grasp must also keep the arm clear of it:
+- along the planned approach, from the pre-grasp to the grasp, the arm's links (not the gripper,
+  which the planner checks itself at the grasp) at `approach_samples` configurations may not
+  intersect any object: the gripper alone being free is not enough, the wrist behind a tilted
+  suction tool or a jaw runs into the neighbouring objects, and the approach then stops short;
+- along the transit from park to the pre-grasp (a joint-space move at the arm's full speed), the
+  links and the tool (the bodies welded to the last link: the cup and its stem, the jaw's palm) at
+  configurations at most `transit_step` seconds apart must stay `transit_clearance` from
+  everything, the grasped object included: a tilted grasp's transit swept the cup through, or
+  within 2 mm of (and, tracking at ~0.8 m/s, into), the very box it was to grasp, knocking it
+  30-45 degrees over before the approach (YuMi fidelity heaps 5015, 5045, 5047).
 """
 
 from __future__ import annotations
 
+import coal
 import numpy as np
 import trimesh
-from pydrake.geometry import Convex, Mesh, SceneGraph
+from pydrake.geometry import Box, Convex, Cylinder, Mesh, SceneGraph
 
 from ms_drake.execution.backends import FullBackend, grasp_tool_pose
 from ms_drake.geometry import Workspace, coal_convex
@@ -36,9 +43,23 @@ def _hull_part(shape, X_BG: np.ndarray):
     return coal_convex(v - c, hull.faces), X_BG @ T, float(np.max(np.linalg.norm(v - c, axis=1)))
 
 
+def _tool_part(shape, X_BG: np.ndarray):
+    """(coal shape, 4x4 pose in the body frame, bounding radius) of a tool's Box / Cylinder, or of
+    a Convex / Mesh shape's hull."""
+    if isinstance(shape, Box):
+        return coal.Box(shape.width(), shape.depth(), shape.height()), X_BG, 0.5 * float(np.linalg.norm(shape.size()))
+    if isinstance(shape, Cylinder):
+        r, L = shape.radius(), shape.length()
+        return coal.Cylinder(r, L), X_BG, float(np.hypot(r, L / 2))
+    if isinstance(shape, (Convex, Mesh)):
+        return _hull_part(shape, X_BG)
+    raise ValueError(f"ArmLinks: tool shape of type {type(shape).__name__}; Box, Cylinder, Convex and Mesh are supported")
+
+
 class ArmLinks:
     """The collision geometry of one arm's links (the bodies its joints move, convex hulls in
-    coal) on the IK plant, placed at arm configurations as planner parts."""
+    coal) and of its tool (the bodies welded to the last link) on the IK plant, placed at arm
+    configurations as planner parts."""
 
     def __init__(self, ik, diagram):
         plant = ik.plant
@@ -55,16 +76,21 @@ class ArmLinks:
                                      f"{type(shape).__name__}; only Convex / Mesh links are supported")
                 X_BG = inspector.GetPoseInFrame(gid).GetAsMatrix4()
                 self.parts.append((body, *_hull_part(shape, X_BG)))
+        last = ik.joints[-1].child_body()
+        self.tool_parts = [(body, *_tool_part(inspector.GetShape(gid), inspector.GetPoseInFrame(gid).GetAsMatrix4()))
+                           for body in plant.GetBodiesWeldedTo(last) if body.index() != last.index()
+                           for gid in plant.GetCollisionGeometriesForBody(body)]
 
-    def at(self, q_arm) -> list:
-        """[(coal shape, 3x3 rotation, world centre, radius)] of the links at arm configuration q_arm."""
+    def at(self, q_arm, tool: bool = False) -> list:
+        """[(coal shape, 3x3 rotation, world centre, radius)] of the links (and the tool) at arm
+        configuration q_arm."""
         plant, ctx = self.ik.plant, self.ik.context
         old = plant.GetPositions(ctx).copy()
         q = old.copy()
         q[self.ik.idx] = q_arm
         plant.SetPositions(ctx, q)
         out = []
-        for body, shape, X_BG, r in self.parts:
+        for body, shape, X_BG, r in self.parts + (self.tool_parts if tool else []):
             X = plant.EvalBodyPoseInWorld(ctx, body).GetAsMatrix4() @ X_BG
             out.append((shape, X[:3, :3], X[:3, 3].copy(), r))
         plant.SetPositions(ctx, old)  # the IK solves with the other joints at the context's values
@@ -85,13 +111,18 @@ class PickReach:
 
     checks_scene = True  # IndexedGraspPlanner passes its Scene
 
-    def __init__(self, scenario, seed: int = 0, approach_samples: int = 5):
+    def __init__(self, scenario, seed: int = 0, approach_samples: int = 5, transit_step: float = 0.02,
+                 transit_clearance: float = 0.02):
         self.backend = FullBackend(scenario, {}, Workspace.from_scenario(scenario), seed=seed)
         for ik, _, _ in self.backend.ik.values():
             ik.restarts = 0
         self.links = {arm: ArmLinks(ik, keep[0])
                       for (arm, (ik, _, _)), keep in zip(self.backend.ik.items(), self.backend._keep)}
         self.approach_samples = int(approach_samples)
+        if not transit_step > 0 or not transit_clearance >= 0:
+            raise ValueError(f"PickReach: transit_step={transit_step} s must be > 0 (e.g. 0.02) and "
+                             f"transit_clearance={transit_clearance} m >= 0 (e.g. 0.02)")
+        self.transit_step, self.transit_clearance = float(transit_step), float(transit_clearance)
         self.checks = self.reached = self.arm_blocked = 0
 
     def plan(self, grasp: Grasp):
@@ -111,10 +142,15 @@ class PickReach:
         return plan if isinstance(plan, str) else plan.status
 
     def arm_hits(self, plan, scene) -> bool:
-        """True when the plan's arm links intersect the scene somewhere along its approach."""
+        """True when the plan's arm links intersect the scene somewhere along its approach, or its
+        links or tool along the transit from park to the pre-grasp (module docstring)."""
         tl = plan.timeline
         t0, t1 = tl.marks["approach"], tl.marks["contact"]
         links = self.links[plan.arm]
+        transit = np.linspace(0.0, t0, max(2, int(np.ceil(t0 / self.transit_step)) + 1))
+        if any(scene.hits(links.at(tl.value(t), tool=True), self.transit_clearance)
+               for t in transit[::-1]):  # the low end first
+            return True
         return any(scene.hits(links.at(tl.value(t))) for t in np.linspace(t0, t1, self.approach_samples))
 
     def __call__(self, grasp: Grasp, scene=None) -> bool:

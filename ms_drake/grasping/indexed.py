@@ -174,18 +174,22 @@ class Scene:
         self.radii = np.array([p[3] for p in parts], float)
         self.request = coal.CollisionRequest()
 
-    def hits(self, gripper: list) -> bool:
+    def hits(self, gripper: list, margin: float = 0.0) -> bool:
         """True when any gripper part (coal shape, 3x3 rotation, centre, radius) intersects any
-        scene part."""
+        scene part, or (margin > 0) comes closer to one than `margin` [m]."""
+        request = self.request
+        if margin > 0:
+            request = coal.CollisionRequest()
+            request.security_margin = float(margin)
         for shape, R, c, r in gripper:
             d = self.centers - c
-            near = np.nonzero(np.einsum("ij,ij->i", d, d) < (self.radii + r) ** 2)[0]
+            near = np.nonzero(np.einsum("ij,ij->i", d, d) < (self.radii + r + margin) ** 2)[0]
             if len(near) == 0:
                 continue
             Tg = coal.Transform3s(R, c)
             for j in near:
                 res = coal.CollisionResult()
-                if coal.collide(shape, Tg, self.shapes[j], self.transforms[j], self.request, res):
+                if coal.collide(shape, Tg, self.shapes[j], self.transforms[j], request, res):
                     return True
         return False
 
