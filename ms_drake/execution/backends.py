@@ -200,7 +200,7 @@ class FullBackend(_Base):
 
     def __init__(self, scenario, objects: dict, workspace, target_id: str = "", seed: int = 0, settle: float = 0.5,
                  lift: float = 0.15, speed: float = 0.25, close_time: float = 0.5, hold_time: float = 0.3,
-                 park_distance: float = 0.35, park_height: float = 0.10, transit_height: float | None = 0.10):
+                 park_distance: float = 0.35, park_height: float = 0.10):
         super().__init__(objects, workspace, target_id, seed, settle)
         if not scenario.robot.name:
             raise ExecutionError("full fidelity needs a robot: the scenario has none (robot.name is empty); "
@@ -215,10 +215,6 @@ class FullBackend(_Base):
             raise ExecutionError(f"robot {scenario.robot.name!r} carries no parallel jaw or suction cup "
                                  f"(grippers: {', '.join(g for _, g, _ in chosen)}); a bin search needs one")
         self.lift, self.speed, self.close_time, self.hold_time = lift, speed, close_time, hold_time
-        # Picks move from park to above the pre-grasp, transit_height above the bin's walls, then
-        # straight down to it (plan_pick's transit_z); None: straight to the pre-grasp.
-        self.transit_z = (None if transit_height is None
-                          else workspace.floor_z + workspace.wall_height + float(transit_height))
         self.ik, self._keep = {}, []
         for arm in dict.fromkeys(tool[0] for tool in (self.jaw, self.suction) if tool is not None):
             ik, limits, q_home, keep = arm_ik(scenario, arm, seed=seed)
@@ -268,8 +264,7 @@ class FullBackend(_Base):
             ik, limits, _ = self.ik[arm]
             q_now = np.asarray(hold[f"{arm}.position"], float)
             plan = plan_pick(ik, limits, q_now, grasp_tool_pose(g), arm, port, g.kind, lift=self.lift,
-                             speed=self.speed, close_time=self.close_time, hold_time=self.hold_time,
-                             transit_z=self.transit_z)
+                             speed=self.speed, close_time=self.close_time, hold_time=self.hold_time)
             if not plan.success:
                 return plan.status
             b = self.objects.get(g.object_id)

@@ -10,8 +10,7 @@ grasp must also keep the arm clear of it:
   which the planner checks itself at the grasp) at `approach_samples` configurations may not
   intersect any object: the gripper alone being free is not enough, the wrist behind a tilted
   suction tool or a jaw runs into the neighbouring objects, and the approach then stops short;
-- along the transit from park to the pre-grasp (a joint-space move at the arm's full speed to
-  above the pre-grasp, then straight down to it: FullBackend.transit_z), the
+- along the transit from park to the pre-grasp (a joint-space move at the arm's full speed), the
   links and the tool (the bodies welded to the last link: the cup and its stem, the jaw's palm) at
   configurations at most `transit_step` seconds apart must stay `transit_clearance` from
   everything, the grasped object included: a tilted grasp's transit swept the cup through, or
@@ -135,7 +134,7 @@ class PickReach:
         arm, port = tool
         ik, limits, q_home = b.ik[arm]
         return plan_pick(ik, limits, q_home, grasp_tool_pose(grasp), arm, port, grasp.kind, lift=b.lift,
-                         speed=b.speed, close_time=b.close_time, hold_time=b.hold_time, transit_z=b.transit_z)
+                         speed=b.speed, close_time=b.close_time, hold_time=b.hold_time)
 
     def status(self, grasp: Grasp) -> str:
         """"ok", the IK status of the failing step, or "no_<kind>_gripper"."""

@@ -188,20 +188,6 @@ def _start(q_home, q_first, from_home: bool, limits) -> Timeline:
     return tl
 
 
-def _descent(ik, limits, q_home, q_pre, transit_z: float, speed: float):
-    """The straight line down from `transit_z` to the pre-grasp configuration q_pre (planned
-    upwards from q_pre and reversed, so that it ends exactly there), or None when q_pre is at
-    that height already or the line has no plan."""
-    rise = float(transit_z) - ik_pose(ik, q_pre).translation()[2]
-    if rise <= 0.01:
-        return None
-    up = _line(ik, q_pre, [0, 0, rise], limits, speed)
-    if not up.success:
-        return None
-    qs = up.qs[::-1]
-    return CartesianPlan(True, "ok", qs, plan_path_motion(qs, limits, rise, max_speed=speed), 1.0)
-
-
 def _pick_lines(ik, limits, q_home, X_grasp, approach, lift, speed, axis_only):
     """(q_pre, approach line, lift line) of a pick at X_grasp, or the failing step's IK status."""
     pre = approach_pose(X_grasp, approach)
@@ -223,14 +209,10 @@ def _pick_lines(ik, limits, q_home, X_grasp, approach, lift, speed, axis_only):
 def plan_pick(ik, limits, q_home, X_grasp: RigidTransform, arm: str, gripper_port: str, kind: str,
               approach: float = 0.10, lift: float = 0.20, force_limit: float = 30.0, max_opening: float = 0.10,
               close_time: float = 0.8, hold_time: float = 0.5, speed: float = 0.15,
-              blade: float | None = None, from_home: bool = True, transit_z: float | None = None) -> PickPlan:
+              blade: float | None = None, from_home: bool = True) -> PickPlan:
     """Plan a pick at the tool pose X_grasp (kind: parallel_jaw | suction | bluction).
     from_home False: the timeline starts at the pre-grasp configuration (build_run puts the arm
-    there), skipping the joint motion from home. X_grasp: RigidTransform or 4x4 array.
-    transit_z (world z, e.g. above a bin's walls): the move from home ends above the pre-grasp at
-    that height and a straight line goes down to it, so that the joint-space move stays above
-    the objects (a direct one can sweep the tool through them); when the pre-grasp is that high
-    already, or that line has no plan, the move goes to the pre-grasp directly."""
+    there), skipping the joint motion from home. X_grasp: RigidTransform or 4x4 array."""
     X_grasp = as_rigid_transform(X_grasp, "X_grasp")
     axis_only = kind != "parallel_jaw"
     # A parallel jaw is symmetric: the tool turned by pi about its axis is the same grasp (the
@@ -247,12 +229,7 @@ def plan_pick(ik, limits, q_home, X_grasp: RigidTransform, arm: str, gripper_por
         return PickPlan(False, failure, arm, X_target=X_grasp)
     q_pre, approach_plan, lift_plan = lines
     X_grasp = X
-    descent = _descent(ik, limits, q_home, q_pre, transit_z, speed) if from_home and transit_z is not None else None
-    if descent is None:
-        tl = _start(q_home, q_pre, from_home, limits)
-    else:
-        tl = _start(q_home, descent.qs[0], True, limits)
-        tl.play(descent.trajectory)
+    tl = _start(q_home, q_pre, from_home, limits)
     tl.mark("approach")
     tl.play(approach_plan.trajectory)
     tl.mark("contact")
