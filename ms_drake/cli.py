@@ -69,6 +69,7 @@ from ms_drake.experiments.push_fidelity import (
     summarize_fidelity,
 )
 from ms_drake.experiments.push_study import (
+    SAMPLINGS,
     StudyParams,
     format_push_table,
     plot_push,
@@ -553,12 +554,23 @@ def data_push_heaps(count: int = typer.Option(..., "--count", min=1, help="Heaps
                         help="m/s of the primitive jaw's two transfers between park and above the push (free space "
                              "above the walls; default: the push's 0.5 m/s travel). 2.0 halves the push's CPU "
                              "(sims/push_transfer_speed.py measures what it changes)"),
+                    sampling: str = typer.Option(
+                        "tilt_bin", "--sampling",
+                        help=f"What seeds an object's grasp draw and robust trials: {' | '.join(SAMPLINGS)} "
+                             "(object: the same draw in every tilt bin, common random numbers)"),
+                    compare_sampling: str = typer.Option(
+                        "", "--compare-sampling",
+                        help="Also score the same states and pushes with this sampling (the record's `compare`)"),
                     ray: bool = Ray,
                     ray_address: Optional[str] = RayAddress):
     """Improvable heaps (Ch. 4, Algorithm 1): drop, grasp until stuck, run the five push policies;
     one record per heap, `improvable` when some policy raises the overall grasp quality."""
     if object_set:
         get_object_set(object_set)  # an unknown name fails here, listing the sets
+    for flag, value, allowed in (("--sampling", sampling, SAMPLINGS), ("--compare-sampling", compare_sampling,
+                                                                       ("",) + SAMPLINGS)):
+        if value not in allowed:
+            _fail(f"{flag} {value!r} unknown; choose one of {', '.join(a for a in allowed if a)}")
     with tqdm(total=count, desc="push heaps", unit="heap") as bar:
         def tick(r):
             if not r.ok:
@@ -566,7 +578,8 @@ def data_push_heaps(count: int = typer.Option(..., "--count", min=1, help="Heaps
             bar.update(1)
         s = write_push_heaps(count, out, seed_start, workers=workers, use_ray=ray or ray_address is not None,
                              ray_address=ray_address,
-                             params=StudyParams(object_set=object_set, transfer_speed=transfer_speed), bar=tick)
+                             params=StudyParams(object_set=object_set, transfer_speed=transfer_speed,
+                                                sampling=sampling, compare_sampling=compare_sampling), bar=tick)
     if s["resumed"]:
         typer.echo(f"resumed: {s['resumed']} of {count} heaps already in {s['path']}")
     typer.echo(f"{s['dropped']} heaps dropped, {s['recorded']} stuck (recorded), {s['improvable']} improvable "

@@ -20,9 +20,16 @@ Metrics (lines 590-642), on the objects in the bin before and after the push:
                    objects' collision shapes and the bin): best per object, then the best object.
 A grasp's quality depends only on where gravity points in the object's frame, so an object's
 grasps are sampled and scored once per tilt bin (gravity in the object frame rounded to
-`tilt_grid` per component, ~3 degrees), in a frame where the rounded gravity points exactly down,
-seeded by (heap seed, object, bin): the metrics of a state do not depend on the states measured
-before it. The collision check is redone in every state.
+`tilt_grid` per component, ~3 degrees), in a frame where the rounded gravity points exactly down:
+the metrics of a state do not depend on the states measured before it. The collision check is
+redone in every state. `sampling` says what seeds the grasp draw and the robust trials:
+  "tilt_bin"  (heap seed, object, bin): an object that rolls into another bin gets a fresh draw of
+              contacts and trials, so its Q* changes by the draw's noise alone (~0.2 at stuck states,
+              `quality_noise`); the states Algorithm 1 keeps scored low partly by that noise, and a
+              push that moves the object regresses them upwards whatever it does;
+  "object"    (heap seed, object): common random numbers -- the same surface points and the same
+              perturbation draws in every bin (the approaches and the gravity of each bin still
+              differ), so the quality of an object changes only with its pose and its neighbours.
 
 Algorithm 1 (lines 704-720), `improvable_heap(seed)`: a heap of N objects, N uniform in
 [`min_objects`, `max_objects`] (our choice: small heaps, as the reference's final heaps mostly
@@ -93,6 +100,7 @@ from ms_drake.station.robots import set_arm_positions
 from ms_drake.types import Action, Heap, ObjectGeometry
 
 METRICS = ("separation_gain", "jaw_gain", "suction_gain", "overall_gain")
+SAMPLINGS = ("tilt_bin", "object")  # StudyParams.sampling
 WORLD_SCENARIOS = {"primitive": "FloatingGripperBin", "full": "YuMiBin"}  # PushWorld's station per fidelity
 
 
@@ -129,6 +137,19 @@ class StudyParams:
     # The primitive jaw's transfers between its park pose and above the push (free space above the
     # walls) [m/s]; None = the push's travel speed (0.5 m/s), the study's recorded setting.
     transfer_speed: float | None = None
+    # What seeds an object's grasp draw and robust trials (module docstring): "tilt_bin" (the
+    # recorded studies) or "object" (common random numbers across bins).
+    sampling: str = "tilt_bin"
+    # Another sampling scored on the same states and pushes ("" = none): the data step's records then
+    # carry its before metrics and gains under "compare" (the two metrics paired on one physics).
+    compare_sampling: str = ""
+
+    def __post_init__(self):
+        for key, value, allowed in (("sampling", self.sampling, SAMPLINGS),
+                                    ("compare_sampling", self.compare_sampling, ("",) + SAMPLINGS)):
+            if value not in allowed:
+                raise ValueError(f"StudyParams.{key} {value!r} unknown; choose one of "
+                                 f"{', '.join(repr(a) for a in allowed)}")
 
 
 # --------------------------------------------------------------------------- physics
@@ -415,8 +436,10 @@ class GraspSets:
         gq = gq / np.linalg.norm(gq) if np.linalg.norm(gq) > 0 else g_O
         Xq = np.eye(4)
         Xq[:3, :3] = _rotation_between(gq, np.array([0.0, 0.0, -1.0]))
-        rng_seed = int(np.random.default_rng([self.seed, zlib.crc32(oid.encode()),
-                                              zlib.crc32(repr(key).encode())]).integers(2**31))
+        draw = [self.seed, zlib.crc32(oid.encode())]
+        if p.sampling == "tilt_bin":
+            draw.append(zlib.crc32(repr(key).encode()))
+        rng_seed = int(np.random.default_rng(draw).integers(2**31))
         Xq_inv = np.linalg.inv(Xq)
         jaw = [[g.transformed(Xq_inv), None] for g in sample_antipodal_grasps(mesh, Xq, p.grasps, seed=rng_seed)
                if -g.approach[2] >= np.cos(p.max_approach)]
@@ -495,8 +518,10 @@ def gains(before: dict, after: dict) -> dict:
 
 
 def run_policy(world: PushWorld, snap, before: dict, sets: GraspSets, policy: str, seed: int,
-               policy_params: PolicyParams | None = None) -> dict:
-    """Plan `policy`'s push on the full state of `snap`, execute it in physics, the four gains."""
+               policy_params: PolicyParams | None = None, compare: tuple | None = None) -> dict:
+    """Plan `policy`'s push on the full state of `snap`, execute it in physics, the four gains.
+    compare: (GraspSets, before metrics) of another sampling: its gains on the same push go to
+    the record's "compare" entry."""
     check_push_policy(policy)
     world.restore(snap)
     geoms = world.geometry()
@@ -510,6 +535,8 @@ def run_policy(world: PushWorld, snap, before: dict, sets: GraspSets, policy: st
     if push is None:  # no collision-free push: the state is unchanged
         rec.update({k: 0.0 for k in METRICS}, left_bin=0, after={k: before[k] for k in ("D", "jaw", "suction",
                                                                                         "overall")})
+        if compare is not None:
+            rec["compare"] = {k: 0.0 for k in METRICS}
         return rec
     rec["push"] = {"start": list(push.start), "end": list(push.end), "object": push.object_id}
     cpu1 = time.process_time()
@@ -527,6 +554,9 @@ def run_policy(world: PushWorld, snap, before: dict, sets: GraspSets, policy: st
     rec["left_bin"] = before["objects"] - after["objects"]
     rec["after"] = {k: after[k] for k in ("D", "jaw", "suction", "overall")}
     rec["after_per_object"] = after["per_object"]
+    if compare is not None:
+        alt = state_metrics(world, compare[0])
+        rec["compare"] = dict(gains(compare[1], alt), after={k: alt[k] for k in ("jaw", "suction", "overall")})
     return rec
 
 
@@ -577,6 +607,8 @@ def improvable_heap(seed: int, params: StudyParams = StudyParams(), policies=POL
            "objects": before["objects"], "heap": heap_to_dict(heap), "improvable": False}
     if params.transfer_speed is not None:
         rec["transfer_speed"] = params.transfer_speed
+    if params.sampling != "tilt_bin":  # a record without the key: the recorded studies' sampling
+        rec["sampling"] = params.sampling
     if reason == "cleared":
         rec.update(seconds=time.perf_counter() - t_wall, cpu_seconds=time.process_time() - t_cpu)
         return rec
@@ -584,9 +616,15 @@ def improvable_heap(seed: int, params: StudyParams = StudyParams(), policies=POL
     rec["state"] = world.poses_record()
     rec["before"] = {k: before[k] for k in ("D", "jaw", "suction", "overall")}
     rec["before_per_object"] = before["per_object"]
+    compare = None
+    if params.compare_sampling:
+        alt_sets = GraspSets(replace(params, sampling=params.compare_sampling), seed)
+        compare = (alt_sets, state_metrics(world, alt_sets))
+        rec["compare"] = {"sampling": params.compare_sampling,
+                          "before": {k: compare[1][k] for k in ("jaw", "suction", "overall")}}
     results = {}
     for p in policies:
-        results[p] = run_policy(world, snap, before, sets, p, seed)
+        results[p] = run_policy(world, snap, before, sets, p, seed, compare=compare)
     rec["policies"] = results
     rec["improvable"] = any(r.get("overall_gain", 0.0) > 1e-9 for r in results.values())
     rec["grasp_evaluations"] = sets.evaluations
