@@ -716,6 +716,8 @@ def bench_row(heap_rec: dict, policy: str, result: dict, source: str) -> dict:
                left_bin=int(result.get("left_bin", 0)))
     if result.get("error"):
         row["error"] = result["error"]
+    if heap_rec.get("sampling"):  # without the key: "tilt_bin"
+        row["sampling"] = heap_rec["sampling"]
     return row
 
 
@@ -773,8 +775,12 @@ def run_push_bench(policy: str, heaps: int, seed_start: int, out: Path, heap_dir
         if progress:
             progress(row)
 
+    def params_of(h):  # a heap is re-run with the grasp sampling it was recorded with
+        return asdict(replace(params, object_set=h.get("object_set", ""), sampling=h.get("sampling", "tilt_bin"),
+                              compare_sampling=""))
+
     if rerun and from_state:
-        jobs = [(h, (policy,), asdict(params)) for h in todo]
+        jobs = [(h, (policy,), params_of(h)) for h in todo]
         for r in run_jobs(state_job, jobs, workers=workers):
             if r.ok:
                 h = dict(r.job[0], before=r.value["before"])
@@ -782,7 +788,7 @@ def run_push_bench(policy: str, heaps: int, seed_start: int, out: Path, heap_dir
                 row["cpu_s"] = r.value["cpu_s"]
                 add(row)
     elif rerun:
-        jobs = [(int(h["seed"]), policy, asdict(replace(params, object_set=h.get("object_set", "")))) for h in todo]
+        jobs = [(int(h["seed"]), policy, params_of(h)) for h in todo]
         for r in run_jobs(rerun_job, jobs, workers=workers):
             if r.ok:
                 row = bench_row(r.value, policy, r.value["policies"][policy], "rerun")
