@@ -19,6 +19,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import binomtest
 
 from ms_drake.experiments.push_study import (
     HEAPS_FILE,
@@ -49,6 +50,26 @@ def rows_of(recs: list[dict], which: str) -> tuple[list[dict], list[int]]:
     return rows, seeds
 
 
+def when_pushed(rows: list[dict]) -> dict:
+    """Each structured policy against quasi-random on the heaps where it found a push: mean overall
+    gains on those heaps and a two-sided sign test of the paired gains."""
+    by = {}
+    for r in rows:
+        by.setdefault(r["policy"], {})[int(r["seed"])] = r
+    out = {}
+    for pol in POLICIES[1:]:
+        seeds = [s for s, r in by.get(pol, {}).items() if r["pushed"] and s in by.get("quasi_random", {})]
+        if not seeds:
+            continue
+        g = np.array([by[pol][s]["overall_gain"] for s in seeds])
+        q = np.array([by["quasi_random"][s]["overall_gain"] for s in seeds])
+        better, worse = int(np.sum(g > q + 1e-9)), int(np.sum(g < q - 1e-9))
+        pv = float(binomtest(better, better + worse).pvalue) if better + worse else 1.0
+        out[pol] = {"heaps": len(seeds), "gain": float(g.mean()), "quasi_random": float(q.mean()),
+                    "better": better, "worse": worse, "p": pv}
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("dir", type=Path)
@@ -75,6 +96,10 @@ def main(argv=None):
         print(f"\n== sampling {name!r} ({which}: {'decides Algorithm 1' if which == 'primary' else 'same states'}): "
               f"{len(seeds)} of {len(stuck)} stuck heaps improvable")
         print(format_push_table(s))
+        out["samplings"][name]["when_pushed"] = when_pushed(rows)
+        for pol, v in out["samplings"][name]["when_pushed"].items():
+            print(f"  where {pol} pushed ({v['heaps']} heaps): {pol} {v['gain']:+.3f}, quasi-random {v['quasi_random']:+.3f} "
+                  f"on the same heaps; higher on {v['better']}, lower on {v['worse']} (sign test p = {v['p']:.2g})")
         if a.figures:
             for p in plot_push(s, a.figures / name):
                 print("figure", p)

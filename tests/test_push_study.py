@@ -235,3 +235,17 @@ def test_compare_sampling_scores_the_same_push(pair_world):
     assert rec["pushed"] and set(METRICS) <= set(rec["compare"])
     assert rec["compare"]["separation_gain"] == pytest.approx(rec["separation_gain"])
     assert rec["compare"]["overall_gain"] == pytest.approx(rec["compare"]["after"]["overall"] - alt_before["overall"])
+
+
+def test_motion_of_measures_displacement_and_rotation():
+    from ms_drake.experiments.push_study import motion_of
+    a = np.eye(4)
+    b = _tilted(30.0)  # 30 degrees about x, 5 cm up
+    m = motion_of({"o1": a, "o2": a}, {"o1": b, "o2": a}, "o1")
+    assert m["pushed_tilt_deg"] == pytest.approx(30.0) and m["pushed_displacement"] == pytest.approx(0.05)
+    assert m["max_tilt_deg"] == pytest.approx(30.0)
+    yaw = np.eye(4)
+    yaw[:2, :2] = [[0.0, -1.0], [1.0, 0.0]]  # a quarter turn about the vertical: no tilt change
+    assert motion_of({"o1": a}, {"o1": yaw}, "o1")["pushed_tilt_deg"] == pytest.approx(0.0, abs=1e-6)
+    m = motion_of({"o1": a, "o2": a}, {"o2": b}, "o1")  # the pushed object left the bin
+    assert m["pushed_displacement"] == 0.0 and m["max_displacement"] == pytest.approx(0.05)

@@ -517,6 +517,21 @@ def gains(before: dict, after: dict) -> dict:
             "overall_gain": after["overall"] - before["overall"]}
 
 
+def motion_of(before: dict, after: dict, pushed: str) -> dict:
+    """How the objects moved in a push ({id: 4x4} before and after; objects gone after are left
+    out): the pushed object's and the largest displacement [m] and tilt change [deg] of any object.
+    Tilt change: the angle between gravity in the object's frame before and after (a turn about the
+    vertical is none; tipping over or rolling is), what an object's grasp qualities depend on."""
+    def moved(a, b):
+        ga, gb = a[:3, :3].T @ [0.0, 0.0, -1.0], b[:3, :3].T @ [0.0, 0.0, -1.0]
+        return float(np.linalg.norm(b[:3, 3] - a[:3, 3])), float(np.degrees(np.arccos(np.clip(ga @ gb, -1.0, 1.0))))
+    m = {oid: moved(before[oid], after[oid]) for oid in before if oid in after}
+    d, r = m.get(pushed, (0.0, 0.0))
+    return {"pushed_displacement": d, "pushed_tilt_deg": r,
+            "max_displacement": max((v[0] for v in m.values()), default=0.0),
+            "max_tilt_deg": max((v[1] for v in m.values()), default=0.0)}
+
+
 def run_policy(world: PushWorld, snap, before: dict, sets: GraspSets, policy: str, seed: int,
                policy_params: PolicyParams | None = None, compare: tuple | None = None) -> dict:
     """Plan `policy`'s push on the full state of `snap`, execute it in physics, the four gains.
@@ -539,6 +554,7 @@ def run_policy(world: PushWorld, snap, before: dict, sets: GraspSets, policy: st
             rec["compare"] = {k: 0.0 for k in METRICS}
         return rec
     rec["push"] = {"start": list(push.start), "end": list(push.end), "object": push.object_id}
+    X0 = {oid: world.pose(oid) for oid in world.present()}
     cpu1 = time.process_time()
     try:
         done = world.execute_push(push)
@@ -549,6 +565,7 @@ def run_policy(world: PushWorld, snap, before: dict, sets: GraspSets, policy: st
         rec.update({k: 0.0 for k in METRICS}, error=f"plan_failed:{done}")
         return rec
     rec["sim_cpu_s"] = time.process_time() - cpu1
+    rec.update(motion_of(X0, {oid: world.pose(oid) for oid in world.present()}, push.object_id))
     after = state_metrics(world, sets)
     rec.update(gains(before, after))
     rec["left_bin"] = before["objects"] - after["objects"]
