@@ -4,7 +4,7 @@ Re-executes the five policies from the stored states of the first N improvable h
 step's folder (`policies_from_state`, the sampling and transfer speed the heaps were recorded with)
 and records, with the gains, how far the pushed object moved and turned (`motion_of`):
 
-    .venv/bin/python sims/push_motion.py DIR --heaps 60 --out FILE.jsonl [--workers K]
+    .venv/bin/python sims/push_motion.py DIR --heaps 60 [--seed-start S] --out FILE.jsonl [--workers K]
 
 then prints per policy the share of pushes that change the pushed object's tilt by more than 20 degrees (it
 tips over or rolls) and the mean overall gain of the pushes that do and do not. Resumable (FILE
@@ -52,12 +52,13 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("dir", type=Path)
     ap.add_argument("--heaps", type=int, default=60)
+    ap.add_argument("--seed-start", type=int, default=0, help="the first N improvable heaps with seed >= S")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--json", type=Path)
     a = ap.parse_args(argv)
     done = {int(r["seed"]) for r in read_jsonl(a.out)}
-    todo = [h for h in improvable_records(a.dir, a.heaps) if int(h["seed"]) not in done]
+    todo = [h for h in improvable_records(a.dir, a.heaps, a.seed_start) if int(h["seed"]) not in done]
     jobs = [(h, POLICIES, asdict(replace(StudyParams(), object_set=h.get("object_set", ""),
                                          sampling=h.get("sampling", "tilt_bin"),
                                          transfer_speed=h.get("transfer_speed"))))
@@ -70,7 +71,7 @@ def main(argv=None):
             print(f"seed {rec['seed']}: " + ", ".join(
                 f"{p} {v.get('overall_gain', 0):+.2f}/{v.get('pushed_tilt_deg', 0):.0f}deg" for p, v in rec["policies"].items()),
                 flush=True)
-    rows = sorted(read_jsonl(a.out), key=lambda r: r["seed"])[: a.heaps]
+    rows = sorted((r for r in read_jsonl(a.out) if r["seed"] >= a.seed_start), key=lambda r: r["seed"])[: a.heaps]
     s = summarize(rows)
     print(f"\n{len(rows)} heaps; per policy: pushes, turned > {TURNED:.0f} deg, mean overall gain turned / not, all heaps")
     for p, v in s.items():
