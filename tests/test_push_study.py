@@ -249,3 +249,13 @@ def test_motion_of_measures_displacement_and_rotation():
     assert motion_of({"o1": a}, {"o1": yaw}, "o1")["pushed_tilt_deg"] == pytest.approx(0.0, abs=1e-6)
     m = motion_of({"o1": a, "o2": a}, {"o2": b}, "o1")  # the pushed object left the bin
     assert m["pushed_displacement"] == 0.0 and m["max_displacement"] == pytest.approx(0.05)
+
+
+def test_cli_push_heaps_names_a_bad_sampling(tmp_path):
+    from typer.testing import CliRunner
+
+    from ms_drake.cli import app
+
+    r = CliRunner().invoke(app, ["data", "push-heaps", "--count", "1", "--out", str(tmp_path), "--sampling", "bins"])
+    assert r.exit_code != 0 and "--sampling 'bins' unknown; choose one of tilt_bin, object" in r.output
+    assert not (tmp_path / "heaps.jsonl").exists()
