@@ -32,7 +32,7 @@ from tqdm import tqdm
 from ms_drake.collision.checker import METHODS as COLLISION_METHODS
 from ms_drake.collision.scene_net import NetConfig as CollisionNetConfig
 from ms_drake.errors import MsDrakeError
-from ms_drake.execution import FIDELITIES
+from ms_drake.execution import FIDELITIES, GRASP_OUTCOMES
 from ms_drake.experiments.collision_data import (
     SCENES_PER_SHARD as COLLISION_SCENES_PER_SHARD,
 )
@@ -465,9 +465,13 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
                                                    "default (indexed for primitive, image for full) | "
                                                    f"{' | '.join(GRASP_PLANNERS)}"),
                  heap_engine: str = typer.Option("drake", "--heap-engine", help="Drop physics of the ch7 heaps: "
-                                                 f"{' | '.join(HEAP_ENGINES)} (Bullet: ~4x cheaper per heap)")):
+                                                 f"{' | '.join(HEAP_ENGINES)} (Bullet: ~4x cheaper per heap)"),
+                 grasp_outcome: str = typer.Option("draw", "--grasp-outcome", help="Primitive grasp outcome: draw "
+                                                   "(success with probability = quality) | threshold (deterministic: "
+                                                   "quality >= 0.5, the state unchanged on a failure)")):
     """Search heaps S..S+K-1 with a policy; one JSON line per rollout (resumable), then a summary."""
     check_policy(policy)
+    _choose("--grasp-outcome", grasp_outcome, GRASP_OUTCOMES)
     _choose("--heap-engine", heap_engine, HEAP_ENGINES)
     if grasp_planner:
         _choose("--grasp-planner", grasp_planner, GRASP_PLANNERS)
@@ -494,7 +498,7 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: ran
                   use_ray=ray or ray_address is not None, ray_address=ray_address, progress=progress,
                   heap_dir=str(heap_dir) if heap_dir is not None else None, protocol=protocol,
                   segmenter=segmenter, detector=detector, push_policy=push_policy, grasp_planner=grasp_planner,
-                  heap_engine=heap_engine)
+                  heap_engine=heap_engine, grasp_outcome=grasp_outcome)
     if s["resumed"]:
         typer.echo(f"resuming: {s['resumed']} of {heaps_} rollouts already in {out}")
     typer.echo(format_summary(policy, s))

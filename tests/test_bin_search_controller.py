@@ -90,6 +90,8 @@ def test_controller_rejects_settings_it_cannot_honour(yumi_images):
         MakeBinSearchController(s, BinSearchParams(fidelity="full", segmentation="euclidean", camera="front"))
     with pytest.raises(ControllerError, match="segmentation 'sonar' unknown"):
         BinSearchParams(segmentation="sonar")
+    with pytest.raises(ControllerError, match="grasp_outcome 'coin' unknown; choose one of draw, threshold"):
+        BinSearchParams(grasp_outcome="coin")
 
 
 def test_three_lines_wire_the_controller_to_a_simulated_station(heap4):

@@ -256,3 +256,20 @@ def test_fast_transfers_shorten_only_the_legs_between_park_and_above_the_push():
     assert mf.duration < ms.duration - 1.0
     with pytest.raises(ValueError, match="transfer_speed"):
         PrimitiveBackend({}, WS, tcp_offset=0.1, transfer_speed=0.0)
+
+
+def test_threshold_grasp_outcomes_are_deterministic_and_draws_follow_the_quality():
+    def grasp(q):
+        return Action("grasp", grasp=Grasp("suction", (0, 0, 0.02), (0, 0, -1), quality=q, object_id="a"))
+
+    det = PrimitiveBackend({"a": 1, "b": 2}, WS, tcp_offset=0.1, target_id="b", seed=5, grasp_outcome="threshold")
+    for q, lifted in ((0.25, False), (0.49, False), (0.5, True), (0.75, True)):
+        outs = {det.outcome(grasp(q), None, poses(), step, ())[0].success for step in range(40)}
+        assert outs == {lifted}  # the same at every step: a failed grasp fails again on the same state
+    draw = backend(seed=5)
+    lifted = [draw.outcome(grasp(0.25), None, poses(), step, ())[0].success for step in range(400)]
+    assert 0.15 < np.mean(lifted) < 0.35  # p = quality
+    failed = det.outcome(grasp(0.25), None, poses(), 0, ())[0]
+    assert failed.removed_object == "" and failed.message == "grasp_failed"
+    with pytest.raises(ExecutionError, match="grasp_outcome 'nominal' unknown.*draw, threshold"):
+        PrimitiveBackend({}, WS, tcp_offset=0.1, grasp_outcome="nominal")

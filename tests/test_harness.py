@@ -104,6 +104,9 @@ def test_bad_bench_input(tmp_path):
     p = run("bench", "search", "--policy", "xray", "--protocol", "xray", "--heap-engine", "bullet",
             "--out", tmp_path / "x.jsonl", check=False)
     assert p.returncode == 2 and "only with --protocol ch7" in p.stderr
+    p = run("bench", "search", "--policy", "largest", "--grasp-outcome", "coin", "--out", tmp_path / "x.jsonl",
+            check=False)
+    assert p.returncode == 2 and "--grasp-outcome 'coin'" in p.stderr and "draw, threshold" in p.stderr
 
 
 def test_a_run_resumes_only_the_records_of_its_own_grasp_planner(tmp_path):
@@ -113,6 +116,9 @@ def test_a_run_resumes_only_the_records_of_its_own_grasp_planner(tmp_path):
     assert s["resumed"] == 0 and s["ran"] == 1
     recs = read_records(out)
     assert [r["grasp_planner"] for r in recs] == ["indexed", "image"]
+    s = run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="image", grasp_outcome="threshold")
+    assert s["resumed"] == 0 and s["ran"] == 1  # another grasp outcome: its own record
+    assert [r["grasp_outcome"] for r in read_records(out)] == ["draw", "draw", "threshold"]
     assert run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="indexed")["resumed"] == 1
     # a record without the key predates the grasp sets: it was searched with the image planner
     old = {k: v for k, v in recs[1].items() if k != "grasp_planner"}

@@ -3,6 +3,8 @@ gripper's evaluated grasp primitive; full: IK + ruckig through the station's dri
 
 from ms_drake.execution.backends import (  # noqa: F401
     FIDELITIES,
+    GRASP_OUTCOMES,
+    LIFT_THRESHOLD,
     PRIMITIVE_PUSH_TIME_STEP,
     FullBackend,
     PrimitiveBackend,

@@ -1,8 +1,12 @@
 """The two execution fidelities of DESIGN.md behind one ActionExecutor.
 
 PrimitiveBackend (floating gripper, large benchmarks):
-  grasp  success with probability = the grasp's robust contact-model quality (Grasp.quality from
-         the GraspPlanner), drawn from (seed, step); a successful grasp lifts the object out of
+  grasp  grasp_outcome "draw" (default): success with probability = the grasp's robust
+         contact-model quality (Grasp.quality from the GraspPlanner), drawn from (seed, step);
+         "threshold": success exactly when the quality is >= LIFT_THRESHOLD, a deterministic
+         outcome as the reference's X-Ray simulation decides "whether it would result in the
+         object being lifted" (lines 1504-1507; a failed grasp leaves the state unchanged, and the
+         same state gives the same outcome). A successful grasp lifts the object out of
          the scene (the executor announces it on `removed`, the rollout driver moves it away) and
          the rest settle by simulation for `settle` s. The gripper does not enter the heap (the
          reference's simulation experiments do the same: a grasp is an evaluated primitive).
@@ -34,6 +38,11 @@ from ms_drake.scenario import resolve_robot_config
 from ms_drake.types import Action, ActionOutcome
 
 FIDELITIES = ("primitive", "full")
+# PrimitiveBackend's grasp outcomes (module docstring).
+GRASP_OUTCOMES = ("draw", "threshold")
+# "threshold": lifted when at least half of the quality's perturbed trials lift the object (our
+# reading of a deterministic lift check on a robust quality).
+LIFT_THRESHOLD = 0.5
 # The plant step at which the primitive push agrees with the YuMi's [s]. At 10 ms (7 ms too) the
 # compliant contact between the floating jaw and a pushed object launches it: a box pushed 7.5 cm
 # along x ends 3.3 cm to the side, turned 98 degrees, pushed along the diagonal it flies 23 cm
@@ -108,8 +117,12 @@ class PrimitiveBackend(_Base):
 
     def __init__(self, objects: dict, workspace, tcp_offset: float, target_id: str = "", seed: int = 0,
                  settle: float = 0.5, travel_speed: float = 0.5, push_speed: float = 0.15,
-                 travel_height: float = 0.10, push_force: float = 40.0, transfer_speed: float | None = None):
+                 travel_height: float = 0.10, push_force: float = 40.0, transfer_speed: float | None = None,
+                 grasp_outcome: str = "draw"):
         super().__init__(objects, workspace, target_id, seed, settle)
+        if grasp_outcome not in GRASP_OUTCOMES:
+            raise ExecutionError(f"grasp_outcome {grasp_outcome!r} unknown; choose one of {', '.join(GRASP_OUTCOMES)}")
+        self.grasp_outcome = grasp_outcome
         self.tcp_offset = float(tcp_offset)
         self.travel_speed, self.push_speed = float(travel_speed), float(push_speed)
         self.transfer_speed = self.travel_speed if transfer_speed is None else float(transfer_speed)
@@ -159,8 +172,10 @@ class PrimitiveBackend(_Base):
 
     def outcome(self, action: Action, motion: Motion, poses, step: int, removed):
         if action.kind == "grasp":
-            rng = np.random.default_rng([self.seed, step, 4242])
-            ok = bool(rng.random() < float(action.grasp.quality))
+            if self.grasp_outcome == "threshold":
+                ok = float(action.grasp.quality) >= LIFT_THRESHOLD
+            else:
+                ok = bool(np.random.default_rng([self.seed, step, 4242]).random() < float(action.grasp.quality))
             return self._finish(action, ok, action.grasp.object_id, poses, removed,
                                 "" if ok else "grasp_failed")
         return self._finish(action, True, "", poses, removed)

@@ -106,6 +106,9 @@ class SearchParams:
     # BinSearchParams.reach: with the indexed planner, only grasps this robot reaches ("" none,
     # "robot" the station's own, or a scenario name such as "YuMiBin")
     reach: str = ""
+    # BinSearchParams.grasp_outcome: the primitive mode's grasp outcome, "draw" (p = quality) or
+    # "threshold" (deterministic, as the reference's X-Ray simulation)
+    grasp_outcome: str = "draw"
 
     def __post_init__(self):
         check_policy(self.policy)
@@ -147,6 +150,7 @@ class RolloutResult:
     grasp_plans: int = 0  # object grasp plans (LazyGraspPlanner: only the masks the selector reached)
     grasp_planner: str = ""
     push_policy: str = ""
+    grasp_outcome: str = "draw"
     error: str = ""
     # per action: the grasp's gripper kind ("parallel_jaw" / "suction"; "" for a push) and
     # whether the action succeeded (Table C.2: jaw vs suction grasps)
@@ -186,7 +190,7 @@ def controller_params(params: SearchParams, num_objects: int) -> BinSearchParams
                            period=params.period, segmentation=params.segmenter, detector=params.detector,
                            occupancy="analytic" if params.policy == "oracle" else params.occupancy,
                            grasp_planner=params.grasp_planner, push_policy=params.push_policy,
-                           reach=params.reach)
+                           reach=params.reach, grasp_outcome=params.grasp_outcome)
 
 
 def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSystem:
@@ -318,7 +322,7 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
                         target=heap.target, segmenter=params.segmenter, detector=params.detector,
                         grasp_successes=sum(1 for o in history if o.action.kind == "grasp" and o.success),
                         grasp_plans=grasp_plans, grasp_planner=system.controller.params.grasp_planner,
-                        push_policy=params.push_policy,
+                        push_policy=params.push_policy, grasp_outcome=params.grasp_outcome,
                         grasp_kinds=[o.action.grasp.kind if o.action.kind == "grasp" and o.action.grasp is not None
                                      else "" for o in history],
                         action_successes=[bool(o.success) for o in history],

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 from pydrake.systems.framework import Diagram, DiagramBuilder
 
 from ms_drake.errors import MsDrakeError
-from ms_drake.execution import FIDELITIES, ActionExecutor, FullBackend, PrimitiveBackend, tcp_offset_of
+from ms_drake.execution import FIDELITIES, GRASP_OUTCOMES, ActionExecutor, FullBackend, PrimitiveBackend, tcp_offset_of
 from ms_drake.execution.reach import PickReach
 from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.grasping.grasp_sets import load_grasp_set
@@ -101,6 +101,9 @@ class BinSearchParams:
     push_policy: the pushes of the *_push selectors: "" (default) the Ch. 7 free-space push of
     every object (PushPlanner), or a Ch. 4 policy of ms_drake.pushing.POLICIES (PushPolicySystem
     on the depth image and masks: one push, of the object the policy chooses).
+    grasp_outcome: the primitive fidelity's grasp outcome (execution.GRASP_OUTCOMES): "draw"
+    (default; success with probability = quality) or "threshold" (deterministic: quality >=
+    execution.LIFT_THRESHOLD); the full fidelity's outcome is the physics'.
     """
 
     policy: str = "largest"
@@ -120,9 +123,13 @@ class BinSearchParams:
     grasp_planner: str = ""
     push_policy: str = ""
     reach: str = ""
+    grasp_outcome: str = "draw"
 
     def __post_init__(self):
         check_policy(self.policy)
+        if self.grasp_outcome not in GRASP_OUTCOMES:
+            raise ControllerError(f"grasp_outcome {self.grasp_outcome!r} unknown; choose one of "
+                                  f"{', '.join(GRASP_OUTCOMES)}")
         if self.push_policy:
             check_push_policy(self.push_policy)
         if self.fidelity not in FIDELITIES:
@@ -175,7 +182,8 @@ def _backend(scenario, params: BinSearchParams, workspace: Workspace, sim: Simul
             raise ControllerError("fidelity 'primitive' runs in simulation on the floating gripper "
                                   "(FloatingGripperBin, with sim=SimulationInfo.from_station(station)); "
                                   "use fidelity 'full' for a robot or the hardware station")
-        return PrimitiveBackend(bodies, workspace, tcp_offset_of(sim.plant), target_id=target_id, seed=params.seed)
+        return PrimitiveBackend(bodies, workspace, tcp_offset_of(sim.plant), target_id=target_id, seed=params.seed,
+                                grasp_outcome=params.grasp_outcome)
     return FullBackend(scenario, bodies, workspace, target_id=target_id, seed=params.seed)
 
 
