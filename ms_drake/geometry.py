@@ -127,6 +127,14 @@ def world_points(camera: PinholeCamera, depth: np.ndarray) -> np.ndarray:
     return P_C @ R.T + camera.X_WC.translation()
 
 
+def transform_points(X: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """Points P (..., 3) in frame A mapped by the 4x4 pose X = X_BA to frame B. The transposed
+    rotation is copied to a C-contiguous block first: numpy 2.4 multiplies (N, 3) by a C-contiguous
+    3x3 in 0.2 ms for 10^5 points, by the strided slice of a 4x4 or a transposed (F-ordered) 3x3
+    through OpenBLAS in 0.5 ms with one thread and 7-40 ms of CPU with two (its threads spin)."""
+    return P @ np.ascontiguousarray(X[:3, :3].T) + X[:3, 3]
+
+
 def transform_from_rpy_xyz(rpy, xyz) -> RigidTransform:
     """RigidTransform from Drake roll-pitch-yaw angles [rad] and a translation [m] (the robot
     tables store weld transforms as these plain tuples)."""

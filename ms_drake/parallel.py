@@ -17,12 +17,15 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+from contextlib import contextmanager
 import socket
 import traceback
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Iterator
+
+from threadpoolctl import threadpool_limits
 
 from ms_drake.errors import MsDrakeError
 
@@ -46,11 +49,28 @@ def probe(x):
     return x * x, os.getpid(), socket.gethostname()
 
 
-# Set in every pool / Ray worker before its job runs: one worker per core, so the libraries that
+# The environment of every pool / Ray worker process: one worker per core, so the libraries that
 # start their own threads (Mesa llvmpipe renders with one thread per core; OpenMP/BLAS) use one
 # each instead of competing with the other workers (2 workers vs 1 went from 1.48x to 1.93x on 12
-# heaps, 2 cores). setdefault: a value the user exported wins.
+# heaps, 2 cores). A value the user exported wins. It is given to the processes when they start
+# (OpenBLAS reads it when numpy loads, which unpickling a job already does), and every job also
+# runs under threadpoolctl's BLAS limit of one thread: the jobs' BLAS calls are small products
+# ((N, 3) points by a 3x3 rotation), where a second OpenBLAS thread only spins (7-40 ms of CPU
+# instead of 0.5 ms for 10^5 points on the 2-core machine).
 WORKER_ENV = {"LP_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+
+
+@contextmanager
+def worker_environ():
+    """os.environ with WORKER_ENV's defaults while the block runs (processes started in it inherit
+    them); restored afterwards."""
+    added = {k: v for k, v in WORKER_ENV.items() if k not in os.environ}
+    os.environ.update(added)
+    try:
+        yield
+    finally:
+        for k in added:
+            os.environ.pop(k, None)
 
 #: Jobs per worker process before it is replaced (bounds the memory of leaked Drake diagrams).
 MAX_TASKS_PER_CHILD = 20
@@ -61,7 +81,8 @@ def _call(fn, job, worker_env: bool = False):
         for k, v in WORKER_ENV.items():
             os.environ.setdefault(k, v)
     try:
-        return JobResult(job, fn(job))
+        with threadpool_limits(limits=1, user_api="blas"):
+            return JobResult(job, fn(job))
     except Exception as e:  # noqa: BLE001 - reported to the caller, the run goes on
         return JobResult(job, None, f"{type(e).__name__}: {e}\n{traceback.format_exc(limit=3)}")
 
@@ -82,19 +103,20 @@ def _run_local(fn, jobs: list, workers: int, max_tasks: int) -> Iterator[JobResu
     pool, submitted = None, 0
     try:
         while pending or inflight:
-            while pending and len(inflight) < workers:
-                if pool is None or submitted >= workers * max_tasks:
-                    if pool is not None:
+            with worker_environ():  # the pool's processes start on submit and inherit it
+                while pending and len(inflight) < workers:
+                    if pool is None or submitted >= workers * max_tasks:
+                        if pool is not None:
+                            pool.shutdown(wait=False)
+                        pool, submitted = ProcessPoolExecutor(max_workers=workers, mp_context=ctx), 0
+                    job = pending.pop()
+                    try:
+                        inflight[pool.submit(_call, fn, job, True)] = (job, pool)
+                        submitted += 1
+                    except BrokenProcessPool:  # broken by a death noticed meanwhile: a fresh pool
+                        pending.append(job)
                         pool.shutdown(wait=False)
-                    pool, submitted = ProcessPoolExecutor(max_workers=workers, mp_context=ctx), 0
-                job = pending.pop()
-                try:
-                    inflight[pool.submit(_call, fn, job, True)] = (job, pool)
-                    submitted += 1
-                except BrokenProcessPool:  # broken by a death noticed meanwhile: a fresh pool
-                    pending.append(job)
-                    pool.shutdown(wait=False)
-                    pool = None
+                        pool = None
             done, _ = wait(set(inflight), return_when=FIRST_COMPLETED)
             for f in done:
                 job, owner = inflight.pop(f)
@@ -117,10 +139,12 @@ def _run_ray(fn, jobs: list, workers: int, address: str | None, max_tasks: int) 
         raise MsDrakeError("Ray is not installed; install the extra with `pip install -e '.[ray]'` "
                            "or run without --ray") from None
     if not ray.is_initialized():
+        env = {k: os.environ.get(k, v) for k, v in WORKER_ENV.items()}
         if address:
-            ray.init(address=address, ignore_reinit_error=True, log_to_driver=False)
+            ray.init(address=address, ignore_reinit_error=True, log_to_driver=False,
+                     runtime_env={"env_vars": env})
         else:
-            ray.init(num_cpus=max(1, workers), ignore_reinit_error=True, log_to_driver=False,
+            ray.init(num_cpus=max(1, workers), ignore_reinit_error=True, log_to_driver=False, runtime_env={"env_vars": env},
                      include_dashboard=False)
     remote = ray.remote(num_cpus=1, max_retries=0, max_calls=max_tasks)(_call)
     refs = {remote.remote(fn, job, True): job for job in jobs}

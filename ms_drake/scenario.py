@@ -9,6 +9,7 @@ what is allowed. Unknown keys and wrong types are errors.
 
 # No `from __future__ import annotations`: Drake's yaml_load_typed reads the field types.
 
+import copy
 import dataclasses
 import difflib
 import importlib.util
@@ -328,11 +329,27 @@ def resolve_robot_config(robot_config):
     return chosen, drivers
 
 
+#: Scenarios already loaded and checked, keyed by (file, its mtime and size, name): parsing the
+#: file costs 20-65 ms of PyYAML per load, paid at every rollout of a benchmark.
+_LOADED: dict = {}
+
+
 def load_scenario(filename: typing.Union[str, Path, None] = None, scenario_name: str = "EmptyBin") -> Scenario:
-    """Load `scenario_name` from `filename` (default: diagrams/scenarios.yaml)."""
+    """Load `scenario_name` from `filename` (default: diagrams/scenarios.yaml). Each call returns a
+    new Scenario (callers may edit it); a file is parsed again when its mtime or size changed."""
     filename = Path(filename) if filename is not None else default_scenarios_file()
     if not filename.is_file():
         raise ScenarioError(f"{filename}: no such scenario file")
+    st = filename.stat()
+    key = (str(filename.resolve()), st.st_mtime_ns, st.st_size, scenario_name)
+    if key not in _LOADED:
+        if len(_LOADED) > 64:
+            _LOADED.clear()
+        _LOADED[key] = _load_scenario(filename, scenario_name)
+    return copy.deepcopy(_LOADED[key])
+
+
+def _load_scenario(filename: Path, scenario_name: str) -> Scenario:
     try:
         raw = yaml_load_data(filename.read_text())
     except Exception as e:  # noqa: BLE001 - YAML syntax errors of any kind

@@ -79,3 +79,23 @@ def test_pool_workers_use_one_render_thread_each(monkeypatch):
     assert {r.value for r in run_jobs(worker_env, ["LP_NUM_THREADS"] * 2, workers=2)} == {"1"}
     monkeypatch.setenv("LP_NUM_THREADS", "3")
     assert {r.value for r in run_jobs(worker_env, ["LP_NUM_THREADS"] * 2, workers=2)} == {"3"}
+
+
+def blas_threads(_):
+    """OpenBLAS's thread count in the job (as numpy loaded it) and inside the job's limit."""
+    import numpy  # noqa: F401 - loads OpenBLAS
+    from threadpoolctl import threadpool_info
+
+    return max((d["num_threads"] for d in threadpool_info() if d["user_api"] == "blas"), default=0), \
+        os.environ.get("OPENBLAS_NUM_THREADS")
+
+
+def test_jobs_run_with_one_blas_thread(monkeypatch):
+    """A pool worker starts with OPENBLAS_NUM_THREADS=1 in its environment (numpy loads OpenBLAS
+    when the job is unpickled, before it runs, so setting it then would be too late), and every job,
+    serial ones in this process too, runs under a one-thread BLAS limit; the parent's environment
+    is left as it was."""
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    assert {r.value for r in run_jobs(blas_threads, range(2), workers=2)} == {(1, "1")}
+    assert {r.value for r in run_jobs(blas_threads, range(2), workers=1)} == {(1, None)}
+    assert "OPENBLAS_NUM_THREADS" not in os.environ

@@ -24,7 +24,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from ms_drake.collision.scene_net import CollisionNetError
-from ms_drake.geometry import coal_convex
+from ms_drake.geometry import coal_convex, transform_points
 
 BASELINES = ("coal_reconstruction", "sdf")
 
@@ -99,7 +99,7 @@ class PointDistance:
     def query(self, poses: np.ndarray) -> np.ndarray:
         out = np.zeros(len(poses), bool)
         for i, X in enumerate(np.asarray(poses, float)):
-            p = self.points @ X[:3, :3].T + X[:3, 3]
+            p = transform_points(X, self.points)
             out[i] = p[:, 2].min() < self.table_top or bool(
                 np.isfinite(self.tree.query(p, k=1, distance_upper_bound=self.margin)[0]).any())
         return out

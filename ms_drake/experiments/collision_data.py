@@ -50,7 +50,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from ms_drake.collision.scene_net import SCENE_BOUNDS
 from ms_drake.errors import DatasetError, HeapError
 from ms_drake.experiments.occupancy_data import HeapRenderer, shard_split
-from ms_drake.geometry import PinholeCamera
+from ms_drake.geometry import PinholeCamera, transform_points
 from ms_drake.grasping.meshes import object_mesh
 from ms_drake.objects import get_object_set
 from ms_drake.parallel import run_jobs
@@ -171,7 +171,7 @@ class SceneCollisions:
                 break
             p_W = np.einsum("nij,j->ni", poses[todo, :3, :3], v[0]) + poses[todo, :3, 3]
             Xinv = np.linalg.inv(Xs)
-            p_S = p_W @ Xinv[:3, :3].T + Xinv[:3, 3]
+            p_S = transform_points(Xinv, p_W)
             out[todo[m.contains(p_S)]] = True
             todo = np.nonzero(~out)[0]
             if len(todo) == 0:

@@ -41,7 +41,7 @@ from pydrake.systems.framework import LeafSystem
 from pydrake.systems.sensors import CameraInfo, ImageDepth32F
 from scipy.spatial import QhullError
 
-from ms_drake.geometry import as_matrix4
+from ms_drake.geometry import as_matrix4, transform_points
 from ms_drake.grasping.evaluator import MODELS, GraspEvaluator
 from ms_drake.grasping.grasp import GraspError
 from ms_drake.grasping.samplers import (
@@ -165,7 +165,7 @@ class GraspPlanner(LeafSystem):
             else:
                 if P_W is None:
                     P_C = depth_to_points(depth, K)
-                    P_W = P_C @ X_WC[:3, :3].T + X_WC[:3, 3]
+                    P_W = transform_points(X_WC, P_C)
                     zs = P_W[..., 2][np.isfinite(P_W[..., 2])]
                     floor_z = float(zs.min()) if len(zs) else 0.0
                 mesh = self._hull(P_W, mask, floor_z)

@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ms_drake.geometry import as_matrix4
+from ms_drake.geometry import as_matrix4, transform_points
 from ms_drake.grasping.geometry import MeshData, cross
 from ms_drake.grasping.grasp import GraspError, ParallelJawGrasp, SuctionGrasp
 
@@ -334,7 +334,7 @@ def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.nda
     sub = np.where(finite[r0:r1, c0:c1], depth[r0:r1, c0:c1], np.nan)
     v, u = np.mgrid[r0:r1, c0:c1]
     P_C = np.stack([(u - K[0, 2]) * sub / K[0, 0], (v - K[1, 2]) * sub / K[1, 1], sub], axis=-1)
-    P_W = P_C @ X_WC[:3, :3].T + X_WC[:3, 3]
+    P_W = transform_points(X_WC, P_C)
     ok = np.isfinite(sub)
     obj = P_W[valid[r0:r1, c0:c1] & ok]
     # the neighbours: points off the mask dilated by 2 px (a silhouette's edge pixels can carry
@@ -427,24 +427,42 @@ def sample_suction_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.ndarr
     collision-free, line 1505)."""
     X_WC = as_matrix4(X_WC, "X_WC")
     rng = np.random.default_rng(seed)
-    valid = mask & np.isfinite(depth) & (depth > 0)
-    P = depth_to_points(depth, K)
-    N = depth_normals(P)
-    ok = valid & np.all(np.isfinite(N), axis=-1)
-    rows, cols = np.nonzero(ok)
+    finite = np.isfinite(depth) & (depth > 0)
+    valid = mask & finite
     R, t = X_WC[:3, :3], X_WC[:3, 3]
+    rows, cols = np.nonzero(valid)
+    if len(rows) == 0:
+        return []
+    # normals on the mask's window (+ 2 px: np.gradient's central differences at every mask pixel,
+    # the same values as on the whole image)
+    r0, r1 = max(rows.min() - 2, 0), min(rows.max() + 3, depth.shape[0])
+    c0, c1 = max(cols.min() - 2, 0), min(cols.max() + 3, depth.shape[1])
+    Kw = np.array(K, float)
+    Kw[:2, 2] -= (c0, r0)
+    P = depth_to_points(depth[r0:r1, c0:c1], Kw)
+    N = depth_normals(P)
+    ok = valid[r0:r1, c0:c1] & np.all(np.isfinite(N), axis=-1)
+    rows, cols = np.nonzero(ok)
     others = None
     if cup_radius is not None:
-        off = ~mask & np.isfinite(depth) & (depth > 0)
-        others = cKDTree(P[off] @ R.T + t)  # seen points of everything else, world frame
-    out, kept = [], []
-    for i in rng.permutation(len(rows))[: 40 * max(count, 1)]:
+        # seen points of everything else (world frame) that a cup's axis check can reach: within
+        # cup_length + 2.2 cup_radius of a mask point (the balls of _cup_blocked)
+        off = ~mask & finite
+        Q = transform_points(X_WC, depth_to_points(depth, K)[off])
+        obj = transform_points(X_WC, P[ok])
+        reach = cup_length + 2.2 * cup_radius
+        lo, hi = obj.min(axis=0) - reach, obj.max(axis=0) + reach
+        others = cKDTree(Q[np.all((Q >= lo) & (Q <= hi), axis=1)])
+    out, picks = [], rng.permutation(len(rows))[: 40 * max(count, 1)]
+    kept, n_kept = np.empty((len(picks), 3)), 0
+    for i in picks:
         if len(out) >= count:
             break
         p = R @ P[rows[i], cols[i]] + t
-        if any(np.linalg.norm(p - k) < dedupe_distance for k in kept):
+        if n_kept and np.min(np.sum((kept[:n_kept] - p) ** 2, axis=1)) < dedupe_distance ** 2:
             continue
-        kept.append(p)
+        kept[n_kept] = p
+        n_kept += 1
         if others is not None and others.n and _cup_blocked(others, p, R @ N[rows[i], cols[i]], cup_radius,
                                                                 clearance, cup_length):
             continue

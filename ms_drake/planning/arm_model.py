@@ -26,6 +26,7 @@ import trimesh
 from pydrake.geometry import Box, Convex, Cylinder, Mesh, Sphere
 from pydrake.multibody.tree import RevoluteJoint
 
+from ms_drake.geometry import transform_points
 from ms_drake.errors import MsDrakeError
 from ms_drake.planning.batch_fk import BatchFK
 
@@ -92,7 +93,7 @@ class ArmModel:
                 if pts is None:
                     continue
                 X_BG = inspector.GetPoseInFrame(gid).GetAsMatrix4()
-                sets.append(pts @ X_BG[:3, :3].T + X_BG[:3, 3])
+                sets.append(transform_points(X_BG, pts))
             if sets:
                 P = np.concatenate(sets)
                 if len(P) > points_per_body:

@@ -54,7 +54,7 @@ import coal
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-from ms_drake.geometry import PinholeCamera, Workspace, depth_array
+from ms_drake.geometry import PinholeCamera, Workspace, depth_array, transform_points
 from ms_drake.pushing.free_space import MAX_PUSH_HEIGHT, MIN_PUSH_HEIGHT, PushError, push_height
 from ms_drake.types import InstanceMasks, ObjectGeometry, Push
 
@@ -300,7 +300,7 @@ def state_scene(objects, workspace: Workspace) -> PushScene:
     objs, hulls = [], []
     for g in objects:
         X = np.asarray(g.X_WO, float)
-        h = _hull_of(np.asarray(g.vertices, float)) @ X[:3, :3].T + X[:3, 3]
+        h = transform_points(X, _hull_of(np.asarray(g.vertices, float)))
         com = X[:3, :3] @ _com_of(g) + X[:3, 3]
         objs.append(PushObject(str(g.id), com, h[:, :2].copy(), float(h[:, 2].min()), float(h[:, 2].max())))
         hulls.append(h)
