@@ -728,7 +728,10 @@ def bench_shelf(ctx: typer.Context,
                 perception: str = typer.Option("ground_truth", "--perception",
                                                help="ground_truth (FOSS's scene, analytic occupancy), learned "
                                                     "(learned occupancy of depth renders) or depth (also the "
-                                                    "objects segmented from the render); own --out file each")):
+                                                    "objects segmented from the render); own --out file each"),
+                oracle_exhaustive: float = typer.Option(0.0, "--oracle-exhaustive", min=0.0,
+                                                        help="oracle_p only: CPU seconds of the exhaustive push "
+                                                             "search after the staged one finds nothing (0: off)")):
     """Shelf search in FOSS (Table 9.1): scenes S..S+K-1 for each occluder count, ground-truth (or
     learned) occupancy; one JSON line per search (resumable), then success rates and median steps."""
     check_shelf_policy(policy)
@@ -743,7 +746,8 @@ def bench_shelf(ctx: typer.Context,
             tqdm.write(f"occluders {rec['occluders']} seed {rec['seed']}: {rec.get('error', '')} (rerun to retry)")
 
     s = run_shelf_bench(policy, counts, scenes, seed_start, out, workers=workers, use_ray=ray or ray_address is not None,
-                        ray_address=ray_address, horizon=horizon, progress=progress, perception=perception)
+                        ray_address=ray_address, horizon=horizon, progress=progress, perception=perception,
+                        oracle_exhaustive=oracle_exhaustive)
     bar.close()
     if s["resumed"]:
         typer.echo(f"resuming: {s['resumed']} of {len(counts) * scenes} searches were already in {out}")

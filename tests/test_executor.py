@@ -56,7 +56,8 @@ def test_executor_alone_latches_only_when_idle_and_records_outcomes():
     assert hist[0].success and hist[0].removed_object == ""
     assert hist[1].success and hist[1].removed_object == "a"  # quality 1: always lifted
     # the grasp stays on the fixed action input, so it is done again each time the executor is idle
-    assert len(hist) == 22 and all(o.action.kind == "grasp" and o.success for o in hist[1:])
+    # (from the second on, it ends at its check: "a" is gone already and the scene is at rest)
+    assert len(hist) == 42 and all(o.action.kind == "grasp" and o.success for o in hist[1:])
     assert "a" in ex.GetOutputPort("removed").Eval(ctx)
     assert ex.GetOutputPort("outcome").Eval(ctx) == hist[-1]  # the latest outcome
     np.testing.assert_allclose(ex.GetOutputPort("floating.position").Eval(ctx), park)  # parked again
@@ -89,6 +90,34 @@ def test_an_action_ends_once_the_scene_is_at_rest():
     # only the heap is watched: neither a chattering robot body nor the lifted (removed) object
     assert run(moving=False, finger=True) == pytest.approx(0.2)
     assert run(moving=False, removed_moves=True) == pytest.approx(0.2)
+
+
+def test_a_failed_grasp_on_a_scene_at_rest_ends_at_its_check():
+    """A primitive grasp that lifts nothing leaves the scene as it was: when the action before it
+    ended at rest, it ends at its check (one update); else it waits for rest as any action."""
+    miss = Action("grasp", grasp=Grasp("parallel_jaw", (0, 0, 0.02), (0, 0, -1), quality=0.0, object_id="a"))
+
+    def ends(moving_until: float):
+        ex = ActionExecutor(backend(), period=0.05)
+        ctx = ex.CreateDefaultContext()
+        ex.action_port.FixValue(ctx, miss)
+        sim, out, last = Simulator(ex, ctx), [], 0
+        for k in range(1, 30):
+            x = 0.005 * min(k, moving_until / 0.05)
+            ex.poses_port.FixValue(ctx, poses(b=(0.05 + x, 0.0, 0.02)))
+            sim.AdvanceTo(0.05 * k)
+            st = ex.GetOutputPort("status").Eval(ctx)
+            if st.steps > last and not st.busy:
+                out.append(round(0.05 * k, 3))
+                last = st.steps
+        assert not any(o.success for o in ex.GetOutputPort("history").Eval(ctx))
+        return out[:4]
+
+    # at rest throughout: the first miss settles (0.2 s), the next ones take one update each (+ idle)
+    assert ends(0.0) == [0.2, 0.3, 0.4, 0.5]
+    # the heap moves for the first 0.6 s: the first miss runs its 0.5 s bound, not at rest, so the
+    # second waits for rest too; from then on, one update each
+    assert ends(0.6) == [0.55, 0.75, 0.85, 0.95]
 
 
 def test_extracting_the_target_ends_the_action_at_its_check():

@@ -16,6 +16,7 @@ from ms_drake.policies.shelf import (
     ShelfPolicyParams,
     ShelfPolicySelector,
     _View,
+    exhaustive_push_plan,
     history_min,
     like_key,
     mask_extents,
@@ -267,6 +268,32 @@ def test_push_locked(foss):
     scene = generate_shelf_scene(foss.geometry, 0, num_objects=6).scene
     assert push_locked(foss, scene) == ["occ05"]
     assert oracle_plan(foss, scene, suction=True, budget=12) is not None
+
+
+def test_exhaustive_push_search_finds_the_plans_the_bounded_oracle_misses(foss):
+    """8 occluders, seed 89: one of Oracle-P's failures in Table 9.1 (its staged search ends
+    without a plan); breadth first over every push there is a 6-push plan, and none of 5."""
+    scene = generate_shelf_scene(foss.geometry, 89, num_objects=8).scene
+    assert not push_locked(foss, scene)
+    assert oracle_plan(foss, scene, suction=False, budget=16, max_seconds=0.5) is None
+    plan = oracle_plan(foss, scene, suction=False, budget=16, max_seconds=0.5, exhaustive_seconds=120)
+    assert plan is not None and len(plan) == 6 and {a.kind for a in plan} == {"push"}
+    s = scene
+    for a in plan:
+        s, outcome = foss.step(s, a)
+        assert outcome.success, outcome.message
+    assert foss.revealed(s)
+    assert exhaustive_push_plan(foss, scene, 5, 120) is None  # the plan is a shortest one
+    # 6 occluders, seed 32: not push-locked by the row bound, but the reachable states run out
+    # (442 of them) before any shows the target
+    assert exhaustive_push_plan(foss, generate_shelf_scene(foss.geometry, 32, num_objects=6).scene, 12, 120) is None
+    # the selector's parameter
+    params = ShelfPolicyParams(oracle_max_seconds=0.5)
+    assert ShelfPolicies("oracle_p", foss, params).select(scene, None).kind == "stop"
+    action = ShelfPolicies("oracle_p", foss, dataclasses.replace(params, oracle_exhaustive_seconds=120)).select(scene, None)
+    assert action.kind == "shelf" and action.shelf == plan[0]
+    with pytest.raises(PolicyError, match="exhaustive_seconds"):
+        oracle_plan(foss, scene, suction=False, budget=16, exhaustive_seconds=-1.0)
 
 
 def test_oracle_time_bound(foss):

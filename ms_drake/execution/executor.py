@@ -94,6 +94,7 @@ class _State:
     stop_reason: str = ""
     last_poses: dict | None = None  # watched body index -> pose (12,) at the previous update
     still_since: float | None = None  # time from which every body has been at rest
+    at_rest: bool = False  # the last action ended with the watched bodies at rest
 
 
 NO_OUTCOME = ActionOutcome(Action("stop", reason="none"), False, message="none")
@@ -108,6 +109,8 @@ class ActionExecutor(LeafSystem):
     which every body has moved by less than `still_distance` [m] and `still_angle` [rad] between
     consecutive updates for `still_time` s; otherwise at its full duration (the backend's
     `settle` bound). Needs the body_poses input; without it motions run their full duration.
+    An action whose motion commands nothing (the primitive grasp) and removes nothing ends at
+    its check when the action before it ended at rest: the scene is as it was.
     Only the heap is watched: the backend's `objects` not yet removed (a backend without
     `objects`, e.g. the shelf's, has every body watched). The robot's own bodies are
     not (a closed jaw's fingers chatter against each other by ~16 mm per update at 10 ms steps,
@@ -203,20 +206,24 @@ class ActionExecutor(LeafSystem):
         if s.phase == "executing":
             dt = t - s.t0
             settled = self._settled(s, poses, t)
+            unchanged = False
             if not s.checked and (dt >= s.motion.check_time - 1e-9 or settled):
                 out, gone = self.backend.outcome(s.action, s.motion, poses, len(s.history), s.removed)
                 s.history = s.history + (out,)
                 new = [r for r in dict.fromkeys([out.removed_object, *gone]) if r and r not in s.removed]
                 s.removed = s.removed + tuple(new)
                 s.checked = True
+                # A motion that commands nothing (a primitive grasp) and removed nothing left the
+                # scene as it was; if that was at rest, there is nothing to settle.
+                unchanged = not s.motion.commands and not new and s.at_rest and s.motion.settle_from is not None
             # The search is over once the target is out (its grasp succeeded): the heap's settle
             # after it changes nothing, so the action ends at its check.
             extracted = s.checked and s.history[-1].success and s.history[-1].action.kind == "grasp" and \
                 bool(s.history[-1].removed_object) and s.history[-1].removed_object == getattr(self.backend, "target_id", "")
-            if s.checked and (dt >= s.motion.duration - 1e-9 or settled or extracted):
+            if s.checked and (dt >= s.motion.duration - 1e-9 or settled or extracted or unchanged):
                 s.hold = s.motion.values(s.motion.duration, s.hold)
                 s.phase, s.motion, s.action = "idle", None, None
-                s.last_poses, s.still_since = None, None
+                s.last_poses, s.still_since, s.at_rest = None, None, settled or unchanged
                 # Idle for one period before the next action: observers (the rollout driver, the
                 # demo) see the settled scene the next action is chosen from.
                 state.get_mutable_abstract_state(self._state_index).set_value(s)

@@ -39,7 +39,7 @@ from pydrake.systems.framework import DiagramBuilder
 
 from ms_drake.errors import MsDrakeError
 from ms_drake.experiments.figures import figure_dir, save_png
-from ms_drake.experiments.harness import final_records, read_records, summarize
+from ms_drake.experiments.harness import read_records, summarize
 from ms_drake.experiments.shelf_segmentation import AssociateShelfObjects
 from ms_drake.foss import Foss, FossSystem
 from ms_drake.parallel import run_jobs, run_shard_jobs
@@ -170,7 +170,7 @@ def shelf_rollout(policy: str, occluders: int, seed: int, params: ShelfPolicyPar
         return float(1e3 * f(x)) if x else float("nan")
 
     return dict(seed=int(seed), occluders=int(occluders), objects=int(occluders), policy=policy, fidelity=FIDELITY,
-                perception=perception,
+                perception=perception, oracle_exhaustive_seconds=float(params.oracle_exhaustive_seconds),
                 success=not failure, steps=steps, actions=steps, pushes=kinds.count("push"),
                 suctions=kinds.count("suction"), refused=len(history) - len(done),
                 cost=kinds.count("push") + params.psi * kinds.count("suction"), failure=failure, stop_reason=reason,
@@ -182,35 +182,55 @@ def shelf_rollout(policy: str, occluders: int, seed: int, params: ShelfPolicyPar
 
 
 def shelf_rollout_job(job: tuple) -> dict:
-    """(policy, occluders, seed[, horizon[, perception]]) -> record; module-level for the worker pool."""
+    """(policy, occluders, seed[, horizon[, perception[, oracle_exhaustive_seconds]]]) -> record;
+    module-level for the worker pool."""
     policy, occluders, seed, *rest = job
     horizon = rest[0] if rest else None
     perception = rest[1] if len(rest) > 1 else "ground_truth"
-    return shelf_rollout(policy, occluders, seed, ShelfPolicyParams(seed=seed, horizon=horizon),
+    exhaustive = rest[2] if len(rest) > 2 else 0.0
+    return shelf_rollout(policy, occluders, seed,
+                         ShelfPolicyParams(seed=seed, horizon=horizon, oracle_exhaustive_seconds=exhaustive),
                          perception=perception)
 
 
-def _matches(r: dict, policy: str, perception: str = "ground_truth") -> bool:
+def final_shelf_records(recs: list[dict]) -> list[dict]:
+    """The last record per (policy, occluders, seed, perception, Oracle-P's exhaustive budget): a
+    retried search replaces its failure; other settings in the same file stay apart."""
+    out = {}
+    for r in recs:
+        out[(r.get("policy"), r.get("objects"), int(r["seed"]), r.get("perception", "ground_truth"),
+             float(r.get("oracle_exhaustive_seconds", 0.0)))] = r
+    return list(out.values())
+
+
+def _matches(r: dict, policy: str, perception: str = "ground_truth", oracle_exhaustive: float = 0.0) -> bool:
     return (r.get("policy") == policy and r.get("fidelity") == FIDELITY
-            and r.get("perception", "ground_truth") == perception)
+            and r.get("perception", "ground_truth") == perception
+            and float(r.get("oracle_exhaustive_seconds", 0.0)) == float(oracle_exhaustive))
 
 
 def run_shelf_bench(policy: str, occluders: list[int], scenes: int, seed_start: int, out, workers: int = 1,
                     use_ray: bool = False, ray_address: str | None = None, horizon: int | None = None,
-                    progress=None, perception: str = "ground_truth") -> dict:
+                    progress=None, perception: str = "ground_truth", oracle_exhaustive: float = 0.0) -> dict:
     """Run the missing rollouts of seeds S..S+K-1 for every occluder count, append them to `out`
     (JSON lines); returns {occluders or "all": summary} over the requested seeds. Records without
-    a `perception` field are ground-truth ones."""
+    a `perception` field are ground-truth ones. oracle_exhaustive: Oracle-P's exhaustive push search
+    budget [CPU s] after its staged search (ShelfPolicyParams.oracle_exhaustive_seconds; 0: off);
+    records keep it, and a resumed run matches on it."""
     check_shelf_policy(policy)
+    if oracle_exhaustive < 0 or (oracle_exhaustive > 0 and policy != "oracle_p"):
+        raise MsDrakeError(f"--oracle-exhaustive {oracle_exhaustive:g}: a CPU budget >= 0 s, and only for "
+                           f"--policy oracle_p (got --policy {policy})")
     bad = [n for n in occluders if not 2 <= n <= 12]
     if bad:
         raise MsDrakeError(f"--occluders {' '.join(map(str, bad))}: shelf scenes have 2 to 12 occluders")
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    done = {(int(r["objects"]), int(r["seed"])) for r in final_records(read_records(out))
-            if _matches(r, policy, perception) and r.get("failure") != "worker_died"}
+    done = {(int(r["objects"]), int(r["seed"])) for r in final_shelf_records(read_records(out))
+            if _matches(r, policy, perception, oracle_exhaustive) and r.get("failure") != "worker_died"}
     seeds = range(seed_start, seed_start + scenes)
-    jobs = [(policy, n, s, horizon, perception) for n in occluders for s in seeds if (n, s) not in done]
+    jobs = [(policy, n, s, horizon, perception, oracle_exhaustive) for n in occluders for s in seeds
+            if (n, s) not in done]
     with open(out, "a") as f:
         for r in run_jobs(shelf_rollout_job, jobs, workers=workers, use_ray=use_ray, ray_address=ray_address):
             if r.ok:
@@ -218,13 +238,14 @@ def run_shelf_bench(policy: str, occluders: list[int], scenes: int, seed_start: 
             else:
                 err = (r.error or "").strip().splitlines()
                 rec = dict(seed=r.job[2], occluders=r.job[1], objects=r.job[1], policy=policy, fidelity=FIDELITY,
-                           perception=perception, success=False, steps=0, actions=0, failure="worker_died", error=err[-1] if err else "")
+                           perception=perception, oracle_exhaustive_seconds=float(oracle_exhaustive), success=False, steps=0, actions=0, failure="worker_died", error=err[-1] if err else "")
             f.write(json.dumps(rec) + "\n")
             f.flush()
             os.fsync(f.fileno())
             if progress is not None:
                 progress(rec)
-    recs = [r for r in final_records(read_records(out)) if _matches(r, policy, perception) and int(r["seed"]) in seeds
+    recs = [r for r in final_shelf_records(read_records(out)) if _matches(r, policy, perception, oracle_exhaustive)
+            and int(r["seed"]) in seeds
             and int(r["objects"]) in occluders]
     summary = {n: summarize([r for r in recs if int(r["objects"]) == n]) for n in occluders}
     summary["all"] = summarize(recs)
@@ -235,7 +256,7 @@ def run_shelf_bench(policy: str, occluders: list[int], scenes: int, seed_start: 
 def shelf_records(files) -> list[dict]:
     out = []
     for f in files:
-        out += [r for r in final_records(read_records(Path(f))) if r.get("fidelity") == FIDELITY]
+        out += [r for r in final_shelf_records(read_records(Path(f))) if r.get("fidelity") == FIDELITY]
     return out
 
 
@@ -249,22 +270,38 @@ def _cell(recs: list[dict]) -> tuple[str, str]:
     return rate, steps
 
 
+def _columns(recs: list[dict], policies) -> list[tuple[str, float]]:
+    """The table's columns present in `recs`: (policy, Oracle-P's exhaustive budget), in policy order."""
+    keys = {(r["policy"], float(r.get("oracle_exhaustive_seconds", 0.0))) for r in recs}
+    return sorted((k for k in keys if k[0] in policies), key=lambda k: (list(policies).index(k[0]), k[1]))
+
+
+def _column_name(key: tuple[str, float]) -> str:
+    p, exhaustive = key
+    return POLICY_NAMES.get(p, p) + (f" + exhaustive ({exhaustive:g} s)" if exhaustive else "")
+
+
+def _in_column(r: dict, key: tuple[str, float]) -> bool:
+    return r["policy"] == key[0] and float(r.get("oracle_exhaustive_seconds", 0.0)) == key[1]
+
+
 def shelf_table(recs: list[dict], policies=SHELF_POLICIES) -> str:
     """Table 9.1 as markdown: per density and overall, success % [bootstrap 95 % CI] and the median
-    steps (IQR) of the successful searches, one column per policy present."""
-    present = [p for p in policies if any(r["policy"] == p for r in recs)]
+    steps (IQR) of the successful searches, one column per policy present (Oracle-P with the
+    exhaustive push search in a column of its own)."""
+    present = _columns(recs, policies)
     densities = sorted({int(r["objects"]) for r in recs})
-    head = "| occluders | metric | " + " | ".join(POLICY_NAMES.get(p, p) for p in present) + " |"
+    head = "| occluders | metric | " + " | ".join(_column_name(k) for k in present) + " |"
     lines = [head, "|" + "---|" * (2 + len(present))]
     for n in densities + ["All"]:
-        cells = [_cell([r for r in recs if r["policy"] == p and (n == "All" or int(r["objects"]) == n)])
-                 for p in present]
-        count = max((sum(1 for r in recs if r["policy"] == p and (n == "All" or int(r["objects"]) == n))
-                     for p in present), default=0)
+        cells = [_cell([r for r in recs if _in_column(r, k) and (n == "All" or int(r["objects"]) == n)])
+                 for k in present]
+        count = max((sum(1 for r in recs if _in_column(r, k) and (n == "All" or int(r["objects"]) == n))
+                     for k in present), default=0)
         lines.append(f"| {n} ({count}) | success | " + " | ".join(c[0] for c in cells) + " |")
         lines.append(f"| {n} | median steps (IQR) | " + " | ".join(c[1] for c in cells) + " |")
     lines.append("| All | reference success | " + " | ".join(
-        f"{REFERENCE[p]} %" if p in REFERENCE else "-" for p in present) + " |")
+        f"{REFERENCE[k[0]]} %" if k[0] in REFERENCE else "-" for k in present) + " |")
     return "\n".join(lines)
 
 
@@ -272,19 +309,17 @@ def plot_shelf(recs: list[dict], out_dir) -> Path:
     """Success rate (with bootstrap 95 % intervals) and median steps against the occluder count."""
     out_dir = figure_dir(out_dir)
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
-    for p in SHELF_POLICIES:
-        mine = [r for r in recs if r["policy"] == p]
-        if not mine:
-            continue
+    for key in _columns(recs, SHELF_POLICIES):
+        mine = [r for r in recs if _in_column(r, key)]
         ns = sorted({int(r["objects"]) for r in mine})
         ss = [summarize([r for r in mine if int(r["objects"]) == n]) for n in ns]
         rate = np.array([100 * s["success_rate"] for s in ss])
         ci = np.array([[100 * s["success_ci"][0], 100 * s["success_ci"][1]] for s in ss])
         a1.errorbar(ns, rate, yerr=[rate - ci[:, 0], ci[:, 1] - rate], marker="o", capsize=3,
-                    label=POLICY_NAMES.get(p, p))
+                    label=_column_name(key))
         q = np.array([s["success_quartiles"] for s in ss])
         a2.errorbar(ns, q[:, 1], yerr=[q[:, 1] - q[:, 0], q[:, 2] - q[:, 1]], marker="o", capsize=3,
-                    label=POLICY_NAMES.get(p, p))
+                    label=_column_name(key))
     a1.set_xlabel("occluders")
     a1.set_ylabel("success rate (%)")
     a1.set_title("Shelf search in FOSS (cf. Table 9.1)")

@@ -92,6 +92,9 @@ class ShelfPolicyParams:
     horizon: int | None = None  # action budget H (None: 2n); the oracles plan within what is left
     oracle_max_nodes: int = 500  # A*'s expansions per stage; each greedy fallback gets three times as many
     oracle_max_seconds: float = 8.0  # CPU seconds of one plan (A* and fallback together)
+    # Oracle-P: when those stages find nothing, the exhaustive push search with this CPU budget [s]
+    # (0: off; exhaustive_push_plan)
+    oracle_exhaustive_seconds: float = 0.0
     oracle_placements: int = 4
     # The distribution policies on a robot, whose actions place objects to within ~1-2 cm (0: off, as in FOSS):
     min_move: float = 0.0  # m: candidates FOSS moves their object less than this are not proposed
@@ -454,16 +457,20 @@ def _key(scene: ShelfScene) -> tuple:
 
 
 def oracle_plan(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: float = PSI,
-                max_nodes: int = 500, placements: int = 4, max_seconds: float = 8.0) -> tuple[ShelfAction, ...] | None:
+                max_nodes: int = 500, placements: int = 4, max_seconds: float = 8.0,
+                exhaustive_seconds: float = 0.0, exhaustive_states: int = 400_000) -> tuple[ShelfAction, ...] | None:
     """An action sequence (<= budget actions) after which FOSS sees the target, in stages until one
     finds it: A* (the cheapest within its branching; admissible estimate; max_nodes expansions and
     at most max_seconds / 4) then greedy best-first (relaxed estimate; 3 * max_nodes), over
     pushes to the neighbour, then the same two with the pushes that stop short added
     (Foss.push_actions(leave_room=True)); None if none finds one, once the stages have used
     max_seconds of CPU time, or at once when pushes alone cannot do it (push_locked) (module
-    docstring)."""
+    docstring). Pushes only (suction=False) and exhaustive_seconds > 0: then the exhaustive push
+    search (`exhaustive_push_plan`) with that CPU budget and at most exhaustive_states states."""
     if not max_seconds > 0:
         raise PolicyError(f"oracle max_seconds={max_seconds}: must be > 0 (e.g. 8.0)")
+    if exhaustive_seconds < 0:
+        raise PolicyError(f"oracle exhaustive_seconds={exhaustive_seconds}: must be >= 0 (0: off)")
     deadline = time.process_time() + max_seconds
     if not suction and push_locked(foss, scene):
         return None
@@ -475,6 +482,51 @@ def oracle_plan(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: 
                            leave_room=leave_room)
             if plan is not None:
                 return plan
+    if not suction and exhaustive_seconds > 0:
+        return exhaustive_push_plan(foss, scene, budget, exhaustive_seconds, exhaustive_states)
+    return None
+
+
+def exhaustive_push_plan(foss: Foss, scene: ShelfScene, budget: int, max_seconds: float,
+                         max_states: int = 400_000) -> tuple[ShelfAction, ...] | None:
+    """The reference's exhaustive push tree capped at H, breadth first: every push FOSS allows (to
+    the neighbour and stopped short with room for the blade), duplicate states merged (object
+    positions to 1 um), a state dropped when it needs more objects moved than the budget has
+    actions left (the least removal set; admissible). Returns a shortest push plan (<= budget
+    actions) after which FOSS sees the target, or None when there is none (the states ran out or
+    every branch reached the budget) or the CPU budget `max_seconds` / `max_states` ran out first.
+    The discrete push lengths are FOSS's; the reference's d_x is any real number."""
+    if scene.target is None:
+        raise PolicyError("the oracles need the full state: connect a scene with its target")
+    deadline = time.process_time() + max_seconds
+    view = _View(foss, scene.target)
+
+    def least(sc) -> int | None:
+        _, sets = view.blockers(sc)
+        return int(np.bitwise_count(sets).min()) if len(sets) else None
+
+    if least(scene) is None:
+        return None
+    frontier, seen = [(scene, ())], {_key(scene)}
+    for depth in range(1, budget + 1):
+        nxt = []
+        for sc, plan in frontier:
+            if time.process_time() > deadline or len(seen) > max_states:
+                return None
+            for a in foss.push_actions(sc, leave_room=True):
+                s2 = foss.moved(sc, a)
+                k = _key(s2)
+                if k in seen:
+                    continue
+                seen.add(k)
+                m = least(s2)
+                if m == 0:
+                    return plan + (a,)
+                if m is not None and depth + m <= budget:
+                    nxt.append((s2, plan + (a,)))
+        if not nxt:
+            return None
+        frontier = nxt
     return None
 
 
@@ -715,7 +767,7 @@ class ShelfPolicies:
         if plan is None or (plan and _action_key(plan[0]) in rejected):
             plan = oracle_plan(self.foss, scene, suction, self.budget(scene, steps), self.params.psi,
                                self.params.oracle_max_nodes, self.params.oracle_placements,
-                               self.params.oracle_max_seconds)
+                               self.params.oracle_max_seconds, self.params.oracle_exhaustive_seconds)
             if plan is None:
                 locked = push_locked(self.foss, scene) if not suction else []
                 why = (f"no push sequence can take {', '.join(locked)} out of the view" if locked
