@@ -433,11 +433,12 @@ def test_kernel_rectangles_and_transforms_equal_numpy():
 
 
 def test_kernel_compiles_without_a_writable_cache_dir(monkeypatch):
-    """numba raises at decoration when no cache directory is writable; _label_kernel._jit then
-    compiles without a cache (here: every cache directory refused, as read-only)."""
+    """numba raises at decoration when no cache directory is writable; ms_drake.jit.njit_cached (the
+    label kernel's and the grasp samplers' decorator) then compiles without a cache (here: every
+    cache directory refused, as read-only)."""
     import numba.core.caching as caching
 
-    from ms_drake.station import _label_kernel
+    from ms_drake.jit import njit_cached
 
     def read_only(self):
         raise PermissionError(f"read-only: {self.get_cache_path()}")
@@ -447,6 +448,6 @@ def test_kernel_compiles_without_a_writable_cache_dir(monkeypatch):
     def twice(a):
         return 2 * a
 
-    jitted = _label_kernel._jit(twice)
+    jitted = njit_cached(twice)
     assert jitted(np.arange(3)).tolist() == [0, 2, 4]
     assert isinstance(jitted._cache, caching.NullCache)

@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 from ms_drake.geometry import as_matrix4, transform_points
 from ms_drake.grasping.geometry import MeshData, cross
 from ms_drake.grasping.grasp import GraspError, ParallelJawGrasp, SuctionGrasp
+from ms_drake.jit import njit_cached
 
 
 def _random_in_cone(axis: np.ndarray, half_angle: float, rng) -> np.ndarray:
@@ -246,27 +247,50 @@ def _rect_top(H: np.ndarray, rc: np.ndarray, u: np.ndarray, along: tuple[float, 
     """The highest surface (world z) of height map H in the rectangle from `along[0]` to
     `along[1]` cells along unit grid direction `u` from cell `rc` (col, row), +-half_across cells
     across; -inf when it holds no measured surface."""
-    a = np.arange(along[0], along[1] + 0.5)
-    b = np.arange(-np.floor(half_across), np.floor(half_across) + 0.5)
-    perp = np.array([-u[1], u[0]])
-    pts = rc[None, None, :] + a[:, None, None] * u + b[None, :, None] * perp
-    c = np.round(pts[..., 0]).astype(int).ravel()
-    r = np.round(pts[..., 1]).astype(int).ravel()
-    ok = (c >= 0) & (c < H.shape[1]) & (r >= 0) & (r < H.shape[0])
-    return float(H[r[ok], c[ok]].max()) if np.any(ok) else -np.inf
+    return _rect_top_kernel(H, float(rc[0]), float(rc[1]), float(u[0]), float(u[1]), float(along[0]),
+                            float(along[1]), float(half_across))
+
+
+@njit_cached
+def _rect_top_kernel(H, r0, r1, u0, u1, a_lo, a_hi, half_across):
+    # the cells of rc + a u + b perp for a in arange(a_lo, a_hi + 0.5), b in -floor(h)..floor(h),
+    # rounded half to even (np.round): the same cells, in the same float arithmetic, as numpy would
+    na = max(0, int(np.ceil(a_hi + 0.5 - a_lo)))
+    hb = np.floor(half_across)
+    nb = max(0, int(np.ceil(hb + 0.5 + hb)))
+    best, hit = -np.inf, False
+    for i in range(na):
+        a = a_lo + i * 1.0
+        x0, y0 = r0 + a * u0, r1 + a * u1
+        for j in range(nb):
+            b = -hb + j * 1.0
+            c, r = int(np.rint(x0 + b * -u1)), int(np.rint(y0 + b * u0))
+            if 0 <= c < H.shape[1] and 0 <= r < H.shape[0]:
+                if not hit or H[r, c] > best:
+                    best = H[r, c]
+                hit = True
+    return best
 
 
 def _edge_under_pad(foot: np.ndarray, rc: np.ndarray, inward: np.ndarray, half: float, depth: float) -> bool:
     """True when the footprint holds the segment `half` cells to either side of contact `rc`
     (perpendicular to the unit direction `inward`) pushed `depth` cells inwards: the contact is
     on an edge the pad can press on, not a corner (whose smoothed normal points diagonally)."""
-    perp = np.array([-inward[1], inward[0]])
-    t = np.linspace(-half, half, 5)
-    pts = rc[None, :] + depth * inward[None, :] + t[:, None] * perp[None, :]
-    c = np.round(pts[:, 0]).astype(int)
-    r = np.round(pts[:, 1]).astype(int)
-    ok = (c >= 0) & (c < foot.shape[1]) & (r >= 0) & (r < foot.shape[0])
-    return bool(np.all(ok) and np.all(foot[r, c]))
+    return _edge_under_pad_kernel(foot, float(rc[0]), float(rc[1]), float(inward[0]), float(inward[1]),
+                                  float(half), float(depth))
+
+
+@njit_cached
+def _edge_under_pad_kernel(foot, r0, r1, in0, in1, half, depth):
+    # five points t in np.linspace(-half, half, 5) along perp = (-in1, in0)
+    step = (half - -half) / 4
+    x0, y0 = r0 + depth * in0, r1 + depth * in1
+    for k in range(5):
+        t = half if k == 4 else k * step + -half
+        c, r = int(np.rint(x0 + t * -in1)), int(np.rint(y0 + t * in0))
+        if not (0 <= c < foot.shape[1] and 0 <= r < foot.shape[0]) or not foot[r, c]:
+            return False
+    return True
 
 
 def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.ndarray, mask: np.ndarray,

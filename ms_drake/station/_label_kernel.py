@@ -1,29 +1,21 @@
 """The numba kernel of `ms_drake.station.labels.DepthLabeler` (private).
 
-The first call compiles it (~2 s); compiled code is cached next to this file
-(`__pycache__`, numba's cache=True); where no cache directory is writable (numba tries
-NUMBA_CACHE_DIR, this package's __pycache__ and ~/.cache, and raises RuntimeError at decoration
-when none is writable) the kernel is compiled without a cache instead, in every process.
+The first call compiles it (~2 s); compiled code is cached next to this file where a cache
+directory is writable (ms_drake.jit.njit_cached).
 """
 
 from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
+
+from ms_drake.jit import njit_cached
 
 BOX, CYLINDER, SPHERE = 0, 1, 2
 
 
-def _jit(f):
-    try:
-        return numba.njit(cache=True, nogil=True, fastmath=False)(f)
-    except RuntimeError:  # "cannot cache function ...: no locator available": no writable cache dir
-        return numba.njit(cache=False, nogil=True, fastmath=False)(f)
-
-
-@_jit
+@njit_cached
 def _abs_signed_distance(kind, sx, sy, sz, px, py, pz):
     """|signed distance| of the point p (primitive frame) to a box (half extents s), a
     cylinder (radius sx, half length sz) or a sphere (radius sx)."""
@@ -38,14 +30,14 @@ def _abs_signed_distance(kind, sx, sy, sz, px, py, pz):
     return abs(math.sqrt(px * px + py * py + pz * pz) - sx)
 
 
-@_jit
+@njit_cached
 def _row64(M, i, r, x, y, z):
     """Row r of M[i] (float32) applied to (x, y, z, 1) in float64."""
     return (np.float64(M[i, r, 0]) * x + np.float64(M[i, r, 1]) * y + np.float64(M[i, r, 2]) * z
             + np.float64(M[i, r, 3]))
 
 
-@_jit
+@njit_cached
 def label_rows(depth, rx, ry, label, r0, r1, v0, v1, u0, u1, seen, rects, M, kind, half, r2, size, eps, labs,
                default, empty):
     """Write rows [r0, r1) of `label` (int16, H x W) from `depth` (float32, H x W, metres).
@@ -165,7 +157,7 @@ def label_rows(depth, rx, ry, label, r0, r1, v0, v1, u0, u1, seen, rects, M, kin
     return too_close
 
 
-@_jit
+@njit_cached
 def prepare(X_CW, X_WG, corners, fx, fy, cx, cy, height, width, z_near, z_far):
     """Per image: M (N x 3 x 4, float32), the rows of X_GC = (X_CW X_WG)^-1, and the pixel
     rectangles rects (N x 4, [v0, v1, u0, u1)) that can see each primitive: the bounds of its
