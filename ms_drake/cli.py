@@ -729,9 +729,10 @@ def bench_shelf(ctx: typer.Context,
                                                help="ground_truth (FOSS's scene, analytic occupancy), learned "
                                                     "(learned occupancy of depth renders) or depth (also the "
                                                     "objects segmented from the render); own --out file each"),
-                oracle_exhaustive: float = typer.Option(0.0, "--oracle-exhaustive", min=0.0,
-                                                        help="oracle_p only: CPU seconds of the exhaustive push "
-                                                             "search after the staged one finds nothing (0: off)")):
+                oracle_exhaustive: Optional[float] = typer.Option(
+                    None, "--oracle-exhaustive", min=0.0,
+                    help="oracle_p only: CPU seconds of the exhaustive push search after the staged one finds "
+                         "nothing (default 60; 0: off)")):
     """Shelf search in FOSS (Table 9.1): scenes S..S+K-1 for each occluder count, ground-truth (or
     learned) occupancy; one JSON line per search (resumable), then success rates and median steps."""
     check_shelf_policy(policy)

@@ -10,7 +10,7 @@ import pytest
 from ms_drake.errors import MsDrakeError
 from ms_drake.experiments.harness import read_records
 from ms_drake.experiments.shelf import plot_shelf, run_shelf_bench, shelf_records, shelf_rollout, shelf_table
-from ms_drake.policies.shelf import ShelfPolicyParams
+from ms_drake.policies.shelf import ORACLE_EXHAUSTIVE_SECONDS, ShelfPolicyParams
 from ms_drake.scenes.shelf import scene_from_dict
 
 CLI = [sys.executable, "-m", "ms_drake.cli"]
@@ -54,16 +54,19 @@ def test_bench_resumes_and_summarizes(tmp_path):
     assert plot_shelf(shelf_records([out]), tmp_path).exists()
 
 
-def test_oracle_p_with_the_exhaustive_search_keeps_records_and_a_column_of_its_own(tmp_path):
+def test_oracle_p_exhaustive_search_budgets_keep_their_records_and_columns(tmp_path):
     out = tmp_path / "oracle.jsonl"
-    run_shelf_bench("oracle_p", [4], 2, 0, out)
-    s = run_shelf_bench("oracle_p", [4], 2, 0, out, oracle_exhaustive=30.0)
+    run_shelf_bench("oracle_p", [4], 2, 0, out)  # the default budget
+    s = run_shelf_bench("oracle_p", [4], 2, 0, out, oracle_exhaustive=0.0)
     assert s["resumed"] == 0  # the default run's records are not this run's
     recs = read_records(out)
-    assert sorted(r["oracle_exhaustive_seconds"] for r in recs) == [0.0, 0.0, 30.0, 30.0]
-    assert run_shelf_bench("oracle_p", [4], 2, 0, out, oracle_exhaustive=30.0)["resumed"] == 2
+    assert sorted(r["oracle_exhaustive_seconds"] for r in recs) == [0.0, 0.0, ORACLE_EXHAUSTIVE_SECONDS,
+                                                                   ORACLE_EXHAUSTIVE_SECONDS]
+    assert run_shelf_bench("oracle_p", [4], 2, 0, out, oracle_exhaustive=0.0)["resumed"] == 2
     table = shelf_table(shelf_records([out]))
-    assert "| Oracle-P | Oracle-P + exhaustive (30 s) |" in table
+    assert "| Oracle-P | Oracle-P (staged search only) |" in table
+    assert run_shelf_bench("dar", [4], 1, 0, out)["all"]["rollouts"] == 1
+    assert {r["oracle_exhaustive_seconds"] for r in read_records(out) if r["policy"] == "dar"} == {0.0}
     with pytest.raises(MsDrakeError, match="only for --policy oracle_p"):
         run_shelf_bench("dar", [4], 1, 0, out, oracle_exhaustive=30.0)
 

@@ -288,9 +288,9 @@ def test_exhaustive_push_search_finds_the_plans_the_bounded_oracle_misses(foss):
     # (442 of them) before any shows the target
     assert exhaustive_push_plan(foss, generate_shelf_scene(foss.geometry, 32, num_objects=6).scene, 12, 120) is None
     # the selector's parameter
-    params = ShelfPolicyParams(oracle_max_seconds=0.5)
+    params = ShelfPolicyParams(oracle_max_seconds=0.5, oracle_exhaustive_seconds=0.0)
     assert ShelfPolicies("oracle_p", foss, params).select(scene, None).kind == "stop"
-    action = ShelfPolicies("oracle_p", foss, dataclasses.replace(params, oracle_exhaustive_seconds=120)).select(scene, None)
+    action = ShelfPolicies("oracle_p", foss, dataclasses.replace(params, oracle_exhaustive_seconds=60)).select(scene, None)
     assert action.kind == "shelf" and action.shelf == plan[0]
     with pytest.raises(PolicyError, match="exhaustive_seconds"):
         oracle_plan(foss, scene, suction=False, budget=16, exhaustive_seconds=-1.0)

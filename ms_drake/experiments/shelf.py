@@ -47,6 +47,7 @@ from ms_drake.perception.shelf_occupancy import ShelfOccupancyEstimator
 from ms_drake.perception.shelf_occupancy_net import block_depth
 from ms_drake.perception.shelf_segmentation import ShelfSegmenter
 from ms_drake.policies.shelf import (
+    ORACLE_EXHAUSTIVE_SECONDS,
     SHELF_POLICIES,
     ShelfPolicyParams,
     ShelfPolicySelector,
@@ -170,7 +171,8 @@ def shelf_rollout(policy: str, occluders: int, seed: int, params: ShelfPolicyPar
         return float(1e3 * f(x)) if x else float("nan")
 
     return dict(seed=int(seed), occluders=int(occluders), objects=int(occluders), policy=policy, fidelity=FIDELITY,
-                perception=perception, oracle_exhaustive_seconds=float(params.oracle_exhaustive_seconds),
+                perception=perception,
+                oracle_exhaustive_seconds=float(params.oracle_exhaustive_seconds) if policy == "oracle_p" else 0.0,
                 success=not failure, steps=steps, actions=steps, pushes=kinds.count("push"),
                 suctions=kinds.count("suction"), refused=len(history) - len(done),
                 cost=kinds.count("push") + params.psi * kinds.count("suction"), failure=failure, stop_reason=reason,
@@ -187,7 +189,7 @@ def shelf_rollout_job(job: tuple) -> dict:
     policy, occluders, seed, *rest = job
     horizon = rest[0] if rest else None
     perception = rest[1] if len(rest) > 1 else "ground_truth"
-    exhaustive = rest[2] if len(rest) > 2 else 0.0
+    exhaustive = rest[2] if len(rest) > 2 else ORACLE_EXHAUSTIVE_SECONDS
     return shelf_rollout(policy, occluders, seed,
                          ShelfPolicyParams(seed=seed, horizon=horizon, oracle_exhaustive_seconds=exhaustive),
                          perception=perception)
@@ -211,13 +213,16 @@ def _matches(r: dict, policy: str, perception: str = "ground_truth", oracle_exha
 
 def run_shelf_bench(policy: str, occluders: list[int], scenes: int, seed_start: int, out, workers: int = 1,
                     use_ray: bool = False, ray_address: str | None = None, horizon: int | None = None,
-                    progress=None, perception: str = "ground_truth", oracle_exhaustive: float = 0.0) -> dict:
+                    progress=None, perception: str = "ground_truth", oracle_exhaustive: float | None = None) -> dict:
     """Run the missing rollouts of seeds S..S+K-1 for every occluder count, append them to `out`
     (JSON lines); returns {occluders or "all": summary} over the requested seeds. Records without
     a `perception` field are ground-truth ones. oracle_exhaustive: Oracle-P's exhaustive push search
-    budget [CPU s] after its staged search (ShelfPolicyParams.oracle_exhaustive_seconds; 0: off);
-    records keep it, and a resumed run matches on it."""
+    budget [CPU s] after its staged search (ShelfPolicyParams.oracle_exhaustive_seconds; None: its
+    default for oracle_p, 0 = off; records keep it, 0 for the other policies and for records older
+    than the option, and a resumed run matches on it)."""
     check_shelf_policy(policy)
+    if oracle_exhaustive is None:
+        oracle_exhaustive = ORACLE_EXHAUSTIVE_SECONDS if policy == "oracle_p" else 0.0
     if oracle_exhaustive < 0 or (oracle_exhaustive > 0 and policy != "oracle_p"):
         raise MsDrakeError(f"--oracle-exhaustive {oracle_exhaustive:g}: a CPU budget >= 0 s, and only for "
                            f"--policy oracle_p (got --policy {policy})")
@@ -271,14 +276,18 @@ def _cell(recs: list[dict]) -> tuple[str, str]:
 
 
 def _columns(recs: list[dict], policies) -> list[tuple[str, float]]:
-    """The table's columns present in `recs`: (policy, Oracle-P's exhaustive budget), in policy order."""
+    """The table's columns present in `recs`: (policy, Oracle-P's exhaustive budget), in policy order,
+    Oracle-P's default budget first."""
     keys = {(r["policy"], float(r.get("oracle_exhaustive_seconds", 0.0))) for r in recs}
-    return sorted((k for k in keys if k[0] in policies), key=lambda k: (list(policies).index(k[0]), k[1]))
+    return sorted((k for k in keys if k[0] in policies),
+                  key=lambda k: (list(policies).index(k[0]), k[1] != ORACLE_EXHAUSTIVE_SECONDS, k[1]))
 
 
 def _column_name(key: tuple[str, float]) -> str:
     p, exhaustive = key
-    return POLICY_NAMES.get(p, p) + (f" + exhaustive ({exhaustive:g} s)" if exhaustive else "")
+    if p != "oracle_p" or exhaustive == ORACLE_EXHAUSTIVE_SECONDS:
+        return POLICY_NAMES.get(p, p)
+    return POLICY_NAMES[p] + (f" (exhaustive search {exhaustive:g} s)" if exhaustive else " (staged search only)")
 
 
 def _in_column(r: dict, key: tuple[str, float]) -> bool:
