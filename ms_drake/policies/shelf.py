@@ -52,7 +52,11 @@ All three keep the history P'_t = min(P_t, P'_{t-1}) (P'_0 = P_0), renormalised.
   stages have used `oracle_max_seconds` of CPU time (a bound on the time per scene). oracle_p
   first asks push_locked whether some occluder cannot leave the view by pushes at all (pushes
   keep every object's y and nothing passes anything, so rows keep their order) and stops at once
-  if so. Plans are cached by scene content, so executing one re-plans nothing.
+  if so. When the stages find nothing, oracle_p then searches exhaustively, as the reference's
+  oracles do (exhaustive_push_plan: breadth first over every push, duplicate states merged,
+  states that need more objects moved than actions are left dropped; a shortest push plan),
+  for up to `oracle_exhaustive_seconds` of CPU. Plans are cached by scene content, so executing
+  one re-plans nothing.
 """
 
 from __future__ import annotations
