@@ -95,6 +95,7 @@ from ms_drake.experiments.segmentation_learning import (
 from ms_drake.experiments.shelf import PERCEPTIONS as SHELF_PERCEPTIONS
 from ms_drake.experiments.shelf import (
     bench_shelf_scenes,
+    oracle_exhaustive_budget,
     plot_shelf,
     run_shelf_bench,
     shelf_records,
@@ -737,6 +738,7 @@ def bench_shelf(ctx: typer.Context,
     learned) occupancy; one JSON line per search (resumable), then success rates and median steps."""
     check_shelf_policy(policy)
     _choose("--perception", perception, SHELF_PERCEPTIONS, quote=False)
+    oracle_exhaustive_budget(policy, oracle_exhaustive)
     counts = _occluder_counts(occluders, ctx.args)
     _need_jsonl(out)
     bar = tqdm(total=len(counts) * scenes, desc=policy, unit="scene")

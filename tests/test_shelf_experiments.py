@@ -81,6 +81,8 @@ def test_cli_bench_shelf_and_table(tmp_path):
     assert p.returncode == 2 and "unexpected argument 'x'" in p.stderr
     p = run("bench", "shelf", "--policy", "xray", "--out", out, check=False)
     assert p.returncode == 2 and "bluction_dar" in p.stderr
+    p = run("bench", "shelf", "--policy", "dar", "--oracle-exhaustive", 10, "--out", out, check=False)
+    assert p.returncode != 0 and "only for --policy oracle_p" in p.stderr and "scene/s" not in p.stderr
     p = run("bench", "shelf-table", out)
     assert "Oracle-P" in p.stdout
 

@@ -211,6 +211,17 @@ def _matches(r: dict, policy: str, perception: str = "ground_truth", oracle_exha
             and float(r.get("oracle_exhaustive_seconds", 0.0)) == float(oracle_exhaustive))
 
 
+def oracle_exhaustive_budget(policy: str, seconds: float | None) -> float:
+    """Oracle-P's exhaustive search budget of a run: None -> the default for oracle_p, 0 for the
+    others; an error for a negative one or one given to another policy."""
+    if seconds is None:
+        return ORACLE_EXHAUSTIVE_SECONDS if policy == "oracle_p" else 0.0
+    if seconds < 0 or (seconds > 0 and policy != "oracle_p"):
+        raise MsDrakeError(f"--oracle-exhaustive {seconds:g}: a CPU budget >= 0 s, and only for "
+                           f"--policy oracle_p (got --policy {policy})")
+    return float(seconds)
+
+
 def run_shelf_bench(policy: str, occluders: list[int], scenes: int, seed_start: int, out, workers: int = 1,
                     use_ray: bool = False, ray_address: str | None = None, horizon: int | None = None,
                     progress=None, perception: str = "ground_truth", oracle_exhaustive: float | None = None) -> dict:
@@ -221,11 +232,7 @@ def run_shelf_bench(policy: str, occluders: list[int], scenes: int, seed_start: 
     default for oracle_p, 0 = off; records keep it, 0 for the other policies and for records older
     than the option, and a resumed run matches on it)."""
     check_shelf_policy(policy)
-    if oracle_exhaustive is None:
-        oracle_exhaustive = ORACLE_EXHAUSTIVE_SECONDS if policy == "oracle_p" else 0.0
-    if oracle_exhaustive < 0 or (oracle_exhaustive > 0 and policy != "oracle_p"):
-        raise MsDrakeError(f"--oracle-exhaustive {oracle_exhaustive:g}: a CPU budget >= 0 s, and only for "
-                           f"--policy oracle_p (got --policy {policy})")
+    oracle_exhaustive = oracle_exhaustive_budget(policy, oracle_exhaustive)
     bad = [n for n in occluders if not 2 <= n <= 12]
     if bad:
         raise MsDrakeError(f"--occluders {' '.join(map(str, bad))}: shelf scenes have 2 to 12 occluders")
