@@ -30,6 +30,12 @@ def wrench_on(plant, inspector, context, body: int, point: np.ndarray):
     def is_object(b):
         return plant.GetModelInstanceName(plant.get_body(b).model_instance()).startswith("obj")
 
+    def sign(on, other) -> float:
+        """+1 when the force acts on `body` from another object, -1 for its reaction, 0 else."""
+        if int(on) == body and is_object(other):
+            return 1.0
+        return -1.0 if int(other) == body and is_object(on) else 0.0
+
     F, M = np.zeros(3), np.zeros(3)
     for k in range(res.num_hydroelastic_contacts()):
         c = res.hydroelastic_contact_info(k)
@@ -38,27 +44,15 @@ def wrench_on(plant, inspector, context, body: int, point: np.ndarray):
         b = plant.GetBodyFromFrameId(inspector.GetFrameId(s.id_N())).index()
         f = np.asarray(c.F_Ac_W().translational())  # on the body of M, at the centroid
         m = np.asarray(c.F_Ac_W().rotational())
-        if int(a) == body and is_object(b):
-            sign = 1.0
-        elif int(b) == body and is_object(a):
-            sign = -1.0
-        else:
-            continue
-        centroid = np.asarray(s.centroid())
-        F += sign * f
-        M += sign * (m + np.cross(centroid - point, f))
+        k_ab = sign(a, b)
+        F += k_ab * f
+        M += k_ab * (m + np.cross(np.asarray(s.centroid()) - point, f))
     for k in range(res.num_point_pair_contacts()):
         c = res.point_pair_contact_info(k)
         f = np.asarray(c.contact_force())  # on body B, at the contact point
-        a, b = c.bodyA_index(), c.bodyB_index()
-        if int(b) == body and is_object(a):
-            sign = 1.0
-        elif int(a) == body and is_object(b):
-            sign = -1.0
-        else:
-            continue
-        F += sign * f
-        M += sign * np.cross(np.asarray(c.contact_point()) - point, f)
+        k_ab = sign(c.bodyB_index(), c.bodyA_index())
+        F += k_ab * f
+        M += k_ab * np.cross(np.asarray(c.contact_point()) - point, f)
     return F, M
 
 
