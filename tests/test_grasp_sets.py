@@ -15,7 +15,7 @@ from ms_drake.grasping.grasp_sets import (
     grasp_set_path,
     load_grasp_set,
 )
-from ms_drake.grasping.indexed import PAD_EDGE, IndexedGraspPlanner, environment_parts, jaw_parts
+from ms_drake.grasping.indexed import IndexedGraspPlanner, environment_parts, jaw_parts
 from ms_drake.grasping.planner import LazyGrasps
 from ms_drake.scenario import load_scenario
 from ms_drake.types import InstanceMasks, ObjectGeometry
@@ -131,26 +131,6 @@ def test_a_grasp_through_a_neighbour_is_dropped_a_free_one_kept(bin_scene):
     assert max(f[2][1] for f in fingers) + half > b.X_WO[1, 3] - 0.015
 
 
-def test_a_jaw_grasp_low_on_a_flat_object_is_held_back_to_clear_the_floor(bin_scene):
-    s, ws, _, _ = bin_scene
-    cx, cy = ws.center_xy
-    # a 2 cm high box on the floor: the set's contacts at its mid-height put the fingertips
-    # (half a pad below the tool point) 5 mm into the floor
-    flat = _box_geometry("f", (0.04, 0.04, 0.02), (cx, cy, ws.floor_z + 0.01))
-    sets = {"f": _jaw_set("f", [[1, 0, 0]], [0.7])}
-    stiff = _planner(s, ws, sets, jaw_lift_steps=0)
-    assert [g.kind for g in stiff.plan_object("f", {"f": flat}, stiff.scene((flat,)))] == ["suction"]
-    p = _planner(s, ws, sets)
-    jaw = {g.kind: g for g in p.plan_object("f", {"f": flat}, p.scene((flat,)))}["parallel_jaw"]
-    lift = jaw.center[2] - flat.X_WO[2, 3]
-    # held back along the approach (up) by the first lift that clears, the same contacts and quality
-    assert 0.005 < lift <= 0.5 * p.jaw.pads.length - PAD_EDGE + 1e-9
-    assert np.allclose(jaw.center[:2], flat.X_WO[:2, 3]) and jaw.quality == pytest.approx(0.7)
-    assert np.allclose(jaw.axis, [1, 0, 0]) and np.allclose(jaw.approach, [0, 0, -1])
-    with pytest.raises(GraspError, match="jaw_lift_steps"):
-        _planner(s, ws, sets, jaw_lift_steps=-1)
-
-
 def test_out_of_reach_and_buried_grasps_are_dropped(bin_scene):
     s, ws, a, b = bin_scene
     # a turned upside down (rotation about x by pi): approach 0 now points up, beyond any tilt
@@ -216,10 +196,7 @@ def test_indexed_planner_wired_in_the_search_diagram():
         gs = gp.sets[oid]
         X = geoms[oid].X_WO
         pts = (gs.jaw_center if g.kind == "parallel_jaw" else gs.suction_point) @ X[:3, :3].T + X[:3, 3]
-        # a set grasp (bodies settle), a jaw grasp possibly held back by one of the planner's lifts
-        lifts = gp.jaw_lifts if g.kind == "parallel_jaw" else (0.0,)
-        assert min(np.linalg.norm(pts - (np.asarray(g.center) + lift * np.asarray(g.approach)), axis=1).min()
-                   for lift in lifts) < 0.003
+        assert np.linalg.norm(pts - np.asarray(g.center), axis=1).min() < 0.003  # a set grasp (bodies settle)
         if g.kind == "parallel_jaw":
             assert grasp_collisions(g, [sh for sh in shapes if sh[0] != oid], 0.002) == set()
     # the image-based planner stays an option

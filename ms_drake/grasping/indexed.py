@@ -14,11 +14,7 @@ and two fingers (with their pads) opened to the grasp's width, or the suction cu
 lifted `suction_clearance` off the surface -- does not intersect (coal, shrunk by `margin`) any
 object's collision shapes (the grasped object's included) or the bin. At most `max_checks`
 candidates per kind and object are checked (candidates are sorted; the cap bounds a buried
-object's cost). A jaw candidate whose gripper is not free is tried again held back along its
-approach (`jaw_lift_steps` steps up to the pads' half length less PAD_EDGE): the pads then
-close on the same contacts nearer their lower edge, so the candidate keeps its quality, and the
-fingertips clear the floor or a low neighbour (an object lying on the floor has its widest
-section, where the set's contacts are, lower than the fingertips reach). Objects without a grasp set, or whose set has no free grasp at their pose, go to
+object's cost). Objects without a grasp set, or whose set has no free grasp at their pose, go to
 `fallback` (a LazyGraspPlanner: the image-based planners) when given, else get no grasp.
 With `reach` (a callable Grasp -> bool, e.g. ms_drake.execution.reach.PickReach of a robot) a
 free grasp must also be one the robot reaches; at most `max_reach_checks` free candidates per
@@ -53,9 +49,6 @@ from ms_drake.types import Grasp
 
 # (coal shape, 4x4 pose in the owner's frame, bounding-sphere centre in that frame, radius)
 Part = tuple
-
-# [m] a lifted jaw grasp keeps its contacts at least this far inside the pads' edge
-PAD_EDGE = 0.002
 
 
 def _pose(pose) -> np.ndarray:
@@ -218,7 +211,7 @@ class IndexedGraspPlanner(LeafSystem):
                  max_tilt: float = np.radians(45.0), min_quality: float = 0.05, max_checks: int = 48,
                  margin: float = 0.001, suction_clearance: float = 0.003,
                  jaw: ParallelJawConfig | None = None, cup: SuctionCupConfig | None = None, jaw_model: str = "",
-                 reach=None, max_reach_checks: int = 8, jaw_lift_steps: int = 2):
+                 reach=None, max_reach_checks: int = 8):
         super().__init__()
         self.depth_port, self.masks_port, self.objects_port, self.grasps_port = declare_lazy_grasp_ports(
             self, width, height, self._calc)
@@ -239,10 +232,6 @@ class IndexedGraspPlanner(LeafSystem):
         self.margin, self.suction_clearance = float(margin), float(suction_clearance)
         self.jaw, self.cup = jaw or ParallelJawConfig(), cup or SuctionCupConfig()
         self.gripper = GripperGeometry(self.jaw, self.cup, self.margin, self.suction_clearance)
-        if jaw_lift_steps < 0:
-            raise GraspError(f"IndexedGraspPlanner jaw_lift_steps must be >= 0, got {jaw_lift_steps!r}")
-        top = max(0.5 * self.jaw.pads.length - PAD_EDGE, 0.0)  # the contacts stay this far inside the pads
-        self.jaw_lifts = tuple(np.linspace(0.0, top, int(jaw_lift_steps) + 1)) if top > 0 else (0.0,)
         self.jaw_model = jaw_model or next((gs.model for gs in self.sets.values()), "soft_point")
         self._hull_cache: dict = {}
         if reach is not None and not callable(reach):
@@ -292,10 +281,10 @@ class IndexedGraspPlanner(LeafSystem):
             order = np.lexsort((-down[i, k], -q[i, k]))[: self.max_checks]
             across = np.cross(ap[i[order], k[order]], a[i[order]])
             g = self._first_reached(scene, (
-                ParallelJawGrasp(centre, a[i[j]], ap[i[j], k[j]], gs.jaw_width[i[j]]).to_grasp(
+                ParallelJawGrasp(c[i[j]], a[i[j]], ap[i[j], k[j]], gs.jaw_width[i[j]]).to_grasp(
                     float(q[i[j], k[j]]), self.jaw_model, oid)
                 for j, y in zip(order, across)
-                for centre in self._free_jaw_centre(scene, c[i[j]], a[i[j]], ap[i[j], k[j]], gs.jaw_width[i[j]], y)))
+                if not scene.hits(self.gripper.jaw(c[i[j]], a[i[j]], ap[i[j], k[j]], gs.jaw_width[i[j]], y))))
             if g is not None:
                 out.append(g)
         if "suction" in self.kinds and len(gs.suction_point):
@@ -311,15 +300,6 @@ class IndexedGraspPlanner(LeafSystem):
             if g is not None:
                 out.append(g)
         return tuple(out)
-
-    def _free_jaw_centre(self, scene: Scene, centre, axis, approach, width, across) -> tuple:
-        """(the tool point,) of the first of the grasp's lifts (`jaw_lifts`: the jaw held back
-        along the approach, its pads over the same contacts) whose gripper is free; () when none is."""
-        for lift in self.jaw_lifts:
-            c = centre - lift * approach if lift else centre
-            if not scene.hits(self.gripper.jaw(c, axis, approach, width, across)):
-                return (c,)
-        return ()
 
     def _reaches(self, grasp, scene: Scene) -> bool:
         """`reach` of the grasp (True without one); a reach with `checks_scene` (PickReach) is
