@@ -732,8 +732,9 @@ def bench_shelf(ctx: typer.Context,
                                                     "objects segmented from the render); own --out file each"),
                 oracle_exhaustive: Optional[float] = typer.Option(
                     None, "--oracle-exhaustive", min=0.0,
-                    help="oracle_p only: CPU seconds of the exhaustive push search after the staged one finds "
-                         "nothing (default 60; 0: off)")):
+                    help="oracle_p / oracle_ps: CPU seconds of the last stage after the staged search finds "
+                         "nothing, Oracle-P's exhaustive push search (default 60) or Oracle-P+S's wide search "
+                         "(default 120); 0: off")):
     """Shelf search in FOSS (Table 9.1): scenes S..S+K-1 for each occluder count, ground-truth (or
     learned) occupancy; one JSON line per search (resumable), then success rates and median steps."""
     check_shelf_policy(policy)

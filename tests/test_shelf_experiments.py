@@ -10,7 +10,7 @@ import pytest
 from ms_drake.errors import MsDrakeError
 from ms_drake.experiments.harness import read_records
 from ms_drake.experiments.shelf import plot_shelf, run_shelf_bench, shelf_records, shelf_rollout, shelf_table
-from ms_drake.policies.shelf import ORACLE_EXHAUSTIVE_SECONDS, ShelfPolicyParams
+from ms_drake.policies.shelf import ORACLE_EXHAUSTIVE_SECONDS, ORACLE_WIDE_SECONDS, ShelfPolicyParams
 from ms_drake.scenes.shelf import scene_from_dict
 
 CLI = [sys.executable, "-m", "ms_drake.cli"]
@@ -67,8 +67,14 @@ def test_oracle_p_exhaustive_search_budgets_keep_their_records_and_columns(tmp_p
     assert "| Oracle-P | Oracle-P (staged search only) |" in table
     assert run_shelf_bench("dar", [4], 1, 0, out)["all"]["rollouts"] == 1
     assert {r["oracle_exhaustive_seconds"] for r in read_records(out) if r["policy"] == "dar"} == {0.0}
-    with pytest.raises(MsDrakeError, match="only for --policy oracle_p"):
+    with pytest.raises(MsDrakeError, match="only for --policy oracle_p or oracle_ps"):
         run_shelf_bench("dar", [4], 1, 0, out, oracle_exhaustive=30.0)
+    # Oracle-P+S: its wide search's default budget, its own column without it
+    run_shelf_bench("oracle_ps", [4], 1, 0, out)
+    run_shelf_bench("oracle_ps", [4], 1, 0, out, oracle_exhaustive=0.0)
+    assert sorted(r["oracle_exhaustive_seconds"] for r in read_records(out) if r["policy"] == "oracle_ps") == [
+        0.0, ORACLE_WIDE_SECONDS]
+    assert "| Oracle-P+S | Oracle-P+S (staged search only) |" in shelf_table(shelf_records([out]))
 
 
 def test_cli_bench_shelf_and_table(tmp_path):

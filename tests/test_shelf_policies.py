@@ -10,6 +10,8 @@ from ms_drake.experiments.shelf import build_shelf_search
 from ms_drake.foss import Foss
 from ms_drake.policies.bin_selectors import PolicyError
 from ms_drake.policies.shelf import (
+    ORACLE_EXHAUSTIVE_SECONDS,
+    ORACLE_WIDE_SECONDS,
     SHELF_POLICIES,
     ShelfPolicies,
     ShelfPolicyParams,
@@ -25,6 +27,7 @@ from ms_drake.policies.shelf import (
     returns,
     segment,
     support_reduction,
+    wide_plan,
 )
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.shelf import generate_shelf_scene
@@ -291,6 +294,29 @@ def test_exhaustive_push_search_finds_the_plans_the_bounded_oracle_misses(foss):
     assert action.kind == "shelf" and action.shelf == plan[0]
     with pytest.raises(PolicyError, match="exhaustive_seconds"):
         oracle_plan(foss, scene, suction=False, budget=16, exhaustive_seconds=-1.0)
+
+
+def test_oracle_ps_wide_search_is_its_last_stage(foss):
+    """The wide search finds a plan on its own (from a scene the cheapest plan of which needs a
+    suction), and is what Oracle-P+S falls back on when its staged search has no time left."""
+    scene = generate_shelf_scene(foss.geometry, 0, num_objects=6).scene  # push-locked: needs the cup
+    plan = wide_plan(foss, scene, budget=12, max_seconds=60)
+    assert plan is not None and "suction" in {a.kind for a in plan}
+    s = scene
+    for a in plan:
+        s, outcome = foss.step(s, a)
+        assert outcome.success, outcome.message
+    assert foss.revealed(s)
+    # a staged search with no time finds nothing; the last stage, given time, finds the same plan
+    assert oracle_plan(foss, scene, suction=True, budget=12, max_seconds=1e-9) is None
+    assert oracle_plan(foss, scene, suction=True, budget=12, max_seconds=1e-9, exhaustive_seconds=60) == plan
+    assert wide_plan(foss, scene, budget=12, max_seconds=1e-9) is None  # its own bound
+    # the selector's default budget per oracle
+    assert ShelfPolicies("oracle_ps", foss).last_stage_seconds == ORACLE_WIDE_SECONDS
+    assert ShelfPolicies("oracle_p", foss).last_stage_seconds == ORACLE_EXHAUSTIVE_SECONDS
+    assert ShelfPolicies("dar", foss).last_stage_seconds == 0.0
+    zero = ShelfPolicies("oracle_ps", foss, ShelfPolicyParams(oracle_exhaustive_seconds=0.0))
+    assert zero.last_stage_seconds == 0.0
 
 
 def test_oracle_time_bound(foss, monkeypatch):

@@ -47,11 +47,11 @@ from ms_drake.perception.shelf_occupancy import ShelfOccupancyEstimator
 from ms_drake.perception.shelf_occupancy_net import block_depth
 from ms_drake.perception.shelf_segmentation import ShelfSegmenter
 from ms_drake.policies.shelf import (
-    ORACLE_EXHAUSTIVE_SECONDS,
     SHELF_POLICIES,
     ShelfPolicyParams,
     ShelfPolicySelector,
     check_shelf_policy,
+    oracle_last_stage_seconds,
 )
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.shelf import (
@@ -172,7 +172,8 @@ def shelf_rollout(policy: str, occluders: int, seed: int, params: ShelfPolicyPar
 
     return dict(seed=int(seed), occluders=int(occluders), objects=int(occluders), policy=policy, fidelity=FIDELITY,
                 perception=perception,
-                oracle_exhaustive_seconds=float(params.oracle_exhaustive_seconds) if policy == "oracle_p" else 0.0,
+                oracle_exhaustive_seconds=oracle_exhaustive_budget(policy, params.oracle_exhaustive_seconds)
+                if policy in ("oracle_p", "oracle_ps") else 0.0,
                 success=not failure, steps=steps, actions=steps, pushes=kinds.count("push"),
                 suctions=kinds.count("suction"), refused=len(history) - len(done),
                 cost=kinds.count("push") + params.psi * kinds.count("suction"), failure=failure, stop_reason=reason,
@@ -189,7 +190,7 @@ def shelf_rollout_job(job: tuple) -> dict:
     policy, occluders, seed, *rest = job
     horizon = rest[0] if rest else None
     perception = rest[1] if len(rest) > 1 else "ground_truth"
-    exhaustive = rest[2] if len(rest) > 2 else ORACLE_EXHAUSTIVE_SECONDS
+    exhaustive = rest[2] if len(rest) > 2 else oracle_last_stage_seconds(policy)
     return shelf_rollout(policy, occluders, seed,
                          ShelfPolicyParams(seed=seed, horizon=horizon, oracle_exhaustive_seconds=exhaustive),
                          perception=perception)
@@ -212,13 +213,14 @@ def _matches(r: dict, policy: str, perception: str = "ground_truth", oracle_exha
 
 
 def oracle_exhaustive_budget(policy: str, seconds: float | None) -> float:
-    """Oracle-P's exhaustive search budget of a run: None -> the default for oracle_p, 0 for the
-    others; an error for a negative one or one given to another policy."""
+    """The budget of an oracle's last stage for a run (Oracle-P's exhaustive push search, Oracle-P+S's
+    wide search): None -> the policy's default (oracle_last_stage_seconds; 0 for the non-oracles);
+    an error for a negative one or one given to another policy."""
     if seconds is None:
-        return ORACLE_EXHAUSTIVE_SECONDS if policy == "oracle_p" else 0.0
-    if seconds < 0 or (seconds > 0 and policy != "oracle_p"):
+        return oracle_last_stage_seconds(policy)
+    if seconds < 0 or (seconds > 0 and policy not in ("oracle_p", "oracle_ps")):
         raise MsDrakeError(f"--oracle-exhaustive {seconds:g}: a CPU budget >= 0 s, and only for "
-                           f"--policy oracle_p (got --policy {policy})")
+                           f"--policy oracle_p or oracle_ps (got --policy {policy})")
     return float(seconds)
 
 
@@ -227,10 +229,11 @@ def run_shelf_bench(policy: str, occluders: list[int], scenes: int, seed_start: 
                     progress=None, perception: str = "ground_truth", oracle_exhaustive: float | None = None) -> dict:
     """Run the missing rollouts of seeds S..S+K-1 for every occluder count, append them to `out`
     (JSON lines); returns {occluders or "all": summary} over the requested seeds. Records without
-    a `perception` field are ground-truth ones. oracle_exhaustive: Oracle-P's exhaustive push search
-    budget [CPU s] after its staged search (ShelfPolicyParams.oracle_exhaustive_seconds; None: its
-    default for oracle_p, 0 = off; records keep it, 0 for the other policies and for records older
-    than the option, and a resumed run matches on it)."""
+    a `perception` field are ground-truth ones. oracle_exhaustive: the CPU budget [s] of the oracle's
+    last stage after its staged search, Oracle-P's exhaustive push search or Oracle-P+S's wide
+    search (ShelfPolicyParams.oracle_exhaustive_seconds; None: the policy's default, 0 = off;
+    records keep it, 0 for the other policies and for records older than the option, and a resumed
+    run matches on it)."""
     check_shelf_policy(policy)
     oracle_exhaustive = oracle_exhaustive_budget(policy, oracle_exhaustive)
     bad = [n for n in occluders if not 2 <= n <= 12]
@@ -283,18 +286,19 @@ def _cell(recs: list[dict]) -> tuple[str, str]:
 
 
 def _columns(recs: list[dict], policies) -> list[tuple[str, float]]:
-    """The table's columns present in `recs`: (policy, Oracle-P's exhaustive budget), in policy order,
-    Oracle-P's default budget first."""
+    """The table's columns present in `recs`: (policy, the budget of the oracle's last stage), in
+    policy order, an oracle's default budget first."""
     keys = {(r["policy"], float(r.get("oracle_exhaustive_seconds", 0.0))) for r in recs}
     return sorted((k for k in keys if k[0] in policies),
-                  key=lambda k: (list(policies).index(k[0]), k[1] != ORACLE_EXHAUSTIVE_SECONDS, k[1]))
+                  key=lambda k: (list(policies).index(k[0]), k[1] != oracle_last_stage_seconds(k[0]), k[1]))
 
 
 def _column_name(key: tuple[str, float]) -> str:
-    p, exhaustive = key
-    if p != "oracle_p" or exhaustive == ORACLE_EXHAUSTIVE_SECONDS:
+    p, last = key
+    if p not in ("oracle_p", "oracle_ps") or last == oracle_last_stage_seconds(p):
         return POLICY_NAMES.get(p, p)
-    return POLICY_NAMES[p] + (f" (exhaustive search {exhaustive:g} s)" if exhaustive else " (staged search only)")
+    stage = "exhaustive" if p == "oracle_p" else "wide"
+    return POLICY_NAMES[p] + (f" ({stage} search {last:g} s)" if last else " (staged search only)")
 
 
 def _in_column(r: dict, key: tuple[str, float]) -> bool:

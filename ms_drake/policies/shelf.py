@@ -55,7 +55,10 @@ All three keep the history P'_t = min(P_t, P'_{t-1}) (P'_0 = P_0), renormalised.
   if so. When the stages find nothing, oracle_p then searches exhaustively, as the reference's
   oracles do (exhaustive_push_plan: breadth first over every push, duplicate states merged,
   states that need more objects moved than actions are left dropped; a shortest push plan),
-  for up to `oracle_exhaustive_seconds` of CPU. Plans are cached by scene content, so executing
+  and oracle_ps searches wider (wide_plan: the greedy search with the stopped-short pushes, twice
+  the placements for the occluders in the way and no expansion limit; a plan, not the cheapest),
+  each for up to `oracle_exhaustive_seconds` of CPU (default: ORACLE_EXHAUSTIVE_SECONDS for
+  oracle_p, ORACLE_WIDE_SECONDS for oracle_ps). Plans are cached by scene content, so executing
   one re-plans nothing.
 """
 
@@ -92,6 +95,15 @@ PSI = 1.3
 #: exhaustive (capped at H); 60 s decide all but 6 of the 29 scenes of Table 9.1 the staged search
 #: leaves, and keep the 400-scene run at 14 CPU-min (docs/BENCHMARKS.md).
 ORACLE_EXHAUSTIVE_SECONDS = 60.0
+#: Oracle-P+S's wide search after its staged one [CPU s] (wide_plan): the one scene of Table 9.1
+#: the staged search leaves (8 occluders, seed 22) needs ~70 s.
+ORACLE_WIDE_SECONDS = 120.0
+
+
+def oracle_last_stage_seconds(policy: str) -> float:
+    """The default CPU budget of an oracle's last stage (Oracle-P: exhaustive_push_plan; Oracle-P+S:
+    wide_plan); 0 for the other policies."""
+    return {"oracle_p": ORACLE_EXHAUSTIVE_SECONDS, "oracle_ps": ORACLE_WIDE_SECONDS}.get(policy, 0.0)
 
 
 @dataclass(frozen=True)
@@ -102,9 +114,9 @@ class ShelfPolicyParams:
     horizon: int | None = None  # action budget H (None: 2n); the oracles plan within what is left
     oracle_max_nodes: int = 500  # A*'s expansions per stage; each greedy fallback gets three times as many
     oracle_max_seconds: float = 8.0  # CPU seconds of one plan (A* and fallback together)
-    # Oracle-P: when those stages find nothing, the exhaustive push search with this CPU budget [s]
-    # (exhaustive_push_plan; 0: off)
-    oracle_exhaustive_seconds: float = ORACLE_EXHAUSTIVE_SECONDS
+    # when those stages find nothing, the oracle's last stage with this CPU budget [s] (Oracle-P:
+    # exhaustive_push_plan, Oracle-P+S: wide_plan; None: oracle_last_stage_seconds(policy); 0: off)
+    oracle_exhaustive_seconds: float | None = None
     oracle_placements: int = 4
     # The distribution policies on a robot, whose actions place objects to within ~1-2 cm (0: off, as in FOSS):
     min_move: float = 0.0  # m: candidates FOSS moves their object less than this are not proposed
@@ -475,8 +487,9 @@ def oracle_plan(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: 
     pushes to the neighbour, then the same two with the pushes that stop short added
     (Foss.push_actions(leave_room=True)); None if none finds one, once the stages have used
     max_seconds of CPU time, or at once when pushes alone cannot do it (push_locked) (module
-    docstring). Pushes only (suction=False) and exhaustive_seconds > 0: then the exhaustive push
-    search (`exhaustive_push_plan`) with that CPU budget and at most exhaustive_states states."""
+    docstring). Then, with exhaustive_seconds > 0, the last stage with that CPU budget: pushes only
+    (suction=False), the exhaustive push search (`exhaustive_push_plan`, at most exhaustive_states
+    states); with suction, the wide search (`wide_plan`)."""
     if not max_seconds > 0:
         raise PolicyError(f"oracle max_seconds={max_seconds}: must be > 0 (e.g. 8.0)")
     if exhaustive_seconds < 0:
@@ -492,9 +505,22 @@ def oracle_plan(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: 
                            leave_room=leave_room)
             if plan is not None:
                 return plan
-    if not suction and exhaustive_seconds > 0:
+    if exhaustive_seconds > 0:
+        if suction:
+            return wide_plan(foss, scene, budget, psi, placements, exhaustive_seconds)
         return exhaustive_push_plan(foss, scene, budget, exhaustive_seconds, exhaustive_states)
     return None
+
+
+def wide_plan(foss: Foss, scene: ShelfScene, budget: int, psi: float = PSI, placements: int = 4,
+              max_seconds: float = ORACLE_WIDE_SECONDS) -> tuple[ShelfAction, ...] | None:
+    """Oracle-P+S's last stage: the greedy best-first search of the staged one with the pushes that
+    stop short, twice the suction placements for the occluders that block the view or are in the
+    way of their sweeps (2 * placements; 2 for the others, as there) and no expansion limit, until
+    `max_seconds` of CPU. It finds a plan (<= budget actions), not the cheapest; None when the
+    states ran out or the time did. The tree with every grid placement is out of reach."""
+    return _search(foss, scene, True, budget, psi, max_nodes=np.iinfo(np.int64).max, placements=2 * placements,
+                   greedy=True, deadline=time.process_time() + max_seconds, leave_room=True)
 
 
 def exhaustive_push_plan(foss: Foss, scene: ShelfScene, budget: int, max_seconds: float,
@@ -715,6 +741,8 @@ class ShelfPolicies:
             raise PolicyError(f"ShelfPolicyParams: psi={self.params.psi} must be > 0 and lookahead="
                               f"{self.params.lookahead} >= 1")
         self._plans: OrderedDict = OrderedDict()
+        last = self.params.oracle_exhaustive_seconds
+        self.last_stage_seconds = oracle_last_stage_seconds(self.policy) if last is None else float(last)
 
     def budget(self, scene: ShelfScene, steps: int) -> int:
         horizon = self.params.horizon if self.params.horizon is not None else 2 * len(scene.objects)
@@ -777,7 +805,7 @@ class ShelfPolicies:
         if plan is None or (plan and _action_key(plan[0]) in rejected):
             plan = oracle_plan(self.foss, scene, suction, self.budget(scene, steps), self.params.psi,
                                self.params.oracle_max_nodes, self.params.oracle_placements,
-                               self.params.oracle_max_seconds, self.params.oracle_exhaustive_seconds)
+                               self.params.oracle_max_seconds, self.last_stage_seconds)
             if plan is None:
                 locked = push_locked(self.foss, scene) if not suction else []
                 why = (f"no push sequence can take {', '.join(locked)} out of the view" if locked
