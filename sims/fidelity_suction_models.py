@@ -6,8 +6,9 @@ heap (the grasp's real tilt), (b) also with the station's cup (SuctionCup: 40 N,
 moment up to f r = 0.6 N m), (c) also with the other objects' load on it (full_load < 0: their
 downward force added to the weight), (d) as (b) with the lip's springs allowed to stretch by
 `--stretch` (the evaluator's max_stretch; default 0.1), (e) the grasp sets' convention (gravity
-along the approach) with the station's cup and that stretch: the model the grasp sets would be
-re-made with. Prints the agreement with the YuMi's outcome of a draw with p = quality (expected)
+along the approach) with the station's cup and that stretch: the qualities the grasp sets would
+hold if re-made with it (these attempts are the current model's choices; the same model choosing
+its own grasps: sims/suction_model_station.py). Prints the agreement with the YuMi's outcome of a draw with p = quality (expected)
 and of "quality >= 0.5", per model, over the suction attempts and over all attempts (the jaw
 attempts keep their recorded quality).
 
