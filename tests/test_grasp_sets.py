@@ -131,6 +131,21 @@ def test_a_grasp_through_a_neighbour_is_dropped_a_free_one_kept(bin_scene):
     assert max(f[2][1] for f in fingers) + half > b.X_WO[1, 3] - 0.015
 
 
+def test_suction_ties_go_to_the_point_nearest_the_centre_of_mass(bin_scene):
+    s, ws, a, _ = bin_scene
+    gs = _jaw_set("a", [[1, 0, 0]], [0.0])
+    # two suction points of equal quality on a's top: 1.5 cm off its centre first, then at it
+    gs = GraspSet("a", gs.model, gs.jaw_center, gs.jaw_axis, gs.jaw_ref, gs.jaw_width, gs.jaw_quality,
+                  np.array([[0.015, 0.0, 0.02], [0.0, 0.0, 0.02]]), np.array([[0.0, 0.0, 1.0]] * 2), np.array([0.9, 0.9]))
+    p = _planner(s, ws, {"a": gs})
+    (suction,) = p.plan_object("a", {"a": a}, p.scene((a,)))
+    assert np.allclose(suction.center, a.X_WO[:3, 3] + [0, 0, 0.02]) and suction.quality == pytest.approx(0.9)
+    # a better quality still comes first, wherever it is
+    gs.suction_quality[0] = 1.0
+    (suction,) = p.plan_object("a", {"a": a}, p.scene((a,)))
+    assert np.allclose(suction.center, a.X_WO[:3, 3] + [0.015, 0, 0.02])
+
+
 def test_out_of_reach_and_buried_grasps_are_dropped(bin_scene):
     s, ws, a, b = bin_scene
     # a turned upside down (rotation about x by pi): approach 0 now points up, beyond any tilt

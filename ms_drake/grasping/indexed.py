@@ -8,7 +8,10 @@ Ports (declared first; those of LazyGraspPlanner, so the selector is unchanged):
 Per object looked up (on demand, as LazyGraspPlanner): its grasp set (ms_drake.grasping.grasp_sets)
 moved to the object's current pose; candidates out of reach dropped (approach tilted more than
 `max_tilt` from world -z, grasp point outside the bin's inner box or below its floor);
-the rest taken best quality first (ties: the less tilted), and the first whose gripper is free
+the rest taken best quality first (ties: jaw grasps the less tilted; suction grasps the nearer the
+object's centre of mass across the floor, the weight's lever arm about the cup, which decides the
+stations' lifts more often the farther it is: docs/BENCHMARKS.md, then the less tilted), and the
+first whose gripper is free
 of the scene is the object's grasp of that kind. Free: the gripper's geometry -- the jaw's palm
 and two fingers (with their pads) opened to the grasp's width, or the suction cup and its shaft
 lifted `suction_clearance` off the surface -- does not intersect (coal, shrunk by `margin`) any
@@ -294,7 +297,9 @@ class IndexedGraspPlanner(LeafSystem):
             down = -ap[:, 2]
             ok = (down >= self.cos_tilt) & (q >= self.min_quality) & self._reachable(p)
             idx = np.nonzero(ok)[0]
-            order = idx[np.lexsort((-down[idx], -q[idx]))][: self.max_checks]
+            com = R @ (np.asarray(geom.com, float) if geom.com is not None else geom.vertices.mean(axis=0)) + t
+            arm = np.hypot(*(p[idx, :2] - com[:2]).T)  # the weight's lever arm about the cup, held upright
+            order = idx[np.lexsort((-down[idx], arm, -q[idx]))][: self.max_checks]
             g = self._first_reached(scene, (SuctionGrasp(p[n], ap[n]).to_grasp(float(q[n]), "suction", oid)
                                             for n in order if not scene.hits(self.gripper.suction(p[n], ap[n]))))
             if g is not None:
