@@ -8,10 +8,10 @@ Ports (declared first; those of LazyGraspPlanner, so the selector is unchanged):
 Per object looked up (on demand, as LazyGraspPlanner): its grasp set (ms_drake.grasping.grasp_sets)
 moved to the object's current pose; candidates out of reach dropped (approach tilted more than
 `max_tilt` from world -z, grasp point outside the bin's inner box or below its floor);
-the rest taken best quality first (ties: the grasp point nearer the object's centre of mass across
-the floor -- the weight's lever arm about the cup or the jaw, which decides the stations' lifts
-more often the longer it is: docs/BENCHMARKS.md -- then the less tilted), and the first whose
-gripper is free
+the rest taken best quality first (ties: jaw grasps the less tilted; suction grasps the nearer the
+object's centre of mass across the floor, the weight's lever arm about the cup, which decides the
+stations' lifts more often the farther it is: docs/BENCHMARKS.md, then the less tilted), and the
+first whose gripper is free
 of the scene is the object's grasp of that kind. Free: the gripper's geometry -- the jaw's palm
 and two fingers (with their pads) opened to the grasp's width, or the suction cup and its shaft
 lifted `suction_clearance` off the surface -- does not intersect (coal, shrunk by `margin`) any
@@ -272,7 +272,6 @@ class IndexedGraspPlanner(LeafSystem):
             return ()
         X = as_matrix4(geom.X_WO, f"objects[{oid!r}].X_WO")
         R, t = X[:3, :3], X[:3, 3]
-        com = R @ (np.asarray(geom.com, float) if geom.com is not None else geom.vertices.mean(axis=0)) + t
         out = []
         if "parallel_jaw" in self.kinds and len(gs.jaw_center):
             c = gs.jaw_center @ R.T + t
@@ -282,8 +281,7 @@ class IndexedGraspPlanner(LeafSystem):
             down = -ap[..., 2]
             ok = (down >= self.cos_tilt) & (q >= self.min_quality) & self._reachable(c)[:, None]
             i, k = np.nonzero(ok)
-            arm = np.hypot(*(c[i, :2] - com[:2]).T)  # the weight's lever arm about the grasp, held upright
-            order = np.lexsort((-down[i, k], arm, -q[i, k]))[: self.max_checks]
+            order = np.lexsort((-down[i, k], -q[i, k]))[: self.max_checks]
             across = np.cross(ap[i[order], k[order]], a[i[order]])
             g = self._first_reached(scene, (
                 ParallelJawGrasp(c[i[j]], a[i[j]], ap[i[j], k[j]], gs.jaw_width[i[j]]).to_grasp(
@@ -299,6 +297,7 @@ class IndexedGraspPlanner(LeafSystem):
             down = -ap[:, 2]
             ok = (down >= self.cos_tilt) & (q >= self.min_quality) & self._reachable(p)
             idx = np.nonzero(ok)[0]
+            com = R @ (np.asarray(geom.com, float) if geom.com is not None else geom.vertices.mean(axis=0)) + t
             arm = np.hypot(*(p[idx, :2] - com[:2]).T)  # the weight's lever arm about the cup, held upright
             order = idx[np.lexsort((-down[idx], arm, -q[idx]))][: self.max_checks]
             g = self._first_reached(scene, (SuctionGrasp(p[n], ap[n]).to_grasp(float(q[n]), "suction", oid)
