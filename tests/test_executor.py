@@ -302,3 +302,24 @@ def test_threshold_grasp_outcomes_are_deterministic_and_draws_follow_the_quality
     assert failed.removed_object == "" and failed.message == "grasp_failed"
     with pytest.raises(ExecutionError, match="grasp_outcome 'nominal' unknown.*draw, threshold"):
         PrimitiveBackend({}, WS, tcp_offset=0.1, grasp_outcome="nominal")
+
+
+def test_the_full_jaw_grips_with_the_grasp_models_closing_force():
+    from ms_drake.execution import FullBackend
+    from ms_drake.grasping.evaluator import CLOSING_FORCE, GraspEvaluator
+    from ms_drake.scenario import load_scenario
+
+    s = load_scenario(None, "YuMiBin")
+    ws = Workspace.from_scenario(s)
+    g = Grasp("parallel_jaw", (ws.center_xy[0], ws.center_xy[1], ws.floor_z + 0.03), (0, 0, -1), axis=(0, 1, 0),
+              width=0.05, object_id="a")
+    hold = FullBackend(s, {"a": 1}, ws).initial_commands()
+    for force in (None, 25.0):
+        fb = FullBackend(s, {"a": 1}, ws, **({} if force is None else {"grip_force": force}))
+        motion = fb.plan(Action("grasp", grasp=g), hold, 0)
+        assert not isinstance(motion, str), motion
+        limits = {float(v[0]) for _, v in motion.commands["yumi_right_jaw.force_limit"].steps}
+        assert limits == {CLOSING_FORCE if force is None else force}
+    assert GraspEvaluator("soft_point").closing_force == CLOSING_FORCE  # the force the qualities assume
+    with pytest.raises(ExecutionError, match="grip_force"):
+        FullBackend(s, {"a": 1}, ws, grip_force=0.0)

@@ -197,3 +197,46 @@ def test_unknown_names_list_the_valid_ones():
         add_robot(plant, make_parser(plant), "ur5")
     with pytest.raises(ScenarioError, match="valid grippers: bluction, parallel_jaw, suction_cup"):
         gripper_spec("robotiq")
+
+
+@pytest.mark.parametrize("thickness, limit", [(0.005, 10.0), (0.02, 30.0)])
+def test_jaw_driver_grips_a_thin_part_near_its_force_limit(thickness, limit):
+    """The station's jaw driver gains (JawDriver) close on a 5 mm plate with about the grasp
+    models' 10 N and on a 2 cm one with 30 N, as a force-limited gripper does; Drake's WSG default
+    gain (200 N/m) would squeeze them with 1 and 4 N."""
+    from ms_drake.scenario import JawDriver
+
+    d = JawDriver()
+    builder = DiagramBuilder()
+    plant, _ = AddMultibodyPlant(MultibodyPlantConfig(time_step=1e-2, discrete_contact_approximation="sap",
+                                                      contact_model="hydroelastic_with_fallback"), builder)
+    parser = make_parser(plant)
+    base, grip = add_floating_gripper(plant, parser, "parallel_jaw")
+    sdf = box_sdf(0.1, name="plate").replace("<size>0.05 0.05 0.05</size>", f"<size>{thickness} 0.05 0.05</size>")
+    (plate,) = parser.AddModelsFromString(sdf, "sdf")
+    plant.WeldFrames(plant.world_frame(), plant.GetFrameByName("plate", plate), RigidTransform([0, 0, 0.3]))
+    plant.Finalize()
+    tcp_z = plant.GetFrameByName("tcp", grip).GetFixedPoseInBodyFrame().translation()[2]
+    q_base = np.array([0, 0, 0.3 + tcp_z, np.pi, 0, 0])  # tcp at the plate's centre, pointing down
+    src = builder.AddSystem(ConstantVectorSource(np.concatenate([q_base, np.zeros(6)])))
+    builder.Connect(src.get_output_port(), plant.get_desired_state_input_port(base))
+    wsg = builder.AddSystem(SchunkWsgPositionController(kp_command=d.kp_command, kd_command=d.kd_command,
+                                                        default_force_limit=limit))
+    builder.Connect(plant.get_state_output_port(grip), wsg.get_state_input_port())
+    builder.Connect(wsg.get_generalized_force_output_port(), plant.get_actuation_input_port(grip))
+    builder.Connect(builder.AddSystem(ConstantVectorSource([0.0])).get_output_port(),
+                    wsg.get_desired_position_input_port())
+    builder.Connect(builder.AddSystem(ConstantVectorSource([limit])).get_output_port(),
+                    wsg.get_force_limit_input_port())
+    diagram = builder.Build()
+    sim = Simulator(diagram)
+    pc = plant.GetMyMutableContextFromRoot(sim.get_mutable_context())
+    plant.SetPositions(pc, base, q_base)
+    plant.SetPositions(pc, grip, [-0.03, 0.03])
+    sim.AdvanceTo(1.0)
+    opening = float(np.diff(plant.GetPositions(pc, grip))[0])
+    force = float(wsg.get_grip_force_output_port().Eval(wsg.GetMyContextFromRoot(sim.get_context()))[0])
+    assert thickness - 0.002 < opening < thickness + 0.0015, opening  # closed on the plate
+    assert force == pytest.approx(min(limit, d.kp_command * opening), rel=0.05), force
+    assert force > 0.85 * limit, force
+    assert 200.0 * opening < 0.15 * limit  # what the WSG default gain would have squeezed with

@@ -31,6 +31,7 @@ from pydrake.math import RigidTransform, RotationMatrix
 
 from ms_drake.execution.executor import ExecutionError, Motion
 from ms_drake.geometry import as_rigid_transform
+from ms_drake.grasping.evaluator import CLOSING_FORCE
 from ms_drake.planning import plan_joint_motion
 from ms_drake.planning.sequences import Schedule, arm_ik, plan_pick, plan_push
 from ms_drake.robots import GRIPPERS
@@ -202,6 +203,9 @@ def grasp_tool_pose(grasp) -> RigidTransform:
     return RigidTransform(RotationMatrix(R), np.asarray(grasp.center, float))
 
 
+JAW_OPENING = 0.10  # m, the jaw's opening at park and after a release
+
+
 class FullBackend(_Base):
     """Any arm-and-gripper station (YuMiBin, PandaBin, FloatingGripperBin in full fidelity): IK +
     ruckig plans (ms_drake.planning.sequences) from the arm's current configuration, executed
@@ -211,11 +215,14 @@ class FullBackend(_Base):
     body_poses; on hardware, without them, every grasp reports "not_lifted"); then the gripper
     releases and the arm returns to its park configuration out of the camera's view: ArmSpec.home
     for arms, beside the bin for the floating gripper.
-    scenario: the station's scenario (its robot, grippers and environment; objects are ignored)."""
+    scenario: the station's scenario (its robot, grippers and environment; objects are ignored).
+    grip_force: the jaw's force limit while it grips [N]; by default the closing force the jaw
+    grasp models score with (grasping.evaluator.CLOSING_FORCE), so the station executes a grasp
+    with the force its quality assumed."""
 
     def __init__(self, scenario, objects: dict, workspace, target_id: str = "", seed: int = 0, settle: float = 0.5,
                  lift: float = 0.15, speed: float = 0.25, close_time: float = 0.5, hold_time: float = 0.3,
-                 park_distance: float = 0.35, park_height: float = 0.10):
+                 park_distance: float = 0.35, park_height: float = 0.10, grip_force: float = CLOSING_FORCE):
         super().__init__(objects, workspace, target_id, seed, settle)
         if not scenario.robot.name:
             raise ExecutionError("full fidelity needs a robot: the scenario has none (robot.name is empty); "
@@ -230,6 +237,9 @@ class FullBackend(_Base):
             raise ExecutionError(f"robot {scenario.robot.name!r} carries no parallel jaw or suction cup "
                                  f"(grippers: {', '.join(g for _, g, _ in chosen)}); a bin search needs one")
         self.lift, self.speed, self.close_time, self.hold_time = lift, speed, close_time, hold_time
+        if grip_force <= 0:
+            raise ExecutionError(f"grip_force must be > 0 N, got {grip_force}")
+        self.grip_force = float(grip_force)
         self.ik, self._keep = {}, []
         for arm in dict.fromkeys(tool[0] for tool in (self.jaw, self.suction) if tool is not None):
             ik, limits, q_home, keep = arm_ik(scenario, arm, seed=seed)
@@ -250,7 +260,7 @@ class FullBackend(_Base):
     def initial_commands(self) -> dict:
         out = {f"{arm}.position": q_home for arm, (_, _, q_home) in self.ik.items()}
         if self.jaw is not None:
-            out.update({f"{self.jaw[1]}.position": [0.1], f"{self.jaw[1]}.force_limit": [30.0]})
+            out.update({f"{self.jaw[1]}.position": [JAW_OPENING], f"{self.jaw[1]}.force_limit": [self.grip_force]})
         if self.suction is not None:
             out[f"{self.suction[1]}.suction"] = [0.0]
         return out
@@ -279,13 +289,14 @@ class FullBackend(_Base):
             ik, limits, _ = self.ik[arm]
             q_now = np.asarray(hold[f"{arm}.position"], float)
             plan = plan_pick(ik, limits, q_now, grasp_tool_pose(g), arm, port, g.kind, lift=self.lift,
-                             speed=self.speed, close_time=self.close_time, hold_time=self.hold_time)
+                             speed=self.speed, close_time=self.close_time, hold_time=self.hold_time,
+                             force_limit=self.grip_force, max_opening=JAW_OPENING)
             if not plan.success:
                 return plan.status
             b = self.objects.get(g.object_id)
             z0 = as_rigid_transform(poses[b], f"poses[{b}]").translation()[2] if poses is not None and b is not None \
                 else None
-            release = {f"{port}.position": [0.1]} if g.kind == "parallel_jaw" else {f"{port}.suction": [0.0]}
+            release = {f"{port}.position": [JAW_OPENING]} if g.kind == "parallel_jaw" else {f"{port}.suction": [0.0]}
             return self._finish_motion(plan, arm, release, {"z0": z0, "step": step})
         if action.kind == "push":
             if action.push is None:
@@ -319,7 +330,7 @@ class FullBackend(_Base):
             close = Schedule()
             close.set(0.0, 0.0)
             plan.commands[f"{jaw}.position"] = close
-            return self._finish_motion(plan, arm, {f"{jaw}.position": [0.1]}, {"step": step})
+            return self._finish_motion(plan, arm, {f"{jaw}.position": [JAW_OPENING]}, {"step": step})
         raise ExecutionError(f"the full executor cannot execute an Action of kind {action.kind!r}")
 
     def outcome(self, action: Action, motion: Motion, poses, step: int, removed):

@@ -45,6 +45,9 @@ from ms_drake.grasping.wrench_sets import normalizer
 MODELS = ("point", "soft_point", "elliptical", "reach", "mfe", "6dfc")
 AREA_MODELS = ("elliptical", "reach", "mfe", "6dfc")
 GRAVITY = 9.81
+# f_C [N]: the jaws' closing force the jaw models assume by default; the full-fidelity stations grip
+# with it (FullBackend.grip_force), so a grasp is executed with the force it was scored at.
+CLOSING_FORCE = 10.0
 
 
 @dataclass(frozen=True)
@@ -146,7 +149,7 @@ class GraspEvaluator:
         default 0.003, 0.05, 0.1, 0.1
     """
 
-    def __init__(self, model: str = "6dfc", friction: float = 0.5, closing_force: float = 10.0, *,
+    def __init__(self, model: str = "6dfc", friction: float = 0.5, closing_force: float = CLOSING_FORCE, *,
                  torsional_friction: float = 0.005, material_constant: float = 2e-4,
                  pad: PadGeometry | None = None, pad_polygon=None, pad_depth: float | None = None,
                  cone_edges: int = 8, ellipsoid_samples: int = 18, max_triangles: int = 10,

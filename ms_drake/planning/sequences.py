@@ -22,6 +22,7 @@ from pydrake.systems.primitives import TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
 
 from ms_drake.geometry import as_rigid_transform
+from ms_drake.grasping.evaluator import CLOSING_FORCE
 from ms_drake.planning import (
     ArmIk,
     approach_pose,
@@ -207,7 +208,7 @@ def _pick_lines(ik, limits, q_home, X_grasp, approach, lift, speed, axis_only):
 
 
 def plan_pick(ik, limits, q_home, X_grasp: RigidTransform, arm: str, gripper_port: str, kind: str,
-              approach: float = 0.10, lift: float = 0.20, force_limit: float = 30.0, max_opening: float = 0.10,
+              approach: float = 0.10, lift: float = 0.20, force_limit: float = CLOSING_FORCE, max_opening: float = 0.10,
               close_time: float = 0.8, hold_time: float = 0.5, speed: float = 0.15,
               blade: float | None = None, from_home: bool = True) -> PickPlan:
     """Plan a pick at the tool pose X_grasp (kind: parallel_jaw | suction | bluction).
