@@ -156,6 +156,30 @@ def test_pick_reach_keeps_the_transit_from_park_clear(yumi_reach):
     assert not yumi_reach(g, on_path) and yumi_reach.arm_blocked == blocked + 1
 
 
+def test_pick_reach_checks_the_open_fingers_in_transit(yumi_reach):
+    # a small box where the open jaw's left finger passes on its way from park to the pre-grasp of a
+    # tilted jaw grasp, clear of the arm's links and the palm: the finger would knock it, so the
+    # grasp is not reached (fidelity heap 5092); the same box in the far corner leaves it reached
+    s = load_scenario(None, "BinHeap15")
+    ws = Workspace.from_scenario(s)
+    g = Grasp("parallel_jaw", (-0.1, 0.05, 0.06), (0.29, 0.09, -0.95), axis=(0.0, 1.0, 0.0), width=0.03)
+    plan = yumi_reach.plan(g)
+    assert not isinstance(plan, str) and plan.success
+    links = yumi_reach.links[plan.arm]
+    names = [b.name() for b, *_ in links.parts + links.tool_parts]
+    assert "left_finger" in names and "right_finger" in names
+    t = 0.9 * plan.timeline.marks["approach"]
+    parts = links.at(plan.timeline.value(t), tool=True)
+    finger = next(p for p, n in zip(parts, names) if n == "left_finger")
+    others = [p for p, n in zip(parts, names) if "finger" not in n]
+    planner = IndexedGraspPlanner({}, {}, environment_parts(s), ws, 64, 48)
+    on_path = planner.scene((_box("box", (0.01, 0.01, 0.01), finger[2]),))
+    aside = planner.scene((_box("box", (0.01, 0.01, 0.01), (0.2, -0.15, ws.floor_z + 0.005)),))
+    assert on_path.hits([finger]) and not on_path.hits(others, yumi_reach.transit_clearance)
+    assert yumi_reach(g, aside)
+    assert not yumi_reach(g, on_path)
+
+
 def test_scene_hits_within_a_margin():
     s = load_scenario(None, "BinHeap15")
     ws = Workspace.from_scenario(s)

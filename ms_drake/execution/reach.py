@@ -11,7 +11,9 @@ grasp must also keep the arm clear of it:
   intersect any object: the gripper alone being free is not enough, the wrist behind a tilted
   suction tool or a jaw runs into the neighbouring objects, and the approach then stops short;
 - along the transit from park to the pre-grasp (a joint-space move at the arm's full speed), the
-  links and the tool (the bodies welded to the last link: the cup and its stem, the jaw's palm) at
+  links and the tool (the gripper on the last link: the cup and its stem, the jaw's palm and its
+  fingers wide open, as the jaw travels; an open finger swept a tall neighbour of fidelity heap
+  5092 and knocked the grasped packaged object 30 degrees over) at
   configurations at most `transit_step` seconds apart must stay `transit_clearance` from
   everything, the grasped object included: a tilted grasp's transit swept the cup through, or
   within 2 mm of (and, tracking at ~0.8 m/s, into), the very box it was to grasp, knocking it
@@ -77,9 +79,14 @@ class ArmLinks:
                 X_BG = inspector.GetPoseInFrame(gid).GetAsMatrix4()
                 self.parts.append((body, *_hull_part(shape, X_BG)))
         last = ik.joints[-1].child_body()
+        welded = [b for b in plant.GetBodiesWeldedTo(last) if b.index() != last.index()]
+        # the tool: the gripper models welded to the last link, with their moving parts (a jaw's
+        # fingers, at the opening the IK context holds: wide open, as the pick's transit runs)
+        tools = {b.model_instance() for b in welded} - {last.model_instance()}
+        bodies = welded + [plant.get_body(i) for m in sorted(tools) for i in plant.GetBodyIndices(m)
+                           if plant.get_body(i) not in welded]
         self.tool_parts = [(body, *_tool_part(inspector.GetShape(gid), inspector.GetPoseInFrame(gid).GetAsMatrix4()))
-                           for body in plant.GetBodiesWeldedTo(last) if body.index() != last.index()
-                           for gid in plant.GetCollisionGeometriesForBody(body)]
+                           for body in bodies for gid in plant.GetCollisionGeometriesForBody(body)]
 
     def at(self, q_arm, tool: bool = False) -> list:
         """[(coal shape, 3x3 rotation, world centre, radius)] of the links (and the tool) at arm
