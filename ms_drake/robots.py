@@ -56,6 +56,13 @@ class PadConfig:
             raise ScenarioError("PadConfig.polygon needs at least 3 (u, v) points")
 
 
+
+# f_C [N]: the parallel jaw's closing force the jaw grasp models assume by default
+# (grasping.evaluator); the full-fidelity stations grip with it (FullBackend.grip_force), so a
+# grasp is executed with the force it was scored at.
+CLOSING_FORCE = 10.0
+
+
 @dataclass(frozen=True)
 class ParallelJawConfig:
     """Parallel-jaw gripper geometry; defaults are close to the YuMi smart gripper's size."""

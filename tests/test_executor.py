@@ -306,7 +306,8 @@ def test_threshold_grasp_outcomes_are_deterministic_and_draws_follow_the_quality
 
 def test_the_full_jaw_grips_with_the_grasp_models_closing_force():
     from ms_drake.execution import FullBackend
-    from ms_drake.grasping.evaluator import CLOSING_FORCE, GraspEvaluator
+    from ms_drake.grasping.evaluator import GraspEvaluator
+    from ms_drake.robots import CLOSING_FORCE
     from ms_drake.scenario import load_scenario
 
     s = load_scenario(None, "YuMiBin")

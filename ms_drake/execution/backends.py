@@ -31,10 +31,9 @@ from pydrake.math import RigidTransform, RotationMatrix
 
 from ms_drake.execution.executor import ExecutionError, Motion
 from ms_drake.geometry import as_rigid_transform
-from ms_drake.grasping.evaluator import CLOSING_FORCE
 from ms_drake.planning import plan_joint_motion
 from ms_drake.planning.sequences import Schedule, arm_ik, plan_pick, plan_push
-from ms_drake.robots import GRIPPERS
+from ms_drake.robots import CLOSING_FORCE, GRIPPERS
 from ms_drake.scenario import resolve_robot_config
 from ms_drake.types import Action, ActionOutcome
 
@@ -217,7 +216,7 @@ class FullBackend(_Base):
     for arms, beside the bin for the floating gripper.
     scenario: the station's scenario (its robot, grippers and environment; objects are ignored).
     grip_force: the jaw's force limit while it grips [N]; by default the closing force the jaw
-    grasp models score with (grasping.evaluator.CLOSING_FORCE), so the station executes a grasp
+    grasp models score with (robots.CLOSING_FORCE), so the station executes a grasp
     with the force its quality assumed."""
 
     def __init__(self, scenario, objects: dict, workspace, target_id: str = "", seed: int = 0, settle: float = 0.5,

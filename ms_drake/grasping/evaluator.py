@@ -41,13 +41,11 @@ from ms_drake.grasping.point_models import (
 from ms_drake.grasping.reach import reach_contact
 from ms_drake.grasping.wrench_qp import SOLVERS, WrenchProblem, stack
 from ms_drake.grasping.wrench_sets import normalizer
+from ms_drake.robots import CLOSING_FORCE
 
 MODELS = ("point", "soft_point", "elliptical", "reach", "mfe", "6dfc")
 AREA_MODELS = ("elliptical", "reach", "mfe", "6dfc")
 GRAVITY = 9.81
-# f_C [N]: the jaws' closing force the jaw models assume by default; the full-fidelity stations grip
-# with it (FullBackend.grip_force), so a grasp is executed with the force it was scored at.
-CLOSING_FORCE = 10.0
 
 
 @dataclass(frozen=True)

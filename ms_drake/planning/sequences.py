@@ -22,7 +22,6 @@ from pydrake.systems.primitives import TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
 
 from ms_drake.geometry import as_rigid_transform
-from ms_drake.grasping.evaluator import CLOSING_FORCE
 from ms_drake.planning import (
     ArmIk,
     approach_pose,
@@ -34,7 +33,7 @@ from ms_drake.planning import (
 from ms_drake.planning.cartesian import CartesianPlan
 from ms_drake.planning.trajectories import plan_path_motion
 from ms_drake.planning.trajectories import JointTrajectory
-from ms_drake.robots import station_robot_spec
+from ms_drake.robots import CLOSING_FORCE, station_robot_spec
 from ms_drake.scenario import resolve_robot_config
 from ms_drake.station.robots import base_transform
 from ms_drake.station.station import add_environment
