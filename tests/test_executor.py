@@ -324,3 +324,22 @@ def test_the_full_jaw_grips_with_the_grasp_models_closing_force():
     assert GraspEvaluator("soft_point").closing_force == CLOSING_FORCE  # the force the qualities assume
     with pytest.raises(ExecutionError, match="grip_force"):
         FullBackend(s, {"a": 1}, ws, grip_force=0.0)
+
+
+def test_executor_state_copy_is_isolated_and_shallow():
+    """Drake deep-copies abstract state on every update: _State's copy shares the frozen contents
+    (no cost growing with the history) and replacing a field of the copy leaves the original."""
+    import copy
+
+    from ms_drake.execution.executor import _State
+    from ms_drake.types import Action, ActionOutcome
+
+    out = ActionOutcome(Action("stop", reason="x"), True)
+    s = _State(history=(out,), hold={"a": np.zeros(3)}, removed=("o1",))
+    c = copy.deepcopy(s)
+    assert c is not s and c.history[0] is out
+    c.history = c.history + (out,)
+    c.removed = c.removed + ("o2",)
+    c.hold = dict(c.hold, b=np.ones(1))
+    c.phase = "executing"
+    assert len(s.history) == 1 and s.removed == ("o1",) and set(s.hold) == {"a"} and s.phase == "idle"

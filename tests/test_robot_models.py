@@ -136,3 +136,34 @@ def test_robot_converter_is_importable_and_checks_its_arguments(capsys):
         main(["--robot", "ur5"])
     assert e.value.code == 2
     assert "invalid choice: 'ur5'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["floating_base", "parallel_jaw", "suction_cup", "bluction"])
+def test_self_contained_model_parses_from_text_as_from_file(name):
+    """station.robots._add_file parses self-contained SDFs from their text (sdformat rebuilds its
+    schema per file read): the same bodies, joints, masses, geometries and frames as the file."""
+    from pydrake.geometry import SceneGraph
+    from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlantConfig
+    from pydrake.systems.framework import DiagramBuilder
+
+    from ms_drake.station.robots import _add_file
+
+    def build(text):
+        builder = DiagramBuilder()
+        plant, sg = AddMultibodyPlant(MultibodyPlantConfig(time_step=0.001), builder)
+        parser = make_parser(plant)
+        path = models_dir() / "grippers" / f"{name}.sdf"
+        model = _add_file(parser, path) if text else parser.AddModels(str(path))[0]
+        plant.Finalize()
+        inspector = sg.model_inspector()
+        bodies = [(plant.get_body(b).name(), round(plant.get_body(b).default_mass(), 9))
+                  for b in plant.GetBodyIndices(model)]
+        joints = sorted((plant.get_joint(j).name(), plant.get_joint(j).type_name()) for j in plant.GetJointIndices(model))
+        geoms = sorted((inspector.GetName(g), inspector.GetShape(g).__class__.__name__)
+                       for b in plant.GetBodyIndices(model) for g in plant.GetCollisionGeometriesForBody(plant.get_body(b)))
+        frames = sorted(plant.get_frame(f).name() for f in plant.GetFrameIndices(model))
+        return bodies, joints, geoms, frames
+
+    from_text, from_file = build(True), build(False)
+    assert from_text == from_file
+    assert from_text[0]  # the model has bodies
