@@ -122,6 +122,7 @@ from ms_drake.experiments.xray import (
     XRAY_OBJECTS,
     XRAY_PROTOCOLS,
 )
+from ms_drake.foss import SUCTION_LIFTS
 from ms_drake.grasping.evaluator import MODELS
 from ms_drake.objects import available_sets, get_object_set
 from ms_drake.parallel import run_jobs
@@ -734,11 +735,17 @@ def bench_shelf(ctx: typer.Context,
                     None, "--oracle-exhaustive", min=0.0,
                     help="oracle_p / oracle_ps: CPU seconds of the last stage after the staged search finds "
                          "nothing, Oracle-P's exhaustive push search (default 60) or Oracle-P+S's wide search "
-                         "(default 120); 0: off")):
+                         "(default 120); 0: off"),
+                suction_lift: str = typer.Option("over", "--suction-lift",
+                                                 help="FOSS's suction lift: over (the object is lifted over what "
+                                                      "its sweeps to and from the front cross) or floor (2 cm "
+                                                      "only: those sweeps must be clear, FOSS as a 2D overhead "
+                                                      "simulator)")):
     """Shelf search in FOSS (Table 9.1): scenes S..S+K-1 for each occluder count, ground-truth (or
     learned) occupancy; one JSON line per search (resumable), then success rates and median steps."""
     check_shelf_policy(policy)
     _choose("--perception", perception, SHELF_PERCEPTIONS, quote=False)
+    _choose("--suction-lift", suction_lift, SUCTION_LIFTS, quote=False)
     oracle_exhaustive_budget(policy, oracle_exhaustive)
     counts = _occluder_counts(occluders, ctx.args)
     _need_jsonl(out)
@@ -751,7 +758,7 @@ def bench_shelf(ctx: typer.Context,
 
     s = run_shelf_bench(policy, counts, scenes, seed_start, out, workers=workers, use_ray=ray or ray_address is not None,
                         ray_address=ray_address, horizon=horizon, progress=progress, perception=perception,
-                        oracle_exhaustive=oracle_exhaustive)
+                        oracle_exhaustive=oracle_exhaustive, suction_lift=suction_lift)
     bar.close()
     if s["resumed"]:
         typer.echo(f"resuming: {s['resumed']} of {len(counts) * scenes} searches were already in {out}")

@@ -7,7 +7,7 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantValueSource
 
-from ms_drake.foss import Foss, FossSystem
+from ms_drake.foss import Foss, FossParams, FossSystem
 from ms_drake.foss.simulator import BLADE_THICKNESS, CONTACT_GAP
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.shelf import generate_shelf_scene
@@ -117,6 +117,28 @@ def test_suction_lifts_over_lower_objects_but_the_shaft_must_pass(foss):
     assert out.success
     assert len(foss.suction_placements(scene(back, high), "back")) == 0
     assert all(a.object_id != "back" for a in foss.suction_actions(scene(back, high)))
+
+
+def test_suction_lift_floor_needs_clear_sweeps(foss):
+    """FossParams.for_suction_lift("floor"): lifted 2 cm only, so an object behind a lower one
+    cannot be pulled out over it; the front object still can, and so can the back one once the
+    sweep is clear."""
+    floor = Foss(foss.geometry, FossParams.for_suction_lift("floor"))
+    back = box("back", 0.0, 0.1, h=0.15)
+    low = box("low", 0.0, -0.2, h=0.10)
+    aside = box("low", 0.2, -0.2, h=0.10)  # the same object beside the sweep
+    assert len(foss.suction_placements(scene(back, low), "back")) > 0
+    assert len(floor.suction_placements(scene(back, low), "back")) == 0
+    assert all(a.object_id != "back" for a in floor.suction_actions(scene(back, low)))
+    assert len(floor.suction_placements(scene(back, low), "low")) > 0
+    ok = floor.suction_placements(scene(back, aside), "back")
+    assert len(ok) > 0
+    _, out = floor.step(scene(back, aside), ShelfAction("suction", "back", ok[0][0] - back.x, ok[0][1] - 0.05 + 0.3))
+    assert out.success
+    _, out = floor.step(scene(back, low), ShelfAction("suction", "back", 0.2, 0.0))
+    assert not out.success
+    with pytest.raises(ValueError, match="over, floor"):
+        FossParams.for_suction_lift("high")
 
 
 def test_every_proposed_action_is_executed_as_proposed(foss):

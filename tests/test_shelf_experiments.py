@@ -77,6 +77,18 @@ def test_oracle_p_exhaustive_search_budgets_keep_their_records_and_columns(tmp_p
     assert "| Oracle-P+S | Oracle-P+S (staged search only) |" in shelf_table(shelf_records([out]))
 
 
+def test_suction_lift_rules_keep_their_records_and_columns(tmp_path):
+    out = tmp_path / "bdar.jsonl"
+    run_shelf_bench("bluction_dar", [8], 2, 0, out)
+    s = run_shelf_bench("bluction_dar", [8], 2, 0, out, suction_lift="floor")
+    assert s["resumed"] == 0
+    assert sorted(r["suction_lift"] for r in read_records(out)) == ["floor", "floor", "over", "over"]
+    assert run_shelf_bench("bluction_dar", [8], 2, 0, out, suction_lift="floor")["resumed"] == 2
+    assert "| Bluction-DAR | Bluction-DAR, suction lift floor |" in shelf_table(shelf_records([out]))
+    with pytest.raises(MsDrakeError, match="over, floor"):
+        run_shelf_bench("bluction_dar", [8], 1, 0, out, suction_lift="top")
+
+
 def test_cli_bench_shelf_and_table(tmp_path):
     out = tmp_path / "r.jsonl"
     p = run("bench", "shelf", "--policy", "oracle_p", "--occluders", 4, 6, "--scenes", 1, "--seed-start", 3,

@@ -41,7 +41,7 @@ from ms_drake.errors import MsDrakeError
 from ms_drake.experiments.figures import figure_dir, save_png
 from ms_drake.experiments.harness import read_records, summarize
 from ms_drake.experiments.shelf_segmentation import AssociateShelfObjects
-from ms_drake.foss import Foss, FossSystem
+from ms_drake.foss import SUCTION_LIFTS, Foss, FossParams, FossSystem
 from ms_drake.parallel import run_jobs, run_shard_jobs
 from ms_drake.perception.shelf_occupancy import ShelfOccupancyEstimator
 from ms_drake.perception.shelf_occupancy_net import block_depth
@@ -120,13 +120,15 @@ def build_shelf_search(foss: Foss, scene: ShelfScene, policy: str, params: Shelf
 
 
 def shelf_rollout(policy: str, occluders: int, seed: int, params: ShelfPolicyParams | None = None,
-                  target_size=DEFAULT_TARGET, scenario_name: str = SCENARIO, perception: str = "ground_truth") -> dict:
-    """One search in FOSS (module docstring); the record of it."""
+                  target_size=DEFAULT_TARGET, scenario_name: str = SCENARIO, perception: str = "ground_truth",
+                  suction_lift: str = "over") -> dict:
+    """One search in FOSS (module docstring); the record of it. suction_lift: FOSS's lift rule
+    (ms_drake.foss.SUCTION_LIFTS)."""
     check_shelf_policy(policy)
     params = params or ShelfPolicyParams(seed=seed)
     t_start, cpu_start = time.perf_counter(), time.process_time()
     geometry = shelf_geometry(scenario_name)
-    foss = Foss(geometry)
+    foss = Foss(geometry, FossParams.for_suction_lift(suction_lift))
     t = time.process_time()
     sample = generate_shelf_scene(geometry, seed, occluders, target_size)
     scene_ms = 1e3 * (time.process_time() - t)
@@ -171,7 +173,7 @@ def shelf_rollout(policy: str, occluders: int, seed: int, params: ShelfPolicyPar
         return float(1e3 * f(x)) if x else float("nan")
 
     return dict(seed=int(seed), occluders=int(occluders), objects=int(occluders), policy=policy, fidelity=FIDELITY,
-                perception=perception,
+                perception=perception, suction_lift=suction_lift,
                 oracle_exhaustive_seconds=oracle_exhaustive_budget(policy, params.oracle_exhaustive_seconds)
                 if policy in ("oracle_p", "oracle_ps") else 0.0,
                 success=not failure, steps=steps, actions=steps, pushes=kinds.count("push"),
@@ -185,31 +187,35 @@ def shelf_rollout(policy: str, occluders: int, seed: int, params: ShelfPolicyPar
 
 
 def shelf_rollout_job(job: tuple) -> dict:
-    """(policy, occluders, seed[, horizon[, perception[, oracle_exhaustive_seconds]]]) -> record;
-    module-level for the worker pool."""
+    """(policy, occluders, seed[, horizon[, perception[, oracle_exhaustive_seconds[, suction_lift]]]])
+    -> record; module-level for the worker pool."""
     policy, occluders, seed, *rest = job
     horizon = rest[0] if rest else None
     perception = rest[1] if len(rest) > 1 else "ground_truth"
     exhaustive = rest[2] if len(rest) > 2 else oracle_last_stage_seconds(policy)
+    lift = rest[3] if len(rest) > 3 else "over"
     return shelf_rollout(policy, occluders, seed,
                          ShelfPolicyParams(seed=seed, horizon=horizon, oracle_exhaustive_seconds=exhaustive),
-                         perception=perception)
+                         perception=perception, suction_lift=lift)
 
 
 def final_shelf_records(recs: list[dict]) -> list[dict]:
-    """The last record per (policy, occluders, seed, perception, Oracle-P's exhaustive budget): a
-    retried search replaces its failure; other settings in the same file stay apart."""
+    """The last record per (policy, occluders, seed, perception, Oracle-P's exhaustive budget, suction
+    lift rule): a retried search replaces its failure; other settings in the same file stay apart.
+    A record without `suction_lift` was made with "over" (the rule before there was a choice)."""
     out = {}
     for r in recs:
         out[(r.get("policy"), r.get("objects"), int(r["seed"]), r.get("perception", "ground_truth"),
-             float(r.get("oracle_exhaustive_seconds", 0.0)))] = r
+             float(r.get("oracle_exhaustive_seconds", 0.0)), r.get("suction_lift", "over"))] = r
     return list(out.values())
 
 
-def _matches(r: dict, policy: str, perception: str = "ground_truth", oracle_exhaustive: float = 0.0) -> bool:
+def _matches(r: dict, policy: str, perception: str = "ground_truth", oracle_exhaustive: float = 0.0,
+             suction_lift: str = "over") -> bool:
     return (r.get("policy") == policy and r.get("fidelity") == FIDELITY
             and r.get("perception", "ground_truth") == perception
-            and float(r.get("oracle_exhaustive_seconds", 0.0)) == float(oracle_exhaustive))
+            and float(r.get("oracle_exhaustive_seconds", 0.0)) == float(oracle_exhaustive)
+            and r.get("suction_lift", "over") == suction_lift)
 
 
 def oracle_exhaustive_budget(policy: str, seconds: float | None) -> float:
@@ -226,25 +232,29 @@ def oracle_exhaustive_budget(policy: str, seconds: float | None) -> float:
 
 def run_shelf_bench(policy: str, occluders: list[int], scenes: int, seed_start: int, out, workers: int = 1,
                     use_ray: bool = False, ray_address: str | None = None, horizon: int | None = None,
-                    progress=None, perception: str = "ground_truth", oracle_exhaustive: float | None = None) -> dict:
+                    progress=None, perception: str = "ground_truth", oracle_exhaustive: float | None = None,
+                    suction_lift: str = "over") -> dict:
     """Run the missing rollouts of seeds S..S+K-1 for every occluder count, append them to `out`
     (JSON lines); returns {occluders or "all": summary} over the requested seeds. Records without
     a `perception` field are ground-truth ones. oracle_exhaustive: the CPU budget [s] of the oracle's
     last stage after its staged search, Oracle-P's exhaustive push search or Oracle-P+S's wide
     search (ShelfPolicyParams.oracle_exhaustive_seconds; None: the policy's default, 0 = off;
     records keep it, 0 for the other policies and for records older than the option, and a resumed
-    run matches on it)."""
+    run matches on it); suction_lift: FOSS's suction lift rule (ms_drake.foss.SUCTION_LIFTS; kept
+    in the records, "over" for those older than the option)."""
     check_shelf_policy(policy)
     oracle_exhaustive = oracle_exhaustive_budget(policy, oracle_exhaustive)
+    if suction_lift not in SUCTION_LIFTS:
+        raise MsDrakeError(f"--suction-lift {suction_lift}: choose one of {', '.join(SUCTION_LIFTS)}")
     bad = [n for n in occluders if not 2 <= n <= 12]
     if bad:
         raise MsDrakeError(f"--occluders {' '.join(map(str, bad))}: shelf scenes have 2 to 12 occluders")
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     done = {(int(r["objects"]), int(r["seed"])) for r in final_shelf_records(read_records(out))
-            if _matches(r, policy, perception, oracle_exhaustive) and r.get("failure") != "worker_died"}
+            if _matches(r, policy, perception, oracle_exhaustive, suction_lift) and r.get("failure") != "worker_died"}
     seeds = range(seed_start, seed_start + scenes)
-    jobs = [(policy, n, s, horizon, perception, oracle_exhaustive) for n in occluders for s in seeds
+    jobs = [(policy, n, s, horizon, perception, oracle_exhaustive, suction_lift) for n in occluders for s in seeds
             if (n, s) not in done]
     with open(out, "a") as f:
         for r in run_jobs(shelf_rollout_job, jobs, workers=workers, use_ray=use_ray, ray_address=ray_address):
@@ -253,13 +263,15 @@ def run_shelf_bench(policy: str, occluders: list[int], scenes: int, seed_start: 
             else:
                 err = (r.error or "").strip().splitlines()
                 rec = dict(seed=r.job[2], occluders=r.job[1], objects=r.job[1], policy=policy, fidelity=FIDELITY,
-                           perception=perception, oracle_exhaustive_seconds=float(oracle_exhaustive), success=False, steps=0, actions=0, failure="worker_died", error=err[-1] if err else "")
+                           perception=perception, oracle_exhaustive_seconds=float(oracle_exhaustive),
+                           suction_lift=suction_lift, success=False, steps=0, actions=0, failure="worker_died", error=err[-1] if err else "")
             f.write(json.dumps(rec) + "\n")
             f.flush()
             os.fsync(f.fileno())
             if progress is not None:
                 progress(rec)
-    recs = [r for r in final_shelf_records(read_records(out)) if _matches(r, policy, perception, oracle_exhaustive)
+    recs = [r for r in final_shelf_records(read_records(out))
+            if _matches(r, policy, perception, oracle_exhaustive, suction_lift)
             and int(r["seed"]) in seeds
             and int(r["objects"]) in occluders]
     summary = {n: summarize([r for r in recs if int(r["objects"]) == n]) for n in occluders}
@@ -285,24 +297,30 @@ def _cell(recs: list[dict]) -> tuple[str, str]:
     return rate, steps
 
 
-def _columns(recs: list[dict], policies) -> list[tuple[str, float]]:
-    """The table's columns present in `recs`: (policy, the budget of the oracle's last stage), in
-    policy order, an oracle's default budget first."""
-    keys = {(r["policy"], float(r.get("oracle_exhaustive_seconds", 0.0))) for r in recs}
+def _column_key(r: dict) -> tuple[str, float, str]:
+    return r["policy"], float(r.get("oracle_exhaustive_seconds", 0.0)), r.get("suction_lift", "over")
+
+
+def _columns(recs: list[dict], policies) -> list[tuple[str, float, str]]:
+    """The table's columns present in `recs`: (policy, the budget of the oracle's last stage, the
+    suction lift rule), in policy order, an oracle's default budget and the default lift first."""
+    keys = {_column_key(r) for r in recs}
     return sorted((k for k in keys if k[0] in policies),
-                  key=lambda k: (list(policies).index(k[0]), k[1] != oracle_last_stage_seconds(k[0]), k[1]))
+                  key=lambda k: (k[2] != "over", list(policies).index(k[0]),
+                                 k[1] != oracle_last_stage_seconds(k[0]), k[1]))
 
 
-def _column_name(key: tuple[str, float]) -> str:
-    p, last = key
-    if p not in ("oracle_p", "oracle_ps") or last == oracle_last_stage_seconds(p):
-        return POLICY_NAMES.get(p, p)
-    stage = "exhaustive" if p == "oracle_p" else "wide"
-    return POLICY_NAMES[p] + (f" ({stage} search {last:g} s)" if last else " (staged search only)")
+def _column_name(key: tuple[str, float, str]) -> str:
+    p, last, lift = key
+    name = POLICY_NAMES.get(p, p)
+    if p in ("oracle_p", "oracle_ps") and last != oracle_last_stage_seconds(p):
+        stage = "exhaustive" if p == "oracle_p" else "wide"
+        name += f" ({stage} search {last:g} s)" if last else " (staged search only)"
+    return name + (f", suction lift {lift}" if lift != "over" else "")
 
 
-def _in_column(r: dict, key: tuple[str, float]) -> bool:
-    return r["policy"] == key[0] and float(r.get("oracle_exhaustive_seconds", 0.0)) == key[1]
+def _in_column(r: dict, key: tuple[str, float, str]) -> bool:
+    return _column_key(r) == key
 
 
 def shelf_table(recs: list[dict], policies=SHELF_POLICIES) -> str:

@@ -3,6 +3,7 @@ suction pick-and-place of extruded footprints on the shelf floor, and the target
 
 from ms_drake.foss.simulator import (  # noqa: F401
     SUCTION_GRID,
+    SUCTION_LIFTS,
     VISIBILITY_THRESHOLD,
     Foss,
     FossParams,

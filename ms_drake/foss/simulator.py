@@ -24,7 +24,8 @@ actions move one object, and nothing else ever moves. The bluction tool's two ac
   withdraws the shaft (whose corridor must then be free up to the cup's height too). The tool stays
   within O's sweeps otherwise. `suction_actions` proposes the reference's placements: footprint
   centres x on the 50 segment centres across the width, front faces d_y on the 8 segment starts
-  across the depth (d_y = 0: flush with the front).
+  across the depth (d_y = 0: flush with the front). With `FossParams.max_lift` (SUCTION_LIFTS
+  "floor") a lift higher than that is refused: the sweeps must then be clear of every object.
 Every object in the scene is an obstacle, the target included (a push stops at the target; a
 sweep through it is refused). A refused action changes nothing.
 
@@ -60,6 +61,12 @@ SWEEP_CLEARANCE = 0.0005  # m, least gap between a suction sweep and the other o
 SUCTION_GRID = (50, 8)  # placements across the width (x) and the depth (y)
 VISIBILITY_THRESHOLD = 0.8
 OUTSIDE = 0.01  # m: a pulled-out object ends this far in front of the shelf
+# How high a suction action may lift its object (FossParams.max_lift): "over" (the default) lifts it
+# over every object its sweeps to and from the front cross; "floor" only LIFT off the floor, so
+# those sweeps must be clear of every object in the overhead projection -- FOSS as the 2D overhead
+# simulator of extruded footprints that the reference's oracles also plan in (Ch. 9.4.4). The
+# reference gives no lift height (lines 1600-1606).
+SUCTION_LIFTS = {"over": float("inf"), "floor": LIFT}
 
 
 @dataclass(frozen=True)
@@ -75,6 +82,16 @@ class FossParams:
     sweep_clearance: float = SWEEP_CLEARANCE
     suction_grid: tuple[int, int] = SUCTION_GRID
     visibility_threshold: float = VISIBILITY_THRESHOLD
+    # Highest suction lift [m] (SUCTION_LIFTS; inf: over anything, the lifted object's top
+    # staying under the shelf's)
+    max_lift: float = float("inf")
+
+    @classmethod
+    def for_suction_lift(cls, name: str, **kw) -> "FossParams":
+        """The parameters with suction lift rule `name` (SUCTION_LIFTS)."""
+        if name not in SUCTION_LIFTS:
+            raise ValueError(f"suction lift {name!r} unknown; choose one of {', '.join(SUCTION_LIFTS)}")
+        return cls(max_lift=SUCTION_LIFTS[name], **kw)
 
 
 def shelf_action(action) -> ShelfAction | None:
@@ -182,7 +199,7 @@ class Foss:
         crossed = overlap(c[:, None], half[:, None], P.radius[k], oc[None], oh[None], orad[None],
                           tol=-p.sweep_clearance)
         lift = np.maximum(p.lift, np.where(crossed, oz[None] + p.lift_clearance, 0.0).max(axis=1, initial=0.0))
-        ok = h + lift <= self.geometry.size[2] - p.top_clearance + 1e-9
+        ok = (h + lift <= self.geometry.size[2] - p.top_clearance + 1e-9) & (lift <= p.max_lift + 1e-9)
         # The shaft: from the front to the front face, at the cup's height.
         z_cup = max(h - p.shaft_radius, p.shaft_radius)
         face = xy[:, 1] - ext[1]
