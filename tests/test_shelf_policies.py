@@ -393,3 +393,23 @@ def test_selector_wired_in_the_search_diagram(foss, policy):
     assert len(history) == step
     if policy != "random":
         assert diagram.GetOutputPort("visible_fraction").Eval(ctx)[0] >= 0.8
+
+
+def test_oracle_counts_the_objects_in_a_pick_sweep_when_the_lift_is_floor(foss):
+    """With FOSS's "floor" lift the oracles' estimate (`_ways`) counts the objects in a picked
+    object's sweep to the front among those that must move first; with "over" only the shaft's."""
+    from ms_drake.foss import FossParams
+    from ms_drake.policies.shelf import _ways
+
+    floor = Foss(foss.geometry, FossParams.for_suction_lift("floor"))
+    back, low = box("back", 0.0, 0.1), box("low", 0.0, -0.2, h=0.10)  # the shaft passes over "low"
+    sc = ShelfScene((back, low), box("target", 0.22, 0.24, 0.06, 0.06, 0.06), 0)
+    P, n = foss._bodies(sc)
+
+    def pick_masks(f):
+        anywhere = lambda cs: np.ones(len(cs), bool)  # noqa: E731 - any place is out of the way
+        pushes = _ways(f, P, n, 0, anywhere, False)
+        return [mask for mask, _, _ in _ways(f, P, n, 0, anywhere, True)[len(pushes):]]
+
+    assert pick_masks(foss) == [0]  # lifted over "low": nothing needs to move first
+    assert pick_masks(floor) == [1 << 1]  # lifted 2 cm: "low" is in the way

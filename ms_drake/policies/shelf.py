@@ -346,7 +346,8 @@ def _ways(foss: Foss, P: Prisms, n: int, k: int, clear, suction: bool) -> list[t
     """The ways of taking object k (of bodies P, the first n movable) out of what `clear` asks
     (clear(centres (m, 2)) -> bool (m,): k placed there is out of the way): push left, push right,
     and with suction pick. Each as (bit mask of the objects that must move first: in the blade's
-    corridor, in the push's path over the travel that satisfies `clear`, in the shaft's way;
+    corridor, in the push's path over the travel that satisfies `clear`, in the shaft's way and,
+    when FossParams.max_lift is finite, in the object's sweep to the front that the lift cannot clear;
     the regions (centre, half-extents) those objects must then leave; 1 if a pick has no free grid
     placement that satisfies `clear`, so something else must make room, else 0). Ways that cannot
     work whatever moves first (the wall or the target in the way, too tall to lift) are left out."""
@@ -379,12 +380,18 @@ def _ways(foss: Foss, P: Prisms, n: int, k: int, clear, suction: bool) -> list[t
         face = c[1] - ext[1]
         region = (np.array([c[0], (face + y_out) / 2]), np.array([p.shaft_radius, max(face - y_out, 0.0) / 2]))
         way = others & (P.height > z_cup - p.shaft_radius) & overlap(*region, 0.0, P.center, P.half, P.radius, tol=0.0)
+        regions = [region]
+        if np.isfinite(p.max_lift):  # the lift cannot clear them: the objects in k's sweep to the front
+            sweep = (np.array([c[0], (c[1] + y_out) / 2]), np.array([ext[0], ext[1] + (c[1] - y_out) / 2]))
+            way |= others & (P.height + p.lift_clearance > p.max_lift) & overlap(*sweep, 0.0, P.center, P.half,
+                                                                                  P.radius, tol=0.0)
+            regions.append(sweep)
         if not way[n:].any():
             gx, gy = np.meshgrid(foss.grid_x, -hy + foss.grid_dy + ext[1], indexing="ij")
             xy = np.stack([gx.ravel(), gy.ravel()], axis=1)
             land = xy[foss._landing_ok(P, k, xy)]
             room = len(land) > 0 and bool(clear(land).any())
-            out.append((int(bits[way].sum()), [region], 0 if room else 1))
+            out.append((int(bits[way].sum()), regions, 0 if room else 1))
     return out
 
 
