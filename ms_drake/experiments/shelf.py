@@ -202,7 +202,7 @@ def shelf_rollout_job(job: tuple) -> dict:
 def final_shelf_records(recs: list[dict]) -> list[dict]:
     """The last record per (policy, occluders, seed, perception, Oracle-P's exhaustive budget, suction
     lift rule): a retried search replaces its failure; other settings in the same file stay apart.
-    A record without `suction_lift` was made with "over" (the rule before there was a choice)."""
+    A record without `suction_lift` is an "over" one."""
     out = {}
     for r in recs:
         out[(r.get("policy"), r.get("objects"), int(r["seed"]), r.get("perception", "ground_truth"),
@@ -239,9 +239,9 @@ def run_shelf_bench(policy: str, occluders: list[int], scenes: int, seed_start: 
     a `perception` field are ground-truth ones. oracle_exhaustive: the CPU budget [s] of the oracle's
     last stage after its staged search, Oracle-P's exhaustive push search or Oracle-P+S's wide
     search (ShelfPolicyParams.oracle_exhaustive_seconds; None: the policy's default, 0 = off;
-    records keep it, 0 for the other policies and for records older than the option, and a resumed
+    records keep it, 0 for the other policies and for records without it, and a resumed
     run matches on it); suction_lift: FOSS's suction lift rule (ms_drake.foss.SUCTION_LIFTS; kept
-    in the records, "over" for those older than the option)."""
+    in the records; a record without it is an "over" one)."""
     check_shelf_policy(policy)
     oracle_exhaustive = oracle_exhaustive_budget(policy, oracle_exhaustive)
     if suction_lift not in SUCTION_LIFTS:
