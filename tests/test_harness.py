@@ -6,13 +6,19 @@ import sys
 
 import numpy as np
 
+import pytest
+
+from ms_drake.errors import HeapError
 from ms_drake.experiments.harness import (
     failure_classes,
     final_records,
+    paired_comparison,
     read_records,
     run_bench,
     summarize,
 )
+from ms_drake.scenes.heaps import heap_digest, load_heap
+from ms_drake.types import Heap, ObjectPose
 
 CLI = [sys.executable, "-m", "ms_drake.cli"]
 
@@ -48,6 +54,8 @@ def test_bench_search_writes_resumes_and_summarizes(tmp_path):
     recs = read_records(out)
     assert sorted(x["seed"] for x in recs) == [5, 6]
     assert recs[0] == r  # the finished result was not lost or redone
+    # Each record names the heap it searched: the digest of the cached heap file.
+    assert recs[1]["heap_digest"] == heap_digest(load_heap(tmp_path / "heaps" / "heap_N2_s6.json"))
     p = run("bench", "plot", out, "--out", tmp_path / "plots")
     for f in ("cumulative_successes.png", "actions_histogram.png"):
         assert (tmp_path / "plots" / f).stat().st_size > 5000
@@ -206,3 +214,26 @@ def test_a_killed_two_worker_run_resumes(tmp_path):
     assert not {x["pid"] for x in recs[len(first):]} & ({rerun.pid} | {x["pid"] for x in first})
     assert sorted(f.name for f in (tmp_path / "heaps").iterdir()) == [f"heap_N2_s{k}.json" for k in (40, 41, 42)]
     assert "| largest | 2 | 2 |" in stdout
+
+
+def test_heap_digest_names_the_state_and_pairing_refuses_different_heaps(tmp_path):
+    q = (1.0, 0.0, 0.0, 0.0, 0.1, 0.2, 0.05)
+    heap = Heap(seed=3, environment="bin", objects=(ObjectPose("ycb/a", q), ObjectPose("ycb/b", q)))
+    moved = Heap(seed=3, environment="bin", objects=(ObjectPose("ycb/a", q), ObjectPose("ycb/b", q[:6] + (0.0501,))))
+    assert heap_digest(heap) == heap_digest(Heap(seed=3, environment="bin", objects=heap.objects))
+    assert heap_digest(moved) != heap_digest(heap)
+    rec = lambda seed, ok, digest: dict(seed=seed, policy="p", objects=2, fidelity="primitive", success=ok,
+                                        actions=1, heap_digest=digest)
+    a = [rec(3, True, heap_digest(heap)), rec(4, True, "x")]
+    b = [rec(3, False, heap_digest(heap)), rec(4, False, "x")]
+    assert paired_comparison(a, b)["only_a"] == [3, 4]
+    b[0]["heap_digest"] = heap_digest(moved)  # seed 3 searched another heap in run B
+    with pytest.raises(HeapError, match="different heaps on 1 seed.*3"):
+        paired_comparison(a, b)
+    # Records without digests (older files) are compared as before.
+    assert paired_comparison([dict(r, heap_digest="") for r in a], b)["heaps"] == 2
+    fa, fb = tmp_path / "a.jsonl", tmp_path / "b.jsonl"
+    fa.write_text("".join(json.dumps(r) + "\n" for r in a))
+    fb.write_text("".join(json.dumps(r) + "\n" for r in b))
+    p = run("bench", "paired", fa, fb, check=False)
+    assert p.returncode == 2 and "different heaps" in p.stderr and "--heap-dir" in p.stderr

@@ -25,6 +25,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from scipy.stats import binomtest
 
+from ms_drake.errors import HeapError
 from ms_drake.execution import GRASP_OUTCOMES
 from ms_drake.experiments.figures import figure_dir, save_png
 from ms_drake.experiments.rollout import REFERENCE_FAILURE_CLASSES, rollout
@@ -35,6 +36,7 @@ from ms_drake.scenes.heaps import (
     SEARCH_HEAPS,
     HeapParams,
     generate_heap,
+    heap_digest,
     load_heap,
     save_heap,
 )
@@ -108,6 +110,7 @@ def rollout_job(job: tuple) -> dict:
     heap = cached_heap(objects, seed, rest[0] if rest else None, protocol, engine)
     rec = rollout(policy, objects, seed, fidelity, horizon, heap=heap, **opts).record()
     rec["heap_engine"] = engine
+    rec["heap_digest"] = heap_digest(heap)
     if protocol != "ch7":
         rec["protocol"] = protocol
     rec["pid"] = os.getpid()
@@ -297,10 +300,26 @@ def summarize(recs: list[dict], seed: int = 0) -> dict:
         failures=failures)
 
 
+def check_same_heaps(recs_a: list[dict], recs_b: list[dict], names=("A", "B")) -> None:
+    """Raise HeapError when two runs' records of the same seed searched different heaps
+    (their `heap_digest`s differ: a heap cache made by other generator code, or a generator that
+    changed between the runs). Records without a digest are not checked."""
+    da = {int(r["seed"]): r["heap_digest"] for r in final_records(recs_a) if r.get("heap_digest")}
+    db = {int(r["seed"]): r["heap_digest"] for r in final_records(recs_b) if r.get("heap_digest")}
+    bad = sorted(k for k in set(da) & set(db) if da[k] != db[k])
+    if bad:
+        shown = ", ".join(map(str, bad[:10])) + (" ..." if len(bad) > 10 else "")
+        raise HeapError(
+            f"{names[0]} and {names[1]} searched different heaps on {len(bad)} seed(s) ({shown}): their "
+            "records' heap_digest differ. Re-run one of them on the other's heap cache (--heap-dir), or both "
+            "on a fresh one, before comparing them.")
+
+
 def paired_comparison(recs_a: list[dict], recs_b: list[dict]) -> dict:
     """Success of two policies on the same heaps (seeds in both): heaps only A solves, only B
     solves, both, neither, and the two-sided exact sign test (binomial, p = 1/2) on the
-    discordant heaps."""
+    discordant heaps. Records that carry heap digests must agree on them (check_same_heaps)."""
+    check_same_heaps(recs_a, recs_b)
     a = {int(r["seed"]): bool(r["success"]) for r in final_records(recs_a)}
     b = {int(r["seed"]): bool(r["success"]) for r in final_records(recs_b)}
     seeds = sorted(set(a) & set(b))

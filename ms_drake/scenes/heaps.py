@@ -67,6 +67,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import functools
+import hashlib
 import json
 import time
 from dataclasses import dataclass
@@ -648,6 +649,14 @@ def heap_from_dict(d: dict) -> Heap:
     return Heap(seed=int(d["seed"]), environment=d.get("environment", "bin"), objects=objs,
                 target=d.get("target", ""), target_index=int(d.get("target_index", -1)),
                 visible_ratios=tuple(d.get("visible_ratios", ())), seconds=float(d.get("seconds", 0.0)))
+
+
+def heap_digest(heap: Heap) -> str:
+    """A short fingerprint of the heap's state: its object names and poses (to 1e-9). Two heaps
+    with the same digest start every search from the same state, so a benchmark record keeps it
+    (`heap_digest`) and paired comparisons check that both records searched the same heap."""
+    text = "|".join(f"{o.name}:" + ",".join(f"{v:.9f}" for v in o.q) for o in heap.objects)
+    return hashlib.sha256(f"{heap.environment}|{text}".encode()).hexdigest()[:16]
 
 
 def save_heap(heap: Heap, path) -> None:
