@@ -1021,7 +1021,7 @@ def bench_paired(a: Path = typer.Argument(..., help="Result .jsonl of policy A")
                  b: Path = typer.Argument(..., help="Result .jsonl of policy B (the same heaps)")):
     """Paired sign test of success, A vs B, on the heaps both files hold."""
     _need_results((a, b), "bench search")
-    r = paired_comparison(read_records(a), read_records(b))
+    r = paired_comparison(read_records(a), read_records(b), (str(a), str(b)))
     typer.echo(f"{r['heaps']} heaps: only A {len(r['only_a'])}, only B {len(r['only_b'])}, both {r['both']}, "
                f"neither {r['neither']}; two-sided sign test p = {r['p']:.3g}")
     typer.echo(f"only A: {r['only_a']}")

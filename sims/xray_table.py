@@ -41,7 +41,7 @@ def main():
         within = {k: np.mean([r["success"] and r["actions"] <= k for r in rs]) for k in (1, 2, 3, 5)}
         print("  success within k actions: " + ", ".join(f"k = {k}: {100 * v:.1f} %" for k, v in within.items()))
     for fa, fb in itertools.combinations(args.files, 2):
-        c = paired_comparison(recs[fa], recs[fb])
+        c = paired_comparison(recs[fa], recs[fb], (str(fa), str(fb)))
         print(f"{recs[fa][0]['policy']} vs {recs[fb][0]['policy']}: only A {len(c['only_a'])}, only B "
               f"{len(c['only_b'])}, both {c['both']}, neither {c['neither']}; sign test p = {c['p']:.3g}")
         # actions on the heaps both solve: who needed fewer (sign test on the heaps that differ)

@@ -1,7 +1,9 @@
 """The bin-search benchmark: many rollouts in parallel -> JSON lines -> summary and plots.
 
 One JSON line per rollout (RolloutResult.record(): seed, policy, fidelity, objects, success,
-actions, action_kinds, failure, stop_reason, seconds, ...). A rollout that raises or whose worker
+actions, action_kinds, failure, stop_reason, seconds, ...; and heap_digest, the fingerprint of the
+heap searched, scenes.heaps.heap_digest, so that two runs compared on "the same heaps" can be
+checked to be: a heap cache left by other generator code gives other heaps under the same seeds). A rollout that raises or whose worker
 dies becomes a line with failure "worker_died" (and the error), so the benchmark goes on; such
 lines are retried by the next run of the same command (resume), every other line is final. Lines
 are flushed and fsync'ed one by one: an interrupted run loses at most the rollouts in flight, and a
@@ -315,11 +317,12 @@ def check_same_heaps(recs_a: list[dict], recs_b: list[dict], names=("A", "B")) -
             "on a fresh one, before comparing them.")
 
 
-def paired_comparison(recs_a: list[dict], recs_b: list[dict]) -> dict:
+def paired_comparison(recs_a: list[dict], recs_b: list[dict], names=("A", "B")) -> dict:
     """Success of two policies on the same heaps (seeds in both): heaps only A solves, only B
     solves, both, neither, and the two-sided exact sign test (binomial, p = 1/2) on the
-    discordant heaps. Records that carry heap digests must agree on them (check_same_heaps)."""
-    check_same_heaps(recs_a, recs_b)
+    discordant heaps. Records that carry heap digests must agree on them (check_same_heaps; `names`
+    name the two runs in its error)."""
+    check_same_heaps(recs_a, recs_b, names)
     a = {int(r["seed"]): bool(r["success"]) for r in final_records(recs_a)}
     b = {int(r["seed"]): bool(r["success"]) for r in final_records(recs_b)}
     seeds = sorted(set(a) & set(b))
