@@ -151,6 +151,31 @@ def test_quasi_random_is_seeded_and_clipped_to_the_bin():
         assert np.all(np.abs(p.start[:2]) <= half + 1e-9) and np.all(np.abs(p.end[:2]) <= half + 1e-9)
 
 
+def _object_travel(sc, push):
+    """How far the push moves its object along the push (make_push's geometry)."""
+    i = [o.id for o in sc.objects].index(push.object_id)
+    o, d = sc.objects[i], _dir(push)
+    contact = float(np.max((o.center[:2] - o.footprint) @ d)) + P.gripper_radius
+    return i, d, float((np.array(push.end[:2]) - o.center[:2]) @ d) + contact
+
+
+def test_quasi_random_checked_pushes_only_as_far_as_the_object_is_free():
+    sc = state_scene(TOUCHING, BIN)
+    checked = PolicyParams(quasi_random_checked=True)
+    over = 0
+    for s in range(30):
+        free = plan_policy_push("quasi_random", sc, checked, seed=s)
+        assert free == plan_policy_push("quasi_random", sc, checked, seed=s)
+        assert free is not None  # two boxes in an open bin: some draw has room
+        i, d, travel = _object_travel(sc, free)
+        assert 0.0 < travel <= min(sc.clearance(i, d, 1.0), P.fixed_travel) + 1e-6
+        i, d, travel = _object_travel(sc, plan_policy_push("quasi_random", sc, P, seed=s))
+        over += travel > sc.clearance(i, d, 1.0) + 1e-3  # the baseline drives into the neighbour or a wall
+    assert over >= 5
+    with pytest.raises(PushError, match="checked_draws"):
+        PolicyParams(quasi_random_checked=True, checked_draws=0)
+
+
 def test_pushes_stay_in_the_bin_and_errors_name_the_choices():
     objs = (box("a", -0.2, -0.15), box("b", 0.2, 0.15), box("c", 0.0, 0.0, 0.1, 0.1, 0.05))
     for source, sc in _scenes(objs).items():

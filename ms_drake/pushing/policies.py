@@ -78,6 +78,11 @@ class PolicyParams:
     start_gap: float = 0.005  # jaw start behind the object's footprint
     max_travel: float = 0.10  # object displacement cap
     fixed_travel: float = 0.08  # quasi-random's fixed push
+    # Ablation: quasi-random's push only as far as the object is free to move (its clearance,
+    # at most fixed_travel) and with the jaw's start free, like the other policies' pushes; the
+    # (object, direction) is drawn again, up to `checked_draws` times, while no such push exists.
+    quasi_random_checked: bool = False
+    checked_draws: int = 16
     min_clearance: float = 0.01
     directions: int = 16  # maximum clearance ratio
     angle_step: float = np.radians(10.0)  # free space
@@ -95,6 +100,8 @@ class PolicyParams:
         for name in ("gripper_radius", "max_travel", "fixed_travel", "grid", "resolution"):
             if not getattr(self, name) > 0:
                 raise PushError(f"PolicyParams.{name} must be > 0, got {getattr(self, name)}")
+        if self.checked_draws < 1:
+            raise PushError(f"PolicyParams.checked_draws must be >= 1, got {self.checked_draws}")
         if self.directions < 4:
             raise PushError(f"PolicyParams.directions must be >= 4, got {self.directions}")
         push_height(0.0, 0.0, self.min_push_height, self.max_push_height)
@@ -465,9 +472,18 @@ def closest_pair(scene: PushScene) -> tuple[int, int]:
 
 
 def quasi_random(scene: PushScene, params: PolicyParams, rng) -> Push | None:
-    i = int(rng.integers(len(scene.objects)))
-    a = float(rng.uniform(0.0, 2 * np.pi))
-    return make_push(scene, i, np.array([np.cos(a), np.sin(a)]), params.fixed_travel, params, check=False)
+    """A random object pushed `fixed_travel` in a random direction through its centre, clipped to
+    the bin only (lines 654-660); with params.quasi_random_checked the collision-free ablation."""
+    for _ in range(params.checked_draws if params.quasi_random_checked else 1):
+        i = int(rng.integers(len(scene.objects)))
+        a = float(rng.uniform(0.0, 2 * np.pi))
+        d = np.array([np.cos(a), np.sin(a)])
+        if not params.quasi_random_checked:
+            return make_push(scene, i, d, params.fixed_travel, params, check=False)
+        push, _ = _try(scene, i, d, params, cap=params.fixed_travel)
+        if push is not None:
+            return push
+    return None
 
 
 def boundary_shear(scene: PushScene, params: PolicyParams, rng=None) -> Push | None:
