@@ -6,13 +6,16 @@ move. `PolicyParams(quasi_random_checked=True)` keeps quasi-random's random draw
 far as the object is free (its clearance, at most 8 cm) with the jaw's start free, drawing again
 (up to 16 times) while no such push exists. Both run from the stored states of a data step's
 improvable heaps (as `policies_from_state`, the heaps' sampling and transfer speed), so each pair
-is the same state, the same grasp samples and, on the first draw, the same object and direction:
+is the same state, the same grasp samples and, on the first draw, the same object and direction;
+the other four policies run on the same states in the same job, so every row is one code and one
+physics:
 
     .venv/bin/python sims/push_ablation.py DIR --heaps 103 --out FILE.jsonl [--workers K] [--json SUMMARY]
 
-Prints per variant the heaps pushed, mean overall / jaw / suction / separation gain (+- SE), the
-share of pushes that tip or roll the pushed object (> 20 degrees) and the paired sign test of the
-overall gain. Resumable (one line per heap in FILE).
+Prints per row the heaps pushed, mean overall / jaw / suction / separation gain (+- SE), the
+share of pushes that tip or roll the pushed object (> 20 degrees), and paired sign tests of the
+overall gain: quasi-random against its checked variant, and the checked variant against each
+other policy. Resumable (one line per heap in FILE).
 """
 
 from __future__ import annotations
@@ -37,10 +40,13 @@ from ms_drake.experiments.push_study import (
     state_metrics,
 )
 from ms_drake.parallel import run_jobs
-from ms_drake.pushing import PolicyParams
+from ms_drake.pushing import POLICIES, PolicyParams
 from ms_drake.scenes.heaps import heap_from_dict
 
-VARIANTS = {"quasi_random": PolicyParams(), "quasi_random_checked": PolicyParams(quasi_random_checked=True)}
+# (policy, its PolicyParams) by row name: both quasi-random variants and the other four policies
+VARIANTS = {"quasi_random": ("quasi_random", PolicyParams()),
+            "quasi_random_checked": ("quasi_random", PolicyParams(quasi_random_checked=True)),
+            **{p: (p, PolicyParams()) for p in POLICIES if p != "quasi_random"}}
 GAINS = ("overall_gain", "jaw_gain", "suction_gain", "separation_gain")
 TURNED = 20.0  # degrees: the pushed object tipped over or rolled
 
@@ -55,8 +61,8 @@ def ablation_job(job: tuple) -> dict:
     sets = GraspSets(params, int(rec["seed"]))
     before = state_metrics(world, sets)
     snap = world.snapshot()
-    out = {name: run_policy(world, snap, before, sets, "quasi_random", int(rec["seed"]), policy_params=pp)
-           for name, pp in VARIANTS.items()}
+    out = {name: run_policy(world, snap, before, sets, policy, int(rec["seed"]), policy_params=pp)
+           for name, (policy, pp) in VARIANTS.items()}
     for r in out.values():
         r.pop("after_per_object", None)
     return {"before": {k: before[k] for k in ("D", "jaw", "suction", "overall")}, "variants": out,
@@ -76,11 +82,15 @@ def summarize(rows: list[dict]) -> dict:
         s["gain_when_pushed"] = float(np.mean([v["overall_gain"] for v in pushed])) if pushed else 0.0
         s["displacement"] = float(np.mean([v["pushed_displacement"] for v in pushed])) if pushed else 0.0
         out[name] = s
-    a = np.array([r["variants"]["quasi_random"].get("overall_gain", 0.0) for r in rows])
     b = np.array([r["variants"]["quasi_random_checked"].get("overall_gain", 0.0) for r in rows])
-    hi, lo = int(np.sum(a > b + 1e-9)), int(np.sum(b > a + 1e-9))
-    out["paired_overall"] = {"unchecked_higher": hi, "checked_higher": lo,
-                             "p": float(binomtest(hi, hi + lo, 0.5).pvalue) if hi + lo else 1.0}
+    out["paired_overall"] = {}
+    for name in VARIANTS:
+        if name == "quasi_random_checked":
+            continue
+        a = np.array([r["variants"][name].get("overall_gain", 0.0) for r in rows])
+        hi, lo = int(np.sum(a > b + 1e-9)), int(np.sum(b > a + 1e-9))
+        out["paired_overall"][name] = {"higher": hi, "checked_higher": lo,
+                                       "p": float(binomtest(hi, hi + lo, 0.5).pvalue) if hi + lo else 1.0}
     return out
 
 
@@ -93,7 +103,7 @@ def main(argv=None):
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--json", type=Path)
     a = ap.parse_args(argv)
-    done = {int(r["seed"]) for r in read_jsonl(a.out)}
+    done = {int(r["seed"]) for r in read_jsonl(a.out) if set(VARIANTS) <= set(r["variants"])}
     todo = [h for h in improvable_records(a.dir, a.heaps, a.seed_start) if int(h["seed"]) not in done]
     jobs = [(h, asdict(replace(StudyParams(), object_set=h.get("object_set", ""), sampling=h.get("sampling", "tilt_bin"),
                                transfer_speed=h.get("transfer_speed"))))
@@ -107,7 +117,8 @@ def main(argv=None):
                                                         for k, v in rec["variants"].items()), flush=True)
         else:
             print(f"seed {r.job[0]['seed']}: failed: {(r.error or '').strip().splitlines()[-1:]}", flush=True)
-    rows = sorted((r for r in read_jsonl(a.out) if r["seed"] >= a.seed_start), key=lambda r: r["seed"])[: a.heaps]
+    rows = sorted((r for r in read_jsonl(a.out) if r["seed"] >= a.seed_start and set(VARIANTS) <= set(r["variants"])),
+                  key=lambda r: r["seed"])[: a.heaps]
     s = summarize(rows)
     print(f"\n{len(rows)} heaps")
     for name in VARIANTS:
@@ -115,9 +126,9 @@ def main(argv=None):
         print(f"{name:22s} pushed {v['pushed']:3d}, turned > {TURNED:.0f} deg {v['turned']:3d}; " + ", ".join(
             f"{g.replace('_gain', '')} {v[g]['mean']:+.3f} +- {v[g]['se']:.3f}" for g in GAINS)
             + f"; when pushed {v['gain_when_pushed']:+.3f}, displacement {100 * v['displacement']:.1f} cm")
-    p = s["paired_overall"]
-    print(f"overall gain, paired: unchecked higher on {p['unchecked_higher']}, checked higher on "
-          f"{p['checked_higher']} (sign test p = {p['p']:.3g})")
+    for name, p in s["paired_overall"].items():
+        print(f"overall gain, {name} vs quasi_random_checked: higher on {p['higher']}, lower on "
+              f"{p['checked_higher']} heaps (sign test p = {p['p']:.3g})")
     if a.json:
         a.json.write_text(json.dumps(s, indent=1))
     return s
