@@ -102,6 +102,7 @@ def main(argv=None):
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--figure", type=Path, help="bar plot of the four gains per row (PNG)")
     a = ap.parse_args(argv)
     done = {int(r["seed"]) for r in read_jsonl(a.out) if set(VARIANTS) <= set(r["variants"])}
     todo = [h for h in improvable_records(a.dir, a.heaps, a.seed_start) if int(h["seed"]) not in done]
@@ -131,7 +132,33 @@ def main(argv=None):
               f"{p['checked_higher']} heaps (sign test p = {p['p']:.3g})")
     if a.json:
         a.json.write_text(json.dumps(s, indent=1))
+    if a.figure:
+        figure(s, len(rows), a.figure)
     return s
+
+
+def figure(s: dict, heaps: int, path: Path) -> None:
+    """Fig. 4.2-style bars: each row's mean gains with standard errors."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(VARIANTS)
+    fig, ax = plt.subplots(figsize=(9, 4))
+    w = 0.8 / len(GAINS)
+    for k, g in enumerate(GAINS):
+        x = np.arange(len(names)) + (k - (len(GAINS) - 1) / 2) * w
+        ax.bar(x, [s[n][g]["mean"] for n in names], w, yerr=[s[n][g]["se"] for n in names], capsize=2,
+               label=g.replace("_", " "))
+    ax.set_xticks(np.arange(len(names)), [n.replace("_", "\n") for n in names], fontsize=8)
+    ax.axhline(0.0, color="k", lw=0.6)
+    ax.set_ylabel("mean gain (+- SE)")
+    ax.set_title(f"Quasi-random with and without a collision check, and the other policies ({heaps} heaps)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 if __name__ == "__main__":
