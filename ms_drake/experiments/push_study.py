@@ -943,7 +943,9 @@ def planning_speed(heaps: int = 20, seed_start: int = 0, objects: int = 8, repea
 def push_example_figure(seed: int, out: Path, params: StudyParams = StudyParams(), policies=POLICIES) -> dict:
     """Fig. 4.4 / 4.5 style picture of heap `seed`: Algorithm 1 replayed (deterministic), then per
     policy the overhead image before (its push drawn as an arrow, tail = the jaw's start) and after
-    the push, with the overall / jaw / suction gains. Returns the policies' gains."""
+    the push, with the overall / jaw / suction gains. An entry of `policies` is a policy name or
+    (label, policy, PolicyParams) for a variant. Returns the gains by name or label."""
+    policies = [(p, p, None) if isinstance(p, str) else tuple(p) for p in policies]
     matplotlib.use("Agg")
     heap, _ = study_heap(seed, params)
     world = PushWorld(heap, params, cameras=True)
@@ -968,19 +970,19 @@ def push_example_figure(seed: int, out: Path, params: StudyParams = StudyParams(
     fig, axes = plt.subplots(2, len(policies), figsize=(3.2 * len(policies), 5.4))
     axes = np.atleast_2d(axes).reshape(2, len(policies))
     out_gains = {}
-    for k, p in enumerate(policies):
+    for k, (label, p, pp) in enumerate(policies):
         world.restore(snap)
         img0 = rgb()
-        rec = run_policy(world, snap, before, sets, p, seed)
+        rec = run_policy(world, snap, before, sets, p, seed, policy_params=pp)
         img1 = rgb()
-        out_gains[p] = {m: rec[m] for m in METRICS}
+        out_gains[label] = {m: rec[m] for m in METRICS}
         axes[0, k].imshow(img0)
         if rec["push"] is not None:
             uv, _ = cam.project(np.array([rec["push"]["start"], rec["push"]["end"]]))
             uv = uv - [crop[1].start, crop[0].start]
             axes[0, k].annotate("", xy=uv[1], xytext=uv[0],
                                 arrowprops={"color": "blue", "width": 2.0, "headwidth": 8.0})
-        axes[0, k].set_title(p.replace("_", " ") + ("" if rec["pushed"] else " (no push)"), fontsize=9)
+        axes[0, k].set_title(label.replace("_", " ") + ("" if rec["pushed"] else " (no push)"), fontsize=9)
         axes[1, k].imshow(img1)
         axes[1, k].set_title(f"dQo {rec['overall_gain']:+.2f} dQj {rec['jaw_gain']:+.2f} "
                              f"dQs {rec['suction_gain']:+.2f}\ndD {rec['separation_gain']:+.2f}", fontsize=8)
