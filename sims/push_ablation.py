@@ -23,7 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +36,7 @@ from ms_drake.experiments.push_study import (
     _append,
     improvable_records,
     read_jsonl,
+    recorded_params,
     run_policy,
     state_metrics,
 )
@@ -52,7 +53,7 @@ TURNED = 20.0  # degrees: the pushed object tipped over or rolled
 
 
 def ablation_job(job: tuple) -> dict:
-    """(heap record, StudyParams dict) -> both variants' run_policy records on its stored state."""
+    """(heap record, StudyParams dict) -> every row's (VARIANTS) run_policy record on its stored state."""
     rec, params = job
     c = time.process_time()
     params = StudyParams(**params)
@@ -106,9 +107,7 @@ def main(argv=None):
     a = ap.parse_args(argv)
     done = {int(r["seed"]) for r in read_jsonl(a.out) if set(VARIANTS) <= set(r["variants"])}
     todo = [h for h in improvable_records(a.dir, a.heaps, a.seed_start) if int(h["seed"]) not in done]
-    jobs = [(h, asdict(replace(StudyParams(), object_set=h.get("object_set", ""), sampling=h.get("sampling", "tilt_bin"),
-                               transfer_speed=h.get("transfer_speed"))))
-            for h in todo]
+    jobs = [(h, asdict(recorded_params(h))) for h in todo]
     a.out.parent.mkdir(parents=True, exist_ok=True)
     for r in run_jobs(ablation_job, jobs, workers=a.workers):
         if r.ok:

@@ -15,16 +15,16 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
 from ms_drake.experiments.push_study import (
-    StudyParams,
     _append,
     improvable_records,
     read_jsonl,
+    recorded_params,
     state_job,
 )
 from ms_drake.parallel import run_jobs
@@ -59,10 +59,7 @@ def main(argv=None):
     a = ap.parse_args(argv)
     done = {int(r["seed"]) for r in read_jsonl(a.out)}
     todo = [h for h in improvable_records(a.dir, a.heaps, a.seed_start) if int(h["seed"]) not in done]
-    jobs = [(h, POLICIES, asdict(replace(StudyParams(), object_set=h.get("object_set", ""),
-                                         sampling=h.get("sampling", "tilt_bin"),
-                                         transfer_speed=h.get("transfer_speed"))))
-            for h in todo]
+    jobs = [(h, POLICIES, asdict(recorded_params(h))) for h in todo]
     a.out.parent.mkdir(parents=True, exist_ok=True)
     for r in run_jobs(state_job, jobs, workers=a.workers):
         if r.ok:

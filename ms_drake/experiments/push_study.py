@@ -762,6 +762,13 @@ def policies_from_state(rec: dict, params: StudyParams, policies=POLICIES) -> di
             "cpu_s": time.process_time() - c}
 
 
+def recorded_params(heap_rec: dict, params: StudyParams = StudyParams()) -> StudyParams:
+    """`params` with the settings a heap record was made with: its object set, grasp sampling
+    ("tilt_bin" when the record has none) and transfer speed."""
+    return replace(params, object_set=heap_rec.get("object_set", ""), sampling=heap_rec.get("sampling", "tilt_bin"),
+                   transfer_speed=heap_rec.get("transfer_speed"))
+
+
 def state_job(job: tuple) -> dict:
     """(heap record, policies, StudyParams dict) -> policies_from_state (module-level for pools)."""
     rec, policies, params = job
