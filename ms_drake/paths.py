@@ -1,4 +1,4 @@
-"""Where the ms_drake_models package lives, and a Drake Parser that finds it.
+"""Where the ms_drake_models package lives, a Drake Parser that finds it, and which code runs.
 
 `models/` (with its package.xml) is found as `package://ms_drake_models/...` both from a
 source checkout (the `models/` folder beside the `ms_drake/` folder) and from an installed
@@ -8,7 +8,9 @@ wheel (where it is installed as the Python package `ms_drake_models`).
 from __future__ import annotations
 
 import functools
+import importlib.metadata
 import importlib.util
+import subprocess
 from pathlib import Path
 
 from pydrake.multibody.parsing import Parser
@@ -51,3 +53,28 @@ def make_parser(plant, scene_graph=None):
     if not pm.Contains(PACKAGE_NAME):
         pm.Add(PACKAGE_NAME, str(models_dir()))
     return parser
+
+
+def _git(root: Path, *args: str) -> str:
+    try:
+        p = subprocess.run(["git", *args], cwd=root, capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return ""
+    return p.stdout.strip() if p.returncode == 0 else ""
+
+
+@functools.cache
+def code_version() -> str:
+    """The code this process runs, for benchmark records: in a git checkout its short commit, with
+    "+dirty" when ms_drake/ or models/ differ from it; otherwise the installed package's version
+    ("ms_drake <version>")."""
+    root = Path(__file__).resolve().parent.parent
+    top = _git(root, "rev-parse", "--show-toplevel")
+    if top and Path(top).resolve() == root:
+        head = _git(root, "rev-parse", "--short", "HEAD")
+        if head:
+            return head + ("+dirty" if _git(root, "status", "--porcelain", "--", "ms_drake", "models") else "")
+    try:
+        return f"ms_drake {importlib.metadata.version('ms_drake')}"
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"

@@ -3,6 +3,7 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -17,6 +18,7 @@ from ms_drake.experiments.harness import (
     run_bench,
     summarize,
 )
+from ms_drake.paths import code_version
 from ms_drake.scenes.heaps import heap_digest, load_heap
 from ms_drake.types import Heap, ObjectPose
 
@@ -56,6 +58,7 @@ def test_bench_search_writes_resumes_and_summarizes(tmp_path):
     assert recs[0] == r  # the finished result was not lost or redone
     # Each record names the heap it searched: the digest of the cached heap file.
     assert recs[1]["heap_digest"] == heap_digest(load_heap(tmp_path / "heaps" / "heap_N2_s6.json"))
+    assert recs[1]["code"] == code_version() != ""  # the commit that ran it
     p = run("bench", "plot", out, "--out", tmp_path / "plots")
     for f in ("cumulative_successes.png", "actions_histogram.png"):
         assert (tmp_path / "plots" / f).stat().st_size > 5000
@@ -237,3 +240,12 @@ def test_heap_digest_names_the_state_and_pairing_refuses_different_heaps(tmp_pat
     fb.write_text("".join(json.dumps(r) + "\n" for r in b))
     p = run("bench", "paired", fa, fb, check=False)
     assert p.returncode == 2 and "different heaps" in p.stderr and "--heap-dir" in p.stderr
+
+
+def test_code_version_names_the_checkout_s_commit():
+    root = Path(__file__).resolve().parent.parent
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True)
+    if head.returncode != 0 or not (root / "ms_drake" / "paths.py").exists():
+        pytest.skip("not a git checkout of ms_drake")
+    v = code_version()
+    assert v.split("+")[0] == head.stdout.strip() and v in (head.stdout.strip(), head.stdout.strip() + "+dirty")

@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import os
 import platform
-import subprocess
 import time
 from pathlib import Path
 
@@ -27,6 +26,7 @@ from ms_drake.grasping.grasp_sets import (
 )
 from ms_drake.objects import get_object_set
 from ms_drake.parallel import run_jobs
+from ms_drake.paths import code_version
 
 
 def _job(job: tuple) -> dict:
@@ -51,14 +51,6 @@ def _current(out: Path, name: str, params: dict) -> bool:
     return gs is not None and gs.params == json.loads(json.dumps(params))
 
 
-def _commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                              cwd=Path(__file__).resolve().parent, timeout=10).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return ""
-
-
 def write_grasp_sets(set_name: str, out: str | Path | None = None, workers: int = 1, limit: int | None = None,
                      command: str = "", progress=None, **kw) -> dict:
     """Grasp sets of every object of `set_name` (the first `limit`) into `out` (default: the set's
@@ -76,7 +68,7 @@ def write_grasp_sets(set_name: str, out: str | Path | None = None, workers: int 
 
     def save():
         man = {"set": set_name, "command": command if todo or not manifest.get("command") else manifest["command"],
-               "params": params, "commit": _commit() if todo or not manifest.get("commit") else manifest["commit"],
+               "params": params, "commit": code_version() if todo or not manifest.get("commit") else manifest["commit"],
                "machine": f"{platform.node()} {os.cpu_count()} cores", "objects": [rows[n] for n in names if n in rows]}
         cpu = [r["cpu_s"] for r in man["objects"]]
         if cpu:

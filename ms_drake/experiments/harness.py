@@ -3,7 +3,8 @@
 One JSON line per rollout (RolloutResult.record(): seed, policy, fidelity, objects, success,
 actions, action_kinds, failure, stop_reason, seconds, ...; and heap_digest, the fingerprint of the
 heap searched, scenes.heaps.heap_digest, so that two runs compared on "the same heaps" can be
-checked to be: a heap cache left by other generator code gives other heaps under the same seeds). A rollout that raises or whose worker
+checked to be: a heap cache left by other generator code gives other heaps under the same seeds;
+and code, the commit that ran it, paths.code_version). A rollout that raises or whose worker
 dies becomes a line with failure "worker_died" (and the error), so the benchmark goes on; such
 lines are retried by the next run of the same command (resume), every other line is final. Lines
 are flushed and fsync'ed one by one: an interrupted run loses at most the rollouts in flight, and a
@@ -33,6 +34,7 @@ from ms_drake.experiments.figures import figure_dir, save_png
 from ms_drake.experiments.rollout import REFERENCE_FAILURE_CLASSES, rollout
 from ms_drake.experiments.xray import PROTOCOLS, XRAY_PROTOCOLS, xray_heap
 from ms_drake.parallel import run_jobs
+from ms_drake.paths import code_version
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import (
     SEARCH_HEAPS,
@@ -113,6 +115,7 @@ def rollout_job(job: tuple) -> dict:
     rec = rollout(policy, objects, seed, fidelity, horizon, heap=heap, **opts).record()
     rec["heap_engine"] = engine
     rec["heap_digest"] = heap_digest(heap)
+    rec["code"] = code_version()
     if protocol != "ch7":
         rec["protocol"] = protocol
     rec["pid"] = os.getpid()
