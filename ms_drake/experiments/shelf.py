@@ -43,6 +43,7 @@ from ms_drake.experiments.harness import read_records, summarize
 from ms_drake.experiments.shelf_segmentation import AssociateShelfObjects
 from ms_drake.foss import SUCTION_LIFTS, Foss, FossParams, FossSystem
 from ms_drake.parallel import run_jobs, run_shard_jobs
+from ms_drake.paths import code_version
 from ms_drake.perception.shelf_occupancy import ShelfOccupancyEstimator
 from ms_drake.perception.shelf_occupancy_net import block_depth
 from ms_drake.perception.shelf_segmentation import ShelfSegmenter
@@ -183,7 +184,8 @@ def shelf_rollout(policy: str, occluders: int, seed: int, params: ShelfPolicyPar
                 target_size=list(map(float, target_size)), scene_ms=scene_ms,
                 perception_ms=ms(perceive, np.median), decision_ms=ms(decisions, np.median),
                 decision_ms_max=ms(decisions, np.max), foss_ms=ms(steps_ms, np.median),
-                seconds=time.perf_counter() - t_start, cpu_seconds=time.process_time() - cpu_start, pid=os.getpid())
+                seconds=time.perf_counter() - t_start, cpu_seconds=time.process_time() - cpu_start, pid=os.getpid(),
+                code=code_version())
 
 
 def shelf_rollout_job(job: tuple) -> dict:
