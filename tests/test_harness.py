@@ -11,8 +11,10 @@ import pytest
 
 from ms_drake.errors import HeapError
 from ms_drake.experiments.harness import (
+    cached_heap,
     failure_classes,
     final_records,
+    heap_generator_key,
     paired_comparison,
     read_records,
     run_bench,
@@ -148,6 +150,14 @@ def test_bullet_heaps_are_cached_and_matched_apart_from_drake_heaps(tmp_path):
     assert run_bench("largest", 2, 1, 5, out, horizon=3, heap_dir=str(heaps), heap_engine="bullet")["ran"] == 0
     a, b = (json.loads((heaps / f).read_text()) for f in ("heap_N2_s5.json", "heap_bullet_N2_s5.json"))
     assert a["objects"] != b["objects"]  # two drop simulations of the same seed
+    # Each file keeps its generator's key; a cache made with other settings is refused, by name.
+    assert a["generator"] == heap_generator_key(2, "ch7", "drake") != b["generator"]
+    assert cached_heap(2, 5, str(heaps)).objects == load_heap(heaps / "heap_N2_s5.json").objects
+    (heaps / "heap_N2_s5.json").write_text(json.dumps(dict(a, generator="0123456789abcdef")))
+    with pytest.raises(HeapError, match="heap_N2_s5.json: this cached heap was made with other generator settings"):
+        cached_heap(2, 5, str(heaps))
+    (heaps / "heap_N2_s5.json").write_text(json.dumps({k: v for k, v in a.items() if k != "generator"}))
+    assert cached_heap(2, 5, str(heaps)).objects == load_heap(heaps / "heap_N2_s5.json").objects  # older files load
 
 
 def test_truncating_a_record_to_a_smaller_budget():

@@ -19,6 +19,8 @@ efficiency metric report those).
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import json
 import os
 import time
@@ -32,7 +34,7 @@ from ms_drake.errors import HeapError
 from ms_drake.execution import GRASP_OUTCOMES
 from ms_drake.experiments.figures import figure_dir, save_png
 from ms_drake.experiments.rollout import REFERENCE_FAILURE_CLASSES, rollout
-from ms_drake.experiments.xray import PROTOCOLS, XRAY_PROTOCOLS, xray_heap
+from ms_drake.experiments.xray import PROTOCOLS, XRAY_PROTOCOLS, xray_heap, xray_heap_settings
 from ms_drake.parallel import run_jobs
 from ms_drake.paths import code_version
 from ms_drake.scenario import load_scenario
@@ -41,14 +43,28 @@ from ms_drake.scenes.heaps import (
     HeapParams,
     generate_heap,
     heap_digest,
+    heap_to_dict,
     load_heap,
-    save_heap,
 )
 
 BOOTSTRAP = 2000
 # Drop physics of the "ch7" heaps: the compliant Drake drop world (SEARCH_HEAPS, the tables'
 # default) or Bullet (HeapParams' default engine, ~4x cheaper per heap).
 HEAP_ENGINES = {"drake": SEARCH_HEAPS, "bullet": HeapParams(engine="bullet")}
+
+
+def heap_generator_key(objects: int, protocol: str = "ch7", engine: str = "drake") -> str:
+    """A fingerprint of what makes the heaps of (protocol, N, engine): the HeapParams, the object
+    pool (X-Ray protocols) or the scenario's object set (ch7). A cached heap file keeps it, so a
+    cache left by other generator settings is refused instead of silently reused."""
+    if protocol in XRAY_PROTOCOLS:
+        params, pool = xray_heap_settings(protocol)
+        what = {"params": dataclasses.asdict(params), "pool": list(pool)}
+    else:
+        objs = load_scenario(None, "BinHeap15").objects
+        what = {"params": dataclasses.asdict(HEAP_ENGINES[engine]), "set": objs.set, "split": objs.split}
+    text = json.dumps({"protocol": protocol, "objects": int(objects), **what}, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 def cached_heap(objects: int, seed: int, heap_dir: str | None, protocol: str = "ch7", engine: str = "drake"):
@@ -60,7 +76,8 @@ def cached_heap(objects: int, seed: int, heap_dir: str | None, protocol: str = "
 whose target starts fully hidden (heap_xray_hidden_N<N>_s<seed>.json); "xray_ycb": the target under
 unseen YCB and packaged objects (heap_xray_ycb_N<N>_s<seed>.json); "xray_occluded": those spread as
 Section 8.3's heaps with the target fully hidden (heap_xray_occluded_N<N>_s<seed>.json). engine (HEAP_ENGINES):
-the "ch7" heaps' drop physics; Bullet heaps are heap_bullet_N<N>_s<seed>.json."""
+the "ch7" heaps' drop physics; Bullet heaps are heap_bullet_N<N>_s<seed>.json. A file keeps its
+heap_generator_key; one made with other settings raises HeapError (files without a key load)."""
     if protocol not in PROTOCOLS:
         raise ValueError(f"protocol {protocol!r} unknown; choose one of {', '.join(PROTOCOLS)}")
     if engine not in HEAP_ENGINES:
@@ -71,14 +88,20 @@ the "ch7" heaps' drop physics; Bullet heaps are heap_bullet_N<N>_s<seed>.json.""
     stem = (f"heap_N{objects}_s{seed}" if engine == "drake" else f"heap_{engine}_N{objects}_s{seed}") \
         if protocol == "ch7" else f"heap_{protocol}_N{objects}_s{seed}"
     path = Path(heap_dir) / f"{stem}.json" if heap_dir else None
+    key = heap_generator_key(objects, protocol, engine) if path is not None else ""
     if path is not None and path.exists():
+        made_by = json.loads(path.read_text()).get("generator")
+        if made_by is not None and made_by != key:
+            raise HeapError(f"{path}: this cached heap was made with other generator settings (key {made_by}, "
+                            f"today's {key}): its seed no longer names today's heap. Delete the file, or give "
+                            "a fresh --heap-dir.")
         return load_heap(path)
     heap = (xray_heap(seed, objects, protocol) if protocol in XRAY_PROTOCOLS else
             generate_heap(load_scenario(None, "BinHeap15"), objects, seed, params=HEAP_ENGINES[engine]))
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        save_heap(heap, tmp)
+        tmp.write_text(json.dumps({**heap_to_dict(heap), "generator": key}))
         os.replace(tmp, path)
     return heap
 

@@ -97,14 +97,20 @@ def _names(rng: np.random.Generator, occluders: int, pool: tuple[str, ...] | Non
     return [XRAY_TARGET] + [pool[i] for i in rng.integers(0, len(pool), size=occluders)]
 
 
+def xray_heap_settings(protocol: str) -> tuple[HeapParams, tuple[str, ...]]:
+    """(HeapParams, occluder pool) of an X-Ray heap protocol: what its heaps are generated with."""
+    if protocol not in XRAY_PROTOCOLS:
+        raise ValueError(f"protocol {protocol!r} is not an X-Ray heap protocol; choose one of "
+                         f"{', '.join(XRAY_PROTOCOLS)}")
+    pool = xray_ycb_occluders() if protocol in ("xray_ycb", "xray_occluded") else xray_occluders()
+    return _HEAP_PARAMS[protocol], pool
+
+
 def xray_heap(seed: int, occluders: int = XRAY_OBJECTS, protocol: str = "xray"):
     """Heap `seed` of a protocol of XRAY_PROTOCOLS: the target dropped first, then `occluders`
     unseen mesh objects (`xray`, and `xray_hidden`: only a heap whose target starts fully hidden)
     or unseen YCB and packaged objects (`xray_ycb`; `xray_occluded`: spread as Section 8.3's heaps,
     the target fully hidden)."""
-    if protocol not in XRAY_PROTOCOLS:
-        raise ValueError(f"protocol {protocol!r} is not an X-Ray heap protocol; choose one of "
-                         f"{', '.join(XRAY_PROTOCOLS)}")
-    pool = xray_ycb_occluders() if protocol in ("xray_ycb", "xray_occluded") else xray_occluders()
-    return generate_heap(load_scenario(None, "BinHeap15"), occluders + 1, seed, params=_HEAP_PARAMS[protocol],
+    params, pool = xray_heap_settings(protocol)
+    return generate_heap(load_scenario(None, "BinHeap15"), occluders + 1, seed, params=params,
                          names_fn=functools.partial(_names, occluders=occluders, pool=pool), target_first=True)
