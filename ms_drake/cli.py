@@ -47,6 +47,7 @@ from ms_drake.experiments.harness import (
     paired_comparison,
     plot,
     read_records,
+    replay_records,
     run_bench,
 )
 from ms_drake.experiments.matcher_data import (
@@ -1026,6 +1027,35 @@ def bench_paired(a: Path = typer.Argument(..., help="Result .jsonl of policy A")
                f"neither {r['neither']}; two-sided sign test p = {r['p']:.3g}")
     typer.echo(f"only A: {r['only_a']}")
     typer.echo(f"only B: {r['only_b']}")
+
+
+@bench_app.command("replay")
+def bench_replay(file: Path = typer.Argument(..., help="Result .jsonl of `ms-drake bench search`"),
+                 heap_dir: Optional[Path] = typer.Option(None, "--heap-dir", help="The heap cache the records "
+                                                          "searched (default: regenerate each heap from its seed)"),
+                 seeds: Optional[list[int]] = typer.Option(None, "--seed", help="Replay these seeds (repeatable)"),
+                 count: Optional[int] = typer.Option(None, "--count", min=1, help="Replay the first K records "
+                                                     "(default: all)"),
+                 workers: int = _workers("Parallel workers (W)")):
+    """Re-run recorded searches with this code and check that each ends as recorded: the same
+    actions, grasp kinds and outcomes, and the same heap (its digest). Exit code 1 if one differs."""
+    _need_results((file,), "bench search")
+    try:
+        rows = replay_records(file, str(heap_dir) if heap_dir is not None else None, seeds=seeds or None,
+                              count=count, workers=workers,
+                              progress=lambda r: typer.echo(
+                                  f"{r['policy']} seed {r['seed']}: " + ("same" if r["same"] else
+                                  "DIFFERS in " + ", ".join(r["differs"] or ["heap"]))
+                                  + ("" if r["heap_same"] is None else
+                                     f"; heap {'same' if r['heap_same'] else 'DIFFERS'}")))
+    except ValueError as e:
+        _fail(str(e))
+    same = sum(r["same"] for r in rows)
+    codes = sorted({r["code"] or "(not recorded)" for r in rows})
+    typer.echo(f"{same} of {len(rows)} records replay with code {rows[0]['code_now'] if rows else '-'} "
+               f"(recorded with {', '.join(codes)})")
+    if same < len(rows):
+        raise typer.Exit(1)
 
 
 @bench_app.command("occupancy")

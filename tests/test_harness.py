@@ -229,6 +229,24 @@ def test_a_killed_two_worker_run_resumes(tmp_path):
     assert "| largest | 2 | 2 |" in stdout
 
 
+def test_recorded_searches_replay_and_a_changed_record_is_named(tmp_path):
+    out, heaps = tmp_path / "r.jsonl", tmp_path / "heaps"
+    run("bench", "search", "--policy", "largest", "--objects", 2, "--heaps", 2, "--seed-start", 5, "--horizon", 3,
+        "--out", out, "--heap-dir", heaps)
+    p = run("bench", "replay", out, "--heap-dir", heaps)
+    assert "largest seed 5: same; heap same" in p.stdout and "2 of 2 records replay" in p.stdout
+    recs = read_records(out)
+    assert all(r["horizon"] == 3 for r in recs)
+    # A record that no longer matches what the code does: its outcome flipped, its heap another.
+    recs[1] = dict(recs[1], action_successes=[not x for x in recs[1]["action_successes"]], heap_digest="0" * 16)
+    out.write_text("".join(json.dumps(r) + "\n" for r in recs))
+    p = run("bench", "replay", out, "--heap-dir", heaps, "--seed", 6, check=False)
+    assert p.returncode == 1 and "largest seed 6: DIFFERS in action_successes; heap DIFFERS" in p.stdout
+    assert "0 of 1 records replay" in p.stdout
+    p = run("bench", "replay", out, "--seed", 9, check=False)
+    assert p.returncode == 2 and "no finished record of seed(s) 9" in p.stderr
+
+
 def test_heap_digest_names_the_state_and_pairing_refuses_different_heaps(tmp_path):
     q = (1.0, 0.0, 0.0, 0.0, 0.1, 0.2, 0.05)
     heap = Heap(seed=3, environment="bin", objects=(ObjectPose("ycb/a", q), ObjectPose("ycb/b", q)))

@@ -34,7 +34,7 @@ from ms_drake.errors import HeapError
 from ms_drake.execution import GRASP_OUTCOMES
 from ms_drake.experiments.figures import figure_dir, save_png
 from ms_drake.experiments.rollout import REFERENCE_FAILURE_CLASSES, rollout
-from ms_drake.experiments.xray import PROTOCOLS, XRAY_PROTOCOLS, xray_heap, xray_heap_settings
+from ms_drake.experiments.xray import PROTOCOLS, XRAY_HORIZON, XRAY_PROTOCOLS, xray_heap, xray_heap_settings
 from ms_drake.parallel import run_jobs
 from ms_drake.paths import code_version
 from ms_drake.scenario import load_scenario
@@ -139,10 +139,62 @@ def rollout_job(job: tuple) -> dict:
     rec["heap_engine"] = engine
     rec["heap_digest"] = heap_digest(heap)
     rec["code"] = code_version()
+    rec["horizon"] = horizon
     if protocol != "ch7":
         rec["protocol"] = protocol
     rec["pid"] = os.getpid()
     return rec
+
+
+# What a replay must reproduce of a record (the search, action by action).
+REPLAY_KEYS = ("success", "actions", "action_kinds", "grasp_kinds", "action_successes", "failure")
+
+
+def replay_job(rec: dict, heap_dir: str | None) -> tuple:
+    """The rollout_job that re-runs a record: its policy, N, seed, fidelity, options and protocol;
+    its horizon (a record without one: H = 10 for the X-Ray protocols, else the default 2N)."""
+    protocol = rec.get("protocol", "ch7")
+    horizon = rec["horizon"] if "horizon" in rec else (XRAY_HORIZON if protocol in XRAY_PROTOCOLS else None)
+    opts = {k: rec.get(k, default) for k, default in OPTION_DEFAULTS}
+    return (rec["policy"], int(rec["objects"]), int(rec["seed"]), rec.get("fidelity", "primitive"), horizon, heap_dir,
+            protocol, opts)
+
+
+def replay_records(path: Path, heap_dir: str | None = None, seeds=None, count: int | None = None,
+                   workers: int = 1, progress=None) -> list[dict]:
+    """Re-run the records of a `bench search` file (those of `seeds`, else the first `count`, else
+    all) and compare each with its record (REPLAY_KEYS, and the heap's digest where the record has
+    one). Returns one row per record: seed, policy, same (bool), differs (the keys that differ),
+    heap_same (None when the record has no digest), code (recorded) and code_now."""
+    recs = [r for r in final_records(read_records(path)) if r.get("failure") != "worker_died"]
+    if seeds is not None:
+        want = {int(k) for k in seeds}
+        recs = [r for r in recs if int(r["seed"]) in want]
+        missing = sorted(want - {int(r["seed"]) for r in recs})
+        if missing:
+            raise ValueError(f"{path}: no finished record of seed(s) {', '.join(map(str, missing))}")
+    elif count is not None:
+        recs = recs[:count]
+    by_job = {}
+    for r in recs:
+        by_job.setdefault(replay_job(r, heap_dir)[:3], r)
+    rows = []
+    for res in run_jobs(rollout_job, [replay_job(r, heap_dir) for r in recs], workers=workers):
+        old = by_job[res.job[:3]]
+        if not res.ok:
+            err = (res.error or "").strip().splitlines()
+            row = dict(seed=int(old["seed"]), policy=old["policy"], same=False, differs=["error"], heap_same=None,
+                       code=old.get("code", ""), code_now=code_version(), error=err[-1] if err else "")
+        else:
+            new = res.value
+            differs = [k for k in REPLAY_KEYS if new.get(k) != old.get(k)]
+            heap_same = new["heap_digest"] == old["heap_digest"] if old.get("heap_digest") else None
+            row = dict(seed=int(old["seed"]), policy=old["policy"], same=not differs and heap_same is not False,
+                       differs=differs, heap_same=heap_same, code=old.get("code", ""), code_now=new["code"])
+        rows.append(row)
+        if progress:
+            progress(row)
+    return sorted(rows, key=lambda x: (x["policy"], x["seed"]))
 
 
 def read_records(path: Path) -> list[dict]:
