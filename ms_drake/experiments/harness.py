@@ -175,12 +175,13 @@ def replay_records(path: Path, heap_dir: str | None = None, seeds=None, count: i
             raise ValueError(f"{path}: no finished record of seed(s) {', '.join(map(str, missing))}")
     elif count is not None:
         recs = recs[:count]
-    by_job = {}
-    for r in recs:
-        by_job.setdefault(replay_job(r, heap_dir)[:3], r)
+    def key(job):  # the job without its heap folder, hashable
+        return (*job[:5], job[6], tuple(sorted(job[7].items())))
+
+    by_job = {key(replay_job(r, heap_dir)): r for r in recs}
     rows = []
     for res in run_jobs(rollout_job, [replay_job(r, heap_dir) for r in recs], workers=workers):
-        old = by_job[res.job[:3]]
+        old = by_job[key(res.job)]
         if not res.ok:
             err = (res.error or "").strip().splitlines()
             row = dict(seed=int(old["seed"]), policy=old["policy"], same=False, differs=["error"], heap_same=None,
