@@ -1,5 +1,5 @@
 """The heap protocols of Table 8.2 (ms_drake.experiments.xray): `xray`, `xray_hidden`, `xray_ycb`,
-`xray_occluded`."""
+`xray_occluded`, `xray_small`."""
 
 import dataclasses
 
@@ -11,6 +11,7 @@ from ms_drake.experiments.xray import (
     PROTOCOLS,
     XRAY_HEAPS,
     XRAY_OCCLUDED_HEAPS,
+    XRAY_SMALL_TARGET,
     XRAY_TARGET,
     _names,
     xray_heap,
@@ -24,7 +25,7 @@ from ms_drake.station.robots import set_arm_positions
 
 
 def test_protocols_name_the_hidden_variant():
-    assert PROTOCOLS == ("ch7", "xray", "xray_hidden", "xray_ycb", "xray_occluded")
+    assert PROTOCOLS == ("ch7", "xray", "xray_hidden", "xray_ycb", "xray_occluded", "xray_small")
 
 
 def test_xray_hidden_heap_starts_with_the_target_hidden_from_the_station_camera():
@@ -97,3 +98,16 @@ def test_the_target_is_offset_like_the_others_only_when_not_at_centre():
     # the same draws: the occluders are where they were, the target moves off the centre
     assert all(np.allclose(a.xy, b.xy) for a, b in zip(centred[1:], spread[1:]))
     assert not np.allclose(centred[0].xy, spread[0].xy)
+
+
+def test_xray_small_heaps_are_the_xray_occluded_draws_with_the_smaller_target():
+    small = get_object(XRAY_SMALL_TARGET)
+    assert small.extents == pytest.approx((0.045, 0.045, 0.005))
+    assert small.extents[0] < get_object(XRAY_TARGET).extents[0]
+    # the same random draws as xray_occluded: the occluders' names and drop plan, another target
+    a = _names(np.random.default_rng(5), 14, xray_ycb_occluders())
+    b = _names(np.random.default_rng(5), 14, xray_ycb_occluders(), target=XRAY_SMALL_TARGET)
+    assert a[1:] == b[1:] and a[0] == XRAY_TARGET and b[0] == XRAY_SMALL_TARGET
+    heap = xray_heap(5003, protocol="xray_small")
+    assert heap.target == XRAY_SMALL_TARGET and heap.target_index == 0 and heap.visible_ratios[0] == 0.0
+    assert {o.name for o in heap.objects[1:]} <= set(xray_ycb_occluders())
