@@ -108,6 +108,26 @@ def test_xray_grasps_the_mask_covering_the_occupancy():
         select_action("xray", M, HIDDEN, g)
 
 
+def test_xray_expected_weighs_each_mask_by_its_grasp_quality():
+    rho = np.zeros((H, W))
+    rho[0:20, 45:80] = 0.6  # under "mid"
+    rho[40:55, 60:75] = 0.4  # under "small"
+    occ = OccupancyMap(rho / rho.sum())
+    s = xray_scores(M, occ)
+    assert s[2] > s[3] > 0
+    g = grasps(big=0.9, mid=0.2, small=0.9)  # scores 0.71 and 0.18: times quality 0.14 and 0.16
+    # X-Ray takes the mask that covers the most occupancy, whatever its grasp's chance of lifting;
+    # the expected variant takes the one whose score x quality is highest.
+    assert chosen(select_action("xray", M, HIDDEN, g, occupancy=occ)) == "mid"
+    assert chosen(select_action("xray_expected", M, HIDDEN, g, occupancy=occ)) == "small"
+    assert chosen(select_action("xray_expected", M, HIDDEN, grasps(big=0.9, mid=0.9, small=0.9), occupancy=occ)) == "mid"
+    # a seen target with a grasp still comes first, and a mask without a grasp scores 0
+    assert chosen(select_action("xray_expected", M, TARGET, grasps(t=0.6, mid=0.9), occupancy=occ)) == "t"
+    assert priority_xray(M, occ, weights=[0.0, 1.0, 0.0, 1.0])[:2] == [3, 1]
+    with pytest.raises(PolicyError, match="occupancy"):
+        select_action("xray_expected", M, HIDDEN, g)
+
+
 def test_oracle_uses_the_true_target():
     amodal = np.zeros((H, W), bool)
     amodal[42:52, 62:70] = True  # the target hides under "small"
@@ -164,7 +184,7 @@ def test_policy_selector_alone():
         sel.GetInputPort("target").FixValue(ctx, TARGET)
         sel.GetInputPort("grasps").FixValue(ctx, grasps(t=0.1, big=0.2, mid=0.2, small=0.2))
         sel.GetInputPort("pushes").FixValue(ctx, PUSHES)
-        if policy == "xray":
+        if policy in ("xray", "xray_expected"):
             with pytest.raises(PolicyError, match="occupancy"):
                 sel.GetOutputPort("action").Eval(ctx)
             sel.GetInputPort("occupancy").FixValue(ctx, OccupancyMap(M.masks[3] / M.masks[3].sum()))
@@ -173,7 +193,7 @@ def test_policy_selector_alone():
         # No grasp reaches t_thresh on the target: pushing selectors push it; X-Ray grasps "small",
         # where the occupancy lies; the others grasp "big" (the largest; the random ones by seed 3).
         assert (a.kind, chosen(a)) == (("push", "t") if policy.endswith("_push") else
-                                       ("grasp", "small") if policy == "xray" else ("grasp", "big")), policy
+                                       ("grasp", "small") if policy.startswith("xray") else ("grasp", "big")), policy
         sel.GetInputPort("history").FixValue(ctx, (outcome("grasp", removed="t", oid="t"),))
         assert sel.GetOutputPort("action").Eval(ctx).reason == "success"
 
@@ -217,7 +237,7 @@ def test_selectors_wired_with_perception_and_planners(bin_scenario, small_heap):
                        None) for o in station_objects(plant)}))
     target_id = station_objects(plant)[k].model_name
     selectors = {p: builder.AddSystem(PolicySelector(p, SelectorParams(seed=0, horizon=8), target_id=target_id))
-                 for p in ("largest_push", "xray")}
+                 for p in ("largest_push", "xray", "xray_expected")}
     depth, rgb, label = (station.GetOutputPort(f"overhead.{n}") for n in ("depth_image", "rgb_image", "label_image"))
     builder.Connect(label, seg.GetInputPort("label_image"))
     builder.Connect(rgb, det.GetInputPort("rgb_image"))
@@ -248,5 +268,6 @@ def test_selectors_wired_with_perception_and_planners(bin_scenario, small_heap):
     assert [(g.object_id, g.quality) for g in candidates] == [(target, 0.0), (packaged, 1.0), (cylinder, 1.0)]
     for name, sel in selectors.items():
         a = sel.GetOutputPort("action").Eval(sel.GetMyContextFromRoot(ctx))
-        # both selectors grasp the second cylinder (rank 2 of their priority lists)
+        # every selector grasps the second cylinder (rank 2 of the priority lists; xray_expected: the
+        # box has no grasp and the target's is 0, so its weighted scores rank the two graspable ones)
         assert (a.kind, chosen(a), a.grasp.quality) == ("grasp", cylinder, 1.0), (name, a.reason)

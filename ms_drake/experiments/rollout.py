@@ -31,7 +31,7 @@ from ms_drake.policies.bin_search import (
     SimulationInfo,
     connect_controller,
 )
-from ms_drake.policies.bin_selectors import PUSHING, check_policy
+from ms_drake.policies.bin_selectors import OCCUPANCY_POLICIES, PUSHING, check_policy
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap, scenario_with_heap, set_heap_poses
 from ms_drake.station import MakeStation, get_plant, station_objects
@@ -204,12 +204,13 @@ def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSy
     station = builder.AddSystem(MakeStation(s, meshcat=meshcat, target_index=heap.target_index))
     sim = SimulationInfo.from_station(station, heap.target_index)
     shape = None
-    if params.policy == "oracle" or (params.occupancy == "analytic" and (params.policy == "xray" or meshcat is not None)):
+    if params.policy == "oracle" or (params.occupancy == "analytic" and (params.policy in OCCUPANCY_POLICIES
+                                                                          or meshcat is not None)):
         # Privileged: the target's own mesh at its true initial pose (Ch. 8.3.1 renders the target
         # itself): rotation bin 0 and a grid node are its true placement (see occupancy.TargetMesh).
         shape = (TargetMesh.from_object(heap.target, heap.objects[heap.target_index].matrix())
                  if heap.target_index >= 0 else TargetBox.from_object(heap.target))
-    elif params.policy == "xray" or meshcat is not None:  # (a recorded search shows the occupancy)
+    elif params.policy in OCCUPANCY_POLICIES or meshcat is not None:  # (a recorded search shows the occupancy)
         # The learned estimator knows the target's model (its size), never its pose.
         shape = TargetBox.from_object(heap.target)
     controller = builder.AddSystem(MakeBinSearchController(s, controller_params(params, len(heap.objects)),

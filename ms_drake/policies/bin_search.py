@@ -58,7 +58,7 @@ from ms_drake.perception.segmentation import BACKENDS as SEGMENTATION_BACKENDS
 from ms_drake.perception.segmentation import Segmenter
 from ms_drake.perception.target import BACKENDS as DETECTOR_BACKENDS
 from ms_drake.perception.target import TargetDetector, render_templates
-from ms_drake.policies.bin_selectors import SelectorParams, check_policy
+from ms_drake.policies.bin_selectors import OCCUPANCY_POLICIES, SelectorParams, check_policy
 from ms_drake.policies.selector import PolicySelector
 from ms_drake.pushing import PushPlanner, PushPolicySystem, check_push_policy
 from ms_drake.scenario import load_scenario
@@ -206,7 +206,7 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
     if params.policy == "oracle" and sim is None:
         raise ControllerError("the oracle policy reads the true object poses: it needs sim=SimulationInfo")
     needs_occupancy = target_shape is not None  # built whenever the target's shape is known
-    if params.policy in ("xray", "oracle") and target_shape is None:
+    if params.policy in (*OCCUPANCY_POLICIES, "oracle") and target_shape is None:
         raise ControllerError(f"policy {params.policy!r} needs target_shape= (occupancy.TargetMesh or TargetBox)")
     cam = params.camera
     cfg = scenario.cameras[cam]
@@ -318,7 +318,7 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
         occ.set_name("occupancy_estimator")
         depth_inputs.append(occ.GetInputPort("depth_image"))
         builder.Connect(det.GetOutputPort("target"), occ.GetInputPort("target"))
-        if params.policy == "xray":
+        if params.policy in OCCUPANCY_POLICIES:
             builder.Connect(occ.GetOutputPort("occupancy"), selector.GetInputPort("occupancy"))
         outputs["occupancy"] = occ.GetOutputPort("occupancy")
     if params.policy == "oracle":

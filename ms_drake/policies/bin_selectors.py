@@ -17,6 +17,9 @@ Selectors (the priority list decides which object is tried first):
   largest_push           the same, with pushing;
   xray                   the target mask first when it is seen, then masks by sum(mask * occupancy)
                          (Ch. 8.4), ties by area;
+  xray_expected          X-Ray with each mask's score times its best grasp's quality: the expected
+                         support reduction when a grasp lifts with probability = quality (not the
+                         reference's X-Ray: an ablation; masks without a grasp score 0);
   oracle                 the true target first, then the masks that cover the target's true amodal
                          mask most, then by area: a selector with the true state (an upper bound).
 
@@ -61,7 +64,9 @@ from ms_drake.types import (
     TargetEstimate,
 )
 
-POLICIES = ("random", "preempted_random", "preempted_random_push", "largest", "largest_push", "xray", "oracle")
+POLICIES = ("random", "preempted_random", "preempted_random_push", "largest", "largest_push", "xray", "xray_expected",
+            "oracle")
+OCCUPANCY_POLICIES = ("xray", "xray_expected")  # the selectors that read the occupancy input
 PUSHING = ("preempted_random_push", "largest_push")
 
 
@@ -132,9 +137,13 @@ def xray_scores(masks: InstanceMasks, occupancy: OccupancyMap) -> np.ndarray:
     return (masks.masks.reshape(len(masks), -1).astype(float) @ rho.ravel())
 
 
-def priority_xray(masks: InstanceMasks, occupancy: OccupancyMap, target: TargetEstimate | None = None) -> list[int]:
-    """The seen target first (see the module doc), then masks by X-Ray score, ties by area."""
+def priority_xray(masks: InstanceMasks, occupancy: OccupancyMap, target: TargetEstimate | None = None,
+                  weights: np.ndarray | None = None) -> list[int]:
+    """The seen target first (see the module doc), then masks by X-Ray score (times `weights` per
+    mask when given), ties by area."""
     s = xray_scores(masks, occupancy)
+    if weights is not None:
+        s = s * np.asarray(weights, float)
     order = [int(i) for i in np.lexsort((-masks.areas(), -s))] if len(masks) else []
     t = target_index(masks, target)
     return ([t] if t >= 0 else []) + [i for i in order if i != t]
@@ -191,21 +200,24 @@ def select_action(policy: str, masks: InstanceMasks, target: TargetEstimate | No
     if stop is not None:
         return Action("stop", reason=stop)
     rng = _rng(params, history)
+    best = grasps if isinstance(grasps, Mapping) else best_grasps(grasps)
     if policy == "random":
         order = priority_random(masks, rng)
     elif policy in ("preempted_random", "preempted_random_push"):
         order = priority_preempted_random(masks, target, rng)
     elif policy in ("largest", "largest_push"):
         order = priority_largest(masks, target)
-    elif policy == "xray":
+    elif policy in OCCUPANCY_POLICIES:
         if occupancy is None:
-            raise PolicyError("the xray policy needs the occupancy input (OccupancyEstimator)")
-        order = priority_xray(masks, occupancy, target)
+            raise PolicyError(f"the {policy} policy needs the occupancy input (OccupancyEstimator)")
+        weights = None
+        if policy == "xray_expected":  # every mask's best grasp is looked up (a lazy planner plans them all)
+            weights = [(g.quality if (g := best.get(i)) is not None else 0.0) for i in masks.ids]
+        order = priority_xray(masks, occupancy, target, weights)
     else:
         order = priority_oracle(masks, target_id, target_amodal)
     t_idx = masks.ids.index(target_id) if policy == "oracle" and target_id in masks.ids else target_index(masks, target)
     pushing = policy in PUSHING
-    best = grasps if isinstance(grasps, Mapping) else best_grasps(grasps)
     for i in order:
         g = best.get(masks.ids[i])
         if g is None:

@@ -27,6 +27,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 
 from ms_drake.policies.bin_selectors import (
+    OCCUPANCY_POLICIES,
     PolicyError,
     SelectorParams,
     check_policy,
@@ -68,8 +69,8 @@ class PolicySelector(LeafSystem):
     def _calc(self, context, output):
         if not self.masks_port.HasValue(context):
             raise PolicyError("PolicySelector: the masks input is not connected")
-        if self.policy == "xray" and not self.occupancy_port.HasValue(context):
-            raise PolicyError("PolicySelector('xray'): connect the occupancy input (OccupancyEstimator)")
+        if self.policy in OCCUPANCY_POLICIES and not self.occupancy_port.HasValue(context):
+            raise PolicyError(f"PolicySelector({self.policy!r}): connect the occupancy input (OccupancyEstimator)")
         output.set_value(select_action(
             self.policy, self.masks_port.Eval(context),
             target=self._opt(self.target_port, context, None),
