@@ -130,6 +130,7 @@ from ms_drake.parallel import run_jobs
 from ms_drake.perception.segmentation import BACKENDS as SEGMENTATION_BACKENDS
 from ms_drake.perception.target import BACKENDS as DETECTOR_BACKENDS
 from ms_drake.policies.bin_search import GRASP_PLANNERS
+from ms_drake.policies.bin_selectors import POLICIES as BIN_POLICIES
 from ms_drake.policies.bin_selectors import check_policy
 from ms_drake.pushing import POLICIES as PUSH_POLICIES
 from ms_drake.policies.shelf import SHELF_POLICIES, check_shelf_policy
@@ -435,8 +436,7 @@ app.add_typer(bench_app, name="bench")
 
 
 @bench_app.command("search")
-def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: random, preempted_random, "
-                                            "preempted_random_push, largest, largest_push, xray, oracle"),
+def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " + ", ".join(BIN_POLICIES)),
                  objects: Optional[int] = typer.Option(None, "--objects", min=1, max=60,
                                                        help="Objects per heap (N; default 15, xray: 14 besides the target)"),
                  heaps_: int = typer.Option(10, "--heaps", min=1, help="Number of heaps (K)"),
