@@ -47,6 +47,7 @@ from ms_drake.experiments.harness import (
     paired_comparison,
     plot,
     read_records,
+    check_record_heaps,
     replay_records,
     run_bench,
 )
@@ -1037,24 +1038,35 @@ def bench_replay(file: Path = typer.Argument(..., help="Result .jsonl of `ms-dra
                  seeds: Optional[list[int]] = typer.Option(None, "--seed", help="Replay these seeds (repeatable)"),
                  count: Optional[int] = typer.Option(None, "--count", min=1, help="Replay the first K records "
                                                      "(default: all)"),
+                 heaps_only: bool = typer.Option(False, "--heaps-only", help="Check only that each record's "
+                                                 "heap (cached or regenerated) has the record's digest; no search"),
                  workers: int = _workers("Parallel workers (W)")):
     """Re-run recorded searches with this code and check that each ends as recorded: the same
     actions, grasp kinds and outcomes, and the same heap (its digest). Exit code 1 if one differs."""
     _need_results((file,), "bench search")
+
+    def progress(r):
+        heap = "" if r["heap_same"] is None else f"heap {'same' if r['heap_same'] else 'DIFFERS'}"
+        if heaps_only:
+            what = "ERROR: " + r.get("error", "") if r["differs"] == ["error"] else (heap or "no digest recorded")
+        else:
+            what = ("same" if r["same"] else "DIFFERS in " + ", ".join(r["differs"] or ["heap"])) + \
+                   (f"; {heap}" if heap else "")
+        typer.echo(f"{r['policy']} seed {r['seed']}: {what}")
+
     try:
-        rows = replay_records(file, str(heap_dir) if heap_dir is not None else None, seeds=seeds or None,
-                              count=count, workers=workers,
-                              progress=lambda r: typer.echo(
-                                  f"{r['policy']} seed {r['seed']}: " + ("same" if r["same"] else
-                                  "DIFFERS in " + ", ".join(r["differs"] or ["heap"]))
-                                  + ("" if r["heap_same"] is None else
-                                     f"; heap {'same' if r['heap_same'] else 'DIFFERS'}")))
+        rows = (check_record_heaps if heaps_only else replay_records)(
+            file, str(heap_dir) if heap_dir is not None else None, seeds=seeds or None, count=count,
+            workers=workers, progress=progress)
     except ValueError as e:
         _fail(str(e))
     same = sum(r["same"] for r in rows)
     codes = sorted({r["code"] or "(not recorded)" for r in rows})
-    typer.echo(f"{same} of {len(rows)} records replay with code {rows[0]['code_now'] if rows else '-'} "
-               f"(recorded with {', '.join(codes)})")
+    if heaps_only:
+        typer.echo(f"{same} of {len(rows)} records' heaps are the recorded ones (recorded with {', '.join(codes)})")
+    else:
+        typer.echo(f"{same} of {len(rows)} records replay with code {rows[0]['code_now'] if rows else '-'} "
+                   f"(recorded with {', '.join(codes)})")
     if same < len(rows):
         raise typer.Exit(1)
 

@@ -243,6 +243,10 @@ def test_recorded_searches_replay_and_a_changed_record_is_named(tmp_path):
     p = run("bench", "replay", out, "--heap-dir", heaps, "--seed", 6, check=False)
     assert p.returncode == 1 and "largest seed 6: DIFFERS in action_successes; heap DIFFERS" in p.stdout
     assert "0 of 1 records replay" in p.stdout
+    # The heaps alone, without the searches: seed 5's heap is the recorded one, seed 6's digest is not.
+    p = run("bench", "replay", out, "--heap-dir", heaps, "--heaps-only", check=False)
+    assert p.returncode == 1 and "largest seed 5: heap same" in p.stdout and "largest seed 6: heap DIFFERS" in p.stdout
+    assert "1 of 2 records' heaps are the recorded ones" in p.stdout
     p = run("bench", "replay", out, "--seed", 9, check=False)
     assert p.returncode == 2 and "no finished record of seed(s) 9" in p.stderr
 

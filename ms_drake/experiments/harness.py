@@ -161,12 +161,7 @@ def replay_job(rec: dict, heap_dir: str | None) -> tuple:
             protocol, opts)
 
 
-def replay_records(path: Path, heap_dir: str | None = None, seeds=None, count: int | None = None,
-                   workers: int = 1, progress=None) -> list[dict]:
-    """Re-run the records of a `bench search` file (those of `seeds`, else the first `count`, else
-    all) and compare each with its record (REPLAY_KEYS, and the heap's digest where the record has
-    one). Returns one row per record: seed, policy, same (bool), differs (the keys that differ),
-    heap_same (None when the record has no digest), code (recorded) and code_now."""
+def _records_to_replay(path: Path, seeds=None, count: int | None = None) -> list[dict]:
     recs = [r for r in final_records(read_records(path)) if r.get("failure") != "worker_died"]
     if seeds is not None:
         want = {int(k) for k in seeds}
@@ -176,6 +171,49 @@ def replay_records(path: Path, heap_dir: str | None = None, seeds=None, count: i
             raise ValueError(f"{path}: no finished record of seed(s) {', '.join(map(str, missing))}")
     elif count is not None:
         recs = recs[:count]
+    return recs
+
+
+def heap_digest_job(job: tuple) -> str:
+    """(objects, seed, heap_dir, protocol, engine) -> the digest of that heap (read from the cache,
+    else generated and cached); module-level for pickling."""
+    objects, seed, heap_dir, protocol, engine = job
+    return heap_digest(cached_heap(objects, seed, heap_dir, protocol, engine))
+
+
+def check_record_heaps(path: Path, heap_dir: str | None = None, seeds=None, count: int | None = None,
+                       workers: int = 1, progress=None) -> list[dict]:
+    """The heap half of replay_records, without the searches: whether each record's heap (from
+    `heap_dir`, else regenerated from its seed) has the record's digest. Heaps regenerate exactly on
+    one machine; a drop on another CPU can end elsewhere, which this finds cheaply. Rows: seed,
+    policy, same, differs (["heap"] or []), heap_same (None without a recorded digest), code."""
+    by_job = {}  # one heap job for every record of that heap (a file may hold several policies)
+    for r in _records_to_replay(path, seeds, count):
+        job = (int(r["objects"]), int(r["seed"]), heap_dir, r.get("protocol", "ch7"), r.get("heap_engine", "drake"))
+        by_job.setdefault(job, []).append(r)
+    rows = []
+    for res in run_jobs(heap_digest_job, list(by_job), workers=workers):
+        err = (res.error or "").strip().splitlines()
+        for rec in by_job[res.job]:
+            heap_same = (res.value == rec["heap_digest"]) if res.ok and rec.get("heap_digest") else None
+            row = dict(seed=int(rec["seed"]), policy=rec["policy"], same=res.ok and heap_same is not False,
+                       differs=["error"] if not res.ok else ([] if heap_same is not False else ["heap"]),
+                       heap_same=heap_same, code=rec.get("code", ""), code_now=code_version())
+            if not res.ok:
+                row["error"] = err[-1] if err else ""
+            rows.append(row)
+            if progress:
+                progress(row)
+    return sorted(rows, key=lambda x: (x["policy"], x["seed"]))
+
+
+def replay_records(path: Path, heap_dir: str | None = None, seeds=None, count: int | None = None,
+                   workers: int = 1, progress=None) -> list[dict]:
+    """Re-run the records of a `bench search` file (those of `seeds`, else the first `count`, else
+    all) and compare each with its record (REPLAY_KEYS, and the heap's digest where the record has
+    one). Returns one row per record: seed, policy, same (bool), differs (the keys that differ),
+    heap_same (None when the record has no digest), code (recorded) and code_now."""
+    recs = _records_to_replay(path, seeds, count)
     def key(job):  # the job without its heap folder, hashable
         return (*job[:5], job[6], tuple(sorted(job[7].items())))
 
