@@ -743,7 +743,10 @@ def bench_shelf(ctx: typer.Context,
                                                  help="FOSS's suction lift: over (the object is lifted over what "
                                                       "its sweeps to and from the front cross) or floor (2 cm "
                                                       "only: those sweeps must be clear, FOSS as a 2D overhead "
-                                                      "simulator)")):
+                                                      "simulator)"),
+                oracle_push_target: bool = typer.Option(False, "--oracle-push-target",
+                                                        help="oracle_p / oracle_ps: also push the target itself "
+                                                             "(the oracles know where it is)")):
     """Shelf search in FOSS (Table 9.1): scenes S..S+K-1 for each occluder count, ground-truth (or
     learned) occupancy; one JSON line per search (resumable), then success rates and median steps."""
     check_shelf_policy(policy)
@@ -761,7 +764,8 @@ def bench_shelf(ctx: typer.Context,
 
     s = run_shelf_bench(policy, counts, scenes, seed_start, out, workers=workers, use_ray=ray or ray_address is not None,
                         ray_address=ray_address, horizon=horizon, progress=progress, perception=perception,
-                        oracle_exhaustive=oracle_exhaustive, suction_lift=suction_lift)
+                        oracle_exhaustive=oracle_exhaustive, suction_lift=suction_lift,
+                        oracle_push_target=oracle_push_target)
     bar.close()
     if s["resumed"]:
         typer.echo(f"resuming: {s['resumed']} of {len(counts) * scenes} searches were already in {out}")

@@ -160,9 +160,30 @@ def test_every_proposed_action_is_executed_as_proposed(foss):
 def test_unknown_objects_and_kinds_are_refused(foss):
     s = scene(box("a", 0.0, 0.0))
     for a in (ShelfAction("push", "zz", 0.1), ShelfAction("lift", "a", 0.1), Action("stop"),
-              ShelfAction("push", "target", 0.1), ShelfAction("push", "a", 0.001)):
+              ShelfAction("suction", "target", 0.1, 0.1), ShelfAction("push", "a", 0.001)):
         same, out = foss.step(s, a)
         assert not out.success and same is s
+
+
+def test_the_target_is_pushed_like_any_object_when_asked_for(foss):
+    """Only a planner that knows the target proposes its pushes (target=True); FOSS executes them
+    with the same rules (nearest neighbour, blade corridor), and the target's place changes."""
+    s = scene(box("a", -0.1, 0.0), box("b", 0.05, 0.24))
+    assert all(a.object_id != "target" for a in foss.push_actions(s))
+    pushes = {(a.object_id, np.sign(a.dx)): a for a in foss.push_actions(s, target=True)}
+    left, right = pushes[("target", -1.0)], pushes[("target", 1.0)]
+    # to the left it stops at b (its right face at 0.10), to the right at the wall (0.30)
+    assert left.dx == pytest.approx(0.10 - (0.22 - 0.03) + CONTACT_GAP)
+    assert right.dx == pytest.approx(0.30 - 0.25 - CONTACT_GAP)
+    new, out = foss.step(s, left)
+    assert out.success and new.objects == s.objects
+    assert new.target.x == pytest.approx(0.22 + left.dx) and new.target.y == s.target.y
+    assert new == foss.moved(s, left)
+    # a blade corridor blocked from the front refuses the push, as for any object
+    blocked = scene(box("a", 0.18, 0.0, w=0.2))
+    assert all(a.object_id != "target" for a in foss.push_actions(blocked, target=True))
+    same, out = foss.step(blocked, ShelfAction("push", "target", -0.05))
+    assert not out.success and same is blocked
 
 
 def test_visible_fraction(foss):

@@ -174,7 +174,7 @@ def shelf_rollout(policy: str, occluders: int, seed: int, params: ShelfPolicyPar
         return float(1e3 * f(x)) if x else float("nan")
 
     return dict(seed=int(seed), occluders=int(occluders), objects=int(occluders), policy=policy, fidelity=FIDELITY,
-                perception=perception, suction_lift=suction_lift,
+                perception=perception, suction_lift=suction_lift, oracle_push_target=bool(params.oracle_push_target),
                 oracle_exhaustive_seconds=oracle_exhaustive_budget(policy, params.oracle_exhaustive_seconds)
                 if policy in ("oracle_p", "oracle_ps") else 0.0,
                 success=not failure, steps=steps, actions=steps, pushes=kinds.count("push"),
@@ -189,35 +189,40 @@ def shelf_rollout(policy: str, occluders: int, seed: int, params: ShelfPolicyPar
 
 
 def shelf_rollout_job(job: tuple) -> dict:
-    """(policy, occluders, seed[, horizon[, perception[, oracle_exhaustive_seconds[, suction_lift]]]])
-    -> record; module-level for the worker pool."""
+    """(policy, occluders, seed[, horizon[, perception[, oracle_exhaustive_seconds[, suction_lift[,
+    oracle_push_target]]]]]) -> record; module-level for the worker pool."""
     policy, occluders, seed, *rest = job
     horizon = rest[0] if rest else None
     perception = rest[1] if len(rest) > 1 else "ground_truth"
     exhaustive = rest[2] if len(rest) > 2 else oracle_last_stage_seconds(policy)
     lift = rest[3] if len(rest) > 3 else "over"
+    push_target = bool(rest[4]) if len(rest) > 4 else False
     return shelf_rollout(policy, occluders, seed,
-                         ShelfPolicyParams(seed=seed, horizon=horizon, oracle_exhaustive_seconds=exhaustive),
+                         ShelfPolicyParams(seed=seed, horizon=horizon, oracle_exhaustive_seconds=exhaustive,
+                                           oracle_push_target=push_target),
                          perception=perception, suction_lift=lift)
 
 
 def final_shelf_records(recs: list[dict]) -> list[dict]:
     """The last record per (policy, occluders, seed, perception, Oracle-P's exhaustive budget, suction
-    lift rule): a retried search replaces its failure; other settings in the same file stay apart.
-    A record without `suction_lift` is an "over" one."""
+    lift rule, whether the oracle pushes the target): a retried search replaces its failure; other
+    settings in the same file stay apart. A record without `suction_lift` is an "over" one, one
+    without `oracle_push_target` does not push the target."""
     out = {}
     for r in recs:
         out[(r.get("policy"), r.get("objects"), int(r["seed"]), r.get("perception", "ground_truth"),
-             float(r.get("oracle_exhaustive_seconds", 0.0)), r.get("suction_lift", "over"))] = r
+             float(r.get("oracle_exhaustive_seconds", 0.0)), r.get("suction_lift", "over"),
+             bool(r.get("oracle_push_target", False)))] = r
     return list(out.values())
 
 
 def _matches(r: dict, policy: str, perception: str = "ground_truth", oracle_exhaustive: float = 0.0,
-             suction_lift: str = "over") -> bool:
+             suction_lift: str = "over", oracle_push_target: bool = False) -> bool:
     return (r.get("policy") == policy and r.get("fidelity") == FIDELITY
             and r.get("perception", "ground_truth") == perception
             and float(r.get("oracle_exhaustive_seconds", 0.0)) == float(oracle_exhaustive)
-            and r.get("suction_lift", "over") == suction_lift)
+            and r.get("suction_lift", "over") == suction_lift
+            and bool(r.get("oracle_push_target", False)) == bool(oracle_push_target))
 
 
 def oracle_exhaustive_budget(policy: str, seconds: float | None) -> float:
@@ -235,7 +240,7 @@ def oracle_exhaustive_budget(policy: str, seconds: float | None) -> float:
 def run_shelf_bench(policy: str, occluders: list[int], scenes: int, seed_start: int, out, workers: int = 1,
                     use_ray: bool = False, ray_address: str | None = None, horizon: int | None = None,
                     progress=None, perception: str = "ground_truth", oracle_exhaustive: float | None = None,
-                    suction_lift: str = "over") -> dict:
+                    suction_lift: str = "over", oracle_push_target: bool = False) -> dict:
     """Run the missing rollouts of seeds S..S+K-1 for every occluder count, append them to `out`
     (JSON lines); returns {occluders or "all": summary} over the requested seeds. Records without
     a `perception` field are ground-truth ones. oracle_exhaustive: the CPU budget [s] of the oracle's
@@ -243,9 +248,13 @@ def run_shelf_bench(policy: str, occluders: list[int], scenes: int, seed_start: 
     search (ShelfPolicyParams.oracle_exhaustive_seconds; None: the policy's default, 0 = off;
     records keep it, 0 for the other policies and for records without it, and a resumed
     run matches on it); suction_lift: FOSS's suction lift rule (ms_drake.foss.SUCTION_LIFTS; kept
-    in the records; a record without it is an "over" one)."""
+    in the records; a record without it is an "over" one); oracle_push_target: the oracles also push
+    the target (ShelfPolicyParams.oracle_push_target; kept in the records)."""
     check_shelf_policy(policy)
     oracle_exhaustive = oracle_exhaustive_budget(policy, oracle_exhaustive)
+    if oracle_push_target and policy not in ("oracle_p", "oracle_ps"):
+        raise MsDrakeError(f"--oracle-push-target: only for --policy oracle_p or oracle_ps (got --policy {policy}): "
+                           "the other policies do not know where the target is")
     if suction_lift not in SUCTION_LIFTS:
         raise MsDrakeError(f"--suction-lift {suction_lift}: choose one of {', '.join(SUCTION_LIFTS)}")
     bad = [n for n in occluders if not 2 <= n <= 12]
@@ -254,10 +263,11 @@ def run_shelf_bench(policy: str, occluders: list[int], scenes: int, seed_start: 
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     done = {(int(r["objects"]), int(r["seed"])) for r in final_shelf_records(read_records(out))
-            if _matches(r, policy, perception, oracle_exhaustive, suction_lift) and r.get("failure") != "worker_died"}
+            if _matches(r, policy, perception, oracle_exhaustive, suction_lift, oracle_push_target)
+            and r.get("failure") != "worker_died"}
     seeds = range(seed_start, seed_start + scenes)
-    jobs = [(policy, n, s, horizon, perception, oracle_exhaustive, suction_lift) for n in occluders for s in seeds
-            if (n, s) not in done]
+    jobs = [(policy, n, s, horizon, perception, oracle_exhaustive, suction_lift, oracle_push_target)
+            for n in occluders for s in seeds if (n, s) not in done]
     with open(out, "a") as f:
         for r in run_jobs(shelf_rollout_job, jobs, workers=workers, use_ray=use_ray, ray_address=ray_address):
             if r.ok:
@@ -266,14 +276,14 @@ def run_shelf_bench(policy: str, occluders: list[int], scenes: int, seed_start: 
                 err = (r.error or "").strip().splitlines()
                 rec = dict(seed=r.job[2], occluders=r.job[1], objects=r.job[1], policy=policy, fidelity=FIDELITY,
                            perception=perception, oracle_exhaustive_seconds=float(oracle_exhaustive),
-                           suction_lift=suction_lift, success=False, steps=0, actions=0, failure="worker_died", error=err[-1] if err else "")
+                           suction_lift=suction_lift, oracle_push_target=bool(oracle_push_target), success=False, steps=0, actions=0, failure="worker_died", error=err[-1] if err else "")
             f.write(json.dumps(rec) + "\n")
             f.flush()
             os.fsync(f.fileno())
             if progress is not None:
                 progress(rec)
     recs = [r for r in final_shelf_records(read_records(out))
-            if _matches(r, policy, perception, oracle_exhaustive, suction_lift)
+            if _matches(r, policy, perception, oracle_exhaustive, suction_lift, oracle_push_target)
             and int(r["seed"]) in seeds
             and int(r["objects"]) in occluders]
     summary = {n: summarize([r for r in recs if int(r["objects"]) == n]) for n in occluders}
@@ -299,29 +309,31 @@ def _cell(recs: list[dict]) -> tuple[str, str]:
     return rate, steps
 
 
-def _column_key(r: dict) -> tuple[str, float, str]:
-    return r["policy"], float(r.get("oracle_exhaustive_seconds", 0.0)), r.get("suction_lift", "over")
+def _column_key(r: dict) -> tuple[str, float, str, bool]:
+    return (r["policy"], float(r.get("oracle_exhaustive_seconds", 0.0)), r.get("suction_lift", "over"),
+            bool(r.get("oracle_push_target", False)))
 
 
-def _columns(recs: list[dict], policies) -> list[tuple[str, float, str]]:
+def _columns(recs: list[dict], policies) -> list[tuple[str, float, str, bool]]:
     """The table's columns present in `recs`: (policy, the budget of the oracle's last stage, the
-    suction lift rule), in policy order, an oracle's default budget and the default lift first."""
+    suction lift rule, whether the oracle pushes the target), in policy order, an oracle's default
+    budget, the default lift and the target left where it is first."""
     keys = {_column_key(r) for r in recs}
     return sorted((k for k in keys if k[0] in policies),
-                  key=lambda k: (k[2] != "over", list(policies).index(k[0]),
+                  key=lambda k: (k[2] != "over", list(policies).index(k[0]), k[3],
                                  k[1] != oracle_last_stage_seconds(k[0]), k[1]))
 
 
-def _column_name(key: tuple[str, float, str]) -> str:
-    p, last, lift = key
+def _column_name(key: tuple[str, float, str, bool]) -> str:
+    p, last, lift, push_target = key
     name = POLICY_NAMES.get(p, p)
     if p in ("oracle_p", "oracle_ps") and last != oracle_last_stage_seconds(p):
         stage = "exhaustive" if p == "oracle_p" else "wide"
         name += f" ({stage} search {last:g} s)" if last else " (staged search only)"
-    return name + (f", suction lift {lift}" if lift != "over" else "")
+    return name + (", target pushed" if push_target else "") + (f", suction lift {lift}" if lift != "over" else "")
 
 
-def _in_column(r: dict, key: tuple[str, float, str]) -> bool:
+def _in_column(r: dict, key: tuple[str, float, str, bool]) -> bool:
     return _column_key(r) == key
 
 

@@ -27,7 +27,9 @@ actions move one object, and nothing else ever moves. The bluction tool's two ac
   across the depth (d_y = 0: flush with the front). With `FossParams.max_lift` (SUCTION_LIFTS
   "floor") a lift higher than that is refused: the sweeps must then be clear of every object.
 Every object in the scene is an obstacle, the target included (a push stops at the target; a
-sweep through it is refused). A refused action changes nothing.
+sweep through it is refused). The target can be pushed like any other object (`step`;
+`push_actions(target=True)` proposes its pushes to a planner that knows where it is), not sucked.
+A refused action changes nothing.
 
 The target's visibility is the fraction of its image area the camera sees (ray casts,
 ms_drake.shelf_geometry.visible_fraction); the search succeeds at VISIBILITY_THRESHOLD.
@@ -125,6 +127,10 @@ class Foss:
         return Prisms.of(objs), len(scene.objects)
 
     @staticmethod
+    def _is_target(scene: ShelfScene, object_id: str) -> bool:
+        return scene.target is not None and object_id == scene.target.id
+
+    @staticmethod
     def _index(scene: ShelfScene, object_id: str) -> int:
         for k, o in enumerate(scene.objects):
             if o.id == object_id:
@@ -159,26 +165,29 @@ class Foss:
         wall = hx - dirs * c[:, 0] - ext[:, 0]
         return fits, np.minimum(d, wall)
 
-    def push_actions(self, scene: ShelfScene, leave_room: bool = False) -> list[ShelfAction]:
+    def push_actions(self, scene: ShelfScene, leave_room: bool = False, target: bool = False) -> list[ShelfAction]:
         """Every feasible push to the nearest neighbour (or wall), both directions, object order;
         leave_room: each followed by the same push stopped short by the blade's thickness +
-        BLADE_ROOM (when that is still >= min_push)."""
+        BLADE_ROOM (when that is still >= min_push); target: the target's pushes too (last; only a
+        planner that knows where the target is can propose them: the oracles)."""
         P, n = self._bodies(scene)
-        if n == 0:
+        movable = n + 1 if target and scene.target is not None else n
+        if movable == 0:
             return []
         p = self.params
-        ks = np.repeat(np.arange(n), 2)
-        dirs = np.tile([-1.0, 1.0], n)
+        ks = np.repeat(np.arange(movable), 2)
+        dirs = np.tile([-1.0, 1.0], movable)
         fits, reach = self._push_reach(P, ks, dirs)
         travel = reach - p.contact_gap
         ok = fits & (travel >= p.min_push)
         short = reach - p.blade_thickness - BLADE_ROOM
+        ids = [o.id for o in scene.objects] + ([scene.target.id] if movable > n else [])
         out = []
         for k, s, t, t_short, good in zip(ks.tolist(), dirs.tolist(), travel.tolist(), short.tolist(), ok.tolist()):
             if good:
-                out.append(ShelfAction("push", scene.objects[k].id, s * t))
+                out.append(ShelfAction("push", ids[k], s * t))
                 if leave_room and t_short >= p.min_push:
-                    out.append(ShelfAction("push", scene.objects[k].id, s * t_short))
+                    out.append(ShelfAction("push", ids[k], s * t_short))
         return out
 
     # -- suction ------------------------------------------------------------------------------------
@@ -253,6 +262,9 @@ class Foss:
     def moved(self, scene: ShelfScene, action: ShelfAction) -> ShelfScene:
         """The scene after an action that push_actions / suction_actions proposed for this very
         scene (no feasibility check: planners use it to expand proposed actions quickly)."""
+        if self._is_target(scene, action.object_id):
+            t = scene.target
+            return ShelfScene(scene.objects, t.moved(t.x + action.dx, t.y), scene.seed)
         k = self._index(scene, action.object_id)
         o = scene.objects[k]
         xy = (o.x + action.dx, o.y) if action.kind == "push" else self.placement_center(o, action.dx, action.dy)
@@ -265,11 +277,12 @@ class Foss:
         wrapped = action if isinstance(action, Action) else Action("shelf", shelf=a)
         if a is None:
             return scene, ActionOutcome(wrapped, False, message=f"not a shelf action: {action!r}")
-        k = self._index(scene, a.object_id)
+        P, n = self._bodies(scene)
+        target = self._is_target(scene, a.object_id) and a.kind == "push"  # the target is pushed, never sucked
+        k = n if target else self._index(scene, a.object_id)
         if k < 0:
             return scene, ActionOutcome(wrapped, False, message=f"no movable object {a.object_id!r}")
-        P, _ = self._bodies(scene)
-        o = scene.objects[k]
+        o = scene.target if target else scene.objects[k]
         if a.kind == "push":
             if abs(a.dx) < self.params.min_push:
                 return scene, ActionOutcome(wrapped, False, message=f"push of {abs(a.dx):.4f} m < min_push")
@@ -290,6 +303,8 @@ class Foss:
             new = o.moved(*xy[0])
         else:
             return scene, ActionOutcome(wrapped, False, message=f"unknown shelf action kind {a.kind!r}")
+        if target:
+            return ShelfScene(scene.objects, new, scene.seed), ActionOutcome(wrapped, True, message="ok")
         objects = scene.objects[:k] + (new,) + scene.objects[k + 1:]
         return ShelfScene(objects, scene.target, scene.seed), ActionOutcome(wrapped, True, message="ok")
 

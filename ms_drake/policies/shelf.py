@@ -118,6 +118,9 @@ class ShelfPolicyParams:
     # exhaustive_push_plan, Oracle-P+S: wide_plan; None: oracle_last_stage_seconds(policy); 0: off)
     oracle_exhaustive_seconds: float | None = None
     oracle_placements: int = 4
+    # the oracles also push the target itself (Foss.push_actions(target=True)): the reference's
+    # target is one of the shelf's objects and a push acts on "object O" (Ch. 9.2); off by default
+    oracle_push_target: bool = False
     # The distribution policies on a robot, whose actions place objects to within ~1-2 cm (0: off, as in FOSS):
     min_move: float = 0.0  # m: candidates FOSS moves their object less than this are not proposed
     nil_move: float = 0.0  # m: an executed action that moved its object less than this is not repeated (nil_effect)
@@ -283,6 +286,22 @@ class _View:
         seen = (masks[None, :] & ~subsets[:, None]) == 0
         ok = subsets[seen.astype(float) @ self.weights >= self.need]
         return cols, ok
+
+class _Views:
+    """_View and the overhead triangle per target position (the target moves only when an oracle
+    pushes it, ShelfPolicyParams.oracle_push_target)."""
+
+    def __init__(self, foss: Foss):
+        self.foss = foss
+        self._cache: dict = {}
+
+    def __call__(self, scene: ShelfScene) -> tuple[_View, shapely.Polygon]:
+        t = scene.target
+        key = (round(t.x, 6), round(t.y, 6))
+        if key not in self._cache:
+            self._cache[key] = (_View(self.foss, t), visibility_triangle(self.foss.geometry, t))
+        return self._cache[key]
+
 
 def _movers(scene: ShelfScene, inside: np.ndarray) -> np.ndarray:
     """Bool (n,): the occluders in the triangle and those in the way of their sweeps to the front."""
@@ -482,12 +501,14 @@ def push_locked(foss: Foss, scene: ShelfScene, step: float = 0.001) -> list[str]
 
 
 def _key(scene: ShelfScene) -> tuple:
-    return tuple((round(o.x, 6), round(o.y, 6)) for o in scene.objects)
+    objects = scene.objects + ((scene.target,) if scene.target is not None else ())
+    return tuple((round(o.x, 6), round(o.y, 6)) for o in objects)
 
 
 def oracle_plan(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: float = PSI,
                 max_nodes: int = 500, placements: int = 4, max_seconds: float = 8.0,
-                exhaustive_seconds: float = 0.0, exhaustive_states: int = 400_000) -> tuple[ShelfAction, ...] | None:
+                exhaustive_seconds: float = 0.0, exhaustive_states: int = 400_000,
+                push_target: bool = False) -> tuple[ShelfAction, ...] | None:
     """An action sequence (<= budget actions) after which FOSS sees the target, in stages until one
     finds it: A* (the cheapest within its branching; admissible estimate; max_nodes expansions and
     at most max_seconds / 4) then greedy best-first (relaxed estimate; 3 * max_nodes), over
@@ -496,56 +517,61 @@ def oracle_plan(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: 
     max_seconds of CPU time, or at once when pushes alone cannot do it (push_locked) (module
     docstring). Then, with exhaustive_seconds > 0, the last stage with that CPU budget: pushes only
     (suction=False), the exhaustive push search (`exhaustive_push_plan`, at most exhaustive_states
-    states); with suction, the wide search (`wide_plan`)."""
+    states); with suction, the wide search (`wide_plan`). push_target: the target's own pushes are
+    actions too (Foss.push_actions(target=True)); push_locked, which assumes the target stays,
+    is then not asked, and the estimates (the least removal set at the target's current place)
+    are no longer bounds, so a plan need not be the cheapest and "no plan" proves nothing."""
     if not max_seconds > 0:
         raise PolicyError(f"oracle max_seconds={max_seconds}: must be > 0 (e.g. 8.0)")
     if exhaustive_seconds < 0:
         raise PolicyError(f"oracle exhaustive_seconds={exhaustive_seconds}: must be >= 0 (0: off)")
     deadline = time.process_time() + max_seconds
-    if not suction and push_locked(foss, scene):
+    if not suction and not push_target and push_locked(foss, scene):
         return None
     for leave_room in (False, True):
         for greedy, nodes in ((False, max_nodes), (True, 3 * max_nodes)):
             # A* gets at most a quarter of the bound: when it needs more it rarely finishes at all.
             until = deadline if greedy else min(deadline, time.process_time() + max_seconds / 4)
             plan = _search(foss, scene, suction, budget, psi, nodes, placements, greedy=greedy, deadline=until,
-                           leave_room=leave_room)
+                           leave_room=leave_room, push_target=push_target)
             if plan is not None:
                 return plan
     if exhaustive_seconds > 0:
         if suction:
-            return wide_plan(foss, scene, budget, psi, placements, exhaustive_seconds)
-        return exhaustive_push_plan(foss, scene, budget, exhaustive_seconds, exhaustive_states)
+            return wide_plan(foss, scene, budget, psi, placements, exhaustive_seconds, push_target=push_target)
+        return exhaustive_push_plan(foss, scene, budget, exhaustive_seconds, exhaustive_states, push_target=push_target)
     return None
 
 
 def wide_plan(foss: Foss, scene: ShelfScene, budget: int, psi: float = PSI, placements: int = 4,
-              max_seconds: float = ORACLE_WIDE_SECONDS) -> tuple[ShelfAction, ...] | None:
+              max_seconds: float = ORACLE_WIDE_SECONDS, push_target: bool = False) -> tuple[ShelfAction, ...] | None:
     """Oracle-P+S's last stage: the greedy best-first search of the staged one with the pushes that
     stop short, twice the suction placements for the occluders that block the view or are in the
     way of their sweeps (2 * placements; 2 for the others, as there) and no expansion limit, until
     `max_seconds` of CPU. It finds a plan (<= budget actions), not the cheapest; None when the
     states ran out or the time did. The tree with every grid placement is out of reach."""
     return _search(foss, scene, True, budget, psi, max_nodes=np.iinfo(np.int64).max, placements=2 * placements,
-                   greedy=True, deadline=time.process_time() + max_seconds, leave_room=True)
+                   greedy=True, deadline=time.process_time() + max_seconds, leave_room=True, push_target=push_target)
 
 
 def exhaustive_push_plan(foss: Foss, scene: ShelfScene, budget: int, max_seconds: float,
-                         max_states: int = 400_000) -> tuple[ShelfAction, ...] | None:
+                         max_states: int = 400_000, push_target: bool = False) -> tuple[ShelfAction, ...] | None:
     """The reference's exhaustive push tree capped at H, breadth first: every push FOSS allows (to
     the neighbour and stopped short with room for the blade), duplicate states merged (object
     positions to 1 um), a state dropped when it needs more objects moved than the budget has
     actions left (the least removal set; admissible). Returns a shortest push plan (<= budget
     actions) after which FOSS sees the target, or None when there is none (the states ran out or
     every branch reached the budget) or the CPU budget `max_seconds` / `max_states` ran out first.
-    The discrete push lengths are FOSS's; the reference's d_x is any real number."""
+    The discrete push lengths are FOSS's; the reference's d_x is any real number. push_target: the
+    target's pushes too (the pruning then uses the least removal set at the target's current place,
+    which is no longer a bound: a plan is found, "none" proves nothing)."""
     if scene.target is None:
         raise PolicyError("the oracles need the full state: connect a scene with its target")
     deadline = time.process_time() + max_seconds
-    view = _View(foss, scene.target)
+    views = _Views(foss)
 
     def least(sc) -> int | None:
-        _, sets = view.blockers(sc)
+        _, sets = views(sc)[0].blockers(sc)
         return int(np.bitwise_count(sets).min()) if len(sets) else None
 
     if least(scene) is None:
@@ -556,7 +582,7 @@ def exhaustive_push_plan(foss: Foss, scene: ShelfScene, budget: int, max_seconds
         for sc, plan in frontier:
             if time.process_time() > deadline or len(seen) > max_states:
                 return None
-            for a in foss.push_actions(sc, leave_room=True):
+            for a in foss.push_actions(sc, leave_room=True, target=push_target):
                 s2 = foss.moved(sc, a)
                 k = _key(s2)
                 if k in seen:
@@ -595,16 +621,16 @@ def _greedy_estimate(foss: Foss, sc: ShelfScene, cols: np.ndarray, sets: np.ndar
 
 def _search(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: float, max_nodes: int,
             placements: int, greedy: bool, deadline: float = np.inf,
-            leave_room: bool = False) -> tuple[ShelfAction, ...] | None:
+            leave_room: bool = False, push_target: bool = False) -> tuple[ShelfAction, ...] | None:
     if scene.target is None:
         raise PolicyError("the oracles need the full state: connect a scene with its target")
-    tri = visibility_triangle(foss.geometry, scene.target)
-    view = _View(foss, scene.target)
+    views = _Views(foss)
     n = len(scene.objects)
 
     def evaluate(sc):
         """(estimate, least objects to move, the occluders blocking the view (n,) bool) of a state;
         (None, None, None) when no plan can reveal the target."""
+        view = views(sc)[0]
         cols, sets = view.blockers(sc)
         if len(sets) == 0:
             return None, None, None
@@ -629,8 +655,9 @@ def _search(foss: Foss, scene: ShelfScene, suction: bool, budget: int, psi: floa
         if len(plan) >= budget or (not greedy and g > best.get(_key(sc), np.inf) + 1e-9):
             continue
         expanded += 1
-        actions = [(a, 1.0) for a in foss.push_actions(sc, leave_room=leave_room)]
+        actions = [(a, 1.0) for a in foss.push_actions(sc, leave_room=leave_room, target=push_target)]
         if suction:
+            view, tri = views(sc)
             actions += [(a, psi) for a in _oracle_suction(foss, sc, tri, _movers(sc, inside), placements, view)]
         for a, cost in actions:
             nxt = foss.moved(sc, a)
@@ -812,9 +839,10 @@ class ShelfPolicies:
         if plan is None or (plan and _action_key(plan[0]) in rejected):
             plan = oracle_plan(self.foss, scene, suction, self.budget(scene, steps), self.params.psi,
                                self.params.oracle_max_nodes, self.params.oracle_placements,
-                               self.params.oracle_max_seconds, self.last_stage_seconds)
+                               self.params.oracle_max_seconds, self.last_stage_seconds,
+                               push_target=self.params.oracle_push_target)
             if plan is None:
-                locked = push_locked(self.foss, scene) if not suction else []
+                locked = push_locked(self.foss, scene) if not (suction or self.params.oracle_push_target) else []
                 why = (f"no push sequence can take {', '.join(locked)} out of the view" if locked
                        else "no plan clears the view within the budget")
                 return Action("stop", reason=f"{self.policy}: {why}")
