@@ -77,6 +77,20 @@ def test_oracle_p_exhaustive_search_budgets_keep_their_records_and_columns(tmp_p
     assert "| Oracle-P+S | Oracle-P+S (staged search only) |" in shelf_table(shelf_records([out]))
 
 
+def test_oracle_target_pushes_keep_their_records_and_columns(tmp_path):
+    out = tmp_path / "oracle.jsonl"
+    run_shelf_bench("oracle_p", [6], 1, 43, out, oracle_exhaustive=0.0)  # 6 / 43: push-locked
+    s = run_shelf_bench("oracle_p", [6], 1, 43, out, oracle_exhaustive=0.0, oracle_push_target=True)
+    assert s["resumed"] == 0 and s["all"]["success_rate"] == 1.0
+    recs = read_records(out)
+    assert [(r["oracle_push_target"], r["success"]) for r in recs] == [(False, False), (True, True)]
+    assert run_shelf_bench("oracle_p", [6], 1, 43, out, oracle_exhaustive=0.0, oracle_push_target=True)["resumed"] == 1
+    assert ("| Oracle-P (staged search only) | Oracle-P (staged search only), target pushed |"
+            in shelf_table(shelf_records([out])))
+    with pytest.raises(MsDrakeError, match="--oracle-push-target: only for --policy oracle_p or oracle_ps"):
+        run_shelf_bench("bluction_dar", [4], 1, 0, out, oracle_push_target=True)
+
+
 def test_suction_lift_rules_keep_their_records_and_columns(tmp_path):
     out = tmp_path / "bdar.jsonl"
     run_shelf_bench("bluction_dar", [8], 2, 0, out)

@@ -270,6 +270,26 @@ def test_push_locked(foss, monkeypatch):
     assert oracle_plan(foss, scene, suction=True, budget=12) is not None
 
 
+def test_an_oracle_that_pushes_the_target_solves_a_push_locked_scene(foss):
+    """6 occluders, seed 43: occ00 cannot leave the target's view by pushes (push_locked), but the
+    target itself can be pushed out from behind it once its neighbours make room."""
+    scene = generate_shelf_scene(foss.geometry, 43, num_objects=6).scene
+    assert push_locked(foss, scene) == ["occ00"]
+    assert oracle_plan(foss, scene, suction=False, budget=12) is None
+    plan = oracle_plan(foss, scene, suction=False, budget=12, push_target=True)
+    assert plan is not None and {a.kind for a in plan} == {"push"} and "target" in {a.object_id for a in plan}
+    s = scene
+    for a in plan:
+        s, outcome = foss.step(s, a)
+        assert outcome.success, outcome.message
+    assert foss.revealed(s) and s.target.x != scene.target.x
+    # through the selector: its first action, and the plan's later states reuse the plan
+    policies = ShelfPolicies("oracle_p", foss, ShelfPolicyParams(oracle_push_target=True))
+    action = policies.select(scene, None)
+    assert action.kind == "shelf" and action.shelf == plan[0]
+    assert ShelfPolicies("oracle_p", foss).select(scene, None).kind == "stop"
+
+
 def test_exhaustive_push_search_finds_the_plans_the_bounded_oracle_misses(foss):
     """8 occluders, seed 89: one of Oracle-P's failures in Table 9.1 (its staged search ends
     without a plan); breadth first over every push there is a 6-push plan, and none of 5."""

@@ -60,6 +60,10 @@ All three keep the history P'_t = min(P_t, P'_{t-1}) (P'_0 = P_0), renormalised.
   each for up to `oracle_exhaustive_seconds` of CPU (default: ORACLE_EXHAUSTIVE_SECONDS for
   oracle_p, ORACLE_WIDE_SECONDS for oracle_ps). Plans are cached by scene content, so executing
   one re-plans nothing.
+  With `oracle_push_target` the oracles also push the target itself (the reference's target is
+  one of the shelf's objects, and a push acts on "object O", Ch. 9.2; only a planner that knows
+  where the target is can propose it). push_locked's proof then does not apply (it assumes the
+  target stays), and the estimates, taken at the target's current place, are no longer bounds.
 """
 
 from __future__ import annotations
