@@ -1,12 +1,15 @@
-"""One shelf scene searched by a policy under FOSS's two suction lift rules, drawn from above.
+"""One shelf scene searched by a policy under FOSS's two suction lift rules (or, with
+--target-push, by an oracle with the target left in place and pushed), drawn from above.
 
-For each rule (ms_drake.foss.SUCTION_LIFTS) the search runs as in Table 9.1 (`shelf_rollout`'s
-Diagram, ground-truth occupancy) and the figure shows the shelf seen from above at the start and
-after each action: objects (the target red, the moved one orange, heights in cm), and for each suction the
-object's sweeps to and from the front (dashed); the camera looks from below the panel.
+For each row the search runs as in Table 9.1 (`shelf_rollout`'s Diagram, ground-truth occupancy)
+and the figure shows the shelf seen from above at the start and after each action: objects (the
+target red, the moved one orange, heights in cm), and for each suction the object's sweeps to and
+from the front (dashed); the camera looks from below the panel.
 
     .venv/bin/python sims/shelf_lift_example.py --occluders 10 --seed 4 --policy bluction_dar \
         --out docs/figures/shelf_lift_example.png
+    .venv/bin/python sims/shelf_lift_example.py --occluders 6 --seed 43 --policy oracle_p --target-push \
+        --out docs/figures/shelf_target_push_example.png
 """
 
 from __future__ import annotations
@@ -27,12 +30,13 @@ from ms_drake.policies.shelf import ShelfPolicyParams, check_shelf_policy  # noq
 from ms_drake.scenes.shelf import generate_shelf_scene  # noqa: E402
 
 
-def search(policy: str, occluders: int, seed: int, lift: str):
+def search(policy: str, occluders: int, seed: int, lift: str, push_target: bool = False):
     """[(scene, action or None)] from the start to the end of the search, and whether it succeeded."""
     geometry = shelf_geometry(SCENARIO)
     foss = Foss(geometry, FossParams.for_suction_lift(lift))
     scene = generate_shelf_scene(geometry, seed, occluders, DEFAULT_TARGET).scene
-    diagram = build_shelf_search(foss, scene, policy, ShelfPolicyParams(seed=seed), DEFAULT_TARGET)
+    params = ShelfPolicyParams(seed=seed, oracle_push_target=push_target)
+    diagram = build_shelf_search(foss, scene, policy, params, DEFAULT_TARGET)
     sim = Simulator(diagram)
     ctx = sim.get_mutable_context()
     period = diagram.GetSubsystemByName("foss").period
@@ -58,7 +62,8 @@ def draw(ax, geometry, scene, action, visible: float, title: str):
     ax.add_patch(Rectangle((-hx, -hy), 2 * hx, 2 * hy, fill=False, lw=1.5, color="k"))
     for o in (*scene.objects, scene.target):
         red = o is scene.target
-        face = "tab:red" if red else ("tab:orange" if action is not None and o.id == action.object_id else "0.75")
+        moved = action is not None and o.id == action.object_id
+        face = "tab:red" if red else ("tab:orange" if moved else "0.75")
         if o.kind == "cylinder":
             ax.add_patch(Circle((o.x, o.y), o.width / 2, fc=face, ec="k", lw=0.6))
         else:
@@ -66,7 +71,7 @@ def draw(ax, geometry, scene, action, visible: float, title: str):
         if not red:
             ax.text(o.x, o.y, f"{o.height * 100:.0f}", ha="center", va="center", fontsize=6)
     if action is not None:
-        o = scene.object(action.object_id)
+        o = scene.target if action.object_id == scene.target.id else scene.object(action.object_id)
         if action.kind == "suction":  # the sweeps: out to the front, and in to the placement
             x1, y1 = o.x + action.dx, -hy + action.dy + o.depth / 2
             for x, y in ((o.x, o.y), (x1, y1)):
@@ -89,14 +94,23 @@ def main():
     ap.add_argument("--occluders", type=int, default=10)
     ap.add_argument("--seed", type=int, default=4)
     ap.add_argument("--policy", default="bluction_dar")
-    ap.add_argument("--max-panels", type=int, default=6, help="panels per rule (the last state always shown)")
+    ap.add_argument("--max-panels", type=int, default=6, help="panels per row (the last state always shown)")
+    ap.add_argument("--target-push", action="store_true",
+                    help="rows: the oracle with the target left in place and pushing it (--lift's rule)")
+    ap.add_argument("--lift", default="over", choices=sorted(SUCTION_LIFTS), help="the lift rule with --target-push")
     ap.add_argument("--out", type=Path, default=Path("docs/figures/shelf_lift_example.png"))
     a = ap.parse_args()
     check_shelf_policy(a.policy)
-    runs = {lift: search(a.policy, a.occluders, a.seed, lift) for lift in SUCTION_LIFTS}
+    if a.target_push:
+        if a.policy not in ("oracle_p", "oracle_ps"):
+            ap.error(f"--target-push: only the oracles push the target (oracle_p, oracle_ps), not {a.policy}")
+        runs = {name: search(a.policy, a.occluders, a.seed, a.lift, push) for name, push in
+                (("target stays", False), ("target pushed", True))}
+    else:
+        runs = {f"lift {lift}": search(a.policy, a.occluders, a.seed, lift) for lift in SUCTION_LIFTS}
     cols = max(min(len(states), a.max_panels) for states, _, _ in runs.values())
     fig, axes = plt.subplots(len(runs), cols, figsize=(2.2 * cols, 2.6 * len(runs)), squeeze=False)
-    for row, (lift, (states, ok, geometry)) in enumerate(runs.items()):
+    for row, (name, (states, ok, geometry)) in enumerate(runs.items()):
         shown = states[: a.max_panels - 1] + [states[-1]] if len(states) > a.max_panels else states
         for col in range(cols):
             ax = axes[row, col]
@@ -105,10 +119,10 @@ def main():
                 continue
             sc, action, vis = shown[col]
             step = states.index(shown[col])
-            draw(ax, geometry, sc, action, vis, f"lift {lift}, step {step}")
-        axes[row, 0].set_ylabel(f"lift {lift}: {'found' if ok else 'not found'} in {len(states) - 1} actions",
+            draw(ax, geometry, sc, action, vis, f"{name}, step {step}")
+        axes[row, 0].set_ylabel(f"{name}: {'found' if ok else 'not found'} in {len(states) - 1} actions",
                                 fontsize=8)
-        print(f"lift {lift}: {'success' if ok else 'failure'} after {len(states) - 1} actions: "
+        print(f"{name}: {'success' if ok else 'failure'} after {len(states) - 1} actions: "
               + ", ".join(f"{s[1].kind} {s[1].object_id}" for s in states if s[1] is not None))
     fig.suptitle(f"{a.policy}, {a.occluders} occluders, scene {a.seed} (from above; the front and camera below; "
                  "numbers: heights in cm)", fontsize=8)
