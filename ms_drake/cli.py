@@ -458,7 +458,8 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
                                               "occluders unseen YCB and packaged objects) | xray_occluded (xray_ycb's "
                                               "occluders, every object offset from the heap centre at sigma 8 cm, "
                                               "the target fully hidden at the start) | xray_small (the "
-                                              "xray_occluded heaps with a 4.5 x 4.5 x 0.5 cm target)"),
+                                              "xray_occluded heaps with a 4.5 x 4.5 x 0.5 cm target) | xray_tiny "
+                                              "(with a 3.5 x 3.5 x 0.5 cm target)"),
                  segmenter: str = typer.Option("ground_truth", "--segmenter", help="Instance masks: ground_truth "
                                                "(label image) | euclidean | region_growing | learned (depth)"),
                  detector: str = typer.Option("color", "--detector", help="Target detector: color (HSV, red "

@@ -25,7 +25,7 @@ from ms_drake.station.robots import set_arm_positions
 
 
 def test_protocols_name_the_hidden_variant():
-    assert PROTOCOLS == ("ch7", "xray", "xray_hidden", "xray_ycb", "xray_occluded", "xray_small")
+    assert PROTOCOLS == ("ch7", "xray", "xray_hidden", "xray_ycb", "xray_occluded", "xray_small", "xray_tiny")
 
 
 def test_xray_hidden_heap_starts_with_the_target_hidden_from_the_station_camera():
