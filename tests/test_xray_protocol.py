@@ -1,5 +1,5 @@
 """The heap protocols of Table 8.2 (ms_drake.experiments.xray): `xray`, `xray_hidden`, `xray_ycb`,
-`xray_occluded`, `xray_small`."""
+`xray_occluded`, `xray_small`, `xray_tiny`."""
 
 import dataclasses
 
@@ -13,8 +13,11 @@ from ms_drake.experiments.xray import (
     XRAY_OCCLUDED_HEAPS,
     XRAY_SMALL_TARGET,
     XRAY_TARGET,
+    XRAY_TINY_TARGET,
     _names,
     xray_heap,
+    xray_heap_settings,
+    xray_target,
     xray_occluders,
     xray_ycb_occluders,
 )
@@ -108,6 +111,10 @@ def test_xray_small_heaps_are_the_xray_occluded_draws_with_the_smaller_target():
     a = _names(np.random.default_rng(5), 14, xray_ycb_occluders())
     b = _names(np.random.default_rng(5), 14, xray_ycb_occluders(), target=XRAY_SMALL_TARGET)
     assert a[1:] == b[1:] and a[0] == XRAY_TARGET and b[0] == XRAY_SMALL_TARGET
+    # xray_tiny: the same heaps' settings with the 3.5 cm target
+    assert get_object(XRAY_TINY_TARGET).extents == pytest.approx((0.035, 0.035, 0.005))
+    assert xray_target("xray_tiny") == XRAY_TINY_TARGET and xray_target("xray_small") == XRAY_SMALL_TARGET
+    assert xray_heap_settings("xray_tiny") == xray_heap_settings("xray_small")
     heap = xray_heap(5003, protocol="xray_small")
     assert heap.target == XRAY_SMALL_TARGET and heap.target_index == 0 and heap.visible_ratios[0] == 0.0
     assert {o.name for o in heap.objects[1:]} <= set(xray_ycb_occluders())
