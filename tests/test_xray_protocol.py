@@ -1,7 +1,8 @@
 """The heap protocols of Table 8.2 (ms_drake.experiments.xray): `xray`, `xray_hidden`, `xray_ycb`,
-`xray_occluded`, `xray_small`, `xray_tiny`."""
+`xray_occluded`, `xray_small`, `xray_tiny`, `xray_compact`."""
 
 import dataclasses
+import functools
 
 import numpy as np
 import pytest
@@ -28,7 +29,8 @@ from ms_drake.station.robots import set_arm_positions
 
 
 def test_protocols_name_the_hidden_variant():
-    assert PROTOCOLS == ("ch7", "xray", "xray_hidden", "xray_ycb", "xray_occluded", "xray_small", "xray_tiny")
+    assert PROTOCOLS == ("ch7", "xray", "xray_hidden", "xray_ycb", "xray_occluded", "xray_small", "xray_tiny",
+                         "xray_compact")
 
 
 def test_xray_hidden_heap_starts_with_the_target_hidden_from_the_station_camera():
@@ -118,3 +120,23 @@ def test_xray_small_heaps_are_the_xray_occluded_draws_with_the_smaller_target():
     heap = xray_heap(5003, protocol="xray_small")
     assert heap.target == XRAY_SMALL_TARGET and heap.target_index == 0 and heap.visible_ratios[0] == 0.0
     assert {o.name for o in heap.objects[1:]} <= set(xray_ycb_occluders())
+
+
+def test_xray_compact_heaps_drop_every_object_near_one_point_from_20_cm():
+    params, pool = xray_heap_settings("xray_compact")
+    assert (params.center_uniform, params.offset_uniform, params.drop_height) == (0.10, 0.025, 0.20)
+    assert pool == xray_heap_settings("xray_small")[1] and xray_target("xray_compact") == XRAY_SMALL_TARGET
+    scenario = load_scenario(None, "BinHeap15")
+    names = _names(np.random.default_rng(3), 14, pool, target=XRAY_SMALL_TARGET)
+    for seed in range(5):
+        plan = sample_drop_plan(names, scenario, np.random.default_rng(seed), params, flat_first=True)
+        # an item's xy is its origin's: its box centre is the heap centre + an offset within +-2.5 cm
+        centres = np.array([it.xy + 0.5 * (it.lo + it.hi)[:2] for it in plan])
+        assert np.ptp(centres, axis=0).max() <= 0.05 + 1e-9
+        assert np.abs(centres.mean(axis=0)).max() <= 0.10 + 0.025
+    heap, diag = generate_heap(scenario, 15, 9001, params=params, target_first=True, return_diagnostics=True,
+                               names_fn=functools.partial(_names, occluders=14, pool=pool, target=XRAY_SMALL_TARGET))
+    assert diag.phases["max_drop"] >= 0.20  # released from 20 cm (or higher, over the pile)
+    assert heap.target_index == 0 and heap.visible_ratios[0] == 0.0
+    q = heap.objects[0].q
+    assert 0.0 < q[6] < 0.01  # the 5 mm target lies on the bin floor, nothing went through it

@@ -61,6 +61,15 @@ X-Ray's margin (lines 1514-1517: "a robust grasp is often not available on the t
 1:1 training box at 7 / 6 of its size, the nearest to the reference's 3 cm training targets that
 the 3 cm cup still seals on, with 2.5 mm to spare a side): how X-Ray's margin grows as the target
 shrinks (6, 4.5, 3.5 cm).
+
+`--protocol xray_compact`: heaps dropped with the settings of the reference's own occupancy-dataset
+generator (the configuration published with its code, sd-maskrcnn `cfg/partials/states_dist.yaml`,
+which Section 8.3 describes in words): a heap centre uniform in +-10 cm, every object's planar offset
+uniform in +-2.5 cm around it (the target, dropped first, too), each released from 20 cm above the
+bin floor (`XRAY_COMPACT_HEAPS`), in the reference's 40 x 50 cm bin (BinHeap15's is 50 x 40 cm).
+The 4.5 cm target, `xray_ycb`'s occluders, the target fully hidden at the start, H = 10, as
+`xray_small`. The other protocols release each object 1 cm above what lies under it and spread the
+offsets at sigma 4-8 cm; these heaps are piles around one point, the target at their bottom.
 """
 
 from __future__ import annotations
@@ -82,16 +91,18 @@ XRAY_HORIZON = 10
 XRAY_OCCLUDER_SETS = ("ycb", "random_urdfs")
 XRAY_YCB_SETS = ("ycb_unseen", "ycb")  # every object of the first (all test split), the test split of the others
 XRAY_YCB_PACKAGED = 13  # packaged occluders, as the reference's 13 packaged YCB objects
-PROTOCOLS = ("ch7", "xray", "xray_hidden", "xray_ycb", "xray_occluded", "xray_small", "xray_tiny")
-XRAY_PROTOCOLS = ("xray", "xray_hidden", "xray_ycb", "xray_occluded", "xray_small", "xray_tiny")
+PROTOCOLS = ("ch7", "xray", "xray_hidden", "xray_ycb", "xray_occluded", "xray_small", "xray_tiny", "xray_compact")
+XRAY_PROTOCOLS = ("xray", "xray_hidden", "xray_ycb", "xray_occluded", "xray_small", "xray_tiny", "xray_compact")
 XRAY_HEAPS = HeapParams(engine="bullet", polish_time=0.5, offset_sigma=0.04)
 XRAY_HIDDEN_HEAPS = dataclasses.replace(XRAY_HEAPS, max_target_seen=0.0, max_attempts=80)
 XRAY_OCCLUDED_HEAPS = dataclasses.replace(XRAY_HIDDEN_HEAPS, offset_sigma=0.08, target_at_centre=False,
                                           prescreen_margin=0.15)
+XRAY_COMPACT_HEAPS = dataclasses.replace(XRAY_OCCLUDED_HEAPS, center_uniform=0.10, offset_uniform=0.025,
+                                         drop_height=0.20)
 _HEAP_PARAMS = {"xray": XRAY_HEAPS, "xray_hidden": XRAY_HIDDEN_HEAPS, "xray_ycb": XRAY_HEAPS,
                 "xray_occluded": XRAY_OCCLUDED_HEAPS, "xray_small": XRAY_OCCLUDED_HEAPS,
-                "xray_tiny": XRAY_OCCLUDED_HEAPS}
-_TARGETS = {"xray_small": XRAY_SMALL_TARGET, "xray_tiny": XRAY_TINY_TARGET}
+                "xray_tiny": XRAY_OCCLUDED_HEAPS, "xray_compact": XRAY_COMPACT_HEAPS}
+_TARGETS = {"xray_small": XRAY_SMALL_TARGET, "xray_tiny": XRAY_TINY_TARGET, "xray_compact": XRAY_SMALL_TARGET}
 
 
 @functools.cache
@@ -126,7 +137,8 @@ def xray_heap_settings(protocol: str) -> tuple[HeapParams, tuple[str, ...]]:
     if protocol not in XRAY_PROTOCOLS:
         raise ValueError(f"protocol {protocol!r} is not an X-Ray heap protocol; choose one of "
                          f"{', '.join(XRAY_PROTOCOLS)}")
-    pool = xray_ycb_occluders() if protocol in ("xray_ycb", "xray_occluded", "xray_small", "xray_tiny") \
+    pool = xray_ycb_occluders() if protocol in ("xray_ycb", "xray_occluded", "xray_small", "xray_tiny",
+                                                "xray_compact") \
         else xray_occluders()
     return _HEAP_PARAMS[protocol], pool
 
@@ -135,7 +147,8 @@ def xray_heap(seed: int, occluders: int = XRAY_OBJECTS, protocol: str = "xray"):
     """Heap `seed` of a protocol of XRAY_PROTOCOLS: the target dropped first, then `occluders`
     unseen mesh objects (`xray`, and `xray_hidden`: only a heap whose target starts fully hidden)
     or unseen YCB and packaged objects (`xray_ycb`; `xray_occluded`: spread as Section 8.3's heaps,
-    the target fully hidden; `xray_small` and `xray_tiny`: those with the smaller targets)."""
+    the target fully hidden; `xray_small` and `xray_tiny`: those with the smaller targets;
+    `xray_compact`: dropped as the reference's generator configuration gives)."""
     params, pool = xray_heap_settings(protocol)
     return generate_heap(load_scenario(None, "BinHeap15"), occluders + 1, seed, params=params,
                          names_fn=functools.partial(_names, occluders=occluders, pool=pool,

@@ -122,6 +122,13 @@ class HeapParams:
     center_sigma: float = 0.03
     center_max: float = 0.06
     offset_sigma: float = 0.08
+    # Uniform instead of Gaussian draws (None: the Gaussians above): the heap centre uniform in
+    # +-center_uniform (m, each axis), the offsets uniform in +-offset_uniform (m, each axis)
+    center_uniform: float | None = None
+    offset_uniform: float | None = None
+    # Release height of an object's lowest point above the bin floor (m), or drop_gap above what
+    # lies under it if that is higher (None: always drop_gap above what lies under it)
+    drop_height: float | None = None
     max_attempts: int = 5
     split: str = "all"
     render: bool = True
@@ -193,7 +200,10 @@ def sample_drop_plan(names: list[str], scenario: Scenario, rng: np.random.Genera
     lies as modelled (its thinnest extent along z for a flat target), turned by a random yaw, at
     the heap's centre (the others scatter around it) unless params.target_at_centre is False."""
     size = scenario.environment.resolved_size()
-    c = np.clip(rng.normal(0.0, params.center_sigma, 2), -params.center_max, params.center_max)
+    if params.center_uniform is None:
+        c = np.clip(rng.normal(0.0, params.center_sigma, 2), -params.center_max, params.center_max)
+    else:
+        c = rng.uniform(-params.center_uniform, params.center_uniform, 2)
     plan = []
     for k, name in enumerate(names):
         q = Rotation.random(random_state=rng).as_quat()  # x, y, z, w
@@ -203,7 +213,10 @@ def sample_drop_plan(names: list[str], scenario: Scenario, rng: np.random.Genera
         v = _vertices(name) @ R.matrix().T
         lo, hi = v.min(axis=0), v.max(axis=0)
         half = np.maximum(0.5 * size[:2] - 0.5 * (hi - lo)[:2], 0.0)
-        offset = rng.normal(0.0, params.offset_sigma, 2)
+        if params.offset_uniform is None:
+            offset = rng.normal(0.0, params.offset_sigma, 2)
+        else:
+            offset = rng.uniform(-params.offset_uniform, params.offset_uniform, 2)
         if flat_first and k == 0 and params.target_at_centre:
             offset = np.zeros(2)
         xy = np.clip(c + offset, -half, half) - 0.5 * (hi + lo)[:2]
@@ -452,8 +465,9 @@ def _drop_in_waves(world: _DropWorld, names: list[str], plan: list[DropItem], or
             it = plan[k]
             top = max([hi[2] for lo, hi in boxes
                        if np.all(it.xy + it.lo[:2] < hi[:2]) and np.all(it.xy + it.hi[:2] > lo[:2])], default=0.0)
-            p = np.array([it.xy[0], it.xy[1], top + params.drop_gap - it.lo[2]])
-            phases["max_drop"] = max(phases.get("max_drop", 0.0), top + params.drop_gap)  # release height
+            z = max(top + params.drop_gap, params.drop_height or 0.0)  # release height of its lowest point
+            p = np.array([it.xy[0], it.xy[1], z - it.lo[2]])
+            phases["max_drop"] = max(phases.get("max_drop", 0.0), z)
             world.set_pose(k, RigidTransform(it.R, origin + p))
         placed += wave
         waiting = [k for k in waiting if k not in wave]
