@@ -459,7 +459,9 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
                                               "occluders, every object offset from the heap centre at sigma 8 cm, "
                                               "the target fully hidden at the start) | xray_small (the "
                                               "xray_occluded heaps with a 4.5 x 4.5 x 0.5 cm target) | xray_tiny "
-                                              "(with a 3.5 x 3.5 x 0.5 cm target)"),
+                                              "(with a 3.5 x 3.5 x 0.5 cm target) | xray_compact (the 4.5 cm "
+                                              "target, every object dropped from 20 cm within +-2.5 cm of a "
+                                              "heap centre, as the reference's generator settings)"),
                  segmenter: str = typer.Option("ground_truth", "--segmenter", help="Instance masks: ground_truth "
                                                "(label image) | euclidean | region_growing | learned (depth)"),
                  detector: str = typer.Option("color", "--detector", help="Target detector: color (HSV, red "
@@ -474,7 +476,8 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
                                                  f"{' | '.join(HEAP_ENGINES)} (Bullet: ~4x cheaper per heap)"),
                  grasp_outcome: str = typer.Option("draw", "--grasp-outcome", help="Primitive grasp outcome: draw "
                                                    "(success with probability = quality) | threshold (deterministic: "
-                                                   "quality >= 0.5, the state unchanged on a failure)")):
+                                                   "quality >= 0.5, the state unchanged on a failure) | checked (that test, and only "
+                                                   "grasps that pass it are attempted)")):
     """Search heaps S..S+K-1 with a policy; one JSON line per rollout (resumable), then a summary."""
     check_policy(policy)
     _choose("--grasp-outcome", grasp_outcome, GRASP_OUTCOMES)

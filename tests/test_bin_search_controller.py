@@ -3,6 +3,8 @@ images, wired to a simulated station in three lines, wired to the hardware stati
 (memq://) with an emulated YuMi on the far side, and full fidelity on the Panda and the floating
 gripper. ImagesReady alone."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from pydrake.lcm import DrakeLcm
@@ -10,6 +12,7 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.sensors import ImageDepth32F, ImageRgba8U
 
+from ms_drake.execution import LIFT_THRESHOLD
 from ms_drake.experiments.rollout import SearchParams, build_search, run_search
 from ms_drake.perception.ready import ImagesReady
 from ms_drake.policies.bin_search import (
@@ -78,6 +81,19 @@ def test_controller_alone_from_fixed_images_grasps_the_largest_segment(yumi_imag
     assert controller.GetOutputPort("status").Eval(ctx).steps == 0
 
 
+def test_checked_outcome_attempts_only_grasps_that_lift(yumi_images):
+    """grasp_outcome="checked": the selector's grasp threshold is the lift test's, so the grasp it
+    chooses passes that test (or it stops); with "draw" it is SelectorParams' 0.15."""
+    s, (rgb, depth) = yumi_images
+    for outcome, t in (("draw", 0.15), ("checked", LIFT_THRESHOLD)):
+        controller = MakeBinSearchController(s, dataclasses.replace(HARDWARE, grasp_outcome=outcome))
+        assert controller.GetSubsystemByName("policy_selector").params.t_thresh == t
+        ctx = controller.CreateDefaultContext()
+        controller.GetInputPort("overhead.rgb_image").FixValue(ctx, rgb)
+        controller.GetInputPort("overhead.depth_image").FixValue(ctx, depth)
+        action = controller.GetOutputPort("action").Eval(ctx)
+        assert action.kind == "stop" or action.grasp.quality >= t
+
 def test_controller_rejects_settings_it_cannot_honour(yumi_images):
     s, _ = yumi_images
     with pytest.raises(ControllerError, match="ground_truth' reads the simulated label image"):
@@ -90,7 +106,7 @@ def test_controller_rejects_settings_it_cannot_honour(yumi_images):
         MakeBinSearchController(s, BinSearchParams(fidelity="full", segmentation="euclidean", camera="front"))
     with pytest.raises(ControllerError, match="segmentation 'sonar' unknown"):
         BinSearchParams(segmentation="sonar")
-    with pytest.raises(ControllerError, match="grasp_outcome 'coin' unknown; choose one of draw, threshold"):
+    with pytest.raises(ControllerError, match="grasp_outcome .coin. unknown; choose one of draw, threshold, checked"):
         BinSearchParams(grasp_outcome="coin")
 
 

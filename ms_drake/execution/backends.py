@@ -6,7 +6,10 @@ PrimitiveBackend (floating gripper, large benchmarks):
          "threshold": success exactly when the quality is >= LIFT_THRESHOLD, a deterministic
          outcome as the reference's X-Ray simulation decides "whether it would result in the
          object being lifted" (lines 1504-1507; a failed grasp leaves the state unchanged, and the
-         same state gives the same outcome). A successful grasp lifts the object out of
+         same state gives the same outcome); "checked": the same deterministic lift, and the search
+         attempts only grasps that pass it (its selector's grasp threshold is LIFT_THRESHOLD: the
+         lift check decides which grasps exist as well as their outcome, so no attempted grasp
+         fails). A successful grasp lifts the object out of
          the scene (the executor announces it on `removed`, the rollout driver moves it away) and
          the rest settle by simulation for `settle` s. The gripper does not enter the heap (the
          reference's simulation experiments do the same: a grasp is an evaluated primitive).
@@ -39,7 +42,7 @@ from ms_drake.types import Action, ActionOutcome
 
 FIDELITIES = ("primitive", "full")
 # PrimitiveBackend's grasp outcomes (module docstring).
-GRASP_OUTCOMES = ("draw", "threshold")
+GRASP_OUTCOMES = ("draw", "threshold", "checked")
 # "threshold": lifted when at least half of the quality's perturbed trials lift the object (our
 # reading of a deterministic lift check on a robust quality).
 LIFT_THRESHOLD = 0.5
@@ -172,7 +175,7 @@ class PrimitiveBackend(_Base):
 
     def outcome(self, action: Action, motion: Motion, poses, step: int, removed):
         if action.kind == "grasp":
-            if self.grasp_outcome == "threshold":
+            if self.grasp_outcome in ("threshold", "checked"):
                 ok = float(action.grasp.quality) >= LIFT_THRESHOLD
             else:
                 ok = bool(np.random.default_rng([self.seed, step, 4242]).random() < float(action.grasp.quality))

@@ -76,7 +76,8 @@ def cached_heap(objects: int, seed: int, heap_dir: str | None, protocol: str = "
 whose target starts fully hidden (heap_xray_hidden_N<N>_s<seed>.json); "xray_ycb": the target under
 unseen YCB and packaged objects (heap_xray_ycb_N<N>_s<seed>.json); "xray_occluded": those spread as
 Section 8.3's heaps with the target fully hidden (heap_xray_occluded_N<N>_s<seed>.json); "xray_small": those
-with the 4.5 cm target (heap_xray_small_N<N>_s<seed>.json), "xray_tiny" with the 3.5 cm one. engine (HEAP_ENGINES):
+with the 4.5 cm target (heap_xray_small_N<N>_s<seed>.json), "xray_tiny" with the 3.5 cm one, "xray_compact"
+dropped as the reference's generator settings give (heap_xray_compact_N<N>_s<seed>.json). engine (HEAP_ENGINES):
 the "ch7" heaps' drop physics; Bullet heaps are heap_bullet_N<N>_s<seed>.json. A file keeps its
 heap_generator_key; one made with other settings raises HeapError (files without a key load)."""
     if protocol not in PROTOCOLS:

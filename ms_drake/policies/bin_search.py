@@ -41,7 +41,15 @@ from dataclasses import dataclass
 from pydrake.systems.framework import Diagram, DiagramBuilder
 
 from ms_drake.errors import MsDrakeError
-from ms_drake.execution import FIDELITIES, GRASP_OUTCOMES, ActionExecutor, FullBackend, PrimitiveBackend, tcp_offset_of
+from ms_drake.execution import (
+    FIDELITIES,
+    GRASP_OUTCOMES,
+    LIFT_THRESHOLD,
+    ActionExecutor,
+    FullBackend,
+    PrimitiveBackend,
+    tcp_offset_of,
+)
 from ms_drake.execution.reach import PickReach
 from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.grasping.grasp_sets import load_grasp_set
@@ -102,8 +110,9 @@ class BinSearchParams:
     every object (PushPlanner), or a Ch. 4 policy of ms_drake.pushing.POLICIES (PushPolicySystem
     on the depth image and masks: one push, of the object the policy chooses).
     grasp_outcome: the primitive fidelity's grasp outcome (execution.GRASP_OUTCOMES): "draw"
-    (default; success with probability = quality) or "threshold" (deterministic: quality >=
-    execution.LIFT_THRESHOLD); the full fidelity's outcome is the physics'.
+    (default; success with probability = quality), "threshold" (deterministic: quality >=
+    execution.LIFT_THRESHOLD) or "checked" (that lift test, and the selector attempts only grasps
+    that pass it: SelectorParams.t_thresh = LIFT_THRESHOLD); the full fidelity's outcome is the physics'.
     """
 
     policy: str = "largest"
@@ -295,8 +304,9 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
         builder.Connect(geo.GetOutputPort("objects"), grasp.GetInputPort("objects"))
 
     target_id = sim.target_id if sim is not None else ""
+    t_thresh = LIFT_THRESHOLD if params.grasp_outcome == "checked" else SelectorParams.t_thresh
     selector = builder.AddSystem(PolicySelector(params.policy, SelectorParams(horizon=int(params.horizon),
-                                                                             seed=params.seed),
+                                                                             seed=params.seed, t_thresh=t_thresh),
                                                 target_id=target_id, width=camera.width, height=camera.height))
     selector.set_name("policy_selector")
     builder.Connect(masks, selector.GetInputPort("masks"))

@@ -4,9 +4,10 @@ Generation of heap `seed` with N objects:
 1. N objects drawn uniformly (with replacement) from the object set / split;
 2. a heap centre from a truncated 2D Gaussian around the bin centre (sigma 3 cm, |c| <= 6 cm),
    planar offsets per object from a truncated 2D Gaussian (sigma 8 cm) kept inside the bin,
-   uniformly random orientations;
+   uniformly random orientations (`center_uniform` / `offset_uniform`: uniform draws instead);
 3. the objects are dropped one by one, each released `drop_gap` (1 cm) above the top of
-   whatever already lies under its footprint (objects not yet dropped wait far away, parked);
+   whatever already lies under its footprint, or from `drop_height` above the bin floor if that
+   is set and higher (objects not yet dropped wait far away, parked);
    objects whose footprints overlap no earlier waiting object fall together in one wave, a new
    wave every `wave_time` (30 ms); an object also waits while something under its footprint
    still moves faster than `landed_speed` (0.5 m/s: still falling), for at most `max_wait`
