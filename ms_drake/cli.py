@@ -477,7 +477,8 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
                  grasp_outcome: str = typer.Option("draw", "--grasp-outcome", help="Primitive grasp outcome: draw "
                                                    "(success with probability = quality) | threshold (deterministic: "
                                                    "quality >= 0.5, the state unchanged on a failure) | checked (that test, and only "
-                                                   "grasps that pass it are attempted)")):
+                                                   "grasps that pass it are attempted) | nominal (deterministic: the "
+                                                   "unperturbed contact model lifts the object; --grasp-planner image)")):
     """Search heaps S..S+K-1 with a policy; one JSON line per rollout (resumable), then a summary."""
     check_policy(policy)
     _choose("--grasp-outcome", grasp_outcome, GRASP_OUTCOMES)

@@ -65,6 +65,9 @@ class Grasp:
 
     kind: "parallel_jaw" | "suction". For a parallel-jaw grasp `axis` joins the jaws and
     `approach` is the approach direction; for suction `approach` is minus the surface normal.
+    quality: the robust quality (fraction of perturbed trials that lift the object); lifts: the
+    nominal (unperturbed) contact model's verdict that the grasp lifts the object under
+    quasi-static conditions (None: not evaluated, e.g. a pre-computed grasp set's grasp).
     """
 
     kind: str
@@ -75,6 +78,7 @@ class Grasp:
     quality: float = 0.0
     model: str = ""
     object_id: str = ""
+    lifts: bool | None = None
 
 
 @dataclass(frozen=True)

@@ -108,6 +108,9 @@ def test_controller_rejects_settings_it_cannot_honour(yumi_images):
         BinSearchParams(segmentation="sonar")
     with pytest.raises(ControllerError, match="grasp_outcome .coin. unknown; choose one of draw, threshold, checked"):
         BinSearchParams(grasp_outcome="coin")
+    with pytest.raises(ControllerError, match="grasp_outcome 'nominal' needs.*grasp_planner is 'indexed'"):
+        BinSearchParams(grasp_outcome="nominal", grasp_planner="indexed")
+    assert BinSearchParams(grasp_outcome="nominal", fidelity="full").grasp_planner == "image"
 
 
 def test_three_lines_wire_the_controller_to_a_simulated_station(heap4):

@@ -300,8 +300,20 @@ def test_threshold_grasp_outcomes_are_deterministic_and_draws_follow_the_quality
     assert 0.15 < np.mean(lifted) < 0.35  # p = quality
     failed = det.outcome(grasp(0.25), None, poses(), 0, ())[0]
     assert failed.removed_object == "" and failed.message == "grasp_failed"
-    with pytest.raises(ExecutionError, match="grasp_outcome 'nominal' unknown.*draw, threshold"):
-        PrimitiveBackend({}, WS, tcp_offset=0.1, grasp_outcome="nominal")
+    with pytest.raises(ExecutionError, match="grasp_outcome 'coin' unknown.*draw, threshold, checked, nominal"):
+        PrimitiveBackend({}, WS, tcp_offset=0.1, grasp_outcome="coin")
+
+
+def test_nominal_grasp_outcome_is_the_grasps_nominal_lift_verdict():
+    def grasp(q, lifts):
+        return Action("grasp", grasp=Grasp("suction", (0, 0, 0.02), (0, 0, -1), quality=q, object_id="a", lifts=lifts))
+
+    nom = PrimitiveBackend({"a": 1, "b": 2}, WS, tcp_offset=0.1, target_id="b", seed=5, grasp_outcome="nominal")
+    for q, lifts in ((0.25, True), (1.0, False), (0.0, False), (0.75, True)):
+        outs = {nom.outcome(grasp(q, lifts), None, poses(), step, ())[0].success for step in range(20)}
+        assert outs == {lifts}  # the verdict decides, not the robust quality, at every step
+    with pytest.raises(ExecutionError, match="needs the grasp's nominal lift verdict.*grasp_planner='image'"):
+        nom.outcome(grasp(1.0, None), None, poses(), 0, ())
 
 
 def test_the_full_jaw_grips_with_the_grasp_models_closing_force():

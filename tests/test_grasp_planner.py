@@ -65,6 +65,16 @@ def test_planner_alone(model):
     else:
         ev, chosen = GraspEvaluator(model, **params), ParallelJawGrasp.from_grasp(grasps[0])
     assert ev.quality(BOX, objects[0].X_WO, chosen, 0.2) == 1.0
+    # lifts: the nominal model's verdict on each chosen grasp (robust_samples=0 here: = quality > 0)
+    for g, o in zip(grasps, objects):
+        chosen = SuctionGrasp(g.center, g.approach) if model == "suction" else ParallelJawGrasp.from_grasp(g)
+        assert g.lifts is (ev.quality({"box": BOX, "cyl": CYL}[g.object_id], o.X_WO, chosen, o.mass) > 0.0)
+    # with robust trials, quality is their fraction and lifts still the unperturbed verdict
+    robust = GraspPlanner(info, X_WC, model=model, num_samples=8, robust_samples=4, evaluator_params=params)
+    for g, o in zip(robust.plan(depth, masks, objects), objects):
+        chosen = SuctionGrasp(g.center, g.approach) if model == "suction" else ParallelJawGrasp.from_grasp(g)
+        assert g.lifts is (ev.quality({"box": BOX, "cyl": CYL}[g.object_id], o.X_WO, chosen, o.mass, 0) > 0.0)
+        assert g.quality in (0.0, 0.25, 0.5, 0.75, 1.0)
     # without meshes (hardware): hull of the visible points, still one grasp per object
     planner.GetInputPort("objects").FixValue(ctx, ())
     hw = planner.GetOutputPort("grasps").Eval(ctx)

@@ -9,7 +9,10 @@ PrimitiveBackend (floating gripper, large benchmarks):
          same state gives the same outcome); "checked": the same deterministic lift, and the search
          attempts only grasps that pass it (its selector's grasp threshold is LIFT_THRESHOLD: the
          lift check decides which grasps exist as well as their outcome, so no attempted grasp
-         fails). A successful grasp lifts the object out of
+         fails); "nominal": success exactly when the nominal (unperturbed) contact model lifts the
+         object with the grasp (Grasp.lifts, set by the image GraspPlanner): the reference's
+         quasi-static wrench-space lift check of the executed grasp, while the selector still
+         ranks grasps by their robust quality. A successful grasp lifts the object out of
          the scene (the executor announces it on `removed`, the rollout driver moves it away) and
          the rest settle by simulation for `settle` s. The gripper does not enter the heap (the
          reference's simulation experiments do the same: a grasp is an evaluated primitive).
@@ -42,7 +45,7 @@ from ms_drake.types import Action, ActionOutcome
 
 FIDELITIES = ("primitive", "full")
 # PrimitiveBackend's grasp outcomes (module docstring).
-GRASP_OUTCOMES = ("draw", "threshold", "checked")
+GRASP_OUTCOMES = ("draw", "threshold", "checked", "nominal")
 # "threshold": lifted when at least half of the quality's perturbed trials lift the object (our
 # reading of a deterministic lift check on a robust quality).
 LIFT_THRESHOLD = 0.5
@@ -177,6 +180,12 @@ class PrimitiveBackend(_Base):
         if action.kind == "grasp":
             if self.grasp_outcome in ("threshold", "checked"):
                 ok = float(action.grasp.quality) >= LIFT_THRESHOLD
+            elif self.grasp_outcome == "nominal":
+                if action.grasp.lifts is None:
+                    raise ExecutionError(f"grasp outcome 'nominal' needs the grasp's nominal lift verdict (Grasp.lifts), "
+                                         f"but the grasp on {action.grasp.object_id!r} (model {action.grasp.model!r}) "
+                                         "has none: plan grasps with the image GraspPlanner (grasp_planner='image')")
+                ok = bool(action.grasp.lifts)
             else:
                 ok = bool(np.random.default_rng([self.seed, step, 4242]).random() < float(action.grasp.quality))
             return self._finish(action, ok, action.grasp.object_id, poses, removed,

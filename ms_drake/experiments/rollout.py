@@ -106,8 +106,8 @@ class SearchParams:
     # BinSearchParams.reach: with the indexed planner, only grasps this robot reaches ("" none,
     # "robot" the station's own, or a scenario name such as "YuMiBin")
     reach: str = ""
-    # BinSearchParams.grasp_outcome: the primitive mode's grasp outcome, "draw" (p = quality) or
-    # "threshold" (deterministic, as the reference's X-Ray simulation)
+    # BinSearchParams.grasp_outcome: the primitive mode's grasp outcome (execution.GRASP_OUTCOMES),
+    # "draw" (p = quality), or deterministic: "threshold", "checked", "nominal"
     grasp_outcome: str = "draw"
 
     def __post_init__(self):

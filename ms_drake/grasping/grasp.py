@@ -69,9 +69,9 @@ class ParallelJawGrasp:
         x = self.approach
         return np.column_stack([x, np.cross(z, x), z])
 
-    def to_grasp(self, quality: float = 0.0, model: str = "", object_id: str = "") -> Grasp:
+    def to_grasp(self, quality: float = 0.0, model: str = "", object_id: str = "", lifts: bool | None = None) -> Grasp:
         return Grasp("parallel_jaw", tuple(map(float, self.center)), tuple(map(float, self.approach)),
-                     tuple(map(float, self.axis)), float(self.width), float(quality), model, object_id)
+                     tuple(map(float, self.axis)), float(self.width), float(quality), model, object_id, lifts)
 
     @staticmethod
     def from_grasp(g: Grasp) -> "ParallelJawGrasp":
@@ -102,6 +102,7 @@ class SuctionGrasp:
     def transformed(self, X: np.ndarray) -> "SuctionGrasp":
         return SuctionGrasp(X[:3, :3] @ self.point + X[:3, 3], X[:3, :3] @ self.approach)
 
-    def to_grasp(self, quality: float = 0.0, model: str = "suction", object_id: str = "") -> Grasp:
+    def to_grasp(self, quality: float = 0.0, model: str = "suction", object_id: str = "",
+                 lifts: bool | None = None) -> Grasp:
         return Grasp("suction", tuple(map(float, self.point)), tuple(map(float, self.approach)),
-                     quality=float(quality), model=model, object_id=object_id)
+                     quality=float(quality), model=model, object_id=object_id, lifts=lifts)

@@ -172,12 +172,13 @@ class GraspPlanner(LeafSystem):
                 X_WO, mass, com = np.eye(4), self.default_mass, None
                 if mesh is None:
                     continue
-            best, best_q = self._best(cands, mesh, X_WO, mass, seed, com)
-            out.append(best.to_grasp(best_q, self.model, oid))
+            best, best_q, lifts = self._best(cands, mesh, X_WO, mass, seed, com)
+            out.append(best.to_grasp(best_q, self.model, oid, lifts))
         return tuple(out)
 
     def _best(self, cands, mesh, X_WO, mass, seed, com):
-        """(grasp, quality) of the best candidate (search order in the module docstring)."""
+        """(grasp, quality, lifts) of the best candidate (search order in the module docstring);
+        lifts: whether the nominal (unperturbed) model lifts the object with it."""
         ev, n = self.evaluator, self.robust_samples
         if self.model == "suction":
             best, best_q = None, -1.0
@@ -185,7 +186,8 @@ class GraspPlanner(LeafSystem):
                 q = ev.quality(mesh, X_WO, g, mass, n, seed, com)
                 if q > best_q:
                     best, best_q = g, q
-            return best, best_q
+            lifts = best_q > 0.0 if n == 0 else ev.quality(mesh, X_WO, best, mass, 0, seed, com) > 0.0
+            return best, best_q, bool(lifts)
         # nominal check of every candidate; robust evaluation of the most promising ones
         nominal = []
         for k, g in enumerate(cands):
@@ -193,15 +195,15 @@ class GraspPlanner(LeafSystem):
             if r.reason in ("resisted", "slips"):  # contacts found (the others: no contact pair)
                 nominal.append((0.0 if r.quality > 0 else r.residual, k))
         if not nominal:
-            return cands[0], 0.0
-        best, best_q = None, -1.0
+            return cands[0], 0.0, False
+        best, best_q, lifts = None, -1.0, False
         for res, k in sorted(nominal)[: self.num_samples]:
             q = ev.quality(mesh, X_WO, cands[k], mass, n, seed, com) if n > 0 else (1.0 if res == 0.0 else 0.0)
             if q > best_q:
-                best, best_q = cands[k], q
+                best, best_q, lifts = cands[k], q, res == 0.0
             if best_q >= 1.0:
                 break
-        return best, best_q
+        return best, best_q, lifts
 
     def _calc_grasps(self, context, output):
         depth = self.depth_port.Eval(context)

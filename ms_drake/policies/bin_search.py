@@ -111,8 +111,10 @@ class BinSearchParams:
     on the depth image and masks: one push, of the object the policy chooses).
     grasp_outcome: the primitive fidelity's grasp outcome (execution.GRASP_OUTCOMES): "draw"
     (default; success with probability = quality), "threshold" (deterministic: quality >=
-    execution.LIFT_THRESHOLD) or "checked" (that lift test, and the selector attempts only grasps
-    that pass it: SelectorParams.t_thresh = LIFT_THRESHOLD); the full fidelity's outcome is the physics'.
+    execution.LIFT_THRESHOLD), "checked" (that lift test, and the selector attempts only grasps
+    that pass it: SelectorParams.t_thresh = LIFT_THRESHOLD) or "nominal" (deterministic: the
+    nominal contact model lifts the object with the grasp, Grasp.lifts; needs grasp_planner
+    "image"); the full fidelity's outcome is the physics'.
     """
 
     policy: str = "largest"
@@ -157,6 +159,10 @@ class BinSearchParams:
         if self.grasp_planner not in GRASP_PLANNERS:
             raise ControllerError(f"grasp_planner {self.grasp_planner!r} unknown; choose one of "
                                   f"{', '.join(GRASP_PLANNERS)}")
+        if self.grasp_outcome == "nominal" and self.grasp_planner != "image":
+            raise ControllerError(f"grasp_outcome 'nominal' needs each grasp's nominal lift verdict, which only the "
+                                  f"image planner computes; grasp_planner is {self.grasp_planner!r}: use "
+                                  "grasp_planner='image' (CLI: --grasp-planner image)")
         if self.occupancy not in OCCUPANCY_BACKENDS:
             raise ControllerError(f"occupancy {self.occupancy!r} unknown; choose one of {', '.join(OCCUPANCY_BACKENDS)}")
 
