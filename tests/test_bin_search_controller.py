@@ -93,6 +93,11 @@ def test_checked_outcome_attempts_only_grasps_that_lift(yumi_images):
         controller.GetInputPort("overhead.depth_image").FixValue(ctx, depth)
         action = controller.GetOutputPort("action").Eval(ctx)
         assert action.kind == "stop" or action.grasp.quality >= t
+        assert action.kind == "stop" or action.grasp.lifts is not None  # the image planner's nominal verdict
+    # "nominal": the selector does not retry a failed grasp on its state; the others retry
+    nominal = MakeBinSearchController(s, dataclasses.replace(HARDWARE, grasp_outcome="nominal"))
+    assert nominal.GetSubsystemByName("policy_selector").params.retry_failed is False
+    assert controller.GetSubsystemByName("policy_selector").params.retry_failed is True
 
 def test_controller_rejects_settings_it_cannot_honour(yumi_images):
     s, _ = yumi_images

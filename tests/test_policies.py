@@ -271,3 +271,24 @@ def test_selectors_wired_with_perception_and_planners(bin_scenario, small_heap):
         # every selector grasps the second cylinder (rank 2 of the priority lists; xray_expected: the
         # box has no grasp and the target's is 0, so its weighted scores rank the two graspable ones)
         assert (a.kind, chosen(a), a.grasp.quality) == ("grasp", cylinder, 1.0), (name, a.reason)
+
+
+def test_a_failed_grasp_is_passed_over_on_its_state_when_retries_are_off():
+    """retry_failed=False (the deterministic 'nominal' outcome): the grasp that just failed is not
+    chosen again until an action succeeds; retry_failed=True (default) chooses it again."""
+    g = grasps(t=0.1, big=0.5, mid=0.9)
+    failed_big = outcome("grasp", success=False, oid="big")  # big's grasp (0.5 at the origin) failed
+    no_retry = SelectorParams(retry_failed=False)
+    assert chosen(select_action("largest", M, TARGET, g, history=(failed_big,))) == "big"
+    assert chosen(select_action("largest", M, TARGET, g, history=(failed_big,), params=no_retry)) == "mid"
+    # the same grasp moved by more than 5 mm is another grasp
+    moved = tuple(Grasp("suction", (0.01, 0.0, 0.0), (0.0, 0.0, -1.0), quality=0.5, object_id="big") if x.object_id == "big"
+                  else x for x in g)
+    assert chosen(select_action("largest", M, TARGET, moved, history=(failed_big,), params=no_retry)) == "big"
+    # after a successful action the state changed: big's grasp may be tried again
+    later = (failed_big, outcome("grasp", removed="small", oid="small"))
+    assert chosen(select_action("largest", M, TARGET, g, history=later, params=no_retry)) == "big"
+    # every grasp failed on this state: no action
+    all_failed = tuple(outcome("grasp", success=False, oid=k) for k in ("big", "mid"))
+    assert select_action("largest", M, TARGET, grasps(big=0.5, mid=0.5), history=all_failed,
+                         params=no_retry).reason == "no_action"

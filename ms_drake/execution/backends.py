@@ -12,7 +12,8 @@ PrimitiveBackend (floating gripper, large benchmarks):
          fails); "nominal": success exactly when the nominal (unperturbed) contact model lifts the
          object with the grasp (Grasp.lifts, set by the image GraspPlanner): the reference's
          quasi-static wrench-space lift check of the executed grasp, while the selector still
-         ranks grasps by their robust quality. A successful grasp lifts the object out of
+         ranks grasps by their robust quality (and, as the same state gives the same verdict,
+         does not attempt a failed grasp again on it: SelectorParams.retry_failed). A successful grasp lifts the object out of
          the scene (the executor announces it on `removed`, the rollout driver moves it away) and
          the rest settle by simulation for `settle` s. The gripper does not enter the heap (the
          reference's simulation experiments do the same: a grasp is an evaluated primitive).

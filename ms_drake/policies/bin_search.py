@@ -114,7 +114,8 @@ class BinSearchParams:
     execution.LIFT_THRESHOLD), "checked" (that lift test, and the selector attempts only grasps
     that pass it: SelectorParams.t_thresh = LIFT_THRESHOLD) or "nominal" (deterministic: the
     nominal contact model lifts the object with the grasp, Grasp.lifts; needs grasp_planner
-    "image"); the full fidelity's outcome is the physics'.
+    "image"; a grasp that failed is not attempted again on the same state,
+    SelectorParams.retry_failed = False); the full fidelity's outcome is the physics'.
     """
 
     policy: str = "largest"
@@ -312,7 +313,8 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
     target_id = sim.target_id if sim is not None else ""
     t_thresh = LIFT_THRESHOLD if params.grasp_outcome == "checked" else SelectorParams.t_thresh
     selector = builder.AddSystem(PolicySelector(params.policy, SelectorParams(horizon=int(params.horizon),
-                                                                             seed=params.seed, t_thresh=t_thresh),
+                                                                             seed=params.seed, t_thresh=t_thresh,
+                                                                             retry_failed=params.grasp_outcome != "nominal"),
                                                 target_id=target_id, width=camera.width, height=camera.height))
     selector.set_name("policy_selector")
     builder.Connect(masks, selector.GetInputPort("masks"))

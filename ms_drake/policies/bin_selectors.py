@@ -24,7 +24,8 @@ Selectors (the priority list decides which object is tried first):
                          mask most, then by area: a selector with the true state (an upper bound).
 
 Execution criteria (Ch. 7.4): walk the priority list and execute the best grasp on the first
-mask whose best grasp quality exceeds t(o): t(target) = t_thresh; t(other) = t_high with pushing,
+mask whose best grasp quality exceeds t(o) (with `retry_failed` False, a best grasp that failed
+on the current state is passed over): t(target) = t_thresh; t(other) = t_high with pushing,
 t_thresh without. With pushing, when no grasp qualifies, walk the list again and push the first
 object that has a valid push. Termination (an Action of kind "stop" with `reason`):
   success            the target was removed by a successful grasp (see `termination`);
@@ -81,6 +82,9 @@ class SelectorParams:
     max_consecutive_pushes: int = 3
     horizon: int | None = None  # None: no limit from the selector
     seed: int = 0
+    # False: a grasp that failed is not attempted again while the state is the one it failed on
+    # (since the last successful action), as with a deterministic grasp outcome it would fail again
+    retry_failed: bool = True
 
     def __post_init__(self):
         if not (0.0 <= self.t_thresh <= 1.0 and 0.0 <= self.t_high <= 1.0):
@@ -189,6 +193,24 @@ def consecutive_pushes(history) -> int:
     return n
 
 
+def failed_on_this_state(history) -> list[Grasp]:
+    """The grasps that failed since the last successful action (on the state the search is in)."""
+    out = []
+    for o in reversed(history):
+        if o.success:
+            break
+        if o.action.kind == "grasp" and o.action.grasp is not None:
+            out.append(o.action.grasp)
+    return out
+
+
+def same_grasp(a: Grasp, b: Grasp, tol: float = 0.005) -> bool:
+    """The same object, gripper kind and contact point within `tol` metres (a re-plan on a settled
+    state moves a grasp by a fraction of a millimetre)."""
+    return (a.object_id == b.object_id and a.kind == b.kind
+            and float(np.linalg.norm(np.subtract(a.center, b.center))) <= tol)
+
+
 def select_action(policy: str, masks: InstanceMasks, target: TargetEstimate | None = None,
                   grasps: tuple[Grasp, ...] | Mapping = (), pushes: tuple[Push, ...] = (),
                   history: tuple[ActionOutcome, ...] = (), occupancy: OccupancyMap | None = None,
@@ -218,9 +240,10 @@ def select_action(policy: str, masks: InstanceMasks, target: TargetEstimate | No
         order = priority_oracle(masks, target_id, target_amodal)
     t_idx = masks.ids.index(target_id) if policy == "oracle" and target_id in masks.ids else target_index(masks, target)
     pushing = policy in PUSHING
+    failed = () if params.retry_failed else failed_on_this_state(history)
     for i in order:
         g = best.get(masks.ids[i])
-        if g is None:
+        if g is None or any(same_grasp(g, f) for f in failed):
             continue
         t = params.t_thresh if (i == t_idx or not pushing) else params.t_high
         if g.quality > t:
