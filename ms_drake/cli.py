@@ -478,7 +478,9 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
                                                    "(success with probability = quality) | threshold (deterministic: "
                                                    "quality >= 0.5, the state unchanged on a failure) | checked (that test, and only "
                                                    "grasps that pass it are attempted) | nominal (deterministic: the "
-                                                   "unperturbed contact model lifts the object; --grasp-planner image)")):
+                                                   "unperturbed contact model lifts the object; --grasp-planner image)"),
+                 grasp_samples: int = typer.Option(8, "--grasp-samples", min=1, help="Candidates the image grasp "
+                                                   "planners sample per mask (each gripper)")):
     """Search heaps S..S+K-1 with a policy; one JSON line per rollout (resumable), then a summary."""
     check_policy(policy)
     _choose("--grasp-outcome", grasp_outcome, GRASP_OUTCOMES)
@@ -508,7 +510,7 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
                   use_ray=ray or ray_address is not None, ray_address=ray_address, progress=progress,
                   heap_dir=str(heap_dir) if heap_dir is not None else None, protocol=protocol,
                   segmenter=segmenter, detector=detector, push_policy=push_policy, grasp_planner=grasp_planner,
-                  heap_engine=heap_engine, grasp_outcome=grasp_outcome)
+                  heap_engine=heap_engine, grasp_outcome=grasp_outcome, grasp_samples=grasp_samples)
     if s["resumed"]:
         typer.echo(f"resuming: {s['resumed']} of {heaps_} rollouts already in {out}")
     typer.echo(format_summary(policy, s))

@@ -132,9 +132,14 @@ def test_a_run_resumes_only_the_records_of_its_own_grasp_planner(tmp_path):
     s = run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="image", grasp_outcome="threshold")
     assert s["resumed"] == 0 and s["ran"] == 1  # another grasp outcome: its own record
     assert [r["grasp_outcome"] for r in read_records(out)] == ["draw", "draw", "threshold"]
+    s = run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="image", grasp_samples=3)
+    assert s["resumed"] == 0 and s["ran"] == 1  # other planner samples: its own record
+    assert [r["grasp_samples"] for r in read_records(out)] == [8, 8, 8, 3]
+    assert run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="image", grasp_samples=3)["ran"] == 0
     assert run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="indexed")["resumed"] == 1
     # a record without the key predates the grasp sets: it was searched with the image planner
-    old = {k: v for k, v in recs[1].items() if k != "grasp_planner"}
+    # (and one without grasp_samples with the default 8 candidates)
+    old = {k: v for k, v in recs[1].items() if k not in ("grasp_planner", "grasp_samples")}
     out.write_text(json.dumps(old) + "\n")
     assert run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="image")["ran"] == 0
     assert run_bench("largest", 2, 1, 5, out, horizon=3)["ran"] == 1

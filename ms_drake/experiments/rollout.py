@@ -151,6 +151,7 @@ class RolloutResult:
     grasp_planner: str = ""
     push_policy: str = ""
     grasp_outcome: str = "draw"
+    grasp_samples: int = 8  # the image planners' candidates per mask
     error: str = ""
     # per action: the grasp's gripper kind ("parallel_jaw" / "suction"; "" for a push) and
     # whether the action succeeded (Table C.2: jaw vs suction grasps)
@@ -324,6 +325,7 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
                         grasp_successes=sum(1 for o in history if o.action.kind == "grasp" and o.success),
                         grasp_plans=grasp_plans, grasp_planner=system.controller.params.grasp_planner,
                         push_policy=params.push_policy, grasp_outcome=params.grasp_outcome,
+                        grasp_samples=int(params.grasp_samples),
                         grasp_kinds=[o.action.grasp.kind if o.action.kind == "grasp" and o.action.grasp is not None
                                      else "" for o in history],
                         action_successes=[bool(o.success) for o in history],
