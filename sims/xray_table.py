@@ -5,7 +5,7 @@
 
 Per policy (ms_drake.experiments.harness.summarize): success with its bootstrap 95 % interval,
 action quartiles over successes, failures; the paired sign test of every pair
-(harness.paired_comparison) and, on the heaps both solve, a sign test on who needed fewer
+(harness.paired_comparison, with the paired bootstrap interval of the difference) and, on the heaps both solve, a sign test on who needed fewer
 actions; the seen fraction of the target at the start splits the heaps
 (heap.visible_ratios, from --heap-dir: the heap files of the records' protocol) when given; the
 Fig. 8.6 histogram and the cumulative successes (harness.plot) of the common heaps into --out.
@@ -43,7 +43,8 @@ def main():
     for fa, fb in itertools.combinations(args.files, 2):
         c = paired_comparison(recs[fa], recs[fb], (str(fa), str(fb)))
         print(f"{recs[fa][0]['policy']} vs {recs[fb][0]['policy']}: only A {len(c['only_a'])}, only B "
-              f"{len(c['only_b'])}, both {c['both']}, neither {c['neither']}; sign test p = {c['p']:.3g}")
+              f"{len(c['only_b'])}, both {c['both']}, neither {c['neither']}; sign test p = {c['p']:.3g}; "
+              f"difference {c['diff']:.1f} points, bootstrap 95 % [{c['diff_ci'][0]:.1f}, {c['diff_ci'][1]:.1f}]")
         # actions on the heaps both solve: who needed fewer (sign test on the heaps that differ)
         a = {int(r["seed"]): int(r["actions"]) for r in recs[fa] if r["success"]}
         b = {int(r["seed"]): int(r["actions"]) for r in recs[fb] if r["success"]}

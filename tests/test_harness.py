@@ -286,3 +286,15 @@ def test_code_version_names_the_checkout_s_commit():
         pytest.skip("not a git checkout of ms_drake")
     v = code_version()
     assert v.split("+")[0] == head.stdout.strip() and v in (head.stdout.strip(), head.stdout.strip() + "+dirty")
+
+
+def test_paired_comparison_gives_the_difference_with_a_bootstrap_interval():
+    rec = lambda seed, ok: dict(seed=seed, policy="p", objects=2, fidelity="primitive", success=ok, actions=1)
+    a = [rec(k, k % 4 != 0) for k in range(200)]  # 75 %
+    b = [rec(k, k % 2 == 0) for k in range(200)]  # 50 %
+    c = paired_comparison(a, b)
+    assert c["diff"] == pytest.approx(25.0)
+    lo, hi = c["diff_ci"]
+    assert lo < 25.0 < hi and 10.0 < lo and hi < 40.0  # a paired interval around the difference
+    assert paired_comparison(a, b)["diff_ci"] == c["diff_ci"]  # seeded
+    assert paired_comparison(a, a)["diff_ci"] == (0.0, 0.0)

@@ -444,8 +444,9 @@ def check_same_heaps(recs_a: list[dict], recs_b: list[dict], names=("A", "B")) -
 def paired_comparison(recs_a: list[dict], recs_b: list[dict], names=("A", "B")) -> dict:
     """Success of two policies on the same heaps (seeds in both): heaps only A solves, only B
     solves, both, neither, and the two-sided exact sign test (binomial, p = 1/2) on the
-    discordant heaps. Records that carry heap digests must agree on them (check_same_heaps; `names`
-    name the two runs in its error)."""
+    discordant heaps; diff: A's success minus B's in points, diff_ci its paired bootstrap 95 %
+    interval (the heaps resampled 10,000 times, seed 0). Records that carry heap digests must agree
+    on them (check_same_heaps; `names` name the two runs in its error)."""
     check_same_heaps(recs_a, recs_b, names)
     a = {int(r["seed"]): bool(r["success"]) for r in final_records(recs_a)}
     b = {int(r["seed"]): bool(r["success"]) for r in final_records(recs_b)}
@@ -455,7 +456,13 @@ def paired_comparison(recs_a: list[dict], recs_b: list[dict], names=("A", "B")) 
     both = sum(1 for k in seeds if a[k] and b[k])
     n = len(only_a) + len(only_b)
     p = float(binomtest(len(only_a), n, 0.5).pvalue) if n else 1.0
-    return dict(heaps=len(seeds), only_a=only_a, only_b=only_b, both=both, neither=len(seeds) - both - n, p=p)
+    d = np.array([float(a[k]) - float(b[k]) for k in seeds])
+    diff, ci = 100.0 * float(d.mean()) if len(d) else 0.0, (0.0, 0.0)
+    if len(d):
+        means = d[np.random.default_rng(0).integers(0, len(d), (10_000, len(d)))].mean(axis=1)
+        ci = tuple(100.0 * float(x) for x in np.percentile(means, [2.5, 97.5]))
+    return dict(heaps=len(seeds), only_a=only_a, only_b=only_b, both=both, neither=len(seeds) - both - n, p=p,
+                diff=diff, diff_ci=ci)
 
 
 def action_breakdown(recs: list[dict]) -> dict:
