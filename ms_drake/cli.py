@@ -59,7 +59,7 @@ from ms_drake.experiments.matcher_data import (
 from ms_drake.experiments.matcher_learning import train_matcher
 from ms_drake.experiments.mppi_bench import PLANNERS as MPPI_PLANNERS
 from ms_drake.experiments.mppi_bench import bench_mppi
-from ms_drake.experiments.occupancy_data import write_occupancy_dataset
+from ms_drake.experiments.occupancy_data import HEAP_LAYOUTS, write_occupancy_dataset
 from ms_drake.experiments.occupancy_learning import bench_occupancy, train_occupancy
 from ms_drake.experiments.fidelity import format_summary as format_fidelity_summary
 from ms_drake.experiments.fidelity import run_fidelity
@@ -132,7 +132,7 @@ from ms_drake.perception.segmentation import BACKENDS as SEGMENTATION_BACKENDS
 from ms_drake.perception.target import BACKENDS as DETECTOR_BACKENDS
 from ms_drake.policies.bin_search import GRASP_PLANNERS
 from ms_drake.policies.bin_selectors import POLICIES as BIN_POLICIES
-from ms_drake.policies.bin_selectors import check_policy
+from ms_drake.policies.bin_selectors import OCCUPANCY_POLICIES, check_policy
 from ms_drake.pushing import POLICIES as PUSH_POLICIES
 from ms_drake.policies.shelf import SHELF_POLICIES, check_shelf_policy
 from ms_drake.policies.shelf_search import PERCEPTIONS as SHELF_CONTROLLER_PERCEPTIONS
@@ -480,7 +480,10 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
                                                    "grasps that pass it are attempted) | nominal (deterministic: the "
                                                    "unperturbed contact model lifts the object; --grasp-planner image)"),
                  grasp_samples: int = typer.Option(8, "--grasp-samples", min=1, help="Candidates the image grasp "
-                                                   "planners sample per mask (each gripper)")):
+                                                   "planners sample per mask (each gripper)"),
+                 occupancy_weights: Optional[Path] = typer.Option(None, "--occupancy-weights", help="Weights of "
+                                                                  "the learned occupancy (X-Ray; default: the shipped "
+                                                                  "models/weights/occupancy.pt); kept in each record")):
     """Search heaps S..S+K-1 with a policy; one JSON line per rollout (resumable), then a summary."""
     check_policy(policy)
     _choose("--grasp-outcome", grasp_outcome, GRASP_OUTCOMES)
@@ -501,6 +504,11 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
         horizon = XRAY_HORIZON
     _choose("--fidelity", fidelity, FIDELITIES)
     _need_jsonl(out)
+    if occupancy_weights is not None and not occupancy_weights.is_file():
+        _fail(f"--occupancy-weights {occupancy_weights}: no such file; give one written by `ms-drake train occupancy`")
+    if occupancy_weights is not None and policy not in OCCUPANCY_POLICIES:
+        _fail(f"--occupancy-weights: the {policy} policy reads no occupancy; use it with "
+              f"{' or '.join(OCCUPANCY_POLICIES)}")
 
     def progress(rec):
         typer.echo(f"seed {rec['seed']}: {'success' if rec['success'] else rec['failure']} after "
@@ -510,7 +518,8 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
                   use_ray=ray or ray_address is not None, ray_address=ray_address, progress=progress,
                   heap_dir=str(heap_dir) if heap_dir is not None else None, protocol=protocol,
                   segmenter=segmenter, detector=detector, push_policy=push_policy, grasp_planner=grasp_planner,
-                  heap_engine=heap_engine, grasp_outcome=grasp_outcome, grasp_samples=grasp_samples)
+                  heap_engine=heap_engine, grasp_outcome=grasp_outcome, grasp_samples=grasp_samples,
+                  occupancy_weights=str(occupancy_weights) if occupancy_weights is not None else "")
     if s["resumed"]:
         typer.echo(f"resuming: {s['resumed']} of {heaps_} rollouts already in {out}")
     typer.echo(format_summary(policy, s))
@@ -973,7 +982,11 @@ def data_occupancy(count: int = typer.Option(..., "--count", min=1, help="Images
                    target: Optional[list[str]] = typer.Option(None, "--target", help="Out-of-set box target "
                                                               "'L,W,T' in metres (repeatable), e.g. 0.06,0.06,0.005, or a "
                                                               "cylinder lying flat 'cyl:L,D', e.g. cyl:0.15,0.015"),
-                   test_only: bool = typer.Option(False, "--test-only", help="Every shard a test shard")):
+                   test_only: bool = typer.Option(False, "--test-only", help="Every shard a test shard"),
+                   layout: str = typer.Option("spread", "--layout", help="How the heaps are dropped: spread "
+                                              "(Gaussian offsets, released just above the pile) or compact "
+                                              "(as --protocol xray_compact: centre +-10 cm, offsets +-2.5 cm, "
+                                              "released from 20 cm)")):
     """Depth images + target modal masks + ground-truth occupancy (ten box aspect ratios), split by
     image and by object, sharded; shards already written are kept."""
     try:
@@ -983,12 +996,13 @@ def data_occupancy(count: int = typer.Option(..., "--count", min=1, help="Images
         _fail(f"--target {target}: give L,W,T in metres, e.g. --target 0.06,0.06,0.005, or cyl:L,D")
     if targets and any(len(t) != 3 for t in targets):
         _fail(f"--target {target}: give three numbers L,W,T per box target, two (cyl:L,D) per cylinder")
+    _choose("--layout", layout, tuple(HEAP_LAYOUTS))
     t0 = time.perf_counter()
     per = views * heaps_per_shard
     bar, progress = _job_bar(-(-count // per), "shards", "shard")
     res = write_occupancy_dataset(out, count, seed, views, heaps_per_shard, workers,
                                   ray or ray_address is not None, ray_address, progress, targets=targets,
-                                  test_only=test_only)
+                                  test_only=test_only, layout=layout)
     bar.close()
     typer.echo(f"{res['written']} shards written, {res['skipped']} already there, {len(res['failed'])} failed, "
                f"in {out} ({time.perf_counter() - t0:.1f} s)")

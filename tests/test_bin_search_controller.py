@@ -4,6 +4,7 @@ images, wired to a simulated station in three lines, wired to the hardware stati
 gripper. ImagesReady alone."""
 
 import dataclasses
+import shutil
 
 import numpy as np
 import pytest
@@ -14,6 +15,8 @@ from pydrake.systems.sensors import ImageDepth32F, ImageRgba8U
 
 from ms_drake.execution import LIFT_THRESHOLD
 from ms_drake.experiments.rollout import SearchParams, build_search, run_search
+from ms_drake.perception.occupancy import TargetBox
+from ms_drake.perception.occupancy_net import default_weights
 from ms_drake.perception.ready import ImagesReady
 from ms_drake.policies.bin_search import (
     BinSearchParams,
@@ -116,6 +119,21 @@ def test_controller_rejects_settings_it_cannot_honour(yumi_images):
     with pytest.raises(ControllerError, match="grasp_outcome 'nominal' needs.*grasp_planner is 'indexed'"):
         BinSearchParams(grasp_outcome="nominal", grasp_planner="indexed")
     assert BinSearchParams(grasp_outcome="nominal", fidelity="full").grasp_planner == "image"
+    with pytest.raises(ControllerError, match="occupancy_weights: no such file 'nowhere.pt'"):
+        BinSearchParams(occupancy_weights="nowhere.pt")
+    with pytest.raises(ControllerError, match="is for the learned occupancy backend; occupancy is 'analytic'"):
+        BinSearchParams(occupancy="analytic", occupancy_weights=str(default_weights()))
+
+
+def test_the_learned_occupancy_reads_the_weights_it_is_given(yumi_images, tmp_path):
+    s, _ = yumi_images
+    weights = tmp_path / "copy.pt"
+    shutil.copy(default_weights(), weights)
+    shape = TargetBox(0.045, 0.045, 0.005)
+    for given, used in (("", default_weights()), (str(weights), weights)):
+        controller = MakeBinSearchController(s, BinSearchParams(policy="xray", fidelity="full", segmentation="euclidean",
+                                                                occupancy_weights=given), target_shape=shape)
+        assert controller.GetSubsystemByName("occupancy_estimator").backend.weights == used
 
 
 def test_three_lines_wire_the_controller_to_a_simulated_station(heap4):

@@ -1,6 +1,7 @@
 """The bin-search benchmark harness: `ms-drake bench search` on tiny heaps, resume, failures, plots."""
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -21,6 +22,7 @@ from ms_drake.experiments.harness import (
     summarize,
 )
 from ms_drake.paths import code_version
+from ms_drake.perception.occupancy_net import default_weights
 from ms_drake.scenes.heaps import heap_digest, load_heap
 from ms_drake.types import Heap, ObjectPose
 
@@ -143,6 +145,22 @@ def test_a_run_resumes_only_the_records_of_its_own_grasp_planner(tmp_path):
     out.write_text(json.dumps(old) + "\n")
     assert run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="image")["ran"] == 0
     assert run_bench("largest", 2, 1, 5, out, horizon=3)["ran"] == 1
+
+
+def test_a_run_resumes_only_the_records_of_its_own_occupancy_weights(tmp_path):
+    out, weights = tmp_path / "w.jsonl", tmp_path / "tuned.pt"
+    shutil.copy(default_weights(), weights)
+    assert run_bench("xray", 2, 1, 5, out, horizon=1, grasp_planner="image")["ran"] == 1
+    s = run_bench("xray", 2, 1, 5, out, horizon=1, grasp_planner="image", occupancy_weights=str(weights))
+    assert s["resumed"] == 0 and s["ran"] == 1
+    assert [r["occupancy_weights"] for r in read_records(out)] == ["", str(weights)]
+    assert run_bench("xray", 2, 1, 5, out, horizon=1, grasp_planner="image", occupancy_weights=str(weights))["ran"] == 0
+    p = run("bench", "search", "--policy", "largest", "--occupancy-weights", weights, "--out", tmp_path / "x.jsonl",
+            check=False)
+    assert p.returncode == 2 and "the largest policy reads no occupancy" in p.stderr
+    p = run("bench", "search", "--policy", "xray", "--occupancy-weights", tmp_path / "none.pt", "--out",
+            tmp_path / "x.jsonl", check=False)
+    assert p.returncode == 2 and "none.pt: no such file" in p.stderr
 
 
 def test_bullet_heaps_are_cached_and_matched_apart_from_drake_heaps(tmp_path):

@@ -11,6 +11,7 @@ from ms_drake.errors import DatasetError, PerceptionError
 from ms_drake.experiments.occupancy_data import (
     LyingCylinder,
     insert_target,
+    layout_heap_params,
     load_dataset,
     shard_split,
     target_shape,
@@ -25,7 +26,7 @@ from ms_drake.experiments.occupancy_learning import (
     train_steps,
 )
 from ms_drake.experiments.rollout import SearchParams, build_search
-from ms_drake.experiments.xray import XRAY_TARGET, xray_heap
+from ms_drake.experiments.xray import XRAY_COMPACT_HEAPS, XRAY_TARGET, xray_heap
 from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.objects import get_object
 from ms_drake.perception.occupancy import OccupancyEstimator, TargetBox
@@ -44,7 +45,7 @@ from ms_drake.perception.occupancy_net import (
 )
 from ms_drake.policies import select_action
 from ms_drake.scenario import load_scenario
-from ms_drake.scenes.heaps import set_heap_poses
+from ms_drake.scenes.heaps import HeapParams, set_heap_poses
 from ms_drake.station.robots import set_arm_positions
 from ms_drake.types import Grasp, InstanceMasks, OccupancyMap, TargetEstimate
 
@@ -73,6 +74,21 @@ def test_dataset_writer_splits_by_object_and_reloads(tiny):
     # resuming keeps every shard
     res = write_occupancy_dataset(tiny, count=10, seed=3, views=2, heaps_per_shard=1, sets=("procedural", "ycb"))
     assert res["skipped"] == 5 and res["written"] == 0
+
+
+def test_compact_layout_drops_as_xray_compact_and_keeps_a_folder_to_one_layout(tmp_path):
+    c = layout_heap_params("compact", "train")
+    assert (c.center_uniform, c.offset_uniform, c.drop_height, c.split) == (
+        XRAY_COMPACT_HEAPS.center_uniform, XRAY_COMPACT_HEAPS.offset_uniform, XRAY_COMPACT_HEAPS.drop_height, "train")
+    assert layout_heap_params("spread", "test") == HeapParams(engine="bullet", split="test", render=False)
+    out = tmp_path / "c"
+    assert write_occupancy_dataset(out, count=2, seed=3, views=2, heaps_per_shard=1, sets=("procedural",),
+                                   layout="compact")["written"] == 1
+    assert [str(np.load(f)["layout"]) for f in out.glob("shard_*.npz")] == ["compact"]
+    with pytest.raises(DatasetError, match="holds 'compact' heaps .* and --layout is 'spread'"):
+        write_occupancy_dataset(out, count=4, seed=3, views=2, heaps_per_shard=1, sets=("procedural",))
+    with pytest.raises(DatasetError, match="unknown heap layout 'pile'; choose one of spread, compact"):
+        write_occupancy_dataset(tmp_path / "p", count=2, layout="pile")
 
 
 def test_a_training_step_lowers_the_loss_on_a_fixed_batch(tiny):

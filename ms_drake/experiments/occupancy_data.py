@@ -7,7 +7,10 @@ central 512 x 384 px of the 640 x 480 overhead image, 4 x 4 blocks -> 128 x 96):
 1. heap: N ~ Poisson(12) truncated to [10, 15] objects of one object set, the sets taken in
    turn heap by heap (ycb, random_urdfs, procedural: mesh objects as well as procedural ones,
    including thin and small ones), dropped by the heap generator (ms_drake.scenes.heaps, Bullet
-   engine);
+   engine) in one of the `HEAP_LAYOUTS`: "spread" (the generator's defaults: truncated Gaussian
+   offsets, each object released just above the pile) or "compact" (the `xray_compact` drop of
+   ms_drake.experiments.xray: a heap centre uniform in +-10 cm, offsets uniform in +-2.5 cm,
+   released from 20 cm above the floor, as the reference's dataset generator drops them);
 2. `views` camera views per heap (the heap's cost is shared by its views): the overhead
    PhoXi-like camera with its position jittered (+-2 cm across, 0.75-0.85 m high), tilted by up
    to 2 degrees, turned by up to 5 degrees about its axis, focal lengths +-5 %, principal point
@@ -71,6 +74,7 @@ from ms_drake.perception.occupancy_net import (
     working_target,
 )
 from ms_drake.scenario import load_scenario
+from ms_drake.experiments.xray import XRAY_COMPACT_HEAPS
 from ms_drake.scenes.heaps import HeapParams, generate_heap
 from ms_drake.station.station import add_environment, add_objects
 
@@ -188,6 +192,24 @@ def insert_target(depth: np.ndarray, cam: PinholeCamera, ws: Workspace, box: Tar
     return out, modal
 
 
+HEAP_LAYOUTS = {
+    "spread": {},
+    "compact": dict(center_uniform=XRAY_COMPACT_HEAPS.center_uniform, offset_uniform=XRAY_COMPACT_HEAPS.offset_uniform,
+                    drop_height=XRAY_COMPACT_HEAPS.drop_height),
+}
+
+
+def check_layout(layout: str) -> str:
+    if layout not in HEAP_LAYOUTS:
+        raise DatasetError(f"unknown heap layout {layout!r}; choose one of {', '.join(HEAP_LAYOUTS)}")
+    return layout
+
+
+def layout_heap_params(layout: str, split: str) -> HeapParams:
+    """The heap generator's parameters of a training heap in `layout` drawing from `split`."""
+    return HeapParams(engine="bullet", split=split, render=False, **HEAP_LAYOUTS[check_layout(layout)])
+
+
 def sample_target(heap, ws: Workspace, box: TargetBox, rng: np.random.Generator) -> tuple[np.ndarray, float]:
     """Box centre (x, y) under a random object of the heap (sigma 3 cm about the object's origin)
     or, one time in four, around the heap's centre (sigma 6 cm), kept inside the bin; yaw
@@ -232,8 +254,9 @@ def make_samples(scenario, heap, views: int, rng: np.random.Generator, ratios=TA
 
 
 def shard_job(job: tuple) -> dict:
-    """(out, k, seed, heaps_per_shard, views, sets, targets, test_only) -> writes shard k; module-level for pickling."""
-    out, k, seed, heaps_per_shard, views, sets, targets, test_only = job
+    """(out, k, seed, heaps_per_shard, views, sets, targets, test_only, layout) -> writes shard k; module-level
+    for pickling."""
+    out, k, seed, heaps_per_shard, views, sets, targets, test_only, layout = job
     split = shard_split(k, test_only)
     path = Path(out) / f"shard_{k:05d}_{split}.npz"
     if path.exists():
@@ -247,7 +270,7 @@ def shard_job(job: tuple) -> dict:
         n = truncated_poisson(rng)
         try:
             heap = generate_heap(scenario, n, heap_seed, object_set=oset,
-                                 params=HeapParams(engine="bullet", split=split, render=False))
+                                 params=layout_heap_params(layout, split))
         except HeapError:
             failed += 1
             continue
@@ -264,19 +287,23 @@ def shard_job(job: tuple) -> dict:
                         heap_seed=np.array([s["heap_seed"] for s in samples], np.int64),
                         size=np.stack([s["size"] for s in samples]),
                         set=np.array([s["set"] for s in samples]),
-                        objects=np.array([s["objects"] for s in samples]), split=np.array(split))
+                        objects=np.array([s["objects"] for s in samples]), split=np.array(split),
+                        layout=np.array(layout))
     os.replace(tmp, path)
     return dict(shard=k, samples=len(samples), skipped=False, cpu=time.process_time() - t0, failed_heaps=failed)
 
 
 def write_occupancy_dataset(out, count: int, seed: int = 0, views: int = 8, heaps_per_shard: int = 4,
                             workers: int = 1, use_ray: bool = False, ray_address: str | None = None,
-                            progress=None, sets=OBJECT_SETS, targets=None, test_only: bool = False) -> dict:
+                            progress=None, sets=OBJECT_SETS, targets=None, test_only: bool = False,
+                            layout: str = "spread") -> dict:
     """Shards of about `count` images into `out` (see the module doc); returns counts.
     targets: (length, width, thickness) boxes or ("cylinder", length, diameter) cylinders to use
     instead of the ten training boxes (an out-of-set evaluation set; each sample's ratio is the
     channel of its closest aspect ratio);
-    test_only: every shard is a test shard (held-out occluders only)."""
+    test_only: every shard is a test shard (held-out occluders only);
+    layout: how the heaps are dropped (`HEAP_LAYOUTS`); a folder holds one layout."""
+    check_layout(layout)
     if views < 1 or heaps_per_shard < 1:
         raise DatasetError(f"views={views}, heaps_per_shard={heaps_per_shard}: both must be >= 1")
     out = Path(out)
@@ -285,7 +312,14 @@ def write_occupancy_dataset(out, count: int, seed: int = 0, views: int = 8, heap
     shards = -(-int(count) // per)
     targets = None if targets is None else tuple(
         ("cylinder", float(t[1]), float(t[2])) if t[0] == "cylinder" else tuple(float(v) for v in t) for t in targets)
-    jobs = [(str(out), k, int(seed), heaps_per_shard, views, tuple(sets), targets, test_only) for k in range(shards)]
+    for f in sorted(out.glob("shard_*.npz"))[:1]:
+        with np.load(f) as z:
+            there = str(z["layout"]) if "layout" in z.files else "spread"
+        if there != layout:
+            raise DatasetError(f"{out} holds {there!r} heaps ({f.name}) and --layout is {layout!r}; "
+                               f"write the {layout!r} heaps into a folder of their own")
+    jobs = [(str(out), k, int(seed), heaps_per_shard, views, tuple(sets), targets, test_only, layout)
+            for k in range(shards)]
     todo = [j for j in jobs if not (out / f"shard_{j[1]:05d}_{shard_split(j[1], test_only)}.npz").exists()]
     res = dict(shards=shards, skipped=shards - len(todo), written=0, failed=[])
     return run_shard_jobs(shard_job, todo, res, progress=progress, workers=workers, use_ray=use_ray,

@@ -79,6 +79,7 @@ class SearchParams:
     # or "analytic" (the ground-truth generator). The oracle always uses "analytic" with the
     # target's true pose: it is the labelled upper bound that reads privileged state.
     occupancy: str = "learned"
+    occupancy_weights: str = ""  # the learned occupancy's weights file ("": the shipped one)
     # Plant step [s]; None keeps the scenario's (2 ms). `rollout` sets the primitive mode's
     # (primitive_time_step): the heap only needs to settle, so 10 ms like the heap generator (our
     # choice), and 5 ms for the selectors that push, where the closed jaw's push agrees with the
@@ -152,6 +153,7 @@ class RolloutResult:
     push_policy: str = ""
     grasp_outcome: str = "draw"
     grasp_samples: int = 8  # the image planners' candidates per mask
+    occupancy_weights: str = ""  # the learned occupancy's weights file ("": the shipped one)
     error: str = ""
     # per action: the grasp's gripper kind ("parallel_jaw" / "suction"; "" for a push) and
     # whether the action succeeded (Table C.2: jaw vs suction grasps)
@@ -190,6 +192,7 @@ def controller_params(params: SearchParams, num_objects: int) -> BinSearchParams
                            robust_samples=params.robust_samples, grasp_params=params.grasp_params,
                            period=params.period, segmentation=params.segmenter, detector=params.detector,
                            occupancy="analytic" if params.policy == "oracle" else params.occupancy,
+                           occupancy_weights="" if params.policy == "oracle" else params.occupancy_weights,
                            grasp_planner=params.grasp_planner, push_policy=params.push_policy,
                            reach=params.reach, grasp_outcome=params.grasp_outcome)
 
@@ -325,7 +328,7 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
                         grasp_successes=sum(1 for o in history if o.action.kind == "grasp" and o.success),
                         grasp_plans=grasp_plans, grasp_planner=system.controller.params.grasp_planner,
                         push_policy=params.push_policy, grasp_outcome=params.grasp_outcome,
-                        grasp_samples=int(params.grasp_samples),
+                        grasp_samples=int(params.grasp_samples), occupancy_weights=params.occupancy_weights,
                         grasp_kinds=[o.action.grasp.kind if o.action.kind == "grasp" and o.action.grasp is not None
                                      else "" for o in history],
                         action_successes=[bool(o.success) for o in history],

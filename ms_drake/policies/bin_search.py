@@ -37,6 +37,7 @@ a jaw-only robot) are not planned.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 from pydrake.systems.framework import Diagram, DiagramBuilder
 
@@ -130,6 +131,7 @@ class BinSearchParams:
     detector: str = "color"
     templates: int = 5
     occupancy: str = "learned"  # OccupancyEstimator backend: "learned" (target size only) or "analytic"
+    occupancy_weights: str = ""  # the learned backend's weights file ("": the shipped models/weights/occupancy.pt)
     camera: str = "overhead"
     period: float = 0.05
     grasp_planner: str = ""
@@ -166,6 +168,12 @@ class BinSearchParams:
                                   "grasp_planner='image' (CLI: --grasp-planner image)")
         if self.occupancy not in OCCUPANCY_BACKENDS:
             raise ControllerError(f"occupancy {self.occupancy!r} unknown; choose one of {', '.join(OCCUPANCY_BACKENDS)}")
+        if self.occupancy_weights and self.occupancy != "learned":
+            raise ControllerError(f"occupancy_weights={self.occupancy_weights!r} is for the learned occupancy backend; "
+                                  f"occupancy is {self.occupancy!r}")
+        if self.occupancy_weights and not Path(self.occupancy_weights).is_file():
+            raise ControllerError(f"occupancy_weights: no such file {self.occupancy_weights!r}; give a weights file "
+                                  "written by `ms-drake train occupancy` (or '' for the shipped one)")
 
 
 @dataclass(frozen=True)
@@ -331,8 +339,9 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
         builder.Connect(pushes.GetOutputPort("pushes"), selector.GetInputPort("pushes"))
         outputs["pushes"] = pushes.GetOutputPort("pushes")
     if needs_occupancy:
+        weights = {"weights": params.occupancy_weights} if params.occupancy_weights else {}
         occ = builder.AddSystem(OccupancyEstimator(params.occupancy, camera=camera, workspace=workspace,
-                                                   target_size=target_shape))
+                                                   target_size=target_shape, **weights))
         occ.set_name("occupancy_estimator")
         depth_inputs.append(occ.GetInputPort("depth_image"))
         builder.Connect(det.GetOutputPort("target"), occ.GetInputPort("target"))
