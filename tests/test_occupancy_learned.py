@@ -107,9 +107,12 @@ def test_a_training_step_lowers_the_loss_on_a_fixed_batch(tiny):
     assert losses[-1] < 0.95 * losses[0]
 
 
-def test_shipped_weights_load_and_beat_a_uniform_distribution(tiny):
-    net, ck = load_model()
-    assert default_weights().stat().st_size < 20e6 and ck["meta"]["epochs_done"] >= 1
+@pytest.mark.parametrize("name", ["occupancy.pt", "occupancy_compact.pt"])
+def test_shipped_weights_load_and_beat_a_uniform_distribution(tiny, name):
+    path = default_weights().with_name(name)
+    assert path.with_suffix(".md").is_file(), f"{path}: its model card is missing"
+    net, ck = load_model(path)
+    assert path.stat().st_size < 20e6 and ck["meta"]["epochs_done"] >= 1
     d = load_dataset(tiny, "test")
     y = d["y"].astype(np.float32)
     pred = predict(net, d["x"], d["ratio"])
