@@ -57,6 +57,7 @@ from ms_drake.experiments.matcher_data import (
     write_matcher_dataset,
 )
 from ms_drake.experiments.matcher_learning import train_matcher
+from ms_drake.experiments.rollout import SEARCH_OCCUPANCIES
 from ms_drake.experiments.mppi_bench import PLANNERS as MPPI_PLANNERS
 from ms_drake.experiments.mppi_bench import bench_mppi
 from ms_drake.experiments.occupancy_data import HEAP_LAYOUTS, write_occupancy_dataset
@@ -483,7 +484,12 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
                                                    "planners sample per mask (each gripper)"),
                  occupancy_weights: Optional[Path] = typer.Option(None, "--occupancy-weights", help="Weights of "
                                                                   "the learned occupancy (X-Ray; default: the shipped "
-                                                                  "models/weights/occupancy.pt); kept in each record")):
+                                                                  "models/weights/occupancy.pt); kept in each record"),
+                 occupancy: str = typer.Option("learned", "--occupancy", help="X-Ray's occupancy: learned (the "
+                                               "network, from the depth image and the target's size) | analytic_image "
+                                               "(the ground-truth generator on the depth image and the target's box, "
+                                               "no pose: what the network learns) | analytic (the generator on the "
+                                               "target's mesh at its true pose: privileged)")):
     """Search heaps S..S+K-1 with a policy; one JSON line per rollout (resumable), then a summary."""
     check_policy(policy)
     _choose("--grasp-outcome", grasp_outcome, GRASP_OUTCOMES)
@@ -506,6 +512,9 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
     _need_jsonl(out)
     if occupancy_weights is not None and not occupancy_weights.is_file():
         _fail(f"--occupancy-weights {occupancy_weights}: no such file; give one written by `ms-drake train occupancy`")
+    _choose("--occupancy", occupancy, SEARCH_OCCUPANCIES)
+    if occupancy != "learned" and (occupancy_weights is not None or policy not in OCCUPANCY_POLICIES):
+        _fail(f"--occupancy {occupancy}: only for {' or '.join(OCCUPANCY_POLICIES)}, without --occupancy-weights")
     if occupancy_weights is not None and policy not in OCCUPANCY_POLICIES:
         _fail(f"--occupancy-weights: the {policy} policy reads no occupancy; use it with "
               f"{' or '.join(OCCUPANCY_POLICIES)}")
@@ -519,7 +528,8 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
                   heap_dir=str(heap_dir) if heap_dir is not None else None, protocol=protocol,
                   segmenter=segmenter, detector=detector, push_policy=push_policy, grasp_planner=grasp_planner,
                   heap_engine=heap_engine, grasp_outcome=grasp_outcome, grasp_samples=grasp_samples,
-                  occupancy_weights=str(occupancy_weights) if occupancy_weights is not None else "")
+                  occupancy_weights=str(occupancy_weights) if occupancy_weights is not None else "",
+                  occupancy=occupancy)
     if s["resumed"]:
         typer.echo(f"resuming: {s['resumed']} of {heaps_} rollouts already in {out}")
     typer.echo(format_summary(policy, s))

@@ -147,7 +147,7 @@ def test_a_run_resumes_only_the_records_of_its_own_grasp_planner(tmp_path):
     assert run_bench("largest", 2, 1, 5, out, horizon=3)["ran"] == 1
 
 
-def test_a_run_resumes_only_the_records_of_its_own_occupancy_weights(tmp_path):
+def test_a_run_resumes_only_the_records_of_its_own_occupancy_estimator(tmp_path):
     out, weights = tmp_path / "w.jsonl", tmp_path / "tuned.pt"
     shutil.copy(default_weights(), weights)
     assert run_bench("xray", 2, 1, 5, out, horizon=1, grasp_planner="image")["ran"] == 1
@@ -155,6 +155,11 @@ def test_a_run_resumes_only_the_records_of_its_own_occupancy_weights(tmp_path):
     assert s["resumed"] == 0 and s["ran"] == 1
     assert [r["occupancy_weights"] for r in read_records(out)] == ["", str(weights)]
     assert run_bench("xray", 2, 1, 5, out, horizon=1, grasp_planner="image", occupancy_weights=str(weights))["ran"] == 0
+    assert run_bench("xray", 2, 1, 5, out, horizon=1, grasp_planner="image", occupancy="analytic_image")["ran"] == 1
+    assert [r["occupancy"] for r in read_records(out)] == ["learned", "learned", "analytic_image"]
+    p = run("bench", "search", "--policy", "xray", "--occupancy", "analytic_image", "--occupancy-weights", weights,
+            "--out", tmp_path / "x.jsonl", check=False)
+    assert p.returncode == 2 and "without --occupancy-weights" in p.stderr
     p = run("bench", "search", "--policy", "largest", "--occupancy-weights", weights, "--out", tmp_path / "x.jsonl",
             check=False)
     assert p.returncode == 2 and "the largest policy reads no occupancy" in p.stderr

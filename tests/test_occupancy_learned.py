@@ -8,6 +8,7 @@ import trimesh
 from pydrake.systems.sensors import ImageDepth32F
 
 from ms_drake.errors import DatasetError, PerceptionError
+from ms_drake.execution import ExecutionError
 from ms_drake.experiments.occupancy_data import (
     LyingCylinder,
     insert_target,
@@ -29,7 +30,7 @@ from ms_drake.experiments.rollout import SearchParams, build_search
 from ms_drake.experiments.xray import XRAY_COMPACT_HEAPS, XRAY_TARGET, xray_heap
 from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.objects import get_object
-from ms_drake.perception.occupancy import OccupancyEstimator, TargetBox
+from ms_drake.perception.occupancy import AnalyticOccupancy, OccupancyEstimator, TargetBox
 from ms_drake.perception.occupancy_net import (
     FULL_SHAPE,
     WORK_PX_PER_M,
@@ -220,6 +221,19 @@ def test_learned_estimator_in_the_xray_controller_without_privileged_state():
     a = system.output(ctx, "action")
     assert system.output(ctx, "target").visible
     assert a.kind == "grasp" and a.grasp.object_id == system.target_id  # X-Ray takes the seen target first
+
+
+def test_analytic_image_occupancy_is_the_generator_on_the_targets_box_without_its_pose():
+    heap = xray_heap(5002, occluders=4)
+    scenario = load_scenario(None, "FloatingGripperBin")
+    est = {occ: build_search(scenario, heap, SearchParams(policy="xray", horizon=2, time_step=0.01, occupancy=occ))
+           .controller.GetSubsystemByName("occupancy_estimator").backend for occ in ("analytic_image", "analytic")}
+    box = TargetBox.from_object(heap.target)
+    assert isinstance(est["analytic_image"], AnalyticOccupancy) and est["analytic_image"].mesh is None
+    assert est["analytic_image"].box == box
+    assert est["analytic"].mesh is not None  # the privileged one: the target's mesh at its true pose
+    with pytest.raises(ExecutionError, match="occupancy 'exact' unknown; choose one of learned, analytic_image"):
+        SearchParams(occupancy="exact")
 
 
 def test_flute_target_is_a_lying_cylinder_seen_from_above():

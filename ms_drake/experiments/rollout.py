@@ -61,6 +61,9 @@ REFERENCE_FAILURE_CLASSES = {
 SCENARIOS = {"primitive": "FloatingGripperBin", "full": "YuMiBin"}
 
 
+SEARCH_OCCUPANCIES = ("learned", "analytic_image", "analytic")  # SearchParams.occupancy
+
+
 @dataclass
 class SearchParams:
     policy: str = "largest"
@@ -75,9 +78,11 @@ class SearchParams:
     robust_samples: int = 4
     grasp_params: dict | None = None  # GraspEvaluator keywords, e.g. {"closing_force": 40.0}
     period: float = 0.05
-    # OccupancyEstimator backend of X-Ray: "learned" (from the target's size and the images only)
-    # or "analytic" (the ground-truth generator). The oracle always uses "analytic" with the
-    # target's true pose: it is the labelled upper bound that reads privileged state.
+    # OccupancyEstimator backend of X-Ray (SEARCH_OCCUPANCIES): "learned" (from the target's size
+    # and the images only), "analytic_image" (the ground-truth generator on the depth image and the
+    # target's box, no pose: the distribution the learned network is trained to predict) or
+    # "analytic" (the generator on the target's own mesh at its true pose: privileged). The oracle
+    # always uses "analytic" with the true pose: it is the labelled upper bound.
     occupancy: str = "learned"
     occupancy_weights: str = ""  # the learned occupancy's weights file ("": the shipped one)
     # Plant step [s]; None keeps the scenario's (2 ms). `rollout` sets the primitive mode's
@@ -115,6 +120,8 @@ class SearchParams:
         check_policy(self.policy)
         if self.fidelity not in FIDELITIES:
             raise ExecutionError(f"fidelity {self.fidelity!r} unknown; choose one of {', '.join(FIDELITIES)}")
+        if self.occupancy not in SEARCH_OCCUPANCIES:
+            raise ExecutionError(f"occupancy {self.occupancy!r} unknown; choose one of {', '.join(SEARCH_OCCUPANCIES)}")
 
 
 @dataclass
@@ -154,6 +161,7 @@ class RolloutResult:
     grasp_outcome: str = "draw"
     grasp_samples: int = 8  # the image planners' candidates per mask
     occupancy_weights: str = ""  # the learned occupancy's weights file ("": the shipped one)
+    occupancy: str = "learned"  # SearchParams.occupancy
     error: str = ""
     # per action: the grasp's gripper kind ("parallel_jaw" / "suction"; "" for a push) and
     # whether the action succeeded (Table C.2: jaw vs suction grasps)
@@ -191,7 +199,8 @@ def controller_params(params: SearchParams, num_objects: int) -> BinSearchParams
                            grasp_models=tuple(params.grasp_models), grasp_samples=params.grasp_samples,
                            robust_samples=params.robust_samples, grasp_params=params.grasp_params,
                            period=params.period, segmentation=params.segmenter, detector=params.detector,
-                           occupancy="analytic" if params.policy == "oracle" else params.occupancy,
+                           occupancy="analytic" if params.policy == "oracle" or params.occupancy == "analytic_image"
+                           else params.occupancy,
                            occupancy_weights="" if params.policy == "oracle" else params.occupancy_weights,
                            grasp_planner=params.grasp_planner, push_policy=params.push_policy,
                            reach=params.reach, grasp_outcome=params.grasp_outcome)
@@ -329,6 +338,7 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
                         grasp_plans=grasp_plans, grasp_planner=system.controller.params.grasp_planner,
                         push_policy=params.push_policy, grasp_outcome=params.grasp_outcome,
                         grasp_samples=int(params.grasp_samples), occupancy_weights=params.occupancy_weights,
+                        occupancy=params.occupancy,
                         grasp_kinds=[o.action.grasp.kind if o.action.kind == "grasp" and o.action.grasp is not None
                                      else "" for o in history],
                         action_successes=[bool(o.success) for o in history],
