@@ -996,7 +996,12 @@ def data_occupancy(count: int = typer.Option(..., "--count", min=1, help="Images
                    layout: str = typer.Option("spread", "--layout", help="How the heaps are dropped: spread "
                                               "(Gaussian offsets, released just above the pile) or compact "
                                               "(as --protocol xray_compact: centre +-10 cm, offsets +-2.5 cm, "
-                                              "released from 20 cm)")):
+                                              "released from 20 cm)"),
+                   best_match: Optional[float] = typer.Option(None, "--best-match", min=0.0, max=0.99,
+                                                              help="Ground truth of a partly seen target no grid "
+                                                              "placement matches (IoU > 0.9): the placements within "
+                                                              "this IoU of the best one (default: the observed "
+                                                              "modal mask)")):
     """Depth images + target modal masks + ground-truth occupancy (ten box aspect ratios), split by
     image and by object, sharded; shards already written are kept."""
     try:
@@ -1012,7 +1017,7 @@ def data_occupancy(count: int = typer.Option(..., "--count", min=1, help="Images
     bar, progress = _job_bar(-(-count // per), "shards", "shard")
     res = write_occupancy_dataset(out, count, seed, views, heaps_per_shard, workers,
                                   ray or ray_address is not None, ray_address, progress, targets=targets,
-                                  test_only=test_only, layout=layout)
+                                  test_only=test_only, layout=layout, best_match=best_match)
     bar.close()
     typer.echo(f"{res['written']} shards written, {res['skipped']} already there, {len(res['failed'])} failed, "
                f"in {out} ({time.perf_counter() - t0:.1f} s)")

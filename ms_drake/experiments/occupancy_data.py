@@ -226,7 +226,7 @@ def sample_target(heap, ws: Workspace, box: TargetBox, rng: np.random.Generator)
 
 
 def make_samples(scenario, heap, views: int, rng: np.random.Generator, ratios=TARGET_RATIOS,
-                 box_sizes=None) -> list[dict]:
+                 box_sizes=None, best_match: float | None = None) -> list[dict]:
     """`views` samples of one heap (see the module doc). box_sizes: explicit targets to draw from
     instead of the training boxes (out-of-set targets; specs of `target_shape`)."""
     nominal = PinholeCamera.from_config(scenario.cameras[next(iter(scenario.cameras))])
@@ -245,7 +245,7 @@ def make_samples(scenario, heap, views: int, rng: np.random.Generator, ratios=TA
         xy, yaw = sample_target(heap, ws, box, rng)
         d2, modal = insert_target(depth, cam, ws, box, xy, yaw)
         shape = box.target_mesh() if isinstance(box, LyingCylinder) else box
-        rho = AnalyticOccupancy(cam, ws, shape).estimate(d2, modal)
+        rho = AnalyticOccupancy(cam, ws, shape, best_match=best_match).estimate(d2, modal)
         x = working_inputs(d2, modal)
         out.append(dict(x=x.astype(np.float16), y=working_target(rho).astype(np.float16), ratio=k,
                         visible=int(modal.sum()), heap_seed=int(heap.seed), size=np.array([box.length, box.width,
@@ -254,9 +254,9 @@ def make_samples(scenario, heap, views: int, rng: np.random.Generator, ratios=TA
 
 
 def shard_job(job: tuple) -> dict:
-    """(out, k, seed, heaps_per_shard, views, sets, targets, test_only, layout) -> writes shard k; module-level
+    """(out, k, seed, heaps_per_shard, views, sets, targets, test_only, layout, best_match) -> writes shard k; module-level
     for pickling."""
-    out, k, seed, heaps_per_shard, views, sets, targets, test_only, layout = job
+    out, k, seed, heaps_per_shard, views, sets, targets, test_only, layout, best_match = job
     split = shard_split(k, test_only)
     path = Path(out) / f"shard_{k:05d}_{split}.npz"
     if path.exists():
@@ -274,7 +274,7 @@ def shard_job(job: tuple) -> dict:
         except HeapError:
             failed += 1
             continue
-        samples += make_samples(scenario, heap, views, rng, box_sizes=targets)
+        samples += make_samples(scenario, heap, views, rng, box_sizes=targets, best_match=best_match)
         for s in samples[-views:]:
             s["set"] = oset
             s["objects"] = ",".join(heap.object_names())
@@ -288,7 +288,7 @@ def shard_job(job: tuple) -> dict:
                         size=np.stack([s["size"] for s in samples]),
                         set=np.array([s["set"] for s in samples]),
                         objects=np.array([s["objects"] for s in samples]), split=np.array(split),
-                        layout=np.array(layout))
+                        layout=np.array(layout), best_match=np.array(-1.0 if best_match is None else best_match))
     os.replace(tmp, path)
     return dict(shard=k, samples=len(samples), skipped=False, cpu=time.process_time() - t0, failed_heaps=failed)
 
@@ -296,13 +296,15 @@ def shard_job(job: tuple) -> dict:
 def write_occupancy_dataset(out, count: int, seed: int = 0, views: int = 8, heaps_per_shard: int = 4,
                             workers: int = 1, use_ray: bool = False, ray_address: str | None = None,
                             progress=None, sets=OBJECT_SETS, targets=None, test_only: bool = False,
-                            layout: str = "spread") -> dict:
+                            layout: str = "spread", best_match: float | None = None) -> dict:
     """Shards of about `count` images into `out` (see the module doc); returns counts.
     targets: (length, width, thickness) boxes or ("cylinder", length, diameter) cylinders to use
     instead of the ten training boxes (an out-of-set evaluation set; each sample's ratio is the
     channel of its closest aspect ratio);
     test_only: every shard is a test shard (held-out occluders only);
-    layout: how the heaps are dropped (`HEAP_LAYOUTS`); a folder holds one layout."""
+    layout: how the heaps are dropped (`HEAP_LAYOUTS`); best_match: the ground truth's
+    AnalyticOccupancy(best_match=...) for partly seen targets no grid placement matches (None:
+    the observed modal mask); a folder holds one layout and one best_match."""
     check_layout(layout)
     if views < 1 or heaps_per_shard < 1:
         raise DatasetError(f"views={views}, heaps_per_shard={heaps_per_shard}: both must be >= 1")
@@ -315,10 +317,14 @@ def write_occupancy_dataset(out, count: int, seed: int = 0, views: int = 8, heap
     for f in sorted(out.glob("shard_*.npz"))[:1]:
         with np.load(f) as z:
             there = str(z["layout"]) if "layout" in z.files else "spread"
+            bm = float(z["best_match"]) if "best_match" in z.files else -1.0
         if there != layout:
             raise DatasetError(f"{out} holds {there!r} heaps ({f.name}) and --layout is {layout!r}; "
                                f"write the {layout!r} heaps into a folder of their own")
-    jobs = [(str(out), k, int(seed), heaps_per_shard, views, tuple(sets), targets, test_only, layout)
+        if bm != (-1.0 if best_match is None else best_match):
+            raise DatasetError(f"{out} holds shards with best_match {None if bm < 0 else bm} ({f.name}), asked for "
+                               f"{best_match}; write them into a folder of their own")
+    jobs = [(str(out), k, int(seed), heaps_per_shard, views, tuple(sets), targets, test_only, layout, best_match)
             for k in range(shards)]
     todo = [j for j in jobs if not (out / f"shard_{j[1]:05d}_{shard_split(j[1], test_only)}.npz").exists()]
     res = dict(shards=shards, skipped=shards - len(todo), written=0, failed=[])

@@ -265,6 +265,9 @@ def _valid_placements(camera, workspace, box: TargetBox, grid: OccupancyGrid, an
     return U.ravel()[ok], Vv.ravel()[ok], p[ok], np.flatnonzero(ok)
 
 
+BEST_MATCH_MIN = 0.5  # AnalyticOccupancy(best_match=...): the least IoU a kept placement may have
+
+
 class AnalyticOccupancy:
     """Ground-truth occupancy generator (see the module doc). Precomputes the placements and the
     per-rotation silhouettes once for a camera, workspace and target: a TargetBox (or its size)
@@ -273,9 +276,16 @@ class AnalyticOccupancy:
     name = "analytic"
 
     def __init__(self, camera: PinholeCamera, workspace: Workspace, target_size, grid: OccupancyGrid = OccupancyGrid(),
-                 iou_threshold: float = 0.9, height_tolerance: float = 0.003):
+                 iou_threshold: float = 0.9, height_tolerance: float = 0.003, best_match: float | None = None):
+        """best_match: when the target is seen and no placement passes `iou_threshold` (a partly
+        covered target off the grid's 10 px / 11.25 degree steps), keep the placements whose IoU
+        is within `best_match` of the best one (the best at least BEST_MATCH_MIN) instead of
+        falling back to the observed modal mask; None: the fallback."""
+        if best_match is not None and not 0.0 <= best_match < 1.0:
+            raise PerceptionError(f"best_match={best_match!r}: give a margin in [0, 1) (e.g. 0.05) or None")
         self.camera, self.workspace = camera, workspace
         self.iou_threshold, self.height_tolerance = float(iou_threshold), float(height_tolerance)
+        self.best_match = best_match
         self.mesh = target_size if isinstance(target_size, TargetMesh) else None
         anchor = (int(round(camera.cx)), int(round(camera.cy)))
         au, av = np.array([float(anchor[0])]), np.array([float(anchor[1])])
@@ -400,7 +410,11 @@ class AnalyticOccupancy:
         if m == 0:
             out[cand] = modal == 0
         else:
-            out[cand] = inter / np.maximum(modal + m - inter, 1) > self.iou_threshold
+            iou = inter / np.maximum(modal + m - inter, 1)
+            out[cand] = iou > self.iou_threshold
+            best = float(iou.max())
+            if self.best_match is not None and not out.any() and best >= BEST_MATCH_MIN:
+                out[cand] = iou >= best - self.best_match
         return out
 
     def accumulate(self, matches: np.ndarray) -> np.ndarray:
