@@ -297,3 +297,33 @@ def test_visible_cylinder_target_in_a_heap_gets_a_distribution_on_its_mask(bin_s
         matched += occ.last_matches > 0
         assert rho.sum() == pytest.approx(1.0) and rho[M].sum() > 0.5
     assert tried == matched == 2  # small_heap's two cylinders are visible, and the grid matches each
+
+
+def test_best_match_extends_a_partly_seen_target_off_the_grid_under_its_occluder():
+    grid = OccupancyGrid()
+    us, vs = grid.pixels(640, 480)
+    # the target half a grid step and half a rotation bin away from every placement
+    u0, v0 = 0.5 * (us[30] + us[31]), 0.5 * (vs[24] + vs[25])
+    c = floor_points(CAM, np.array([u0]), np.array([v0]), 0.5 * BOX.thickness)[0]
+    th = 0.5 * (grid.angles()[2] + grid.angles()[3])
+
+    def h(x, y):
+        xl = np.cos(th) * (x - c[0]) + np.sin(th) * (y - c[1])
+        yl = -np.sin(th) * (x - c[0]) + np.cos(th) * (y - c[1])
+        return np.where((np.abs(xl) <= BOX.length / 2) & (np.abs(yl) <= BOX.width / 2), BOX.thickness, 0.0)
+    cover = slab(c[0], c[0] + 0.1, c[1] - 0.1, c[1] + 0.1)
+    d = heightfield_depth(lambda x, y: np.maximum(h(x, y), cover(x, y)))
+    xy = surface_xy(d)
+    seen = (h(*xy) > 0) & (cover(*xy) == 0)
+    amodal = h(*surface_xy(heightfield_depth(h))) > 0
+    plain = AnalyticOccupancy(CAM, BIN, BOX)
+    rho = plain.estimate(d, seen)
+    assert plain.last_matches == 0 and np.array_equal(rho > 0, seen)  # no placement passes: the modal mask
+    best = AnalyticOccupancy(CAM, BIN, BOX, best_match=0.05)
+    rho = best.estimate(d, seen)
+    under = cover(*xy) > 0
+    assert rho.sum() == pytest.approx(1.0) and best.last_matches >= 1
+    assert (rho[amodal & under] > 0).mean() > 0.5  # most of its hidden part is in the support (the plain: none)
+    assert ((rho > 0) & ~amodal).sum() < amodal.sum()  # and the support stays near it
+    with pytest.raises(PerceptionError, match="best_match=1.5"):
+        AnalyticOccupancy(CAM, BIN, BOX, best_match=1.5)

@@ -88,6 +88,9 @@ def test_compact_layout_drops_as_xray_compact_and_keeps_a_folder_to_one_layout(t
     assert [str(np.load(f)["layout"]) for f in out.glob("shard_*.npz")] == ["compact"]
     with pytest.raises(DatasetError, match="holds 'compact' heaps .* and --layout is 'spread'"):
         write_occupancy_dataset(out, count=4, seed=3, views=2, heaps_per_shard=1, sets=("procedural",))
+    with pytest.raises(DatasetError, match="holds shards with best_match None .* asked for 0.05"):
+        write_occupancy_dataset(out, count=4, seed=3, views=2, heaps_per_shard=1, sets=("procedural",),
+                                layout="compact", best_match=0.05)
     with pytest.raises(DatasetError, match="unknown heap layout 'pile'; choose one of spread, compact"):
         write_occupancy_dataset(tmp_path / "p", count=2, layout="pile")
 
