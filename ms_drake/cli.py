@@ -488,7 +488,8 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
                  occupancy: str = typer.Option("learned", "--occupancy", help="X-Ray's occupancy: learned (the "
                                                "network, from the depth image and the target's size) | analytic_image "
                                                "(the ground-truth generator on the depth image and the target's box, "
-                                               "no pose: what the network learns) | analytic (the generator on the "
+                                               "no pose: what the network learns) | analytic_image_best (the same, a partly "
+                                               "seen target keeping its best-matching placements) | analytic (the generator on the "
                                                "target's mesh at its true pose: privileged)")):
     """Search heaps S..S+K-1 with a policy; one JSON line per rollout (resumable), then a summary."""
     check_policy(policy)

@@ -123,6 +123,8 @@ def test_controller_rejects_settings_it_cannot_honour(yumi_images):
         BinSearchParams(occupancy_weights="nowhere.pt")
     with pytest.raises(ControllerError, match="is for the learned occupancy backend; occupancy is 'analytic'"):
         BinSearchParams(occupancy="analytic", occupancy_weights=str(default_weights()))
+    with pytest.raises(ControllerError, match="occupancy_best_match is for the analytic occupancy backend"):
+        BinSearchParams(occupancy_best_match=0.05)
 
 
 def test_the_learned_occupancy_reads_the_weights_it_is_given(yumi_images, tmp_path):

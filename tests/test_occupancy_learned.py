@@ -26,7 +26,7 @@ from ms_drake.experiments.occupancy_learning import (
     predict,
     train_steps,
 )
-from ms_drake.experiments.rollout import SearchParams, build_search
+from ms_drake.experiments.rollout import IMAGE_BEST_MATCH, SearchParams, build_search
 from ms_drake.experiments.xray import XRAY_COMPACT_HEAPS, XRAY_TARGET, xray_heap
 from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.objects import get_object
@@ -230,10 +230,12 @@ def test_analytic_image_occupancy_is_the_generator_on_the_targets_box_without_it
     heap = xray_heap(5002, occluders=4)
     scenario = load_scenario(None, "FloatingGripperBin")
     est = {occ: build_search(scenario, heap, SearchParams(policy="xray", horizon=2, time_step=0.01, occupancy=occ))
-           .controller.GetSubsystemByName("occupancy_estimator").backend for occ in ("analytic_image", "analytic")}
+           .controller.GetSubsystemByName("occupancy_estimator").backend
+           for occ in ("analytic_image", "analytic_image_best", "analytic")}
     box = TargetBox.from_object(heap.target)
-    assert isinstance(est["analytic_image"], AnalyticOccupancy) and est["analytic_image"].mesh is None
-    assert est["analytic_image"].box == box
+    for occ, best_match in (("analytic_image", None), ("analytic_image_best", IMAGE_BEST_MATCH)):
+        assert isinstance(est[occ], AnalyticOccupancy) and est[occ].mesh is None
+        assert est[occ].box == box and est[occ].best_match == best_match
     assert est["analytic"].mesh is not None  # the privileged one: the target's mesh at its true pose
     with pytest.raises(ExecutionError, match="occupancy 'exact' unknown; choose one of learned, analytic_image"):
         SearchParams(occupancy="exact")

@@ -61,7 +61,8 @@ REFERENCE_FAILURE_CLASSES = {
 SCENARIOS = {"primitive": "FloatingGripperBin", "full": "YuMiBin"}
 
 
-SEARCH_OCCUPANCIES = ("learned", "analytic_image", "analytic")  # SearchParams.occupancy
+SEARCH_OCCUPANCIES = ("learned", "analytic_image", "analytic_image_best", "analytic")  # SearchParams.occupancy
+IMAGE_BEST_MATCH = 0.05  # "analytic_image_best": AnalyticOccupancy(best_match=...)
 
 
 @dataclass
@@ -80,7 +81,9 @@ class SearchParams:
     period: float = 0.05
     # OccupancyEstimator backend of X-Ray (SEARCH_OCCUPANCIES): "learned" (from the target's size
     # and the images only), "analytic_image" (the ground-truth generator on the depth image and the
-    # target's box, no pose: the distribution the learned network is trained to predict) or
+    # target's box, no pose: the distribution the learned network is trained to predict),
+    # "analytic_image_best" (the same with best_match = IMAGE_BEST_MATCH: a partly seen target that no
+    # placement matches keeps the best-matching placements, not its modal mask) or
     # "analytic" (the generator on the target's own mesh at its true pose: privileged). The oracle
     # always uses "analytic" with the true pose: it is the labelled upper bound.
     occupancy: str = "learned"
@@ -199,8 +202,10 @@ def controller_params(params: SearchParams, num_objects: int) -> BinSearchParams
                            grasp_models=tuple(params.grasp_models), grasp_samples=params.grasp_samples,
                            robust_samples=params.robust_samples, grasp_params=params.grasp_params,
                            period=params.period, segmentation=params.segmenter, detector=params.detector,
-                           occupancy="analytic" if params.policy == "oracle" or params.occupancy == "analytic_image"
+                           occupancy="analytic" if params.policy == "oracle" or params.occupancy.startswith("analytic")
                            else params.occupancy,
+                           occupancy_best_match=IMAGE_BEST_MATCH if params.policy != "oracle"
+                           and params.occupancy == "analytic_image_best" else None,
                            occupancy_weights="" if params.policy == "oracle" else params.occupancy_weights,
                            grasp_planner=params.grasp_planner, push_policy=params.push_policy,
                            reach=params.reach, grasp_outcome=params.grasp_outcome)

@@ -132,6 +132,7 @@ class BinSearchParams:
     templates: int = 5
     occupancy: str = "learned"  # OccupancyEstimator backend: "learned" (target size only) or "analytic"
     occupancy_weights: str = ""  # the learned backend's weights file ("": the shipped models/weights/occupancy.pt)
+    occupancy_best_match: float | None = None  # the analytic backend's AnalyticOccupancy(best_match=...)
     camera: str = "overhead"
     period: float = 0.05
     grasp_planner: str = ""
@@ -171,6 +172,9 @@ class BinSearchParams:
         if self.occupancy_weights and self.occupancy != "learned":
             raise ControllerError(f"occupancy_weights={self.occupancy_weights!r} is for the learned occupancy backend; "
                                   f"occupancy is {self.occupancy!r}")
+        if self.occupancy_best_match is not None and self.occupancy != "analytic":
+            raise ControllerError(f"occupancy_best_match is for the analytic occupancy backend; occupancy is "
+                                  f"{self.occupancy!r}")
         if self.occupancy_weights and not Path(self.occupancy_weights).is_file():
             raise ControllerError(f"occupancy_weights: no such file {self.occupancy_weights!r}; give a weights file "
                                   "written by `ms-drake train occupancy` (or '' for the shipped one)")
@@ -340,6 +344,8 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
         outputs["pushes"] = pushes.GetOutputPort("pushes")
     if needs_occupancy:
         weights = {"weights": params.occupancy_weights} if params.occupancy_weights else {}
+        if params.occupancy_best_match is not None:
+            weights = {"best_match": params.occupancy_best_match}
         occ = builder.AddSystem(OccupancyEstimator(params.occupancy, camera=camera, workspace=workspace,
                                                    target_size=target_shape, **weights))
         occ.set_name("occupancy_estimator")
