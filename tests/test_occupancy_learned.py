@@ -24,6 +24,8 @@ from ms_drake.experiments.occupancy_learning import (
     make_optimizer,
     occupancy_metrics,
     predict,
+    target_scales,
+    to_training_scale,
     train_steps,
 )
 from ms_drake.experiments.rollout import IMAGE_BEST_MATCH, SearchParams, build_search
@@ -185,6 +187,26 @@ def test_missing_weights_name_the_command(tmp_path):
 def test_nearest_ratio_and_scale():
     assert nearest_ratio(0.06, 0.06) == (0, pytest.approx(2.0))
     assert nearest_ratio(0.0949, 0.00949)[0] == 9
+
+
+def test_larger_targets_are_zoomed_to_their_training_box_as_the_estimator_zooms():
+    """A 4.5 cm 1:1 target (s = 1.5) is trained at the 3 cm box's size: its seen square and its
+    ground truth shrink by 1 / 1.5 about the image centre; a training-box sample is left alone."""
+    x = np.zeros((2, 3, *WORK_SHAPE), np.float16)
+    x[:, 0, 33:63, 49:79] = 1.0  # a 30 x 30 working-pixel square about the centre (48, 64)
+    y = x[:, 0].copy()
+    size = np.array([[0.045, 0.045, 0.005], [0.03, 0.03, 0.005]])
+    d = dict(x=x, y=y, size=size)
+    np.testing.assert_allclose(target_scales(size), [1.5, 1.0])
+    assert to_training_scale(d) == 1
+    assert d["x"].dtype == np.float16 and d["y"].dtype == np.float16
+    side = np.sqrt((d["x"][0, 0].astype(np.float32) > 0.5).sum())
+    assert side == pytest.approx(20.0, abs=1.5)
+    assert float(d["y"][0].max()) == pytest.approx(1.0, abs=1e-3)
+    np.testing.assert_array_equal(d["x"][1], x[1])
+    np.testing.assert_allclose(d["size"][0], [0.03, 0.03, 0.005])
+    np.testing.assert_allclose(target_scales(d["size"]), [1.0, 1.0])
+    assert to_training_scale(d) == 0
 
 
 def test_learned_estimator_alone():

@@ -6,7 +6,9 @@ input and ground truth together (a mirrored heap is a heap), pixelwise MSE on th
 sample's aspect ratio (occupancy_net.ratio_loss) of the output under the seen-target constraint
 (occupancy_net.constrain_to_visible: what the estimator returns), optionally with ground-truth
 positives weighted 1 + w (`positive_weight`) and from the weights of an earlier run (`init`,
-fine-tuning). Our choices where the reference's (ResNet-50
+fine-tuning). Samples whose target is not its ratio's training box (``ms-drake data occupancy
+--target``) are zoomed to the training box's size first (`to_training_scale`), as the estimator's
+input scaling zooms at inference. Our choices where the reference's (ResNet-50
 FCN, SGD with momentum 0.99, lr 1e-5, 40 epochs on a V100) does not fit two shared CPU cores.
 Deterministic from `seed` (torch and numpy generators; the batch order of epoch e comes from
 (seed, e)). After every epoch the model, optimizer and scheduler go to ``FILE.ckpt`` (written
@@ -97,6 +99,36 @@ def batch_constraint(x: np.ndarray, diag: np.ndarray):
     return support, floor
 
 
+def target_scales(size: np.ndarray) -> np.ndarray:
+    """(n,) input-scaling factors s = sqrt(area / training area) of (n, 3) target sizes (line 1468;
+    `LearnedOccupancy` zooms its input by 1 / s)."""
+    size = np.asarray(size, np.float64)
+    return np.sqrt(size[:, 0] * size[:, 1] / TARGET_AREA)
+
+
+def to_training_scale(d: dict) -> int:
+    """Zoom, in place, every sample of `d` (load_dataset) whose target differs from its ratio's
+    training box by s (> 0.1 % off) by 1 / s about the image centre, inputs and ground truth (the
+    latter rescaled to a maximum of 1), as the estimator zooms its input: a network trained on
+    targets of other sizes (``ms-drake data occupancy --target``) sees them at the size it serves
+    with input scaling. Sizes become the training boxes'; returns the number of samples zoomed."""
+    s = target_scales(d["size"])
+    idx = np.flatnonzero(np.abs(s - 1.0) > 1e-3)
+    if len(idx) == 0:
+        return 0
+    x = d["x"].astype(np.float32) if d["x"].dtype != np.float32 else d["x"]
+    y = d["y"].astype(np.float32) if d["y"].dtype != np.float32 else d["y"]
+    for i in idx:
+        x[i] = zoom(x[i], 1.0 / s[i])
+        yi = zoom(y[i][None], 1.0 / s[i])[0]
+        mx = float(yi.max())
+        y[i] = yi / mx if mx > 0 else yi
+    d["x"], d["y"] = x.astype(d["x"].dtype), y.astype(d["y"].dtype)
+    d["size"] = np.asarray(d["size"], np.float64).copy()
+    d["size"][idx, :2] /= s[idx, None]
+    return int(len(idx))
+
+
 def train_steps(net, opt, x, y, ratio, steps: int = 1, diag: np.ndarray | None = None,
                 positive_weight: float = 0.0) -> list[float]:
     """`steps` optimizer steps on one fixed batch (numpy arrays); the losses before each step.
@@ -130,6 +162,7 @@ def train_occupancy(data, out, epochs: int = 12, batch: int = 32, seed: int = 0,
     out.parent.mkdir(parents=True, exist_ok=True)
     ckpt = out.with_suffix(".ckpt")
     d = load_dataset(data, "train")
+    rescaled = to_training_scale(d)
     n = len(d["x"])
     if n < batch:
         raise DatasetError(f"{data}: {n} training images, fewer than a batch ({batch}); make more with "
@@ -172,7 +205,7 @@ def train_occupancy(data, out, epochs: int = 12, batch: int = 32, seed: int = 0,
         save_checkpoint(torch, ckpt, settings, net, opt, sched, epoch + 1, history, time.perf_counter() - t0)
     meta = dict(data=str(data), train_images=n, epochs_done=len(history), epochs=epochs, batch=batch, seed=seed,
                 lr=lr, positive_weight=positive_weight, init=str(init) if init is not None else None,
-                seconds=time.perf_counter() - t0, history=history, command=command,
+                rescaled_images=rescaled, seconds=time.perf_counter() - t0, history=history, command=command,
                 ratios=list(TARGET_RATIOS), torch=torch.__version__)
     save_atomically(torch, dict(model=net.state_dict(), config=asdict(config), meta=meta), out)
     return meta
@@ -235,8 +268,7 @@ def bench_occupancy(data, weights=None, scaling: bool = False, timed: int = 50, 
     d["y"] = d["y"].astype(np.float32)
     scales = None
     if scaling:
-        area = d["size"][:, 0] * d["size"][:, 1]
-        scales = np.sqrt(area / TARGET_AREA)
+        scales = target_scales(d["size"])
     pred = predict(net, d["x"], d["ratio"], scales, diag=diagonals(d["size"]))
     rows = metrics_table(d, pred)
     raw_rows = metrics_table(d, predict(net, d["x"], d["ratio"], scales))  # without the seen-target constraint
