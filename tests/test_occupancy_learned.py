@@ -26,6 +26,7 @@ from ms_drake.experiments.occupancy_learning import (
     predict,
     target_scales,
     to_training_scale,
+    train_occupancy,
     train_steps,
 )
 from ms_drake.experiments.rollout import IMAGE_BEST_MATCH, SearchParams, build_search
@@ -207,6 +208,25 @@ def test_larger_targets_are_zoomed_to_their_training_box_as_the_estimator_zooms(
     np.testing.assert_allclose(d["size"][0], [0.03, 0.03, 0.005])
     np.testing.assert_allclose(target_scales(d["size"]), [1.0, 1.0])
     assert to_training_scale(d) == 0
+
+
+def test_training_on_a_larger_target_zooms_it_and_resumes(tmp_path):
+    """`ms-drake data occupancy --target` (the 4.5 cm square) then `train occupancy`: every sample
+    is zoomed to the 3 cm box, the run writes weights that load, and the same call again resumes
+    from its checkpoint without another epoch."""
+    data = tmp_path / "data"
+    write_occupancy_dataset(data, count=4, seed=5, views=2, heaps_per_shard=1, sets=("procedural",),
+                            targets=[(0.045, 0.045, 0.005)])
+    d = load_dataset(data, "train")
+    np.testing.assert_allclose(target_scales(d["size"]), 1.5)
+    out = tmp_path / "w.pt"
+    meta = train_occupancy(data, out, epochs=1, batch=2, seed=0)
+    assert meta["rescaled_images"] == meta["train_images"] == len(d["x"])
+    assert meta["epochs_done"] == 1 and out.is_file() and out.with_suffix(".ckpt").is_file()
+    net, ck = load_model(out)
+    assert ck["meta"]["rescaled_images"] == len(d["x"])
+    again = train_occupancy(data, out, epochs=1, batch=2, seed=0)
+    assert again["epochs_done"] == 1 and again["history"] == meta["history"]
 
 
 def test_learned_estimator_alone():
