@@ -60,7 +60,7 @@ from ms_drake.experiments.matcher_learning import train_matcher
 from ms_drake.experiments.rollout import SEARCH_OCCUPANCIES
 from ms_drake.experiments.mppi_bench import PLANNERS as MPPI_PLANNERS
 from ms_drake.experiments.mppi_bench import bench_mppi
-from ms_drake.experiments.occupancy_data import HEAP_LAYOUTS, write_occupancy_dataset
+from ms_drake.experiments.occupancy_data import GROUND_TRUTHS, HEAP_LAYOUTS, write_occupancy_dataset
 from ms_drake.experiments.occupancy_learning import bench_occupancy, train_occupancy
 from ms_drake.experiments.fidelity import format_summary as format_fidelity_summary
 from ms_drake.experiments.fidelity import run_fidelity
@@ -1002,7 +1002,11 @@ def data_occupancy(count: int = typer.Option(..., "--count", min=1, help="Images
                                                               help="Ground truth of a partly seen target no grid "
                                                               "placement matches (IoU > 0.9): the placements within "
                                                               "this IoU of the best one (default: the observed "
-                                                              "modal mask)")):
+                                                              "modal mask)"),
+                   ground_truth: str = typer.Option("generator", "--ground-truth", help="generator (the "
+                                                    "reference's: every placement the image allows) or posterior "
+                                                    "(the target's own amodal mask, the target placed in the pile "
+                                                    "as --protocol xray_compact places it)")):
     """Depth images + target modal masks + ground-truth occupancy (ten box aspect ratios), split by
     image and by object, sharded; shards already written are kept."""
     try:
@@ -1013,12 +1017,16 @@ def data_occupancy(count: int = typer.Option(..., "--count", min=1, help="Images
     if targets and any(len(t) != 3 for t in targets):
         _fail(f"--target {target}: give three numbers L,W,T per box target, two (cyl:L,D) per cylinder")
     _choose("--layout", layout, tuple(HEAP_LAYOUTS))
+    _choose("--ground-truth", ground_truth, GROUND_TRUTHS)
+    if ground_truth == "posterior" and best_match is not None:
+        _fail("--best-match is a setting of the generator's ground truth; drop it with --ground-truth posterior")
     t0 = time.perf_counter()
     per = views * heaps_per_shard
     bar, progress = _job_bar(-(-count // per), "shards", "shard")
     res = write_occupancy_dataset(out, count, seed, views, heaps_per_shard, workers,
                                   ray or ray_address is not None, ray_address, progress, targets=targets,
-                                  test_only=test_only, layout=layout, best_match=best_match)
+                                  test_only=test_only, layout=layout, best_match=best_match,
+                                  ground_truth=ground_truth)
     bar.close()
     typer.echo(f"{res['written']} shards written, {res['skipped']} already there, {len(res['failed'])} failed, "
                f"in {out} ({time.perf_counter() - t0:.1f} s)")

@@ -106,6 +106,10 @@ def test_diagram(tmp_path):
     (["pick", "ur5_jaw"], "unknown pick task 'ur5_jaw'; choose one of yumi_jaw, yumi_suction, panda_jaw"),
     (["grasp", "--object", "procedural/no_such_box"], "no_such_box"),
     (["grasp", "--object", "procedural/box_000", "--model", "hertz"], "unknown grasp model"),
+    (["data", "occupancy", "--count", "1", "--out", "d", "--ground-truth", "exact"],
+     "--ground-truth 'exact': choose one of generator, posterior"),
+    (["data", "occupancy", "--count", "1", "--out", "d", "--ground-truth", "posterior", "--best-match", "0.05"],
+     "--best-match is a setting of the generator's ground truth"),
 ])
 def test_bad_input_is_a_clear_error_without_traceback(tmp_path, args, needle):
     p = subprocess.run([*CLI, *args], capture_output=True, text=True, cwd=tmp_path, timeout=300)

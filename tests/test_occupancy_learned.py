@@ -10,10 +10,12 @@ from pydrake.systems.sensors import ImageDepth32F
 from ms_drake.errors import DatasetError, PerceptionError
 from ms_drake.execution import ExecutionError
 from ms_drake.experiments.occupancy_data import (
+    PILE_SPREAD,
     LyingCylinder,
     insert_target,
     layout_heap_params,
     load_dataset,
+    sample_target_in_pile,
     shard_split,
     target_shape,
     write_occupancy_dataset,
@@ -96,6 +98,42 @@ def test_compact_layout_drops_as_xray_compact_and_keeps_a_folder_to_one_layout(t
                                 layout="compact", best_match=0.05)
     with pytest.raises(DatasetError, match="unknown heap layout 'pile'; choose one of spread, compact"):
         write_occupancy_dataset(tmp_path / "p", count=2, layout="pile")
+
+
+def test_posterior_ground_truth_is_the_targets_own_amodal_mask_placed_in_the_pile(tmp_path):
+    """`--ground-truth posterior`: each label is the target's amodal mask (max 1, covering every seen
+    target pixel, the box's area), the target within PILE_SPREAD of the objects' mean position; a
+    folder keeps one ground truth; best_match belongs to the generator."""
+    out = tmp_path / "post"
+    write_occupancy_dataset(out, count=8, seed=4, views=4, heaps_per_shard=1, sets=("procedural",),
+                            layout="compact", targets=[(0.045, 0.045, 0.005)], ground_truth="posterior")
+    d = load_dataset(out, "train")
+    assert [str(np.load(f)["ground_truth"]) for f in sorted(out.glob("shard_*.npz"))] == ["posterior"] * 2
+    y, seen = d["y"].astype(np.float32), d["x"][:, 0].astype(np.float32) > 0
+    assert np.allclose(y.max(axis=(1, 2)), 1.0, atol=1e-3)
+    assert not (seen & (y == 0)).any()  # the seen target lies inside its own amodal mask
+    side_px = 0.045 * WORK_PX_PER_M  # the 4.5 cm box in working pixels of the nominal camera
+    area = y.sum(axis=(1, 2))
+    assert np.all((area > 0.7 * side_px ** 2) & (area < 1.4 * side_px ** 2))
+    ws = Workspace.from_scenario(load_scenario(None, "BinHeap15"))
+    rng = np.random.default_rng(0)
+
+    class _Op:
+        def __init__(self, x, y):
+            self.q = np.array([1, 0, 0, 0, x, y, 0.0])
+
+    class _Heap:
+        objects = [_Op(0.02, 0.01), _Op(0.06, -0.03)]
+    xy = np.array([sample_target_in_pile(_Heap(), ws, TargetBox.of((0.045, 0.045, 0.005)), rng)[0]
+                   for _ in range(200)])
+    assert np.all(np.abs(xy - [0.04, -0.01]) <= PILE_SPREAD + 1e-9)
+    with pytest.raises(DatasetError, match="holds shards with the 'posterior' ground truth .* is 'generator'"):
+        write_occupancy_dataset(out, count=16, seed=4, views=4, heaps_per_shard=1, sets=("procedural",),
+                                layout="compact", targets=[(0.045, 0.045, 0.005)])
+    with pytest.raises(DatasetError, match="best_match is a setting of the generator's ground truth"):
+        write_occupancy_dataset(tmp_path / "b", count=2, ground_truth="posterior", best_match=0.05)
+    with pytest.raises(DatasetError, match="unknown ground truth 'exact'; choose one of generator, posterior"):
+        write_occupancy_dataset(tmp_path / "e", count=2, ground_truth="exact")
 
 
 def test_a_training_step_lowers_the_loss_on_a_fixed_batch(tiny):

@@ -25,7 +25,11 @@ central 512 x 384 px of the 640 x 480 overhead image, 4 x 4 blocks -> 128 x 96):
    This is exactly the visibility model of the ground-truth generator, and it lets one heap
    serve many targets and views;
 4. the ground truth: `AnalyticOccupancy` for that box and camera on its plain 64 x 48 x 16
-   placement grid (not aligned with the true pose), from the composed depth and modal mask.
+   placement grid (not aligned with the true pose), from the composed depth and modal mask; or,
+   with ``--ground-truth posterior`` (our variant), the target's own amodal mask, the target
+   placed in the pile as `xray_compact` places it: a network fit to such labels by MSE predicts
+   the probability that a pixel holds the target given the image, under that placement law,
+   rather than the reference's uniform spread over the placements the image allows.
 
 Splits, by object and by image: every fifth shard is a "test" shard whose heaps draw only from
 the test split of their object set (occupancy_net never sees these occluders in training); the
@@ -172,6 +176,16 @@ def target_shape(spec):
     return TargetBox.of(spec)
 
 
+def target_silhouette(cam: PinholeCamera, ws: Workspace, box: TargetBox, xy, yaw: float) -> np.ndarray:
+    """(H, W) bool amodal mask of the box (or LyingCylinder) lying flat on the floor at `xy`,
+    turned by `yaw`."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    verts, _ = box.mesh_vertices_faces()
+    center = np.array([xy[0], xy[1], ws.floor_z + 0.5 * box.thickness])
+    return convex_silhouette(cam, verts @ R.T + center)
+
+
 def insert_target(depth: np.ndarray, cam: PinholeCamera, ws: Workspace, box: TargetBox, xy, yaw: float):
     """(depth with the box's visible top, modal mask): the box (or LyingCylinder) lies flat on the
     floor at `xy`, turned by `yaw`; it shows where the heap's surface is below its top."""
@@ -180,11 +194,7 @@ def insert_target(depth: np.ndarray, cam: PinholeCamera, ws: Workspace, box: Tar
     d = np.where(np.isfinite(depth) & (depth > 0), depth, np.float32(np.inf))
     height = d * ray_z + np.float32(z_cam - ws.floor_z)
     height = np.where(np.isfinite(height), height, -np.inf)
-    c, s = np.cos(yaw), np.sin(yaw)
-    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-    verts, _ = box.mesh_vertices_faces()
-    center = np.array([xy[0], xy[1], ws.floor_z + 0.5 * box.thickness])
-    sil = convex_silhouette(cam, verts @ R.T + center)
+    sil = target_silhouette(cam, ws, box, xy, yaw)
     top = box.thickness
     modal = sil & (height < top)
     d_top = (ws.floor_z + top - z_cam) / ray_z  # depth of the plane z = floor + top along each ray
@@ -225,10 +235,33 @@ def sample_target(heap, ws: Workspace, box: TargetBox, rng: np.random.Generator)
     return c, float(rng.uniform(0.0, np.pi))
 
 
+GROUND_TRUTHS = ("generator", "posterior")
+PILE_SPREAD = 0.025  # m: XRAY_COMPACT_HEAPS.offset_uniform, every object's offset from the heap centre
+
+
+def check_ground_truth(ground_truth: str) -> str:
+    if ground_truth not in GROUND_TRUTHS:
+        raise DatasetError(f"unknown ground truth {ground_truth!r}; choose one of {', '.join(GROUND_TRUTHS)}")
+    return ground_truth
+
+
+def sample_target_in_pile(heap, ws: Workspace, box: TargetBox, rng: np.random.Generator) -> tuple[np.ndarray, float]:
+    """Box centre (x, y) as the `xray_compact` heaps place their target: dropped like every object,
+    offset uniformly by up to PILE_SPREAD on each axis from the heap's centre (here the mean of
+    the objects' positions), kept inside the bin; yaw uniform."""
+    pts = np.array([op.q[4:6] for op in heap.objects]) if heap.objects else np.zeros((1, 2))
+    c = pts.mean(axis=0) + rng.uniform(-PILE_SPREAD, PILE_SPREAD, 2)
+    half = 0.5 * np.asarray(ws.size_xy) - 0.5 * box.length
+    c = np.clip(c, np.asarray(ws.center_xy) - half, np.asarray(ws.center_xy) + half)
+    return c, float(rng.uniform(0.0, np.pi))
+
+
 def make_samples(scenario, heap, views: int, rng: np.random.Generator, ratios=TARGET_RATIOS,
-                 box_sizes=None, best_match: float | None = None) -> list[dict]:
+                 box_sizes=None, best_match: float | None = None, ground_truth: str = "generator") -> list[dict]:
     """`views` samples of one heap (see the module doc). box_sizes: explicit targets to draw from
-    instead of the training boxes (out-of-set targets; specs of `target_shape`)."""
+    instead of the training boxes (out-of-set targets; specs of `target_shape`). ground_truth:
+    "generator" (AnalyticOccupancy, the target placed by `sample_target`) or "posterior" (the
+    target's own amodal mask, placed by `sample_target_in_pile`)."""
     nominal = PinholeCamera.from_config(scenario.cameras[next(iter(scenario.cameras))])
     ws = Workspace.from_scenario(scenario)
     renderer = HeapRenderer(scenario, heap)
@@ -242,10 +275,16 @@ def make_samples(scenario, heap, views: int, rng: np.random.Generator, ratios=TA
         else:
             box = target_shape(box_sizes[int(rng.integers(len(box_sizes)))])
             k = nearest_ratio(box.length, box.width)[0]  # the channel that serves this target
-        xy, yaw = sample_target(heap, ws, box, rng)
+        if ground_truth == "posterior":
+            xy, yaw = sample_target_in_pile(heap, ws, box, rng)
+        else:
+            xy, yaw = sample_target(heap, ws, box, rng)
         d2, modal = insert_target(depth, cam, ws, box, xy, yaw)
-        shape = box.target_mesh() if isinstance(box, LyingCylinder) else box
-        rho = AnalyticOccupancy(cam, ws, shape, best_match=best_match).estimate(d2, modal)
+        if ground_truth == "posterior":
+            rho = target_silhouette(cam, ws, box, xy, yaw).astype(np.float64)
+        else:
+            shape = box.target_mesh() if isinstance(box, LyingCylinder) else box
+            rho = AnalyticOccupancy(cam, ws, shape, best_match=best_match).estimate(d2, modal)
         x = working_inputs(d2, modal)
         out.append(dict(x=x.astype(np.float16), y=working_target(rho).astype(np.float16), ratio=k,
                         visible=int(modal.sum()), heap_seed=int(heap.seed), size=np.array([box.length, box.width,
@@ -254,9 +293,9 @@ def make_samples(scenario, heap, views: int, rng: np.random.Generator, ratios=TA
 
 
 def shard_job(job: tuple) -> dict:
-    """(out, k, seed, heaps_per_shard, views, sets, targets, test_only, layout, best_match) -> writes shard k; module-level
-    for pickling."""
-    out, k, seed, heaps_per_shard, views, sets, targets, test_only, layout, best_match = job
+    """(out, k, seed, heaps_per_shard, views, sets, targets, test_only, layout, best_match, ground_truth) -> writes
+    shard k; module-level for pickling."""
+    out, k, seed, heaps_per_shard, views, sets, targets, test_only, layout, best_match, ground_truth = job
     split = shard_split(k, test_only)
     path = Path(out) / f"shard_{k:05d}_{split}.npz"
     if path.exists():
@@ -274,7 +313,8 @@ def shard_job(job: tuple) -> dict:
         except HeapError:
             failed += 1
             continue
-        samples += make_samples(scenario, heap, views, rng, box_sizes=targets, best_match=best_match)
+        samples += make_samples(scenario, heap, views, rng, box_sizes=targets, best_match=best_match,
+                                ground_truth=ground_truth)
         for s in samples[-views:]:
             s["set"] = oset
             s["objects"] = ",".join(heap.object_names())
@@ -288,7 +328,8 @@ def shard_job(job: tuple) -> dict:
                         size=np.stack([s["size"] for s in samples]),
                         set=np.array([s["set"] for s in samples]),
                         objects=np.array([s["objects"] for s in samples]), split=np.array(split),
-                        layout=np.array(layout), best_match=np.array(-1.0 if best_match is None else best_match))
+                        layout=np.array(layout), best_match=np.array(-1.0 if best_match is None else best_match),
+                        ground_truth=np.array(ground_truth))
     os.replace(tmp, path)
     return dict(shard=k, samples=len(samples), skipped=False, cpu=time.process_time() - t0, failed_heaps=failed)
 
@@ -296,7 +337,8 @@ def shard_job(job: tuple) -> dict:
 def write_occupancy_dataset(out, count: int, seed: int = 0, views: int = 8, heaps_per_shard: int = 4,
                             workers: int = 1, use_ray: bool = False, ray_address: str | None = None,
                             progress=None, sets=OBJECT_SETS, targets=None, test_only: bool = False,
-                            layout: str = "spread", best_match: float | None = None) -> dict:
+                            layout: str = "spread", best_match: float | None = None,
+                            ground_truth: str = "generator") -> dict:
     """Shards of about `count` images into `out` (see the module doc); returns counts.
     targets: (length, width, thickness) boxes or ("cylinder", length, diameter) cylinders to use
     instead of the ten training boxes (an out-of-set evaluation set; each sample's ratio is the
@@ -304,8 +346,15 @@ def write_occupancy_dataset(out, count: int, seed: int = 0, views: int = 8, heap
     test_only: every shard is a test shard (held-out occluders only);
     layout: how the heaps are dropped (`HEAP_LAYOUTS`); best_match: the ground truth's
     AnalyticOccupancy(best_match=...) for partly seen targets no grid placement matches (None:
-    the observed modal mask); a folder holds one layout and one best_match."""
+    the observed modal mask); ground_truth: `GROUND_TRUTHS` ("posterior": each sample's target
+    amodal mask, the target placed in the pile as the `xray_compact` heaps place it; the MSE
+    minimiser over such labels is the probability that a pixel holds the target given the image);
+    a folder holds one layout, one best_match and one ground truth."""
     check_layout(layout)
+    check_ground_truth(ground_truth)
+    if ground_truth == "posterior" and best_match is not None:
+        raise DatasetError("best_match is a setting of the generator's ground truth; the posterior ground truth "
+                           "is the target's own amodal mask (drop --best-match)")
     if views < 1 or heaps_per_shard < 1:
         raise DatasetError(f"views={views}, heaps_per_shard={heaps_per_shard}: both must be >= 1")
     out = Path(out)
@@ -318,13 +367,18 @@ def write_occupancy_dataset(out, count: int, seed: int = 0, views: int = 8, heap
         with np.load(f) as z:
             there = str(z["layout"]) if "layout" in z.files else "spread"
             bm = float(z["best_match"]) if "best_match" in z.files else -1.0
+            gt = str(z["ground_truth"]) if "ground_truth" in z.files else "generator"
         if there != layout:
             raise DatasetError(f"{out} holds {there!r} heaps ({f.name}) and --layout is {layout!r}; "
                                f"write the {layout!r} heaps into a folder of their own")
         if bm != (-1.0 if best_match is None else best_match):
             raise DatasetError(f"{out} holds shards with best_match {None if bm < 0 else bm} ({f.name}), asked for "
                                f"{best_match}; write them into a folder of their own")
-    jobs = [(str(out), k, int(seed), heaps_per_shard, views, tuple(sets), targets, test_only, layout, best_match)
+        if gt != ground_truth:
+            raise DatasetError(f"{out} holds shards with the {gt!r} ground truth ({f.name}) and --ground-truth is "
+                               f"{ground_truth!r}; write them into a folder of their own")
+    jobs = [(str(out), k, int(seed), heaps_per_shard, views, tuple(sets), targets, test_only, layout, best_match,
+             ground_truth)
             for k in range(shards)]
     todo = [j for j in jobs if not (out / f"shard_{j[1]:05d}_{shard_split(j[1], test_only)}.npz").exists()]
     res = dict(shards=shards, skipped=shards - len(todo), written=0, failed=[])
