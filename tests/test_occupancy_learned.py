@@ -152,7 +152,8 @@ def test_a_training_step_lowers_the_loss_on_a_fixed_batch(tiny):
     assert losses[-1] < 0.95 * losses[0]
 
 
-@pytest.mark.parametrize("name", ["occupancy.pt", "occupancy_compact.pt", "occupancy_bestmatch.pt"])
+@pytest.mark.parametrize("name", ["occupancy.pt", "occupancy_compact.pt", "occupancy_bestmatch.pt", "occupancy_1x1.pt",
+                                  "occupancy_posterior.pt"])
 def test_shipped_weights_load_and_beat_a_uniform_distribution(tiny, name):
     path = default_weights().with_name(name)
     assert path.with_suffix(".md").is_file(), f"{path}: its model card is missing"
