@@ -482,6 +482,9 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
                                                    "unperturbed contact model lifts the object; --grasp-planner image)"),
                  grasp_samples: int = typer.Option(8, "--grasp-samples", min=1, help="Candidates the image grasp "
                                                    "planners sample per mask (each gripper)"),
+                 skip_failed: bool = typer.Option(False, "--skip-failed", help="A grasp that failed is not "
+                                                  "attempted again on the state it failed on (any grasp outcome; "
+                                                  "always so with nominal): the selector walks on to its next mask"),
                  occupancy_weights: Optional[Path] = typer.Option(None, "--occupancy-weights", help="Weights of "
                                                                   "the learned occupancy (X-Ray; default: the shipped "
                                                                   "models/weights/occupancy.pt); kept in each record"),
@@ -530,7 +533,7 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
                   segmenter=segmenter, detector=detector, push_policy=push_policy, grasp_planner=grasp_planner,
                   heap_engine=heap_engine, grasp_outcome=grasp_outcome, grasp_samples=grasp_samples,
                   occupancy_weights=str(occupancy_weights) if occupancy_weights is not None else "",
-                  occupancy=occupancy)
+                  occupancy=occupancy, skip_failed=skip_failed)
     if s["resumed"]:
         typer.echo(f"resuming: {s['resumed']} of {heaps_} rollouts already in {out}")
     typer.echo(format_summary(policy, s))

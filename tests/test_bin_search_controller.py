@@ -101,6 +101,9 @@ def test_checked_outcome_attempts_only_grasps_that_lift(yumi_images):
     nominal = MakeBinSearchController(s, dataclasses.replace(HARDWARE, grasp_outcome="nominal"))
     assert nominal.GetSubsystemByName("policy_selector").params.retry_failed is False
     assert controller.GetSubsystemByName("policy_selector").params.retry_failed is True
+    skipping = MakeBinSearchController(s, dataclasses.replace(HARDWARE, skip_failed=True))
+    assert skipping.GetSubsystemByName("policy_selector").params.skip_failed is True
+    assert controller.GetSubsystemByName("policy_selector").params.skip_failed is False
 
 def test_controller_rejects_settings_it_cannot_honour(yumi_images):
     s, _ = yumi_images

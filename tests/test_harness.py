@@ -138,6 +138,9 @@ def test_a_run_resumes_only_the_records_of_its_own_grasp_planner(tmp_path):
     assert s["resumed"] == 0 and s["ran"] == 1  # other planner samples: its own record
     assert [r["grasp_samples"] for r in read_records(out)] == [8, 8, 8, 3]
     assert run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="image", grasp_samples=3)["ran"] == 0
+    s = run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="image", grasp_samples=3, skip_failed=True)
+    assert s["resumed"] == 0 and s["ran"] == 1  # failed objects passed over: its own record
+    assert [r["skip_failed"] for r in read_records(out)] == [False, False, False, False, True]
     assert run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="indexed")["resumed"] == 1
     # a record without the key predates the grasp sets: it was searched with the image planner
     # (and one without grasp_samples with the default 8 candidates)

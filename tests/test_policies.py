@@ -292,3 +292,21 @@ def test_a_failed_grasp_is_passed_over_on_its_state_when_retries_are_off():
     all_failed = tuple(outcome("grasp", success=False, oid=k) for k in ("big", "mid"))
     assert select_action("largest", M, TARGET, grasps(big=0.5, mid=0.5), history=all_failed,
                          params=no_retry).reason == "no_action"
+
+
+def test_an_object_a_grasp_failed_on_is_passed_over_with_skip_failed():
+    """skip_failed: every grasp on an object a grasp failed on is passed over until an action
+    succeeds, even a grasp elsewhere on it; the target too."""
+    g = grasps(t=0.1, big=0.5, mid=0.9)
+    failed_big = outcome("grasp", success=False, oid="big")
+    skip = SelectorParams(skip_failed=True)
+    moved = tuple(Grasp("suction", (0.05, 0.0, 0.0), (0.0, 0.0, -1.0), quality=0.5, object_id="big") if x.object_id == "big"
+                  else x for x in g)
+    assert chosen(select_action("largest", M, TARGET, moved, history=(failed_big,))) == "big"
+    assert chosen(select_action("largest", M, TARGET, moved, history=(failed_big,), params=skip)) == "mid"
+    later = (failed_big, outcome("grasp", removed="small", oid="small"))
+    assert chosen(select_action("largest", M, TARGET, moved, history=later, params=skip)) == "big"
+    tg = grasps(t=0.6, big=0.5, mid=0.9)
+    failed_t = outcome("grasp", success=False, oid="t")
+    assert chosen(select_action("largest", M, TARGET, tg, history=(failed_t,))) == "t"
+    assert chosen(select_action("largest", M, TARGET, tg, history=(failed_t,), params=skip)) == "big"

@@ -118,6 +118,8 @@ class SearchParams:
     # BinSearchParams.grasp_outcome: the primitive mode's grasp outcome (execution.GRASP_OUTCOMES),
     # "draw" (p = quality), or deterministic: "threshold", "checked", "nominal"
     grasp_outcome: str = "draw"
+    # BinSearchParams.skip_failed: a failed grasp is not attempted again on the state it failed on
+    skip_failed: bool = False
 
     def __post_init__(self):
         check_policy(self.policy)
@@ -162,6 +164,7 @@ class RolloutResult:
     grasp_planner: str = ""
     push_policy: str = ""
     grasp_outcome: str = "draw"
+    skip_failed: bool = False  # SearchParams.skip_failed
     grasp_samples: int = 8  # the image planners' candidates per mask
     occupancy_weights: str = ""  # the learned occupancy's weights file ("": the shipped one)
     occupancy: str = "learned"  # SearchParams.occupancy
@@ -208,7 +211,8 @@ def controller_params(params: SearchParams, num_objects: int) -> BinSearchParams
                            and params.occupancy == "analytic_image_best" else None,
                            occupancy_weights="" if params.policy == "oracle" else params.occupancy_weights,
                            grasp_planner=params.grasp_planner, push_policy=params.push_policy,
-                           reach=params.reach, grasp_outcome=params.grasp_outcome)
+                           reach=params.reach, grasp_outcome=params.grasp_outcome,
+                           skip_failed=bool(params.skip_failed))
 
 
 def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSystem:
@@ -342,6 +346,7 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
                         grasp_successes=sum(1 for o in history if o.action.kind == "grasp" and o.success),
                         grasp_plans=grasp_plans, grasp_planner=system.controller.params.grasp_planner,
                         push_policy=params.push_policy, grasp_outcome=params.grasp_outcome,
+                        skip_failed=bool(params.skip_failed),
                         grasp_samples=int(params.grasp_samples), occupancy_weights=params.occupancy_weights,
                         occupancy=params.occupancy,
                         grasp_kinds=[o.action.grasp.kind if o.action.kind == "grasp" and o.action.grasp is not None

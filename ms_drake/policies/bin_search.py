@@ -117,6 +117,9 @@ class BinSearchParams:
     nominal contact model lifts the object with the grasp, Grasp.lifts; needs grasp_planner
     "image"; a grasp that failed is not attempted again on the same state,
     SelectorParams.retry_failed = False); the full fidelity's outcome is the physics'.
+    skip_failed: an object a grasp failed on is passed over until an action succeeds (the state
+    changes), whatever the outcome model (SelectorParams.skip_failed): the selector walks on to the
+    next mask of its priority list.
     """
 
     policy: str = "largest"
@@ -139,6 +142,7 @@ class BinSearchParams:
     push_policy: str = ""
     reach: str = ""
     grasp_outcome: str = "draw"
+    skip_failed: bool = False
 
     def __post_init__(self):
         check_policy(self.policy)
@@ -326,7 +330,8 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
     t_thresh = LIFT_THRESHOLD if params.grasp_outcome == "checked" else SelectorParams.t_thresh
     selector = builder.AddSystem(PolicySelector(params.policy, SelectorParams(horizon=int(params.horizon),
                                                                              seed=params.seed, t_thresh=t_thresh,
-                                                                             retry_failed=params.grasp_outcome != "nominal"),
+                                                                             retry_failed=params.grasp_outcome != "nominal",
+                                                                             skip_failed=params.skip_failed),
                                                 target_id=target_id, width=camera.width, height=camera.height))
     selector.set_name("policy_selector")
     builder.Connect(masks, selector.GetInputPort("masks"))

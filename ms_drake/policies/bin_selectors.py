@@ -25,7 +25,8 @@ Selectors (the priority list decides which object is tried first):
 
 Execution criteria (Ch. 7.4): walk the priority list and execute the best grasp on the first
 mask whose best grasp quality exceeds t(o) (with `retry_failed` False, a best grasp that failed
-on the current state is passed over): t(target) = t_thresh; t(other) = t_high with pushing,
+on the current state is passed over; with `skip_failed`, every mask a grasp failed on since the last
+successful action): t(target) = t_thresh; t(other) = t_high with pushing,
 t_thresh without. With pushing, when no grasp qualifies, walk the list again and push the first
 object that has a valid push. Termination (an Action of kind "stop" with `reason`):
   success            the target was removed by a successful grasp (see `termination`);
@@ -85,6 +86,8 @@ class SelectorParams:
     # False: a grasp that failed is not attempted again while the state is the one it failed on
     # (since the last successful action), as with a deterministic grasp outcome it would fail again
     retry_failed: bool = True
+    # True: an object a grasp failed on is passed over (any grasp on it) until an action succeeds
+    skip_failed: bool = False
 
     def __post_init__(self):
         if not (0.0 <= self.t_thresh <= 1.0 and 0.0 <= self.t_high <= 1.0):
@@ -240,8 +243,11 @@ def select_action(policy: str, masks: InstanceMasks, target: TargetEstimate | No
         order = priority_oracle(masks, target_id, target_amodal)
     t_idx = masks.ids.index(target_id) if policy == "oracle" and target_id in masks.ids else target_index(masks, target)
     pushing = policy in PUSHING
-    failed = () if params.retry_failed else failed_on_this_state(history)
+    failed = () if params.retry_failed and not params.skip_failed else failed_on_this_state(history)
+    failed_objects = {f.object_id for f in failed} if params.skip_failed else set()
     for i in order:
+        if masks.ids[i] in failed_objects:
+            continue
         g = best.get(masks.ids[i])
         if g is None or any(same_grasp(g, f) for f in failed):
             continue
