@@ -66,6 +66,11 @@ def test_bench_search_writes_resumes_and_summarizes(tmp_path):
     p = run("bench", "plot", out, "--out", tmp_path / "plots")
     for f in ("cumulative_successes.png", "actions_histogram.png"):
         assert (tmp_path / "plots" / f).stat().st_size > 5000
+    # --skip-failed is an option of the run: kept in its record, not resumed from the others
+    p = run("bench", "search", "--policy", "largest", "--objects", 2, "--heaps", 1, "--seed-start", 5,
+            "--horizon", 3, "--out", out, "--skip-failed")
+    assert "resuming" not in p.stdout
+    assert [x["skip_failed"] for x in read_records(out)] == [False, False, True]
 
 
 def test_a_failing_rollout_is_named_and_the_benchmark_goes_on(tmp_path):
