@@ -3,8 +3,8 @@
     .venv/bin/python sims/xray_differences.py --a FILE_A.jsonl --b FILE_B.jsonl --heap-dir DIR --out DIR [--max 4]
 
 For each heap one policy solves and the other does not (ms_drake.experiments.harness.paired_comparison),
-both rollouts are rerun with their frames (the same seeds, heap protocol and grasp planner as the
-records: bit-identical searches) and every step's
+both rollouts are rerun with their frames (the same seeds, heap protocol and search options as the
+records, ms_drake.experiments.harness.OPTION_DEFAULTS: bit-identical searches) and every step's
 panels (masks and target, X-Ray's occupancy, the action; ms_drake.experiments.demo.frame_image)
 are stacked into <out>/<policy>_s<seed>.png; a line per rollout lists its actions.
 """
@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from ms_drake.experiments.demo import frame_image
-from ms_drake.experiments.harness import cached_heap, paired_comparison, read_records
+from ms_drake.experiments.harness import OPTION_DEFAULTS, cached_heap, paired_comparison, read_records
 from ms_drake.experiments.rollout import rollout
 from ms_drake.experiments.xray import XRAY_HORIZON, XRAY_OBJECTS
 from ms_drake.geometry import PinholeCamera
@@ -34,16 +34,21 @@ def main():
     ra, rb = read_records(args.a), read_records(args.b)
     pa, pb = ra[0]["policy"], rb[0]["policy"]
     protocol = ra[0].get("protocol", "xray")
-    grasp_planner = ra[0].get("grasp_planner", "image")  # a record without the key: image planners
+
+    def options(rec):  # the record's search options (a record without grasp_planner: image planners)
+        opts = {k: rec.get(k, default) for k, default in OPTION_DEFAULTS if k != "heap_engine"}
+        opts["grasp_planner"] = rec.get("grasp_planner", "image")
+        return opts
+
     cmp = paired_comparison(ra, rb)
     camera = PinholeCamera.from_config(load_scenario(None, "FloatingGripperBin").cameras["overhead"])
     args.out.mkdir(parents=True, exist_ok=True)
     for seeds in (cmp["only_a"][:args.max], cmp["only_b"][:args.max]):
         for seed in seeds:
             heap = cached_heap(XRAY_OBJECTS, seed, args.heap_dir, protocol)
-            for policy in (pa, pb):
+            for policy, rec in ((pa, ra[0]), (pb, rb[0])):
                 r = rollout(policy, XRAY_OBJECTS, seed, horizon=XRAY_HORIZON, heap=heap, keep_frames=True,
-                            grasp_planner=grasp_planner)
+                            **options(rec))
                 pic = np.concatenate([frame_image(f, camera) for f in r.frames], axis=0)
                 path = args.out / f"{policy}_s{seed}.png"
                 cv2.imwrite(str(path), cv2.resize(pic, None, fx=0.5, fy=0.5)[:, :, ::-1])
