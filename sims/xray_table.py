@@ -4,7 +4,7 @@
         docs/data/xray82_preempted_random.jsonl --out docs/img/xray82
 
 Per policy (ms_drake.experiments.harness.summarize): success with its bootstrap 95 % interval,
-action quartiles over successes, failures; the paired sign test of every pair
+action quartiles over successes, failures, where the failed grasps went (harness.failed_grasps); the paired sign test of every pair
 (harness.paired_comparison, with the paired bootstrap interval of the difference) and, on the heaps both solve, a sign test on who needed fewer
 actions; the seen fraction of the target at the start splits the heaps
 (heap.visible_ratios, from --heap-dir: the heap files of the records' protocol) when given; the
@@ -20,7 +20,15 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import binomtest
 
-from ms_drake.experiments.harness import final_records, format_summary, paired_comparison, plot, read_records, summarize
+from ms_drake.experiments.harness import (
+    failed_grasps,
+    final_records,
+    format_summary,
+    paired_comparison,
+    plot,
+    read_records,
+    summarize,
+)
 from ms_drake.scenes.heaps import load_heap
 
 
@@ -38,6 +46,11 @@ def main():
     recs = {f: sorted((r for r in rs if int(r["seed"]) in common), key=lambda r: r["seed"]) for f, rs in recs.items()}
     for f, rs in recs.items():
         print(format_summary(rs[0]["policy"], summarize(rs)))
+        fg = failed_grasps(rs)
+        if fg["rollouts"]:  # records that name each grasp's object
+            print(f"  failed grasps: {fg['failed']} of {fg['grasps']} ({fg['failed_on_target']} on the target, "
+                  f"{fg['failed_retries']} right after a failure on the same object; by quality "
+                  f"{fg['failed_by_quality']}) in {fg['rollouts']} rollouts")
         within = {k: np.mean([r["success"] and r["actions"] <= k for r in rs]) for k in (1, 2, 3, 5)}
         print("  success within k actions: " + ", ".join(f"k = {k}: {100 * v:.1f} %" for k, v in within.items()))
     for fa, fb in itertools.combinations(args.files, 2):

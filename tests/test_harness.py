@@ -13,6 +13,7 @@ import pytest
 from ms_drake.errors import HeapError
 from ms_drake.experiments.harness import (
     cached_heap,
+    failed_grasps,
     failure_classes,
     final_records,
     heap_generator_key,
@@ -47,6 +48,7 @@ def test_bench_search_writes_resumes_and_summarizes(tmp_path):
     assert r["policy"] == "largest" and len(r["action_kinds"]) == r["actions"]
     assert len(r["grasp_kinds"]) == len(r["action_successes"]) == r["actions"]
     assert r["grasp_kinds"][0] in ("parallel_jaw", "suction") and r["action_successes"] == [True]
+    assert r["grasp_objects"] == ["target"] and 0.15 < r["grasp_qualities"][0] <= 1.0  # the target's grasp
     # heap 5 (grasp sets, the primitive mode's default planner): the first grasp extracts the target
     assert (r["success"], r["actions"], r["action_kinds"], r["failure"], r["grasp_successes"]) == \
         (True, 1, ["grasp"], "", 1)
@@ -329,3 +331,12 @@ def test_paired_comparison_gives_the_difference_with_a_bootstrap_interval():
     assert lo < 25.0 < hi and 10.0 < lo and hi < 40.0  # a paired interval around the difference
     assert paired_comparison(a, b)["diff_ci"] == c["diff_ci"]  # seeded
     assert paired_comparison(a, a)["diff_ci"] == (0.0, 0.0)
+
+
+def test_failed_grasps_counts_where_the_failed_grasps_went():
+    recs = [{"grasp_objects": ["a", "a", "a", "target", "", "target"], "action_successes": [False, False, True, False, True, True],
+             "grasp_qualities": [0.25, 0.25, 0.5, 0.5, 0.0, 1.0]},
+            {"action_kinds": ["grasp"], "action_successes": [False]}]  # a record without grasp_objects
+    f = failed_grasps(recs)
+    assert (f["rollouts"], f["grasps"], f["failed"], f["failed_on_target"], f["failed_retries"]) == (1, 5, 3, 1, 1)
+    assert f["failed_by_quality"] == {"0.25": 2, "0.50": 1}

@@ -490,6 +490,31 @@ def action_breakdown(recs: list[dict]) -> dict:
     return out
 
 
+def failed_grasps(recs: list[dict]) -> dict:
+    """Where the failed grasps of the rollouts went (records with `grasp_objects`, see
+    rollout.RolloutResult): grasps, failed, failed on the target, failed right after a failed grasp
+    on the same object (a retry), and the failures per grasp quality."""
+    out = {"rollouts": sum(1 for r in recs if "grasp_objects" in r), "grasps": 0, "failed": 0,
+           "failed_on_target": 0, "failed_retries": 0, "failed_by_quality": {}}
+    for r in recs:
+        prev = None
+        for obj, ok, q in zip(r.get("grasp_objects", []), r.get("action_successes", []),
+                              r.get("grasp_qualities", [])):
+            if not obj:  # a push
+                prev = None
+                continue
+            out["grasps"] += 1
+            if not ok:
+                out["failed"] += 1
+                out["failed_on_target"] += obj == "target"
+                out["failed_retries"] += prev == (obj, False)
+                key = f"{q:.2f}"
+                out["failed_by_quality"][key] = out["failed_by_quality"].get(key, 0) + 1
+            prev = (obj, bool(ok))
+    out["failed_by_quality"] = dict(sorted(out["failed_by_quality"].items()))
+    return out
+
+
 def failure_classes(recs: list[dict]) -> dict:
     """Failures in the reference's three modes (REFERENCE_FAILURE_CLASSES; lines 1326-1328: failures
     6-12 % of the rollouts, 85-90 % of them "no action"): rollouts, failures and their share of the

@@ -173,6 +173,10 @@ class RolloutResult:
     # whether the action succeeded (Table C.2: jaw vs suction grasps)
     grasp_kinds: list = field(default_factory=list)
     action_successes: list = field(default_factory=list)
+    # per action: the grasped object's id ("target" for the target, "" for a push) and the grasp's
+    # quality (0 for a push): where the failed grasps of a search went
+    grasp_objects: list = field(default_factory=list)
+    grasp_qualities: list = field(default_factory=list)
     frames: list = field(default_factory=list, repr=False)
 
     def record(self) -> dict:
@@ -257,6 +261,11 @@ def _frame(system: SearchSystem, context, step: int) -> Frame:
     occ = system.output(context, "occupancy") if system.controller.HasOutputPort("occupancy") else None
     return Frame(step, rgb, system.output(context, "masks"), system.output(context, "target"), occ,
                  system.output(context, "action"))
+
+
+def _grasp_of(outcome):
+    """The grasp of an executed action (None for a push)."""
+    return outcome.action.grasp if outcome.action.kind == "grasp" else None
 
 
 def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: float | None = None,
@@ -352,6 +361,10 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
                         grasp_kinds=[o.action.grasp.kind if o.action.kind == "grasp" and o.action.grasp is not None
                                      else "" for o in history],
                         action_successes=[bool(o.success) for o in history],
+                        grasp_objects=[("target" if g.object_id == system.target_id else g.object_id)
+                                       if (g := _grasp_of(o)) is not None else "" for o in history],
+                        grasp_qualities=[round(float(g.quality), 4) if (g := _grasp_of(o)) is not None else 0.0
+                                         for o in history],
                         error=msg, frames=frames)
     return res
 
