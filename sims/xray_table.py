@@ -3,6 +3,9 @@
     .venv/bin/python sims/xray_table.py docs/data/xray82_xray.jsonl docs/data/xray82_largest.jsonl \
         docs/data/xray82_preempted_random.jsonl --out docs/img/xray82
 
+One argument per policy; `a.jsonl,b.jsonl` pools the records of several files of one policy (e.g.
+two seed ranges; a seed in both keeps the record of the file given first).
+
 Per policy (ms_drake.experiments.harness.summarize): success with its bootstrap 95 % interval,
 action quartiles over successes, failures, where the failed grasps went (harness.failed_grasps); the paired sign test of every pair
 (harness.paired_comparison, with the paired bootstrap interval of the difference) and, on the heaps both solve, a sign test on who needed fewer
@@ -21,6 +24,7 @@ import numpy as np
 from scipy.stats import binomtest
 
 from ms_drake.experiments.harness import (
+    OPTION_DEFAULTS,
     failed_grasps,
     final_records,
     format_summary,
@@ -32,13 +36,33 @@ from ms_drake.experiments.harness import (
 from ms_drake.scenes.heaps import load_heap
 
 
+def pooled_records(spec: str) -> list[dict]:
+    """The final records of FILE[,FILE...] (one policy and one set of search options), a seed once
+    (the first file's record wins)."""
+    out: dict[int, dict] = {}
+    kinds = {}
+    for f in spec.split(","):
+        for r in final_records(read_records(Path(f))):
+            if r.get("failure") != "worker_died":
+                out.setdefault(int(r["seed"]), r)
+                kind = (r["policy"], r.get("protocol", ""), r.get("horizon"),
+                        *(r.get(k, d) for k, d in OPTION_DEFAULTS))
+                kinds.setdefault(kind, f)
+    if len(kinds) > 1:
+        (a, fa), (b, fb) = list(kinds.items())[:2]
+        names = ("policy", "protocol", "horizon", *(k for k, _ in OPTION_DEFAULTS))
+        diff = ", ".join(f"{n} {x!r} ({fa}) vs {y!r} ({fb})" for n, x, y in zip(names, a, b) if x != y)
+        raise SystemExit(f"{spec}: pooled records differ in {diff}; pool the files of one policy and one set of options")
+    return list(out.values())
+
+
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("files", nargs="+", type=Path)
+    ap.add_argument("files", nargs="+", help="one per policy: FILE or FILE,FILE,... (pooled)")
     ap.add_argument("--out", type=Path, default=None, help="folder for the histogram PNGs")
     ap.add_argument("--heap-dir", type=Path, default=None, help="cached heaps: split by the target's start")
     args = ap.parse_args()
-    recs = {f: [r for r in final_records(read_records(f)) if r.get("failure") != "worker_died"] for f in args.files}
+    recs = {f: pooled_records(f) for f in args.files}
     common = set.intersection(*({int(r["seed"]) for r in rs} for rs in recs.values()))
     print(f"{len(common)} heaps in every file (seeds {min(common)}-{max(common)})" if common else "no common heaps")
     if not common:
@@ -88,7 +112,7 @@ def main():
         with tempfile.TemporaryDirectory() as tmp:
             files = []
             for f, rs in recs.items():
-                p = Path(tmp) / f.name
+                p = Path(tmp) / Path(f.split(",")[0]).name
                 p.write_text("".join(json.dumps(r) + "\n" for r in rs))
                 files.append(p)
             for p in plot(files, args.out):
