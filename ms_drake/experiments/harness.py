@@ -550,18 +550,27 @@ def plot(files: list[Path], out_dir: Path) -> list[Path]:
     fig, ax = plt.subplots(figsize=(6, 4))
     top = max([int(r["actions"]) for rs in by_policy.values() for r in rs] or [1])
     xs = np.arange(0, top + 1)
-    for name, rs in sorted(by_policy.items()):
+    for n, (name, rs) in enumerate(sorted(by_policy.items())):
         acts = np.array([int(r["actions"]) for r in rs if r["success"]])
-        ax.step(xs, [(acts <= x).sum() for x in xs], where="post", label=f"{name}, {len(rs)} heaps")
+        ax.step(xs, [(acts <= x).sum() for x in xs], where="post", color=f"C{n}", label=f"{name}, {len(rs)} heaps")
     ax.set_xlabel("actions")
     ax.set_ylabel("cumulative successes")
     ax.set_title("Successful searches within k actions (cf. Fig. 7.4 B)")
     ax.legend(fontsize=7)
     p1 = save_png(fig, out_dir / "cumulative_successes.png")
+    # Fig. 8.6: side-by-side bars per policy, each policy's median as a dashed line of its colour
     fig, ax = plt.subplots(figsize=(6, 4))
-    bins = np.arange(0.5, top + 1.5)
-    for name, rs in sorted(by_policy.items()):
-        ax.hist([int(r["actions"]) for r in rs if r["success"]], bins=bins, alpha=0.5, label=name)
+    names = sorted(by_policy)
+    width = 0.8 / max(len(names), 1)
+    ks = np.arange(1, top + 1)
+    for n, name in enumerate(names):
+        acts = np.array([int(r["actions"]) for r in by_policy[name] if r["success"]])
+        label = f"{name}, median {np.median(acts):g}" if len(acts) else name
+        ax.bar(ks + (n - (len(names) - 1) / 2) * width, [(acts == k).sum() for k in ks], width=width,
+               color=f"C{n}", label=label)
+        if len(acts):
+            ax.axvline(float(np.median(acts)), color=f"C{n}", linestyle="--", linewidth=1)
+    ax.set_xticks(ks)
     ax.set_xlabel("actions to extract the target")
     ax.set_ylabel("successful rollouts")
     ax.set_title("Actions per successful search (cf. Fig. 8.6)")
