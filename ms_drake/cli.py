@@ -127,6 +127,7 @@ from ms_drake.experiments.xray import (
 )
 from ms_drake.foss import SUCTION_LIFTS
 from ms_drake.grasping.evaluator import MODELS
+from ms_drake.grasping.planner import JAW_CONTACTS
 from ms_drake.objects import available_sets, get_object_set
 from ms_drake.parallel import run_jobs
 from ms_drake.perception.segmentation import BACKENDS as SEGMENTATION_BACKENDS
@@ -482,6 +483,9 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
                                                    "unperturbed contact model lifts the object; --grasp-planner image)"),
                  grasp_samples: int = typer.Option(8, "--grasp-samples", min=1, help="Candidates the image grasp "
                                                    "planners sample per mask (each gripper)"),
+                 jaw_contact: str = typer.Option("center", "--jaw-contact", help="The image jaw planner's depth "
+                                                 "rule: center (the jaws' centre under the object's top) | pad "
+                                                 "(the pads' lower edge: thin objects lying flat get jaw grasps)"),
                  skip_failed: bool = typer.Option(False, "--skip-failed", help="A grasp that failed is not "
                                                   "attempted again on the state it failed on (any grasp outcome; "
                                                   "always so with nominal): the selector walks on to its next mask"),
@@ -497,6 +501,7 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
     """Search heaps S..S+K-1 with a policy; one JSON line per rollout (resumable), then a summary."""
     check_policy(policy)
     _choose("--grasp-outcome", grasp_outcome, GRASP_OUTCOMES)
+    _choose("--jaw-contact", jaw_contact, JAW_CONTACTS)
     _choose("--heap-engine", heap_engine, HEAP_ENGINES)
     if grasp_planner:
         _choose("--grasp-planner", grasp_planner, GRASP_PLANNERS)
@@ -533,7 +538,7 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
                   segmenter=segmenter, detector=detector, push_policy=push_policy, grasp_planner=grasp_planner,
                   heap_engine=heap_engine, grasp_outcome=grasp_outcome, grasp_samples=grasp_samples,
                   occupancy_weights=str(occupancy_weights) if occupancy_weights is not None else "",
-                  occupancy=occupancy, skip_failed=skip_failed)
+                  occupancy=occupancy, skip_failed=skip_failed, jaw_contact=jaw_contact)
     if s["resumed"]:
         typer.echo(f"resuming: {s['resumed']} of {heaps_} rollouts already in {out}")
     typer.echo(format_summary(policy, s))

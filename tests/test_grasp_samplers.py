@@ -171,3 +171,46 @@ def test_suction_candidates_whose_cup_would_land_on_a_taller_neighbour_are_dropp
     assert xs.min() < -0.02 and xs.max() > -0.01  # without the check: up to the block's edge (x = 0)
     assert checked and all(g.point[0] < -0.015 + 0.002 for g in checked)  # a cup radius away from it
     assert all(abs(g.point[1]) < 0.03 and abs(g.point[2] - 0.005) < 1e-3 for g in checked)
+
+
+def test_thin_object_lying_flat_gets_jaw_grasps_only_with_pad_contact():
+    """A 1.2 cm bar on the floor: the jaws' centre cannot go 5 mm under its top without the pads'
+    lower edge (15 mm under the centre) touching the floor, so the centre rule finds no grasp; the
+    pad rule does, and the point model finds the contacts on the pads' lower part."""
+    bar = trimesh.creation.box([0.08, 0.02, 0.012])
+    floor = trimesh.creation.box([0.4, 0.4, 0.01])
+    K, X_WC = overhead_camera()
+    X_bar = pose_xyz_yaw(0.0, 0.0, 0.006, 0.3)
+    d_bar = _render_depth(bar, X_bar, K, X_WC, 96, 128)
+    d_floor = _render_depth(floor, pose_xyz_yaw(0.0, 0.0, -0.005, 0.0), K, X_WC, 96, 128)
+    depth = np.minimum(d_bar, d_floor)
+    mask = np.isfinite(d_bar) & (d_bar <= d_floor)
+    assert mask.sum() > 100
+    kw = dict(friction=0.5, max_width=0.1, seed=0, pad_below=0.015)
+    assert sample_antipodal_grasps_depth(depth, K, X_WC, mask, 10, **kw) == []
+    gs = sample_antipodal_grasps_depth(depth, K, X_WC, mask, 10, pad_contact=True, **kw)
+    assert len(gs) >= 3
+    for g in gs:
+        assert g.center[2] > 0.012  # the tool point above the bar, the pads' lower edge above the floor
+        assert g.center[2] - 0.015 >= 0.0
+        assert np.linalg.norm(g.center[:2]) < 0.045
+    centre_only = GraspEvaluator("soft_point", friction=0.5)
+    pads = GraspEvaluator("soft_point", friction=0.5, pad_span=0.015)
+    assert all(centre_only.evaluate(bar, X_bar, g, 0.05).reason == "miss" for g in gs)
+    res = [pads.evaluate(bar, X_bar, g, 0.05) for g in gs]
+    assert sum(r.quality for r in res) >= 2 and all(r.reason != "miss" for r in res)
+
+
+def test_ray_contacts_down_the_pads():
+    """pad_span: the middle of the run of lines where both jaws touch; a jaw collision first is one."""
+    from ms_drake.grasping.point_models import ray_contacts
+    data = MeshData.of(trimesh.creation.box([0.02, 0.02, 0.01]))  # z in [-5, 5] mm
+    c, axis, down = np.array([0.0, 0.0, 0.02]), np.array([1.0, 0, 0]), np.array([0.0, 0, -1])
+    assert ray_contacts(data, c, axis, 0.04) == (None, "miss")
+    assert ray_contacts(data, c, axis, 0.04, down, 0.01) == (None, "miss")  # the pads end above it
+    (p, n), reason = ray_contacts(data, c, axis, 0.04, down, 0.03)
+    assert reason == "" and np.allclose(p[:, 0], [-0.01, 0.01]) and abs(p[0, 2]) < 1.5e-3  # mid-height
+    assert np.allclose(n, [[1, 0, 0], [-1, 0, 0]])
+    assert ray_contacts(data, c, axis, 0.01, down, 0.03) == (None, "jaw_collision")  # opening too narrow
+    with pytest.raises(ValueError, match="approach"):
+        ray_contacts(data, c, axis, 0.04, None, 0.03)

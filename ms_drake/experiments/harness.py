@@ -33,6 +33,7 @@ from scipy.stats import binomtest
 from ms_drake.errors import HeapError
 from ms_drake.execution import GRASP_OUTCOMES
 from ms_drake.experiments.figures import figure_dir, save_png
+from ms_drake.grasping.planner import JAW_CONTACTS
 from ms_drake.experiments.rollout import REFERENCE_FAILURE_CLASSES, SEARCH_OCCUPANCIES, rollout
 from ms_drake.experiments.xray import PROTOCOLS, XRAY_HORIZON, XRAY_PROTOCOLS, xray_heap, xray_heap_settings
 from ms_drake.parallel import run_jobs
@@ -114,30 +115,33 @@ heap_generator_key; one made with other settings raises HeapError (files without
 OPTION_DEFAULTS = (("segmenter", "ground_truth"), ("detector", "color"), ("push_policy", ""),
                    ("grasp_planner", "image"), ("heap_engine", "drake"), ("grasp_outcome", "draw"),
                    ("grasp_samples", 8), ("occupancy_weights", ""), ("occupancy", "learned"),
-                   ("skip_failed", False))
+                   ("skip_failed", False), ("jaw_contact", "center"))
 
 
 def search_options(fidelity: str = "primitive", segmenter: str = "ground_truth", detector: str = "color",
                    push_policy: str = "", grasp_planner: str = "", heap_engine: str = "drake",
                    grasp_outcome: str = "draw", grasp_samples: int = 8, occupancy_weights: str = "",
-                   occupancy: str = "learned", skip_failed: bool = False) -> dict:
+                   occupancy: str = "learned", skip_failed: bool = False, jaw_contact: str = "center") -> dict:
     """The options of a run: the controller's (SearchParams keywords; grasp_planner resolved as the
     controller resolves it, "" = indexed for the primitive fidelity, image for the full one;
     grasp_samples: the image planners' candidates per mask; occupancy_weights: the learned
     occupancy's weights file, "" = the shipped one; occupancy: X-Ray's estimator, SEARCH_OCCUPANCIES;
-    skip_failed: a failed grasp is not attempted again on the state it failed on)
-    and the heaps' drop engine (HEAP_ENGINES)."""
+    skip_failed: a failed grasp is not attempted again on the state it failed on; jaw_contact: the
+    image jaw planner's depth rule, JAW_CONTACTS) and the heaps' drop engine (HEAP_ENGINES)."""
     if occupancy not in SEARCH_OCCUPANCIES:
         raise ValueError(f"occupancy {occupancy!r} unknown; choose one of {', '.join(SEARCH_OCCUPANCIES)}")
     if grasp_outcome not in GRASP_OUTCOMES:
         raise ValueError(f"grasp outcome {grasp_outcome!r} unknown; choose one of {', '.join(GRASP_OUTCOMES)}")
+    if jaw_contact not in JAW_CONTACTS:
+        raise ValueError(f"jaw contact {jaw_contact!r} unknown; choose one of {', '.join(JAW_CONTACTS)}")
     if int(grasp_samples) < 1:
         raise ValueError(f"grasp_samples must be >= 1 candidate per mask, got {grasp_samples!r}")
     if not grasp_planner:
         grasp_planner = "indexed" if fidelity == "primitive" else "image"
     return {"segmenter": segmenter, "detector": detector, "push_policy": push_policy, "grasp_planner": grasp_planner,
             "heap_engine": heap_engine, "grasp_outcome": grasp_outcome, "grasp_samples": int(grasp_samples),
-            "occupancy_weights": str(occupancy_weights), "occupancy": occupancy, "skip_failed": bool(skip_failed)}
+            "occupancy_weights": str(occupancy_weights), "occupancy": occupancy, "skip_failed": bool(skip_failed),
+            "jaw_contact": jaw_contact}
 
 
 def rollout_job(job: tuple) -> dict:
@@ -298,7 +302,7 @@ def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, wo
               protocol: str = "ch7", segmenter: str = "ground_truth", detector: str = "color",
               push_policy: str = "", grasp_planner: str = "", heap_engine: str = "drake",
               grasp_outcome: str = "draw", grasp_samples: int = 8, occupancy_weights: str = "",
-              occupancy: str = "learned", skip_failed: bool = False) -> dict:
+              occupancy: str = "learned", skip_failed: bool = False, jaw_contact: str = "center") -> dict:
     """The missing rollouts of every run (policy, N, result file) on seeds S..S+K-1, all through
     ONE pool of `workers` processes; each record is appended (flushed, fsync'ed) to its run's file
     as it completes, so a killed run loses only the rollouts in flight and the same command
@@ -307,13 +311,14 @@ def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, wo
     later runs load them. segmenter / detector: the controller's perception (SearchParams);
     push_policy: the *_push selectors' push policy (SearchParams.push_policy, "" = Ch. 7's);
     grasp_planner: SearchParams.grasp_planner ("" = the fidelity's default); heap_engine: the
-    heaps' drop physics (HEAP_ENGINES); grasp_outcome / grasp_samples / occupancy_weights / occupancy / skip_failed: SearchParams'. A
+    heaps' drop physics (HEAP_ENGINES); grasp_outcome / grasp_samples / occupancy_weights / occupancy / skip_failed /
+    jaw_contact: SearchParams'. A
     record counts as done only when all of these match.
     Returns {(policy, N): summary}."""
     if heap_engine not in HEAP_ENGINES:
         raise ValueError(f"heap engine {heap_engine!r} unknown; choose one of {', '.join(HEAP_ENGINES)}")
     opts = search_options(fidelity, segmenter, detector, push_policy, grasp_planner, heap_engine, grasp_outcome,
-                          grasp_samples, occupancy_weights, occupancy, skip_failed)
+                          grasp_samples, occupancy_weights, occupancy, skip_failed, jaw_contact)
     jobs, done = [], {}
     for policy, objects, out in runs:
         out = Path(out)
@@ -366,7 +371,7 @@ def run_bench(policy: str, objects: int, heaps: int, seed_start: int, out: Path,
               protocol: str = "ch7", segmenter: str = "ground_truth", detector: str = "color",
               push_policy: str = "", grasp_planner: str = "", heap_engine: str = "drake",
               grasp_outcome: str = "draw", grasp_samples: int = 8, occupancy_weights: str = "",
-              occupancy: str = "learned", skip_failed: bool = False) -> dict:
+              occupancy: str = "learned", skip_failed: bool = False, jaw_contact: str = "center") -> dict:
     """Run the missing rollouts of seeds S..S+K-1, append them to `out`; returns the summary."""
     return run_suite([(policy, objects, Path(out))], heaps, seed_start, workers=workers, fidelity=fidelity,
                      horizon=horizon, use_ray=use_ray, ray_address=ray_address, progress=progress,
@@ -374,7 +379,7 @@ def run_bench(policy: str, objects: int, heaps: int, seed_start: int, out: Path,
                      push_policy=push_policy, grasp_planner=grasp_planner,
                      heap_engine=heap_engine, grasp_outcome=grasp_outcome,
                      grasp_samples=grasp_samples, occupancy_weights=occupancy_weights,
-                     occupancy=occupancy, skip_failed=skip_failed)[(policy, objects)]
+                     occupancy=occupancy, skip_failed=skip_failed, jaw_contact=jaw_contact)[(policy, objects)]
 
 
 def truncate_record(rec: dict, horizon: int) -> dict:

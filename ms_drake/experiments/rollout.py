@@ -120,6 +120,8 @@ class SearchParams:
     grasp_outcome: str = "draw"
     # BinSearchParams.skip_failed: a failed grasp is not attempted again on the state it failed on
     skip_failed: bool = False
+    # BinSearchParams.jaw_contact: the image jaw planner's depth rule ("center" | "pad")
+    jaw_contact: str = "center"
 
     def __post_init__(self):
         check_policy(self.policy)
@@ -165,6 +167,7 @@ class RolloutResult:
     push_policy: str = ""
     grasp_outcome: str = "draw"
     skip_failed: bool = False  # SearchParams.skip_failed
+    jaw_contact: str = "center"  # SearchParams.jaw_contact
     grasp_samples: int = 8  # the image planners' candidates per mask
     occupancy_weights: str = ""  # the learned occupancy's weights file ("": the shipped one)
     occupancy: str = "learned"  # SearchParams.occupancy
@@ -216,7 +219,7 @@ def controller_params(params: SearchParams, num_objects: int) -> BinSearchParams
                            occupancy_weights="" if params.policy == "oracle" else params.occupancy_weights,
                            grasp_planner=params.grasp_planner, push_policy=params.push_policy,
                            reach=params.reach, grasp_outcome=params.grasp_outcome,
-                           skip_failed=bool(params.skip_failed))
+                           skip_failed=bool(params.skip_failed), jaw_contact=params.jaw_contact)
 
 
 def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSystem:
@@ -355,7 +358,7 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
                         grasp_successes=sum(1 for o in history if o.action.kind == "grasp" and o.success),
                         grasp_plans=grasp_plans, grasp_planner=system.controller.params.grasp_planner,
                         push_policy=params.push_policy, grasp_outcome=params.grasp_outcome,
-                        skip_failed=bool(params.skip_failed),
+                        skip_failed=bool(params.skip_failed), jaw_contact=params.jaw_contact,
                         grasp_samples=int(params.grasp_samples), occupancy_weights=params.occupancy_weights,
                         occupancy=params.occupancy,
                         grasp_kinds=[o.action.grasp.kind if o.action.kind == "grasp" and o.action.grasp is not None

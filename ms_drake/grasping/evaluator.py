@@ -145,6 +145,11 @@ class GraspEvaluator:
         point / soft point / elliptical / REACH, Clarabel on the MathematicalProgram for MFE / 6DFC)
       sigma_t (m), sigma_r (rad), sigma_friction, sigma_mass (relative): robust perturbations,
         default 0.003, 0.05, 0.1, 0.1
+      pad_span (m, point / soft point): how far the pads reach beyond the grasp centre towards the
+        fingertips; when the line through the centre misses the object the contacts are sought
+        on lines down to there (point_models.ray_contacts: a thin object under the tool point
+        meets the pads' lower part). Default 0: the centre line only. The area models intersect
+        the pad polygon itself.
     """
 
     def __init__(self, model: str = "6dfc", friction: float = 0.5, closing_force: float = CLOSING_FORCE, *,
@@ -153,7 +158,7 @@ class GraspEvaluator:
                  cone_edges: int = 8, ellipsoid_samples: int = 18, max_triangles: int = 10,
                  k1: int = 60, k2: int = 30, cone_planes: int = 64, solver: str = "auto",
                  sigma_t: float = 0.003, sigma_r: float = 0.05, sigma_friction: float = 0.1,
-                 sigma_mass: float = 0.1):
+                 sigma_mass: float = 0.1, pad_span: float = 0.0):
         if model not in MODELS:
             raise GraspError(f"unknown grasp model {model!r}; choose one of {', '.join(MODELS)}")
         if solver not in SOLVERS and solver != "naive":
@@ -163,7 +168,7 @@ class GraspEvaluator:
             if not (np.isfinite(v) and v > 0):
                 raise GraspError(f"GraspEvaluator {name} must be a positive number, got {v!r}")
         for name, v in (("sigma_t", sigma_t), ("sigma_r", sigma_r), ("sigma_friction", sigma_friction),
-                        ("sigma_mass", sigma_mass)):
+                        ("sigma_mass", sigma_mass), ("pad_span", pad_span)):
             if not (np.isfinite(v) and v >= 0):
                 raise GraspError(f"GraspEvaluator {name} must be >= 0, got {v!r}")
         if pad is None:
@@ -184,6 +189,7 @@ class GraspEvaluator:
         self.solver = solver
         self.sigma_t, self.sigma_r = float(sigma_t), float(sigma_r)
         self.sigma_friction, self.sigma_mass = float(sigma_friction), float(sigma_mass)
+        self.pad_span = float(pad_span)
 
     def __repr__(self):
         return (f"GraspEvaluator({self.model!r}, friction={self.friction}, closing_force={self.closing_force}, "
@@ -245,7 +251,7 @@ class GraspEvaluator:
         t = np.concatenate([g_dir, np.zeros(3)])  # gravity wrench about the COM / (m g)
         blocks: list[WrenchProblem] = []
         if self.model in ("point", "soft_point"):
-            contacts, reason = ray_contacts(data, g.center, g.axis, g.width)
+            contacts, reason = ray_contacts(data, g.center, g.axis, g.width, g.approach, self.pad_span)
             if contacts is None:
                 return None, reason
             torsion = self.torsional_friction if self.model == "soft_point" else 0.0

@@ -26,6 +26,12 @@ the convex hull of its visible points extruded down to the lowest point seen in 
 bin floor), with `default_mass` -- a choice of ours; the reference plans on known meshes in
 simulation and with a learned GQ-CNN on hardware.
 
+jaw_contact (jaw models): "center" (default) -- the jaws' centre goes min_grasp_depth under the
+object's top and the contacts are on the line through it; "pad" -- the pads' lower edge must be
+that deep instead, and the point models seek the contacts down the pads' lower half
+(`sample_antipodal_grasps_depth(pad_contact=True)`, `GraspEvaluator(pad_span=PAD_BELOW)`): thin
+objects lying flat get jaw grasps. Our choice, opt-in; the area models' pads are their polygon.
+
 Randomness: candidate sampling for mask k uses seed (seed, k); robust trials use the same seed.
 """
 
@@ -53,6 +59,10 @@ from ms_drake.grasping.suction import SuctionEvaluator
 from ms_drake.types import Grasp, InstanceMasks, ObjectGeometry
 
 
+JAW_CONTACTS = ("center", "pad")  # GraspPlanner.jaw_contact
+PAD_BELOW = 0.015  # how far the station jaw's pads reach under the tool point (samplers' pad_below)
+
+
 def intrinsics(camera_info: CameraInfo) -> np.ndarray:
     return np.asarray(camera_info.intrinsic_matrix(), float)
 
@@ -64,15 +74,17 @@ class GraspPlanner(LeafSystem):
     evaluator_params: keyword arguments of GraspEvaluator (or SuctionEvaluator for suction),
     e.g. {"friction": 0.6, "closing_force": 20.0}. cup_clearance (suction): a candidate whose cup
     would land on a seen neighbour more than this above the contact point is dropped
-    (`sample_suction_grasps_depth`; None: no check)."""
+    (`sample_suction_grasps_depth`; None: no check). jaw_contact: JAW_CONTACTS (module docstring)."""
 
     def __init__(self, camera_info: CameraInfo, X_WC=None, model: str = "soft_point", num_samples: int = 30,
                  robust_samples: int = 0, seed: int = 0, evaluator_params: dict | None = None,
                  max_width: float = 0.1, default_mass: float = 0.2, candidate_pool: int = 3,
-                 jaw_margin: float = 0.01, cup_clearance: float | None = 0.005):
+                 jaw_margin: float = 0.01, cup_clearance: float | None = 0.005, jaw_contact: str = "center"):
         super().__init__()
         if model not in MODELS and model != "suction":
             raise GraspError(f"GraspPlanner model {model!r} unknown; choose one of {', '.join(MODELS)}, suction")
+        if jaw_contact not in JAW_CONTACTS:
+            raise GraspError(f"GraspPlanner jaw_contact {jaw_contact!r} unknown; choose one of {', '.join(JAW_CONTACTS)}")
         h, w = camera_info.height(), camera_info.width()
         self.depth_port = self.DeclareAbstractInputPort("depth_image", AbstractValue.Make(ImageDepth32F(w, h)))
         self.masks_port = self.DeclareAbstractInputPort("masks", AbstractValue.Make(InstanceMasks.empty(h, w)))
@@ -83,6 +95,9 @@ class GraspPlanner(LeafSystem):
             prerequisites_of_calc={self.all_input_ports_ticket()})
 
         params = dict(evaluator_params or {})
+        self.jaw_contact = jaw_contact
+        if jaw_contact == "pad" and model != "suction":
+            params.setdefault("pad_span", PAD_BELOW)
         self.model = model
         self.evaluator = SuctionEvaluator(**params) if model == "suction" else GraspEvaluator(model, **params)
         self.K = intrinsics(camera_info)
@@ -131,7 +146,8 @@ class GraspPlanner(LeafSystem):
         return sample_antipodal_grasps_depth(depth, K, as_matrix4(X_WC, "X_WC"), mask,
                                              self.num_samples * self.candidate_pool, friction=self.friction,
                                              max_width=self.max_width, seed=seed, prefer_center=True,
-                                             jaw_margin=self.jaw_margin)
+                                             jaw_margin=self.jaw_margin, pad_below=PAD_BELOW,
+                                             pad_contact=self.jaw_contact == "pad")
 
     def plan(self, depth: np.ndarray, masks: InstanceMasks, objects=(), X_WC=None, K=None,
              seed: int | None = None) -> tuple[Grasp, ...]:

@@ -31,22 +31,61 @@ from ms_drake.grasping.wrench_sets import (
 )
 
 
-def ray_contacts(data: MeshData, center, axis, width):
+def ray_contacts(data: MeshData, center, axis, width, approach=None, pad_span: float = 0.0,
+                 step: float = 0.001):
     """Where the two jaws first touch the object along the grasp axis.
 
     Returns ((points (2,3), inward normals (2,3)), "") or (None, reason), reason in
     {"miss", "jaw_collision"}: a jaw whose first hit is an exit face starts inside the object;
-    a jaw with no entry within the opening misses."""
-    origins = np.stack([center - 0.5 * width * axis, center + 0.5 * width * axis])
-    dirs = np.stack([axis, -axis])
+    a jaw with no entry within the opening misses.
+
+    pad_span > 0 (metres; needs `approach`): the pads reach that far beyond the centre along the
+    approach (towards the fingertips). When the line through the centre misses, lines every
+    `step` towards the fingertips are tried; the first that does not miss decides: a jaw
+    collision there is one, else the contacts are those of the middle line of the run of lines
+    (from that one on) where both jaws touch -- where a pad meets a thin object's side below the
+    tool point."""
+    center, axis = np.asarray(center, float), np.asarray(axis, float)
+    found = _line_contacts(data, center[None], axis, width)[0]
+    if found[0] is not None or found[1] != "miss" or pad_span <= 0:
+        return found
+    if approach is None:
+        raise ValueError("ray_contacts: pad_span > 0 needs the approach direction")
+    offsets = np.arange(1, int(np.floor(pad_span / step + 1e-9)) + 1) * step
+    if not len(offsets):
+        return found
+    lines = _line_contacts(data, center[None] + offsets[:, None] * np.asarray(approach, float)[None], axis, width)
+    first = next((k for k, (c, r) in enumerate(lines) if r != "miss"), None)
+    if first is None:
+        return None, "miss"
+    if lines[first][0] is None:
+        return lines[first]
+    last = first
+    while last + 1 < len(lines) and lines[last + 1][0] is not None:
+        last += 1
+    return lines[(first + last) // 2]
+
+
+def _line_contacts(data: MeshData, centers: np.ndarray, axis: np.ndarray, width: float) -> list:
+    """ray_contacts' answer for the lines through each of `centers` (M, 3) along `axis`, in one
+    ray cast: [(contacts or None, reason), ...]."""
+    M = len(centers)
+    origins = np.concatenate([centers - 0.5 * width * axis, centers + 0.5 * width * axis])
+    dirs = np.concatenate([np.repeat(axis[None], M, 0), np.repeat(-axis[None], M, 0)])
     t, n_out = data.raycast(origins, dirs, np.inf)
-    if not np.all(np.isfinite(t)):
-        return None, "miss"
-    if np.any(np.sum(n_out * dirs, axis=1) >= 0):
-        return None, "jaw_collision"
-    if np.any(t > width):
-        return None, "miss"
-    return (origins + t[:, None] * dirs, -n_out), ""
+    out = []
+    for k in range(M):
+        i = [k, M + k]
+        tk, nk, dk = t[i], n_out[i], dirs[i]
+        if not np.all(np.isfinite(tk)):
+            out.append((None, "miss"))
+        elif np.any(np.sum(nk * dk, axis=1) >= 0):
+            out.append((None, "jaw_collision"))
+        elif np.any(tk > width):
+            out.append((None, "miss"))
+        else:
+            out.append(((origins[i] + tk[:, None] * dk, -nk), ""))
+    return out
 
 
 def _tangents(n: np.ndarray):

@@ -302,7 +302,7 @@ def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.nda
                                   finger_width: float = 0.02, palm_above: float = 0.045,
                                   palm_size: tuple[float, float] = (0.13, 0.05), clearance: float = 0.005,
                                   cell: float = 0.002, prefer_center: bool = False,
-                                  max_attempts: int | None = None) -> list[ParallelJawGrasp]:
+                                  max_attempts: int | None = None, pad_contact: bool = False) -> list[ParallelJawGrasp]:
     """Top-down (approach = world -z) antipodal grasps on the object under `mask` (H, W bool) of a
     depth image. K: 3x3 intrinsics; X_WC: camera pose, RigidTransform or 4x4 array (camera z =
     optical axis). World frame.
@@ -332,6 +332,13 @@ def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.nda
     vertically and around the palm's outline (the map is the visible surface only). Half-way
     down is where a lying cylinder is widest and where a tilted box's side faces are under both
     jaws; 1 cm under the highest point puts one jaw above a tilted top face.
+
+    pad_contact: the depth test is on the pads, not the centre: a candidate stays when the pads'
+    lower edge (`pad_below` under the centre) is min_grasp_depth under z_top, so an object that
+    rises less than pad_below + clearance + min_grasp_depth above what lies beside it (a knife,
+    scissors, a wrench lying flat) is held by the pads' lower part; score such grasps with
+    GraspEvaluator(pad_span=pad_below), which finds the contacts there. Off (default): the centre
+    must be min_grasp_depth under z_top.
 
     prefer_center: return the candidates sorted by the distance of their centre to the footprint's
     centroid (a proxy for the centre of mass: gravity's torque about the grasp axis is what the
@@ -417,7 +424,7 @@ def sample_antipodal_grasps_depth(depth: np.ndarray, K: np.ndarray, X_WC: np.nda
             np.clip(0.5 * (z_top - z_free), min_grasp_depth, max_grasp_depth))
         z_palm = _rect_top(H_all, 0.5 * (rc[i] + rc[j]), u2, (-palm_a, palm_a), palm_b)
         z = max(z_top - below, z_free + pad_below + clearance, z_palm - palm_above + clearance)
-        if z_top - z < min_grasp_depth - 1e-9:
+        if z_top - (z - pad_below if pad_contact else z) < min_grasp_depth - 1e-9:
             continue
         mid = 0.5 * (rc[i] + rc[j]) + 0.5
         center = np.array([lo[0] + mid[0] * cell, lo[1] + mid[1] * cell, z])

@@ -56,7 +56,7 @@ from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.grasping.grasp_sets import load_grasp_set
 from ms_drake.grasping.indexed import IndexedGraspPlanner, environment_parts
 from ms_drake.grasping.meshes import object_mesh
-from ms_drake.grasping.planner import GraspPlanner, LazyGraspPlanner, ObjectGeometrySource
+from ms_drake.grasping.planner import JAW_CONTACTS, GraspPlanner, LazyGraspPlanner, ObjectGeometrySource
 from ms_drake.objects import get_object
 from ms_drake.perception.association import MaskAssociation
 from ms_drake.perception.masks import TargetAmodalMask, make_amodal_masks, object_labels
@@ -120,6 +120,8 @@ class BinSearchParams:
     skip_failed: an object a grasp failed on is passed over until an action succeeds (the state
     changes), whatever the outcome model (SelectorParams.skip_failed): the selector walks on to the
     next mask of its priority list.
+    jaw_contact: the image jaw planner's depth rule, grasping.planner.JAW_CONTACTS: "center"
+    (default) or "pad" (the pads' lower part holds thin objects lying flat; GraspPlanner).
     """
 
     policy: str = "largest"
@@ -143,9 +145,12 @@ class BinSearchParams:
     reach: str = ""
     grasp_outcome: str = "draw"
     skip_failed: bool = False
+    jaw_contact: str = "center"
 
     def __post_init__(self):
         check_policy(self.policy)
+        if self.jaw_contact not in JAW_CONTACTS:
+            raise ControllerError(f"jaw_contact {self.jaw_contact!r} unknown; choose one of {', '.join(JAW_CONTACTS)}")
         if self.grasp_outcome not in GRASP_OUTCOMES:
             raise ControllerError(f"grasp_outcome {self.grasp_outcome!r} unknown; choose one of "
                                   f"{', '.join(GRASP_OUTCOMES)}")
@@ -294,7 +299,8 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
     color_cam, _ = cfg.MakeCameras()
     planners = [GraspPlanner(color_cam.core().intrinsics(), camera.X_WC, model=m, num_samples=params.grasp_samples,
                              robust_samples=params.robust_samples, seed=params.seed,
-                             evaluator_params=params.grasp_params if m != "suction" else None)
+                             evaluator_params=params.grasp_params if m != "suction" else None,
+                             jaw_contact=params.jaw_contact)
                 for m in models]
     grasp = LazyGraspPlanner(planners, camera.width, camera.height, seed=params.seed)
     if params.grasp_planner == "indexed" and sim is not None:
