@@ -105,6 +105,24 @@ def test_checked_outcome_attempts_only_grasps_that_lift(yumi_images):
     assert skipping.GetSubsystemByName("policy_selector").params.skip_failed is True
     assert controller.GetSubsystemByName("policy_selector").params.skip_failed is False
 
+
+def test_jaw_contact_reaches_the_jaw_planner(yumi_images):
+    """jaw_contact="pad": the jaw GraspPlanner samples with the pad rule and its point model seeks
+    contacts down the pads; suction is unchanged; an unknown rule is refused with the choices."""
+    from ms_drake.grasping.planner import PAD_BELOW
+    s, (rgb, depth) = yumi_images
+    for rule, span in (("center", 0.0), ("pad", PAD_BELOW)):
+        controller = MakeBinSearchController(s, dataclasses.replace(HARDWARE, jaw_contact=rule))
+        planners = controller.GetSubsystemByName("grasp_planner").planners
+        jaw = [p for p in planners if p.model != "suction"]
+        assert jaw and all(p.jaw_contact == rule and p.evaluator.pad_span == span for p in jaw)
+        ctx = controller.CreateDefaultContext()
+        controller.GetInputPort("overhead.rgb_image").FixValue(ctx, rgb)
+        controller.GetInputPort("overhead.depth_image").FixValue(ctx, depth)
+        assert controller.GetOutputPort("action").Eval(ctx).kind in ("grasp", "stop")
+    with pytest.raises(ControllerError, match="jaw_contact 'tip' unknown; choose one of center, pad"):
+        dataclasses.replace(HARDWARE, jaw_contact="tip")
+
 def test_controller_rejects_settings_it_cannot_honour(yumi_images):
     s, _ = yumi_images
     with pytest.raises(ControllerError, match="ground_truth' reads the simulated label image"):

@@ -166,3 +166,7 @@ def test_planner_rejects_bad_parameters():
         GraspPlanner(info, model="soft_point", jaw_margin=0.2)
     with pytest.raises(GraspError, match="unknown"):
         GraspPlanner(info, model="bogus")
+    with pytest.raises(GraspError, match="jaw_contact 'tip' unknown; choose one of center, pad"):
+        GraspPlanner(info, model="soft_point", jaw_contact="tip")
+    with pytest.raises(GraspError, match="pad_span must be >= 0"):
+        GraspPlanner(info, model="soft_point", evaluator_params={"pad_span": -0.01})

@@ -148,6 +148,11 @@ def test_a_run_resumes_only_the_records_of_its_own_grasp_planner(tmp_path):
     s = run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="image", grasp_samples=3, skip_failed=True)
     assert s["resumed"] == 0 and s["ran"] == 1  # failed objects passed over: its own record
     assert [r["skip_failed"] for r in read_records(out)] == [False, False, False, False, True]
+    s = run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="image", grasp_samples=3, jaw_contact="pad")
+    assert s["resumed"] == 0 and s["ran"] == 1  # the pad rule: its own record
+    assert [r["jaw_contact"] for r in read_records(out)] == ["center"] * 5 + ["pad"]
+    with pytest.raises(ValueError, match="jaw contact 'tip' unknown; choose one of center, pad"):
+        run_bench("largest", 2, 1, 5, out, horizon=3, jaw_contact="tip")
     assert run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="indexed")["resumed"] == 1
     # a record without the key predates the grasp sets: it was searched with the image planner
     # (and one without grasp_samples with the default 8 candidates)
