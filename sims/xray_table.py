@@ -7,7 +7,8 @@ One argument per policy; `a.jsonl,b.jsonl` pools the records of several files of
 two seed ranges; a seed in both keeps the record of the file given first).
 
 Per policy (ms_drake.experiments.harness.summarize): success with its bootstrap 95 % interval,
-action quartiles over successes, failures, where the failed grasps went (harness.failed_grasps); the paired sign test of every pair
+action quartiles over successes, failures, where the failed grasps went (harness.failed_grasps;
+`--by-object K`: the K object models with the most failed grasps); the paired sign test of every pair
 (harness.paired_comparison, with the paired bootstrap interval of the difference) and, on the heaps both solve, a sign test on who needed fewer
 actions; the seen fraction of the target at the start splits the heaps
 (heap.visible_ratios, from --heap-dir: the heap files of the records' protocol) when given; the
@@ -61,6 +62,8 @@ def main():
     ap.add_argument("files", nargs="+", help="one per policy: FILE or FILE,FILE,... (pooled)")
     ap.add_argument("--out", type=Path, default=None, help="folder for the histogram PNGs")
     ap.add_argument("--heap-dir", type=Path, default=None, help="cached heaps: split by the target's start")
+    ap.add_argument("--by-object", type=int, default=0, metavar="K",
+                    help="also print the K object models with the most failed grasps (failed / grasps)")
     args = ap.parse_args()
     recs = {f: pooled_records(f) for f in args.files}
     common = set.intersection(*({int(r["seed"]) for r in rs} for rs in recs.values()))
@@ -75,6 +78,9 @@ def main():
             print(f"  failed grasps: {fg['failed']} of {fg['grasps']} ({fg['failed_on_target']} on the target, "
                   f"{fg['failed_retries']} right after a failure on the same object; by quality "
                   f"{fg['failed_by_quality']}) in {fg['rollouts']} rollouts")
+            if args.by_object:
+                print("  failed / grasps by object: " + ", ".join(
+                    f"{k} {v[1]}/{v[0]}" for k, v in list(fg["by_object"].items())[:args.by_object]))
         within = {k: np.mean([r["success"] and r["actions"] <= k for r in rs]) for k in (1, 2, 3, 5)}
         print("  success within k actions: " + ", ".join(f"k = {k}: {100 * v:.1f} %" for k, v in within.items()))
     for fa, fb in itertools.combinations(args.files, 2):

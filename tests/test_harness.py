@@ -345,3 +345,7 @@ def test_failed_grasps_counts_where_the_failed_grasps_went():
     f = failed_grasps(recs)
     assert (f["rollouts"], f["grasps"], f["failed"], f["failed_on_target"], f["failed_retries"]) == (1, 5, 3, 1, 1)
     assert f["failed_by_quality"] == {"0.25": 2, "0.50": 1}
+    assert f["by_object"] == {"a": [3, 2], "target": [2, 1]}
+    f = failed_grasps([{"grasp_objects": ["obj03__ycb__037_scissors", "obj07__ycb__037_scissors"],
+                        "action_successes": [False, True], "grasp_qualities": [0.25, 1.0]}])
+    assert f["by_object"] == {"ycb__037_scissors": [2, 1]}

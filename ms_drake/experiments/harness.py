@@ -498,9 +498,11 @@ def action_breakdown(recs: list[dict]) -> dict:
 def failed_grasps(recs: list[dict]) -> dict:
     """Where the failed grasps of the rollouts went (records with `grasp_objects`, see
     rollout.RolloutResult): grasps, failed, failed on the target, failed right after a failed grasp
-    on the same object (a retry), and the failures per grasp quality."""
+    on the same object (a retry), the failures per grasp quality, and per object model
+    (`by_object`: the object id without its "objNN__" heap index, e.g. "ycb_unseen__037_scissors")
+    [grasps, failed], most failures first."""
     out = {"rollouts": sum(1 for r in recs if "grasp_objects" in r), "grasps": 0, "failed": 0,
-           "failed_on_target": 0, "failed_retries": 0, "failed_by_quality": {}}
+           "failed_on_target": 0, "failed_retries": 0, "failed_by_quality": {}, "by_object": {}}
     for r in recs:
         prev = None
         for obj, ok, q in zip(r.get("grasp_objects", []), r.get("action_successes", []),
@@ -509,6 +511,10 @@ def failed_grasps(recs: list[dict]) -> dict:
                 prev = None
                 continue
             out["grasps"] += 1
+            model = obj.split("__", 1)[1] if obj.startswith("obj") and "__" in obj else obj
+            counts = out["by_object"].setdefault(model, [0, 0])
+            counts[0] += 1
+            counts[1] += not ok
             if not ok:
                 out["failed"] += 1
                 out["failed_on_target"] += obj == "target"
@@ -517,6 +523,7 @@ def failed_grasps(recs: list[dict]) -> dict:
                 out["failed_by_quality"][key] = out["failed_by_quality"].get(key, 0) + 1
             prev = (obj, bool(ok))
     out["failed_by_quality"] = dict(sorted(out["failed_by_quality"].items()))
+    out["by_object"] = dict(sorted(out["by_object"].items(), key=lambda kv: (-kv[1][1], kv[0])))
     return out
 
 
