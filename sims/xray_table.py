@@ -115,6 +115,10 @@ def main():
             n = sum(1 for k in common if lo <= seen[k] < hi)
             print(f"  {name}: {n} heaps; " + ", ".join(parts))
     if args.out is not None:
+        policies = [rs[0]["policy"] for rs in recs.values()]
+        if len(set(policies)) < len(policies):  # harness.plot groups the records by policy
+            raise SystemExit(f"--out: several files hold the same policy ({', '.join(policies)}); the figures "
+                             "group records by policy, so draw each setting's files in a run of their own")
         with tempfile.TemporaryDirectory() as tmp:
             files = []
             for f, rs in recs.items():
