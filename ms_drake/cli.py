@@ -15,6 +15,8 @@ exit with status 2; they never show a traceback.
 
 from __future__ import annotations
 
+import errno
+import functools
 import json
 import os
 import resource
@@ -30,6 +32,9 @@ import typer
 from tqdm import tqdm
 
 from ms_drake.collision.checker import METHODS as COLLISION_METHODS
+from ms_drake.collision.checker import NETWORKS as COLLISION_NETWORKS
+from ms_drake.collision.checker import default_weights as default_collision_weights
+from ms_drake.collision.checker import load_collision_net
 from ms_drake.collision.scene_net import NetConfig as CollisionNetConfig
 from ms_drake.errors import MsDrakeError
 from ms_drake.execution import FIDELITIES, GRASP_OUTCOMES
@@ -71,6 +76,7 @@ from ms_drake.experiments.push_fidelity import (
     run_push_fidelity,
     summarize_fidelity,
 )
+from ms_drake.experiments.records import RECORD_FIELDS, read_record_file
 from ms_drake.experiments.push_study import (
     SAMPLINGS,
     StudyParams,
@@ -130,6 +136,11 @@ from ms_drake.grasping.evaluator import MODELS
 from ms_drake.grasping.planner import JAW_CONTACTS
 from ms_drake.objects import available_sets, get_object_set
 from ms_drake.parallel import run_jobs
+from ms_drake.paths import model_path
+from ms_drake.perception.matcher_net import load_matcher
+from ms_drake.perception.occupancy_net import load_model as load_occupancy_net
+from ms_drake.perception.segmentation_net import load_model as load_segmentation_net
+from ms_drake.perception.shelf_occupancy_net import load_model as load_shelf_occupancy_net
 from ms_drake.perception.segmentation import BACKENDS as SEGMENTATION_BACKENDS
 from ms_drake.perception.target import BACKENDS as DETECTOR_BACKENDS
 from ms_drake.policies.bin_search import GRASP_PLANNERS
@@ -154,6 +165,8 @@ JsonSummary = typer.Option(None, "--json", help="Write the summary as JSON")
 DatasetSeed = typer.Option(0, "--seed", min=0, help="Dataset seed")
 TrainingSeed = typer.Option(0, "--seed", min=0, help="Seed")
 TorchThreads = typer.Option(1, "--threads", min=1, help="torch threads")
+OverwriteShipped = typer.Option(False, "--overwrite-shipped", help="Allow --out inside the shipped models/weights/ "
+                                "folder (replaces the weights the package uses by default)")
 
 
 def _workers(help: str = "Parallel workers", max: Optional[int] = 64):
@@ -190,12 +203,39 @@ def _need_jsonl(out: Path) -> None:
         _fail(f"--out {out}: give a .jsonl file")
 
 
-def _need_results(files, command: str = "") -> None:
-    """Fail unless every result file exists; `command` (e.g. "bench search") is the one that writes them."""
-    missing = [str(f) for f in files if not f.exists()]
-    if missing:
-        hint = f"; run `ms-drake {command} ... --out FILE.jsonl` first" if command else ""
-        _fail(f"no such result file: {', '.join(missing)}{hint}")
+def _need_results(files, command: str) -> None:
+    """Fail unless every result file exists and holds records, each with the fields RECORD_FIELDS
+    lists for `command` (e.g. "bench search"), the one that writes them. One error (RecordFileError)
+    names the file and the line at fault (records.read_record_file)."""
+    for f in files:
+        read_record_file(f, RECORD_FIELDS[command], command)
+
+
+def _need_weights(option: str, path: Optional[Path], load, kind: str) -> None:
+    """Load the weights file given with `option` (None: the shipped one `load` defaults to) once here,
+    before any worker starts: a missing, unreadable or foreign file fails with its name and the fix."""
+    given = f"{option} {path}" if path is not None else f"{option} (the shipped weights)"
+    try:
+        load(path)
+    except MsDrakeError as e:
+        _fail(f"{given}: {e}")
+    except Exception as e:  # noqa: BLE001 - a loader's unexpected error still names the file
+        _fail(f"{given}: cannot load {kind} weights ({type(e).__name__}: {e}); give a file written by "
+              f"`ms-drake train {kind}`")
+
+
+def _shipped_weights_dir() -> Path:
+    return model_path("weights").resolve()
+
+
+def _need_training_out(out: Path, overwrite_shipped: bool) -> None:
+    """Training writes OUT (and OUT.ckpt); into the shipped models/weights/ only with --overwrite-shipped."""
+    if overwrite_shipped:
+        return
+    shipped = _shipped_weights_dir()
+    if out.resolve() == shipped or shipped in out.resolve().parents:
+        _fail(f"--out {out}: this is the shipped weights folder {shipped}; give another --out (default "
+              "out/weights/<kind>.pt) or add --overwrite-shipped to replace the shipped weights")
 
 
 def _echo_written(written: dict) -> None:
@@ -519,14 +559,19 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
         horizon = XRAY_HORIZON
     _choose("--fidelity", fidelity, FIDELITIES)
     _need_jsonl(out)
-    if occupancy_weights is not None and not occupancy_weights.is_file():
-        _fail(f"--occupancy-weights {occupancy_weights}: no such file; give one written by `ms-drake train occupancy`")
     _choose("--occupancy", occupancy, SEARCH_OCCUPANCIES)
     if occupancy != "learned" and (occupancy_weights is not None or policy not in OCCUPANCY_POLICIES):
         _fail(f"--occupancy {occupancy}: only for {' or '.join(OCCUPANCY_POLICIES)}, without --occupancy-weights")
     if occupancy_weights is not None and policy not in OCCUPANCY_POLICIES:
         _fail(f"--occupancy-weights: the {policy} policy reads no occupancy; use it with "
               f"{' or '.join(OCCUPANCY_POLICIES)}")
+    # The learned parts' weights load here once, before any worker starts (not as a failure per rollout).
+    if policy in OCCUPANCY_POLICIES and occupancy == "learned":
+        _need_weights("--occupancy-weights", occupancy_weights, load_occupancy_net, "occupancy")
+    if segmenter == "learned":
+        _need_weights("--segmenter learned", None, load_segmentation_net, "segmentation")
+    if detector == "learned":
+        _need_weights("--detector learned", None, load_matcher, "matcher")
 
     def progress(rec):
         typer.echo(f"seed {rec['seed']}: {'success' if rec['success'] else rec['failure']} after "
@@ -787,6 +832,8 @@ def bench_shelf(ctx: typer.Context,
     check_shelf_policy(policy)
     _choose("--perception", perception, SHELF_PERCEPTIONS, quote=False)
     _choose("--suction-lift", suction_lift, SUCTION_LIFTS, quote=False)
+    if perception in ("learned", "depth"):
+        _need_weights(f"--perception {perception}", None, load_shelf_occupancy_net, "shelf-occupancy")
     oracle_exhaustive_budget(policy, oracle_exhaustive)
     counts = _occluder_counts(occluders, ctx.args)
     _need_jsonl(out)
@@ -833,6 +880,8 @@ def bench_shelf_physics(policy: str = typer.Option(..., "--policy", help=f"Shelf
     check_shelf_policy(policy)
     _choose("--perception", perception, SHELF_CONTROLLER_PERCEPTIONS, quote=False)
     _need_jsonl(out)
+    if perception == "depth":
+        _need_weights("--perception depth", None, load_shelf_occupancy_net, "shelf-occupancy")
     if occluders and any(not 2 <= n <= 12 for n in occluders):
         _fail(f"--occluders {occluders}: shelf scenes have 2 to 12 occluders")
     run_shelf_physics_bench(policy, scenes, seed_start, out, occluders, workers=workers, log=typer.echo,
@@ -860,7 +909,9 @@ def bench_rearrange(method: Optional[str] = typer.Option(None, "--method",
     if not table:
         _choose("--method", method, REARRANGE_METHODS, quote=False)
     _need_jsonl(out)
-    if not table:
+    if table:
+        _need_results((out,), "bench rearrange")
+    else:
         run_rearrange_bench(method, scenes, seed_start, out, objects=objects, workers=workers, log=typer.echo,
                             trajectories=trajectories, horizon=horizon)
     typer.echo(rearrange_table(rearrange_records([out])))
@@ -877,7 +928,7 @@ def bench_shelf_physics_table(files: list[Path] = typer.Argument(..., help="Resu
                                   None, "--foss", help="FOSS result .jsonl (ms-drake bench shelf) of the same scenes: "
                                                        "also the search outcome in physics against FOSS, paired")):
     """The Table 9.2 analogue (markdown) from physics shelf result files."""
-    _need_results(files)
+    _need_results(files, "bench shelf-physics")
     recs = physics_records(files, perception)
     typer.echo(physics_table(recs))
     if foss:
@@ -1048,7 +1099,7 @@ app.add_typer(train_app, name="train")
 
 @train_app.command("occupancy")
 def train_occupancy_cmd(data: Path = typer.Option(..., "--data", help="Dataset folder (ms-drake data occupancy)"),
-                        out: Path = typer.Option(Path("models/weights/occupancy.pt"), "--out", help="Weights file"),
+                        out: Path = typer.Option(Path("out/weights/occupancy.pt"), "--out", help="Weights file"),
                         epochs: int = typer.Option(12, "--epochs", min=1, help="Epochs (cosine schedule over all)"),
                         batch: int = typer.Option(32, "--batch", min=1, help="Batch size"),
                         seed: int = TrainingSeed,
@@ -1061,14 +1112,17 @@ def train_occupancy_cmd(data: Path = typer.Option(..., "--data", help="Dataset f
                                                               help="Squared errors on ground-truth positives "
                                                               "(> 0.1) count 1 + W times"),
                         init: Optional[Path] = typer.Option(None, "--init", help="Start from these weights "
-                                                            "(fine-tuning; their network configuration)")):
+                                                            "(fine-tuning; their network configuration)"),
+                        overwrite_shipped: bool = OverwriteShipped):
     """Train the occupancy network; resumes from OUT.ckpt; writes OUT (weights + meta)."""
+    _need_training_out(out, overwrite_shipped)
+    if init is not None:
+        _need_weights("--init", init, load_occupancy_net, "occupancy")
     bar, progress = _epoch_bar(epochs)
     cmd = " ".join(["ms-drake", "train", "occupancy", "--data", str(data), "--out", str(out), "--epochs", str(epochs),
                     "--batch", str(batch), "--seed", str(seed), "--threads", str(threads), "--lr", str(lr),
-                    "--positive-weight", str(positive_weight)] + (["--init", str(init)] if init else []))
-    if init is not None and not init.is_file():
-        _fail(f"--init {init}: no such weights file; give one written by `ms-drake train occupancy`")
+                    "--positive-weight", str(positive_weight)] + (["--init", str(init)] if init else [])
+                   + (["--overwrite-shipped"] if overwrite_shipped else []))
     meta = train_occupancy(data, out, epochs=epochs, batch=batch, seed=seed, threads=threads,
                            max_minutes=max_minutes, progress=progress, command=cmd, lr=lr,
                            positive_weight=positive_weight, init=init)
@@ -1133,10 +1187,16 @@ def bench_occupancy_cmd(data: Path = typer.Option(..., "--data", help="Dataset f
                         weights: Optional[Path] = typer.Option(None, "--weights", help="Weights (default: shipped)"),
                         out: Optional[Path] = typer.Option(None, "--out", help="Also write the rows as JSON here"),
                         scaling: bool = typer.Option(False, "--scaling/--no-scaling",
-                                                     help="Input scaling by the target's size over its ratio's box")):
+                                                     help="Input scaling by the target's size over its ratio's box"),
+                        sensor: Optional[str] = typer.Option(
+                            None, "--sensor", help="Depth sensor preset (none | phoxi | l515 | primesense): bench on "
+                            "DATA/<preset>, a test set made first if absent with that sensor model and hole filling"),
+                        images: int = typer.Option(96, "--images", min=1, help="With --sensor: images of the test set"),
+                        sensor_seed: int = typer.Option(7, "--sensor-seed", help="With --sensor: the test set's seed")):
     """Table 8.1: balanced accuracy and IoU per aspect ratio on the held-out test shards, and the
     inference time per image on one core."""
-    res = bench_occupancy(data, weights, scaling)
+    _need_weights("--weights", weights, load_occupancy_net, "occupancy")
+    res = bench_occupancy(data, weights, scaling, sensor=sensor, sensor_images=images, sensor_seed=sensor_seed)
     typer.echo("| ratio | images | hidden | bal. acc. % | IoU | MSE |")
     typer.echo("|---|---|---|---|---|---|")
     for r, raw in zip(res["rows"], res["raw_rows"]):
@@ -1159,17 +1219,19 @@ def bench_occupancy_cmd(data: Path = typer.Option(..., "--data", help="Dataset f
 @train_app.command("shelf-occupancy")
 def train_shelf_occupancy_cmd(
         data: Path = typer.Option(..., "--data", help="Dataset folder with train/ (ms-drake data shelf --depth-block 4)"),
-        out: Path = typer.Option(Path("models/weights/shelf_occupancy.pt"), "--out", help="Weights file"),
+        out: Path = typer.Option(Path("out/weights/shelf_occupancy.pt"), "--out", help="Weights file"),
         epochs: int = typer.Option(8, "--epochs", min=1, help="Epochs (cosine schedule over all)"),
         batch: int = typer.Option(32, "--batch", min=1, help="Batch size"),
         seed: int = TrainingSeed,
         threads: int = typer.Option(1, "--threads", min=1, help="torch threads (1 on this shared machine)"),
-        max_minutes: float = typer.Option(30.0, "--max-minutes", help="Stop after the epoch that ends past this")):
+        max_minutes: float = typer.Option(30.0, "--max-minutes", help="Stop after the epoch that ends past this"),
+        overwrite_shipped: bool = OverwriteShipped):
     """Train the shelf occupancy network; resumes from OUT.ckpt; writes OUT (weights + meta)."""
+    _need_training_out(out, overwrite_shipped)
     bar, progress = _epoch_bar(epochs)
     cmd = " ".join(["ms-drake", "train", "shelf-occupancy", "--data", str(data), "--out", str(out), "--epochs",
                     str(epochs), "--batch", str(batch), "--seed", str(seed), "--threads", str(threads),
-                    "--max-minutes", f"{max_minutes:g}"])
+                    "--max-minutes", f"{max_minutes:g}"] + (["--overwrite-shipped"] if overwrite_shipped else []))
     meta = train_shelf_occupancy(data, out, epochs=epochs, batch=batch, seed=seed, threads=threads,
                                  max_minutes=max_minutes, progress=progress, command=cmd)
     bar.close()
@@ -1183,6 +1245,7 @@ def bench_shelf_occupancy_cmd(
         out: Optional[Path] = typer.Option(None, "--out", help="Also write the results as JSON here")):
     """Held-out accuracy of the learned shelf occupancy: total variation of P(x), balanced accuracy
     and IoU (line 1466's thresholds) per target height, against a uniform P(x); inference ms."""
+    _need_weights("--weights", weights, load_shelf_occupancy_net, "shelf-occupancy")
     res = bench_shelf_occupancy(data, weights)
     typer.echo(f"{res['test_scenes']} test scenes (seeds {res['test_seeds'][0]}-{res['test_seeds'][1]})")
     typer.echo("| target (w x d x h cm) | scenes | TV | bal. acc. % | IoU | TV, all images | uniform TV | "
@@ -1235,7 +1298,7 @@ def data_segmentation(count: int = typer.Option(..., "--count", min=1, help="Ima
 @train_app.command("segmentation")
 def train_segmentation_cmd(
         data: Path = typer.Option(..., "--data", help="Dataset folder (ms-drake data segmentation)"),
-        out: Path = typer.Option(Path("models/weights/segmentation.pt"), "--out", help="Weights file"),
+        out: Path = typer.Option(Path("out/weights/segmentation.pt"), "--out", help="Weights file"),
         epochs: int = typer.Option(8, "--epochs", min=1, help="Epochs (cosine schedule over all)"),
         batch: int = typer.Option(16, "--batch", min=1, help="Batch size (96 x 128 windows)"),
         lr: float = typer.Option(2e-3, "--lr", help="AdamW learning rate (cosine decay to 0)"),
@@ -1253,9 +1316,13 @@ def train_segmentation_cmd(
         seed: int = TrainingSeed,
         threads: int = TorchThreads,
         max_minutes: float = typer.Option(60.0, "--max-minutes", help="Stop after the epoch that would end past "
-                                          "this wall time")):
+                                          "this wall time"),
+        overwrite_shipped: bool = OverwriteShipped):
     """Train the depth segmentation network; resumes from OUT.ckpt; writes OUT (weights + meta) after
     every epoch."""
+    _need_training_out(out, overwrite_shipped)
+    if init is not None:
+        _need_weights("--init", init, load_segmentation_net, "segmentation")
     bar, progress = _epoch_bar(epochs)
     cmd = " ".join(["ms-drake", "train", "segmentation", "--data", str(data), "--out", str(out), "--epochs",
                     str(epochs), "--batch", str(batch), "--lr", str(lr), "--seed", str(seed), "--threads",
@@ -1263,9 +1330,8 @@ def train_segmentation_cmd(
                    + (["--steps-per-epoch", str(steps_per_epoch)] if steps_per_epoch else [])
                    + (["--init", str(init)] if init else [])
                    + (["--object-fraction", str(object_fraction)] if object_fraction is not None else [])
-                   + (["--noise", str(noise), "--dropout", str(dropout)] if noise > 0 or dropout > 0 else []))
-    if init is not None and not init.is_file():
-        _fail(f"--init {init}: no such weights file; give one written by `ms-drake train segmentation`")
+                   + (["--noise", str(noise), "--dropout", str(dropout)] if noise > 0 or dropout > 0 else [])
+                   + (["--overwrite-shipped"] if overwrite_shipped else []))
     meta = train_segmentation(data, out, epochs=epochs, batch=batch, seed=seed, threads=threads, lr=lr,
                               max_minutes=max_minutes, progress=progress, command=cmd, max_images=max_images,
                               steps_per_epoch=steps_per_epoch, init=init, object_fraction=object_fraction,
@@ -1288,6 +1354,9 @@ def bench_collision_cmd(
         threads: int = typer.Option(1, "--threads", min=1, help="torch threads (net)")):
     """Table 6.1: collision accuracy, AP and CPU time per query of one method on held-out scenes."""
     _choose("--method", method, COLLISION_METHODS)
+    if method in COLLISION_NETWORKS:
+        _need_weights("--weights", weights or default_collision_weights(method),
+                      lambda p: load_collision_net(p, method), "collision")
     bar = tqdm(total=scenes, desc=method, unit="scene")
     res = bench_collision(method, scenes, seed_start, cache, weights, threads, progress=lambda k: bar.update(1))
     bar.close()
@@ -1316,6 +1385,9 @@ def bench_mppi_cmd(
     against the scene cloud): CPU ms per call and rate, ours or pytorch_mppi's."""
     _choose("--method", method, COLLISION_METHODS)
     _choose("--planner", planner, MPPI_PLANNERS)
+    if method in COLLISION_NETWORKS:
+        _need_weights("--weights", weights or default_collision_weights(method),
+                      lambda p: load_collision_net(p, method), "collision")
     bar = tqdm(total=scenes, desc=f"{planner} {method}", unit="scene")
     recs = bench_mppi(method, scenes, seed_start, trajectories, horizon, steps, planner, cache, weights, threads,
                       progress=lambda r: bar.update(1))
@@ -1339,12 +1411,18 @@ def bench_segmentation_cmd(
         noise: float = typer.Option(0.0, "--noise", min=0.0, help="Gaussian depth noise sigma, m"),
         dropout: float = typer.Option(0.0, "--dropout", min=0.0, max=0.99, help="Missing-pixel rate"),
         weights: Optional[Path] = typer.Option(None, "--weights", help="Learned backend's weights (default: shipped)"),
-        cache: Optional[Path] = typer.Option(None, "--cache", help="Keep / reuse the rendered images in this folder")):
+        cache: Optional[Path] = typer.Option(None, "--cache", help="Keep / reuse the rendered images in this folder"),
+        sensor: str = typer.Option("none", "--sensor", help="Depth sensor model preset: none | phoxi | l515 | "
+                                   "primesense (ms_drake.station.sensor_model)"),
+        fill_holes: bool = typer.Option(True, "--fill-holes/--no-fill-holes",
+                                        help="Fill the depth's holes before segmenting (geometry.preprocess_depth)")):
     """Table B.1: COCO mask AP / AR@100 of one segmentation backend on held-out heap images made from
     the seeds."""
+    if backend == "learned":
+        _need_weights("--weights", weights, load_segmentation_net, "segmentation")
     bar = tqdm(total=images, desc=f"bench {backend}", unit="image")
     res = bench_segmentation(backend, images, seed_start, workers, noise, dropout, weights, progress=bar.update,
-                             cache=cache)
+                             cache=cache, sensor=sensor, fill_holes=fill_holes)
     bar.close()
     typer.echo(f"{backend}: AP {res['ap']:.3f}, AP50 {res['ap50']:.3f}, AR@100 {res['ar']:.3f} on {res['images']} "
                f"images ({res['gt']} masks, {res['dt']} detections); median {res['seconds_median'] * 1000:.0f} ms "
@@ -1401,7 +1479,7 @@ def data_matcher(heaps: int = typer.Option(..., "--heaps", min=1, help="Heaps, r
 @train_app.command("collision")
 def train_collision_cmd(
         data: Path = typer.Option(..., "--data", help="Dataset folder (ms-drake data collision)"),
-        out: Path = typer.Option(Path("models/weights/collision.pt"), "--out", help="Weights file"),
+        out: Path = typer.Option(Path("out/weights/collision.pt"), "--out", help="Weights file"),
         epochs: int = typer.Option(20, "--epochs", min=1, help="Passes over the training scenes"),
         seed: int = TrainingSeed,
         threads: int = TorchThreads,
@@ -1417,13 +1495,18 @@ def train_collision_cmd(
                                            "PointNet-grid needs 64, the point features' width)"),
         encoders: Optional[Path] = typer.Option(None, "--encoders", help="Weights file whose scene and object "
                                                 "encoders are copied and frozen: only the query classifier "
-                                                "trains")):
+                                                "trains"),
+        overwrite_shipped: bool = OverwriteShipped):
     """Train SceneCollisionNet (Ch. 6); resumes from OUT.ckpt; writes OUT (weights + meta)."""
+    _need_training_out(out, overwrite_shipped)
+    if encoders is not None:
+        _need_weights("--encoders", encoders, load_collision_net, "collision")
     cmd = " ".join(["ms-drake", "train", "collision", "--data", str(data), "--out", str(out), "--epochs", str(epochs),
                     "--seed", str(seed), "--threads", str(threads), "--lr", str(lr), "--hidden", str(hidden),
                     "--query-layers", str(query_layers), "--voxel-features", str(voxel_features)]
                    + (["--pointnet-grid"] if pointnet_grid else [])
-                   + (["--encoders", str(encoders)] if encoders is not None else []))
+                   + (["--encoders", str(encoders)] if encoders is not None else [])
+                   + (["--overwrite-shipped"] if overwrite_shipped else []))
     config = CollisionNetConfig(hidden=hidden, query_layers=query_layers, voxel_features=voxel_features,
                                 conv_layers=0 if pointnet_grid else 3)
     bar = tqdm(desc="training", unit="scene")
@@ -1448,7 +1531,7 @@ def train_collision_cmd(
 @train_app.command("matcher")
 def train_matcher_cmd(
         data: Path = typer.Option(..., "--data", help="Dataset folder (ms-drake data matcher)"),
-        out: Path = typer.Option(Path("models/weights/matcher.pt"), "--out", help="Weights file"),
+        out: Path = typer.Option(Path("out/weights/matcher.pt"), "--out", help="Weights file"),
         epochs: int = typer.Option(10, "--epochs", min=1, help="Epochs (cosine schedule over all)"),
         steps: int = typer.Option(150, "--steps", min=1, help="Batches per epoch"),
         batch: int = typer.Option(64, "--batch", min=2, help="Pairs per batch (half positive)"),
@@ -1456,13 +1539,15 @@ def train_matcher_cmd(
         seed: int = TrainingSeed,
         threads: int = TorchThreads,
         max_minutes: float = typer.Option(15.0, "--max-minutes", help="Stop after the epoch that would end past "
-                                          "this wall time")):
+                                          "this wall time"),
+        overwrite_shipped: bool = OverwriteShipped):
     """Train the siamese target matcher; resumes from OUT.ckpt; writes OUT (weights + meta) after
     every epoch."""
+    _need_training_out(out, overwrite_shipped)
     bar, progress = _epoch_bar(epochs)
     cmd = " ".join(["ms-drake", "train", "matcher", "--data", str(data), "--out", str(out), "--epochs", str(epochs),
                     "--steps", str(steps), "--batch", str(batch), "--lr", str(lr), "--seed", str(seed),
-                    "--threads", str(threads)])
+                    "--threads", str(threads)] + (["--overwrite-shipped"] if overwrite_shipped else []))
     meta = train_matcher(data, out, epochs=epochs, steps=steps, batch=batch, seed=seed, threads=threads, lr=lr,
                          max_minutes=max_minutes, progress=progress, command=cmd)
     bar.close()
@@ -1489,6 +1574,8 @@ def bench_target_detection_cmd(
     _choose("--backend", backend, DETECTOR_BACKENDS)
     if out.suffix != ".json":
         _fail(f"--out {out}: give a .json file")
+    if backend == "learned":
+        _need_weights("--weights", weights, load_matcher, "matcher")
     bar, progress = _job_bar(images, backend, "image")
     res = bench_target_detection(backend, images, seed_start, out, workers, weights, progress, scene_dir)
     bar.close()
@@ -1499,11 +1586,62 @@ def bench_target_detection_cmd(
                f"(drawn in {100 * OCCLUSION[0]:.0f}-{100 * OCCLUSION[1]:.0f} %); wrote {out}")
 
 
+#: Options that name what a command writes (a file or a folder).
+OUTPUT_OPTIONS = ("--out", "--json", "--figures", "--plot", "--html")
+
+
+def _need_writable(option: str, path) -> None:
+    """Fail unless `path` (given with `option`) can be written: it, or the folder it would be made in,
+    is writable and no regular file stands where a folder is needed."""
+    path = Path(path)
+    place = path
+    while not place.exists() and place != place.parent:
+        place = place.parent
+    if place != path and not place.is_dir():
+        _fail(f"{option} {path}: {place} is a file, not a folder; give a path in a writable folder")
+    if not os.access(place, os.W_OK | (os.X_OK if place.is_dir() else 0)):
+        _fail(f"{option} {path}: {place} is not writable; give a path in a writable folder")
+
+
+def _guard_outputs(command) -> None:
+    """Make every command (recursively) check its OUTPUT_OPTIONS before it starts any work."""
+    for sub in getattr(command, "commands", {}).values():
+        _guard_outputs(sub)
+    outs = [(p.name, p.opts[0]) for p in command.params
+            if p.param_type_name == "option" and set(p.opts) & set(OUTPUT_OPTIONS)]
+    if not outs or command.callback is None:
+        return
+    callback = command.callback
+
+    @functools.wraps(callback)
+    def guarded(*args, **kwargs):
+        for name, option in outs:
+            if kwargs.get(name) is not None:
+                _need_writable(option, kwargs[name])
+        return callback(*args, **kwargs)
+
+    command.callback = guarded
+
+
+#: OSErrors that mean "this path cannot be written here".
+WRITE_ERRNOS = {errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR, errno.EISDIR, errno.EEXIST, errno.ENOSPC}
+
+
 def main():
+    """The `ms-drake` command: a user error (MsDrakeError, or an OSError on a path, e.g. an --out that
+    cannot be written) prints one line naming it and exits with status 2, without a traceback."""
+    command = typer.main.get_command(app)
+    _guard_outputs(command)
     try:
-        app()
+        command()
     except MsDrakeError as e:
         typer.echo(f"error: {e}", err=True)
+        sys.exit(2)
+    except OSError as e:
+        if e.filename is None:
+            raise
+        fix = "; give a path in a writable folder" if e.errno in WRITE_ERRNOS else ""
+        typer.echo(f"error: {e.filename}: {e.strerror or e}{fix}", err=True)
         sys.exit(2)
 
 

@@ -39,3 +39,9 @@ class SceneError(MsDrakeError, RuntimeError):
 class DatasetError(MsDrakeError, ValueError):
     """A dataset folder, shard or training request that cannot be used (names the file and the
     command that makes it)."""
+
+
+class RecordFileError(MsDrakeError, ValueError):
+    """A result (JSON-lines record) file that cannot be read: missing, empty, a line that is not a
+    record, or records without the fields the reader needs (names the file, the line and the
+    command that writes it)."""

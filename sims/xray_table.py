@@ -18,6 +18,7 @@ Fig. 8.6 histogram and the cumulative successes (harness.plot) of the common hea
 import argparse
 import itertools
 import json
+import sys
 import tempfile
 from pathlib import Path
 
@@ -31,9 +32,10 @@ from ms_drake.experiments.harness import (
     format_summary,
     paired_comparison,
     plot,
-    read_records,
     summarize,
 )
+from ms_drake.errors import MsDrakeError
+from ms_drake.experiments.records import RECORD_FIELDS, read_record_file
 from ms_drake.scenes.heaps import load_heap
 
 
@@ -43,7 +45,7 @@ def pooled_records(spec: str) -> list[dict]:
     out: dict[int, dict] = {}
     kinds = {}
     for f in spec.split(","):
-        for r in final_records(read_records(Path(f))):
+        for r in final_records(read_record_file(f, RECORD_FIELDS["bench search"], "bench search")):
             if r.get("failure") != "worker_died":
                 out.setdefault(int(r["seed"]), r)
                 kind = (r["policy"], r.get("protocol", ""), r.get("horizon"),
@@ -130,4 +132,8 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except MsDrakeError as e:  # a result file that cannot be read: one line, no traceback
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)

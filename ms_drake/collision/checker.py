@@ -47,12 +47,25 @@ def load_collision_net(path, method: str | None = None):
     if not path.is_file():
         raise CollisionNetError(f"collision weights {path} not found: train them with `ms-drake train collision`"
                                 + (" --pointnet-grid" if method == "pointnet_grid" else ""))
-    ck = torch.load(path, map_location="cpu", weights_only=False)
+    fix = "give a weights file written by `ms-drake train collision`" + (" --pointnet-grid" if method == "pointnet_grid"
+                                                                          else "")
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:  # garbage bytes, a truncated file: torch / pickle raise many types
+        raise CollisionNetError(f"collision weights {path} cannot be read ({type(e).__name__}: "
+                                f"{str(e).splitlines()[0] if str(e) else 'unreadable'}); {fix}") from None
+    if not isinstance(ck, dict) or not isinstance(ck.get("config"), dict) or "model" not in ck:
+        raise CollisionNetError(f"{path} is not a collision network checkpoint (no 'model'/'config'); {fix}")
     conv = ck["config"].get("conv_layers", 3)
     if method is not None and (conv == 0) != (method == "pointnet_grid"):
-        raise CollisionNetError(f"weights {path} hold a network with conv_layers={conv}: not a {method!r} network")
-    net = make_net(NetConfig(**ck["config"]))
-    net.load_state_dict(ck["model"])
+        raise CollisionNetError(f"weights {path} hold a network with conv_layers={conv}: not a {method!r} network; "
+                                f"{fix}")
+    try:
+        net = make_net(NetConfig(**ck["config"]))
+        net.load_state_dict(ck["model"])
+    except Exception as e:  # another network's file: unknown config keys, missing / mis-shaped tensors
+        raise CollisionNetError(f"{path} does not hold a collision network ({type(e).__name__}: "
+                                f"{str(e).splitlines()[0] if str(e) else 'mismatch'}); {fix}") from None
     return net.eval(), ck
 
 

@@ -34,7 +34,7 @@ from ms_drake.execution import (
     connect_executor,
     remove_objects,
 )
-from ms_drake.experiments.harness import cached_heap
+from ms_drake.experiments.harness import cached_heap, read_records
 from ms_drake.experiments.rollout import SearchParams, build_search, primitive_time_step, run_search
 from ms_drake.geometry import Workspace, as_rigid_transform
 from ms_drake.parallel import run_jobs
@@ -220,18 +220,8 @@ def heap_job(job: tuple) -> list[dict]:
 
 
 def _read(path: Path) -> list[dict]:
-    if not path.exists():
-        return []
-    good = []
-    for line in path.read_text().splitlines():
-        try:
-            r = json.loads(line)
-            int(r["seed"])
-        except (ValueError, KeyError, TypeError):
-            continue  # a torn last line of a killed run
-        good.append(r)
-    path.write_text("".join(json.dumps(r) + "\n" for r in good))
-    return good
+    """The records of a result file being resumed (harness.read_records: a torn last line is cut)."""
+    return read_records(path)
 
 
 def run_fidelity(heaps: int, seed_start: int, out, objects: int = 10, heap_dir: str | None = None,

@@ -33,6 +33,7 @@ from scipy.stats import binomtest
 from ms_drake.errors import HeapError
 from ms_drake.execution import GRASP_OUTCOMES
 from ms_drake.experiments.figures import figure_dir, save_png
+from ms_drake.experiments.records import read_record_file
 from ms_drake.grasping.planner import JAW_CONTACTS
 from ms_drake.experiments.rollout import REFERENCE_FAILURE_CLASSES, SEARCH_OCCUPANCIES, rollout
 from ms_drake.experiments.xray import PROTOCOLS, XRAY_HORIZON, XRAY_PROTOCOLS, xray_heap, xray_heap_settings
@@ -254,21 +255,10 @@ def replay_records(path: Path, heap_dir: str | None = None, seeds=None, count: i
 
 
 def read_records(path: Path) -> list[dict]:
-    """Records of a JSON-lines file; a torn line (killed mid-write) is dropped from the file."""
-    path = Path(path)
-    if not path.exists():
-        return []
-    good, recs = [], []
-    for line in path.read_text().splitlines():
-        try:
-            r = json.loads(line)
-            int(r["seed"])
-        except (ValueError, KeyError, TypeError):
-            continue
-        good.append(line)
-        recs.append(r)
-    path.write_text("".join(g + "\n" for g in good))
-    return recs
+    """Records of a JSON-lines result file a run appends to (records.read_record_file, resuming): a
+    missing file has none, a torn last line (killed mid-write) is cut from the file, any other line
+    that is not a record with a seed raises RecordFileError naming the file and the line."""
+    return read_record_file(path, ("seed",), resume=True)
 
 
 def final_records(recs: list[dict]) -> list[dict]:

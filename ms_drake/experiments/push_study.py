@@ -63,6 +63,7 @@ from scipy.stats import f_oneway
 from ms_drake.execution import PRIMITIVE_PUSH_TIME_STEP, FullBackend, Motion, PrimitiveBackend, remove_objects
 from ms_drake.execution.backends import tcp_offset_of
 from ms_drake.experiments.figures import figure_dir, save_png
+from ms_drake.experiments.records import read_record_file
 from ms_drake.experiments.heap_grasps import (
     _coal_shape,
     _shape_pose,
@@ -660,17 +661,13 @@ def push_heap_job(job: tuple) -> dict:
 
 
 def read_jsonl(path: Path) -> list[dict]:
-    """Records of a JSON-lines file; a torn last line (killed mid-write) is dropped."""
+    """Records of a JSON-lines file (none when it is missing or empty); a torn last line (killed
+    mid-write) is skipped, any other line that is not a record raises RecordFileError
+    (records.read_record_file)."""
     path = Path(path)
-    if not path.exists():
+    if not path.exists() or not path.read_text().strip():
         return []
-    out = []
-    for line in path.read_text().splitlines():
-        try:
-            out.append(json.loads(line))
-        except ValueError:
-            continue
-    return out
+    return read_record_file(path, required=())
 
 
 def _append(path: Path, rec: dict) -> None:

@@ -46,7 +46,7 @@ IMAGE_SHAPE = (480, 640)
 WORK_SHAPE = (IMAGE_SHAPE[0] // BLOCK, IMAGE_SHAPE[1] // BLOCK)  # (120, 160)
 DEPTH_CENTER, DEPTH_UNIT, DEPTH_MAX = 1.0, 0.5, 2.5  # m
 MAKE_WEIGHTS = ("ms-drake data shelf --count 5100 --seed-start 100000 --depth-block 4 --out DATA/train && "
-                "ms-drake train shelf-occupancy --data DATA --out models/weights/shelf_occupancy.pt")
+                "ms-drake train shelf-occupancy --data DATA --out models/weights/shelf_occupancy.pt --overwrite-shipped")
 
 
 def default_weights() -> Path:
@@ -165,12 +165,22 @@ def load_model(path=None):
 
     path = Path(path) if path is not None else default_weights()
     if not path.exists():
-        raise PerceptionError(f"the learned shelf occupancy network needs its weights at {path}; make them with "
+        raise PerceptionError(f"shelf occupancy weights {path} not found; the learned shelf occupancy needs them: "
+                              f"make them with "
                               f"`{MAKE_WEIGHTS}` (see models/weights/shelf_occupancy.md), or use "
                               "backend='ground_truth'")
-    blob = torch.load(path, map_location="cpu", weights_only=False)
-    net = make_net(NetConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in blob["config"].items()}))
-    net.load_state_dict(blob["state_dict"])
+    fix = f"give a weights file written by `ms-drake train shelf-occupancy`, or make it with `{MAKE_WEIGHTS}`"
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:  # garbage bytes, a truncated file: torch / pickle raise many types
+        raise PerceptionError(f"shelf occupancy weights {path} cannot be read ({type(e).__name__}: "
+                              f"{str(e).splitlines()[0] if str(e) else 'unreadable'}); {fix}") from None
+    try:
+        net = make_net(NetConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in blob["config"].items()}))
+        net.load_state_dict(blob["state_dict"])
+    except Exception as e:  # another network's file: no config / state_dict, mis-shaped tensors
+        raise PerceptionError(f"{path} does not hold the shelf occupancy network ({type(e).__name__}: "
+                              f"{str(e).splitlines()[0] if str(e) else 'mismatch'}); {fix}") from None
     net.eval()
     return net, blob.get("meta", {})
 

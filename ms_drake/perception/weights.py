@@ -19,13 +19,22 @@ def load_network(path: Path | str | None, default_weights, kind: str, data_comma
     p = Path(path) if path is not None else default_weights()
     if not p.is_file():
         raise PerceptionError(f"{kind} weights {p} not found; make them with `ms-drake data {data_command} "
-                              f"--out DATA` then `ms-drake train {kind} --data DATA --out {p}`")
-    ck = torch.load(p, map_location="cpu", weights_only=False)
-    if "model" not in ck or "config" not in ck:
+                              f"--out DATA` then `ms-drake train {kind} --data DATA --out {p}`"
+                              + (" --overwrite-shipped" if path is None else ""))
+    retrain = f"give a weights file written by `ms-drake train {kind}`, or retrain it with `ms-drake train {kind}`"
+    try:
+        ck = torch.load(p, map_location="cpu", weights_only=False)
+    except Exception as e:  # garbage bytes, a truncated file: torch / pickle raise many types
+        raise PerceptionError(f"{kind} weights {p} cannot be read ({type(e).__name__}: "
+                              f"{str(e).splitlines()[0] if str(e) else 'unreadable'}); {retrain}") from None
+    if not isinstance(ck, dict) or "model" not in ck or "config" not in ck:
         article = "an" if kind[0] in "aeiou" else "a"
-        raise PerceptionError(f"{p} is not {article} {kind} checkpoint (no 'model'/'config'); retrain it with "
-                              f"`ms-drake train {kind}`")
-    net = build(ck["config"])
-    net.load_state_dict(ck["model"])
+        raise PerceptionError(f"{p} is not {article} {kind} checkpoint (no 'model'/'config'); {retrain}")
+    try:
+        net = build(ck["config"])
+        net.load_state_dict(ck["model"])
+    except Exception as e:  # another network's file: unknown config keys, missing / mis-shaped tensors
+        raise PerceptionError(f"{p} does not hold the {kind} network ({type(e).__name__}: "
+                              f"{str(e).splitlines()[0] if str(e) else 'mismatch'}); {retrain}") from None
     net.eval()
     return net, ck
