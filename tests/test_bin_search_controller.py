@@ -24,6 +24,7 @@ from ms_drake.policies.bin_search import (
     MakeBinSearchController,
     SimulationInfo,
     connect_controller,
+    set_initial_conditions,
 )
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap, scenario_with_heap, set_heap_poses
@@ -169,12 +170,13 @@ def test_three_lines_wire_the_controller_to_a_simulated_station(heap4):
                                                                                         heap4.target_index)))
     connect_controller(builder, controller, station)
     diagram = builder.Build()
-    assert _names(controller, "in") == ["overhead.label_image", "overhead.depth_image", "overhead.rgb_image",
-                                        "body_poses"]
+    assert _names(controller, "in") == ["overhead.label_image", "body_spatial_velocities", "overhead.depth_image",
+                                        "overhead.rgb_image", "body_poses"]
+    assert "applied_spatial_force" in _names(controller, "out")  # the primitive mode's ObjectCarrier
     ctx = diagram.CreateDefaultContext()
-    set_heap_poses(station, ctx, heap4)
-    plant = get_plant(station)  # the gripper parked out of the camera's view, where the controller starts
-    set_arm_positions(plant, plant.GetMyMutableContextFromRoot(ctx), "floating", controller.initial_commands())
+    set_initial_conditions(diagram, ctx, heap4)  # the heap, and the gripper parked where the controller starts
+    q = station.GetOutputPort("floating.position_measured").Eval(station.GetMyContextFromRoot(ctx))
+    assert np.allclose(q, controller.initial_commands()["floating.position"])
     cc = controller.GetMyContextFromRoot(ctx)
     action = controller.GetOutputPort("action").Eval(cc)
     target = station_objects(get_plant(station))[heap4.target_index].model_name
@@ -202,10 +204,12 @@ def test_the_controller_drives_the_hardware_station_over_lcm(heap4):
     assert ready.GetOutputPort("ready").Eval(ready.GetMyContextFromRoot(ctx))[0] == 0.0  # no image yet
     assert not controller.GetOutputPort("status").Eval(cc).busy
     moved = 0.0
-    for t in np.arange(0.1, 6.01, 0.1):
+    for t in np.arange(0.1, 20.01, 0.1):
         sim.AdvanceTo(t)
         q = robot.GetOutputPort("yumi_left.position_measured").Eval(rc)
         moved = max(moved, float(np.abs(q - home).max()))
+        if controller.GetOutputPort("status").Eval(cc).done:  # the search ended the simulation
+            break
     history = controller.GetOutputPort("history").Eval(cc)
     status = controller.GetOutputPort("status").Eval(cc)
     assert (status.done, status.steps, status.stop_reason) == (True, 1, "horizon")

@@ -11,9 +11,11 @@ from ms_drake.execution.backends import (  # noqa: F401
     grasp_tool_pose,
     tcp_offset_of,
 )
+from ms_drake.execution.carrier import CarrierError, ObjectCarrier  # noqa: F401
 from ms_drake.execution.executor import (  # noqa: F401
     NO_OUTCOME,
     ActionExecutor,
+    SimulationBlewUp,
     ExecutionError,
     ExecutorStatus,
     Motion,

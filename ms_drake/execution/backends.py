@@ -15,7 +15,8 @@ PrimitiveBackend (floating gripper, large benchmarks):
          ranks grasps by their robust quality (and, as the same state gives the same verdict,
          does not attempt a failed grasp again on it: SelectorParams.retry_failed). A successful grasp lifts the object out of
          the scene (the executor announces it on `removed`, the rollout driver moves it away) and
-         the rest settle by simulation for `settle` s. The gripper does not enter the heap (the
+         the rest settle by simulation for `settle` s; the diagram's execution.ObjectCarrier takes the
+  lifted object to a drop-off tray. The gripper does not enter the heap (the
          reference's simulation experiments do the same: a grasp is an evaluated primitive).
   push   the closed jaw moves along the push segment in simulation: park -> above the start
          (travel height above the walls) -> down to the start -> along the segment -> up -> park,
@@ -25,8 +26,9 @@ PrimitiveBackend (floating gripper, large benchmarks):
 FullBackend (YuMi, Panda, floating gripper): IK + ruckig through ms_drake.planning.sequences
   (plan_pick / plan_push) from the arm's current configuration; parallel-jaw grasps and pushes on
   the arm with the jaw (compliant pads), suction grasps on the arm with the suction cup; a grasp
-  succeeds when the object rose by more than half the lift; then the object leaves the scene,
-  the gripper releases and the arm returns to park (out of the camera view).
+  succeeds when the object rose by more than half the lift; then the arm carries it to the
+  nearest drop-off tray it reaches (station.environments.dropoff_points), releases it there, in
+  physics, and returns to park (out of the camera view).
 Both: after an action, every object (other than the grasped one) that left the bin (fell over a
 wall, or below the floor) is reported; the target among them sets message "target_removed".
 """
@@ -38,10 +40,11 @@ from pydrake.math import RigidTransform, RotationMatrix
 
 from ms_drake.execution.executor import ExecutionError, Motion
 from ms_drake.geometry import as_rigid_transform
-from ms_drake.planning import plan_joint_motion
-from ms_drake.planning.sequences import Schedule, arm_ik, plan_pick, plan_push
+from ms_drake.planning import ik_pose, plan_joint_motion
+from ms_drake.planning.sequences import Schedule, arm_ik, nearest_equivalent, plan_pick, plan_push
 from ms_drake.robots import CLOSING_FORCE, GRIPPERS
 from ms_drake.scenario import resolve_robot_config
+from ms_drake.station.environments import dropoff_points
 from ms_drake.types import Action, ActionOutcome
 
 FIDELITIES = ("primitive", "full")
@@ -224,9 +227,11 @@ class FullBackend(_Base):
     through the station's drivers. Parallel-jaw grasps and pushes go to the first arm carrying a
     parallel jaw, suction grasps to the first arm carrying a suction cup (`grasp_kinds` says which
     the robot can do). A grasp succeeds when the object rose by more than half the lift (needs
-    body_poses; on hardware, without them, every grasp reports "not_lifted"); then the gripper
-    releases and the arm returns to its park configuration out of the camera's view: ArmSpec.home
-    for arms, beside the bin for the floating gripper.
+    body_poses; on hardware, without them, every grasp reports "not_lifted"); then the arm moves
+    above the nearest drop-off tray it reaches (`drop_height` above the tray's floor, tool down),
+    the gripper releases, and the arm returns to its park configuration out of the camera's view:
+    ArmSpec.home for arms, beside the bin for the floating gripper. A station without trays (or
+    none the arm reaches) releases the object at the top of the lift.
     scenario: the station's scenario (its robot, grippers and environment; objects are ignored).
     grip_force: the jaw's force limit while it grips [N]; by default the closing force the jaw
     grasp models score with (robots.CLOSING_FORCE), so the station executes a grasp
@@ -234,7 +239,8 @@ class FullBackend(_Base):
 
     def __init__(self, scenario, objects: dict, workspace, target_id: str = "", seed: int = 0, settle: float = 0.5,
                  lift: float = 0.15, speed: float = 0.25, close_time: float = 0.5, hold_time: float = 0.3,
-                 park_distance: float = 0.35, park_height: float = 0.10, grip_force: float = CLOSING_FORCE):
+                 park_distance: float = 0.35, park_height: float = 0.10, grip_force: float = CLOSING_FORCE,
+                 drop_height: float = 0.25):
         super().__init__(objects, workspace, target_id, seed, settle)
         if not scenario.robot.name:
             raise ExecutionError("full fidelity needs a robot: the scenario has none (robot.name is empty); "
@@ -263,6 +269,17 @@ class FullBackend(_Base):
                 q_home = ik.solve(X_park, q_home).q
             self.ik[arm] = (ik, limits, np.asarray(q_home, float))
             self._keep.append(keep)
+        # Each arm's drop-off configurations: tool down above a tray, nearest tray first.
+        self.drops = {}
+        for arm, (ik, _, q_home) in self.ik.items():
+            p_tool = ik_pose(ik, q_home).translation()
+            qs = []
+            for tray in sorted(dropoff_points(scenario.environment), key=lambda d: np.linalg.norm(d[:2] - p_tool[:2])):
+                X = RigidTransform(RotationMatrix.MakeXRotation(np.pi), tray + np.array([0.0, 0.0, drop_height]))
+                res = ik.solve(X, q_home)
+                if res.success:
+                    qs.append(nearest_equivalent(ik, res.q, q_home))
+            self.drops[arm] = qs
 
     @property
     def grasp_kinds(self) -> tuple[str, ...]:
@@ -277,14 +294,19 @@ class FullBackend(_Base):
             out[f"{self.suction[1]}.suction"] = [0.0]
         return out
 
-    def _finish_motion(self, plan, arm, release: dict, info: dict):
+    def _finish_motion(self, plan, arm, release: dict, info: dict, drop: bool = False):
+        """The plan's motion, then (drop) to the arm's drop-off configuration; release; back to park."""
         _, limits, q_home = self.ik[arm]
         tl = plan.timeline
-        check = tl.duration
+        check = release_at = tl.duration
+        if drop and self.drops.get(arm):
+            tl.play(plan_joint_motion([tl.final(), self.drops[arm][0]], limits))
+            release_at = tl.duration
+            tl.hold(0.4)  # the gripper opens, the object falls into the tray
         tl.play(plan_joint_motion([tl.final(), q_home], limits))  # back to park, out of the camera's view
         commands = {f"{arm}.position": tl.value}
         for port, schedule in plan.commands.items():
-            steps = list(schedule.steps) + [(check + 0.05, v) for p, v in release.items() if p == port]
+            steps = list(schedule.steps) + [(release_at + 0.05, v) for p, v in release.items() if p == port]
             commands[port] = Schedule(steps)
         return Motion(commands, check_time=check, duration=tl.duration + self.settle, info=info,
                       settle_from=tl.duration)
@@ -309,7 +331,7 @@ class FullBackend(_Base):
             z0 = as_rigid_transform(poses[b], f"poses[{b}]").translation()[2] if poses is not None and b is not None \
                 else None
             release = {f"{port}.position": [JAW_OPENING]} if g.kind == "parallel_jaw" else {f"{port}.suction": [0.0]}
-            return self._finish_motion(plan, arm, release, {"z0": z0, "step": step})
+            return self._finish_motion(plan, arm, release, {"z0": z0, "step": step}, drop=True)
         if action.kind == "push":
             if action.push is None:
                 raise ExecutionError("a push Action without its Push")

@@ -8,6 +8,9 @@ Ports (declared first in __init__):
     ready          1-vector: no new action is latched while it is < 0.5 (e.g. before the first
                    camera images arrive from hardware; perception.ready.ImagesReady). Optional:
                    unconnected = always ready.
+    carrying       1-vector: no new action is latched while it is >= 0.5 (an object is still being
+                   carried out of the camera's view: execution.ObjectCarrier in the primitive
+                   mode). Optional: unconnected = never carrying.
   outputs
     <command port> one vector output per station command input the backend drives (e.g.
                    `floating.position` (6), `floating_jaw.position` (1), `floating_jaw.force_limit`
@@ -15,10 +18,15 @@ Ports (declared first in __init__):
                    the station input of the same name (`connect_executor`).
     history        tuple[ActionOutcome], every finished action in order (feed PolicySelector.history).
     outcome        ActionOutcome of the last finished action (kind "stop" with message "none" before).
-    removed        tuple[str]: ids of objects that left the scene (lifted out). The rollout driver
-                   moves them out of the plant (`remove_objects`): a scene edit, as the reference's
-                   simulations do, not something a LeafSystem may do to another system's state.
+    removed        tuple[str]: ids of objects that left the bin (lifted out, or fell over a wall).
+                   In full fidelity the robot itself drops a lifted object into a drop-off tray; in
+                   the primitive mode execution.ObjectCarrier carries it there.
     status         ExecutorStatus (busy, done, steps, stop reason).
+
+The end of the search ends the simulation: the update at which the executor becomes done returns
+EventStatus.ReachedTermination (so `Simulator.AdvanceTo(t_max)` returns early, its status naming
+the stop reason; a later AdvanceTo simulates on), and non-finite body poses raise SimulationBlewUp
+(a RuntimeError) from AdvanceTo. `terminate=False` keeps the simulation running.
 
 The executor latches a new Action only when idle, from a periodic unrestricted update (as Drake's
 clutter-clearing planner does), so perception and planning run once per action, on demand. One
@@ -40,7 +48,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.multibody.math import SpatialVelocity
 from pydrake.multibody.tree import BodyIndex
-from pydrake.systems.framework import BasicVector, LeafSystem
+from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
 
 from ms_drake.errors import MsDrakeError
 from ms_drake.types import Action, ActionOutcome
@@ -48,6 +56,11 @@ from ms_drake.types import Action, ActionOutcome
 
 class ExecutionError(MsDrakeError, ValueError):
     """An executor was configured with an unknown fidelity, or wired without an input it needs."""
+
+
+class SimulationBlewUp(MsDrakeError, RuntimeError):
+    """The simulated scene's state became non-finite (raised from the executor's update, so
+    Simulator.AdvanceTo raises it)."""
 
 
 @dataclass(frozen=True)
@@ -126,15 +139,17 @@ class ActionExecutor(LeafSystem):
     tighter bound would never see end."""
 
     def __init__(self, backend, period: float = 0.05, still_distance: float = 2e-3,
-                 still_angle: float = np.radians(3.0), still_time: float = 0.1):
+                 still_angle: float = np.radians(3.0), still_time: float = 0.1, terminate: bool = True):
         super().__init__()
         self.backend = backend
         self.period = float(period)
+        self.terminate = bool(terminate)
         self.still_distance, self.still_angle, self.still_time = float(still_distance), float(still_angle), float(still_time)
         # Ports first.
         self.action_port = self.DeclareAbstractInputPort("action", AbstractValue.Make(Action("stop")))
         self.poses_port = self.DeclareAbstractInputPort("body_poses", AbstractValue.Make([RigidTransform()]))
         self.ready_port = self.DeclareVectorInputPort("ready", 1)
+        self.carrying_port = self.DeclareVectorInputPort("carrying", 1)
         init = _State(hold={k: np.atleast_1d(np.asarray(v, float)) for k, v in backend.initial_commands().items()})
         self._state_index = self.DeclareAbstractState(AbstractValue.Make(init))
         state_ticket = {self.abstract_state_ticket(self._state_index), self.time_ticket()}
@@ -207,8 +222,11 @@ class ActionExecutor(LeafSystem):
         s = copy.copy(self._state(context))
         t = context.get_time()
         if s.phase == "done":
-            return
+            return None
         poses = self.poses_port.Eval(context) if self.poses_port.HasValue(context) else None
+        if poses is not None and not all(np.all(np.isfinite(X.GetAsMatrix34())) for X in poses):
+            # (raised, not EventStatus.Failed: pydrake 1.51 crashes on a Failed status from Python)
+            raise SimulationBlewUp(f"the simulation blew up at t = {t:.3f} s: non-finite body poses")
         if s.phase == "executing":
             dt = t - s.t0
             settled = self._settled(s, poses, t)
@@ -224,8 +242,7 @@ class ActionExecutor(LeafSystem):
                 unchanged = not s.motion.commands and not new and s.at_rest and s.motion.settle_from is not None
             # The search is over once the target is out (its grasp succeeded): the heap's settle
             # after it changes nothing, so the action ends at its check.
-            extracted = s.checked and s.history[-1].success and s.history[-1].action.kind == "grasp" and \
-                bool(s.history[-1].removed_object) and s.history[-1].removed_object == getattr(self.backend, "target_id", "")
+            extracted = s.checked and self._extracted(s)
             if s.checked and (dt >= s.motion.duration - 1e-9 or settled or extracted or unchanged):
                 s.hold = s.motion.values(s.motion.duration, s.hold)
                 s.phase, s.motion, s.action = "idle", None, None
@@ -237,6 +254,8 @@ class ActionExecutor(LeafSystem):
         if s.phase == "idle":
             if self.ready_port.HasValue(context) and self.ready_port.Eval(context)[0] < 0.5:
                 return  # the observation is not there yet: stay idle
+            if self._carrying(context) and not self._extracted(s):
+                return  # a removed object is still on its way out of the camera's view
             if not self.action_port.HasValue(context):
                 raise ExecutionError("ActionExecutor: connect the action input (PolicySelector.action)")
             action = self.action_port.Eval(context)
@@ -249,6 +268,35 @@ class ActionExecutor(LeafSystem):
                 else:
                     s.phase, s.action, s.motion, s.t0, s.checked = "executing", action, motion, t, False
         state.get_mutable_abstract_state(self._state_index).set_value(s)
+        return self._ended(s)
+
+    def _extracted(self, s: _State) -> bool:
+        """The last action lifted the target out: the search is over, whatever still moves."""
+        if not s.history:
+            return False
+        o = s.history[-1]
+        return (o.success and o.action.kind == "grasp" and bool(o.removed_object)
+                and o.removed_object == getattr(self.backend, "target_id", ""))
+
+    def _carrying(self, context) -> bool:
+        return self.carrying_port.HasValue(context) and self.carrying_port.Eval(context)[0] >= 0.5
+
+    def _ended(self, s: _State):
+        """ReachedTermination at the update that ends the search (when `terminate`); simulating on
+        afterwards (e.g. to watch the last object carried away) is not stopped again."""
+        if s.phase == "done" and self.terminate:
+            return EventStatus.ReachedTermination(self, f"search ended: {s.stop_reason}")
+        return None
+
+    def ready_to_act(self, context) -> bool:
+        """Whether the update at this context's time latches the next action (idle, images ready,
+        nothing being carried, and the time one of the executor's update times): an observer that
+        evaluates the controller's outputs then sees the very scene the action is chosen from."""
+        s = self._state(context)
+        k = context.get_time() / self.period
+        return (s.phase == "idle" and abs(k - round(k)) < 1e-6
+                and not (self.ready_port.HasValue(context) and self.ready_port.Eval(context)[0] < 0.5)
+                and not (self._carrying(context) and not self._extracted(s)))
 
 
 def connect_executor(builder, executor: ActionExecutor, station, selector=None):
@@ -280,6 +328,7 @@ def _zero_velocity():
 __all__ = [
     "NO_OUTCOME",
     "ActionExecutor",
+    "SimulationBlewUp",
     "ExecutionError",
     "ExecutorStatus",
     "Motion",

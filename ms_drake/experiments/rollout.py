@@ -1,28 +1,29 @@
-"""One mechanical-search rollout in the bin: a simulated station holding a heap, the bin-search
-controller of ms_drake.policies.bin_search (MakeBinSearchController, ground-truth segmentation
-and exact grasp meshes through SimulationInfo) and the driver loop.
+"""One mechanical-search rollout in the bin: a simulated station holding a heap wired to the
+bin-search controller of ms_drake.policies.bin_search (MakeBinSearchController, ground-truth
+segmentation and exact grasp meshes through SimulationInfo), simulated by Drake's Simulator.
 
 Only the fidelity's backend and station differ: primitive = FloatingGripperBin + PrimitiveBackend,
-full = YuMiBin (or any robot scenario, `rollout(..., scenario_name=...)`) + FullBackend.
+full = the scenario's robot (YuMiBin by default, `rollout(..., scenario_name=...)`) + FullBackend.
 
-The driver advances the simulator in executor periods; when `removed` grows it moves those
-objects out of the plant (remove_objects), and it stops when the executor is done, the simulation
-fails, or `max_sim_time` passes. Failure modes (RolloutResult.failure): "" on success, else one of
-FAILURE_MODES.
+A rollout builds the diagram, sets its initial conditions (`set_initial_conditions`), runs
+`Simulator.AdvanceTo(max_sim_time)` and reads the record from the controller's ports: the diagram
+itself removes lifted objects (the robot, or the primitive mode's ObjectCarrier, drops them into a
+drop-off tray), ends the simulation when the search is over and fails it on a blow-up. A read-only
+monitor (SearchObserver) notes what the record needs besides the ports. Failure modes
+(RolloutResult.failure): "" on success, else one of FAILURE_MODES.
 """
 
 from __future__ import annotations
 
-import copy
 import time
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
-from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.framework import DiagramBuilder, EventStatus
 
 from ms_drake.errors import MsDrakeError
-from ms_drake.execution import FIDELITIES, PRIMITIVE_PUSH_TIME_STEP, ExecutionError, remove_objects
+from ms_drake.execution import FIDELITIES, PRIMITIVE_PUSH_TIME_STEP, ExecutionError
 from ms_drake.perception.occupancy import TargetBox, TargetMesh
 from ms_drake.policies.bin_search import (
     BinSearchController,
@@ -30,12 +31,13 @@ from ms_drake.policies.bin_search import (
     MakeBinSearchController,
     SimulationInfo,
     connect_controller,
+    search_scenario,
+    set_initial_conditions,
 )
 from ms_drake.policies.bin_selectors import OCCUPANCY_POLICIES, PUSHING, check_policy
 from ms_drake.scenario import load_scenario
-from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap, scenario_with_heap, set_heap_poses
+from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap
 from ms_drake.station import MakeStation, get_plant, station_objects
-from ms_drake.station.robots import set_arm_positions
 
 FAILURE_MODES = {
     "target_never_visible": "the target was not seen in any step",
@@ -224,7 +226,7 @@ def controller_params(params: SearchParams, num_objects: int) -> BinSearchParams
 
 def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSystem:
     """Station of `scenario` holding `heap` (target drawn red) + the bin-search controller."""
-    s = scenario_with_heap(copy.deepcopy(scenario), heap)
+    s = search_scenario(scenario, heap, params.fidelity, params.policy)
     if params.time_step is not None:
         s.plant_config.time_step = float(params.time_step)
     if params.contact_approximation is not None:
@@ -251,13 +253,6 @@ def build_search(scenario, heap, params: SearchParams, meshcat=None) -> SearchSy
     return SearchSystem(diagram, station, plant, controller, sim.target_id, bodies, s)
 
 
-def _set_initial(system: SearchSystem, context, heap):
-    """Heap poses, and the robot at the controller's initial commands (parked / home)."""
-    set_heap_poses(system.station, context, heap)
-    set_arm_positions(system.plant, system.plant.GetMyMutableContextFromRoot(context), system.scenario.robot.name,
-                      system.controller.initial_commands())
-
-
 def _frame(system: SearchSystem, context, step: int) -> Frame:
     station_ctx = system.station.GetMyContextFromRoot(context)
     rgb = np.array(system.station.GetOutputPort("overhead.rgb_image").Eval(station_ctx).data)[..., :3].copy()
@@ -271,12 +266,50 @@ def _grasp_of(outcome):
     return outcome.action.grasp if outcome.action.kind == "grasp" else None
 
 
+class SearchObserver:
+    """A read-only Simulator monitor of a search: at each moment the executor is about to choose
+    an action it notes whether the target is seen, the grasps the selector reads (the same cache
+    entries the executor's update then uses), and, if asked, the frame of images and choice (the
+    demo). It never changes the context. on_idle(system, context, step): called at those moments
+    too (e.g. to record the state of each attempt, ms_drake.experiments.fidelity)."""
+
+    def __init__(self, system: SearchSystem, keep_frames: bool = False, on_idle=None):
+        self.system, self.keep_frames, self.on_idle = system, keep_frames, on_idle
+        self.executor = system.controller.GetSubsystemByName("action_executor")
+        self.seen_visible, self.frames, self.grasp_plans = False, [], 0
+        self._last_steps, self._step_grasps = -1, None
+
+    def __call__(self, context):
+        ctx = self.executor.GetMyContextFromRoot(context)
+        if self.executor.ready_to_act(ctx):
+            steps = self.system.output(context, "status").steps
+            if steps != self._last_steps:
+                self._last_steps = steps
+                self.seen_visible |= bool(self.system.output(context, "target").visible)
+                # The objects planned for a step are those the selector looked up in its grasps.
+                if self._step_grasps is not None:
+                    self.grasp_plans += len(self._step_grasps.planned)
+                self._step_grasps = self.system.output(context, "grasps")
+                if self.keep_frames:
+                    self.frames.append(_frame(self.system, context, steps))
+                if self.on_idle is not None:
+                    self.on_idle(self.system, context, steps)
+        return EventStatus.Succeeded()
+
+    def finish(self) -> int:
+        """The number of object grasp plans made (call once, after the simulation)."""
+        if self._step_grasps is not None:
+            self.grasp_plans += len(self._step_grasps.planned)
+            self._step_grasps = None
+        return self.grasp_plans
+
+
 def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: float | None = None,
                keep_frames: bool = False, meshcat=None, on_idle=None) -> RolloutResult:
-    """Simulate until the executor is done; returns the rollout's result (with frames if asked).
-    on_idle(system, context, step): called whenever the executor is idle before the action of
-    `step` is chosen (the scene that action is chosen from; e.g. to record the state of each
-    attempt, ms_drake.experiments.fidelity)."""
+    """Simulate the search diagram until it ends itself (the executor's termination event) or
+    `max_sim_time` passes; returns the rollout's result (with frames if asked). Nothing here changes
+    the plant after the initial conditions: removals, the end and blow-ups happen inside the diagram.
+    on_idle(system, context, step): see SearchObserver."""
     n = len(heap.objects)
     horizon = params.horizon if params.horizon is not None else 2 * n
     max_sim_time = max_sim_time or 30.0 + 12.0 * horizon
@@ -284,68 +317,34 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
     simulator = Simulator(system.diagram)
     ApplySimulatorConfig(system.scenario.simulator_config, simulator)  # the scenario's integrator and rates
     context = simulator.get_mutable_context()
-    _set_initial(system, context, heap)
-    simulator.Initialize()
-    pc = system.plant.GetMyMutableContextFromRoot(context)
-    seen_visible, empty_at_stop = False, False
-    frames, removed_done, last_steps, grasp_plans, step_grasps = [], set(), -1, 0, None
-    failure, t, k = "", 0.0, 0
+    set_initial_conditions(system.diagram, context, heap)
+    observer = SearchObserver(system, keep_frames=keep_frames, on_idle=on_idle)
+    simulator.set_monitor(observer)
+    failure, msg = "", ""
     if meshcat is not None:
         meshcat.StartRecording(set_visualizations_while_recording=False)
     try:
-        while True:
-            status = system.output(context, "status")
-            if status.done:
-                break
-            if not status.busy and status.steps != last_steps:  # idle: the next action is chosen now
-                last_steps = status.steps
-                seen_visible |= bool(system.output(context, "target").visible)
-                # The grasps the selector reads at this step (the same cache entry): the objects
-                # planned for the step are those it looked up.
-                if step_grasps is not None:
-                    grasp_plans += len(step_grasps.planned)
-                step_grasps = system.output(context, "grasps")
-                if keep_frames:
-                    frames.append(_frame(system, context, status.steps))
-                if on_idle is not None:
-                    on_idle(system, context, status.steps)
-            if t >= max_sim_time:
-                failure = "timeout"
-                break
-            # t = k * period exactly as Drake computes the executor's update times, so this
-            # loop's perception evaluation at an idle step is the very context (and cache) the
-            # executor's update then reads (an accumulated sum drifts below the event time and
-            # every image would be rendered twice).
-            k += 1
-            t = k * params.period
-            simulator.AdvanceTo(t)
-            gone = [r for r in system.output(context, "removed") if r not in removed_done]
-            if gone:
-                remove_objects(system.plant, pc, [system.bodies[r] for r in gone if r in system.bodies])
-                removed_done.update(gone)
-            if not np.all(np.isfinite(system.plant.GetPositions(pc))):
-                raise RuntimeError("non-finite plant state")
-    except RuntimeError as e:  # Drake solver failures surface as RuntimeError
+        simulator.Initialize()
+        simulator.AdvanceTo(max_sim_time)
+    except RuntimeError as e:  # Drake solver failures and the executor's non-finite check
         failure = "sim_blew_up"
         msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-    else:
-        msg = ""
     finally:
         if meshcat is not None:
             meshcat.StopRecording()
             meshcat.PublishRecording()
-    if step_grasps is not None:
-        grasp_plans += len(step_grasps.planned)
+    grasp_plans = observer.finish()
     status = system.output(context, "status")
     history = system.output(context, "history")
+    if not failure and not status.done:
+        failure = "timeout"
     reason = status.stop_reason if status.done else failure
     success = reason == "success"
     if not failure and not success:
         if reason == "no_action":
             masks = system.output(context, "masks")
-            empty_at_stop = len(masks) == 0
-            failure = ("empty_segmentation" if empty_at_stop else
-                       "target_never_visible" if not seen_visible else "grasps_below_threshold")
+            failure = ("empty_segmentation" if len(masks) == 0 else
+                       "target_never_visible" if not observer.seen_visible else "grasps_below_threshold")
         else:
             failure = reason or "unknown"
     kinds = [o.action.kind for o in history]
@@ -368,7 +367,7 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
                                        if (g := _grasp_of(o)) is not None else "" for o in history],
                         grasp_qualities=[round(float(g.quality), 4) if (g := _grasp_of(o)) is not None else 0.0
                                          for o in history],
-                        error=msg, frames=frames)
+                        error=msg, frames=observer.frames)
     return res
 
 

@@ -36,8 +36,11 @@ a jaw-only robot) are not planned.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from pydrake.systems.framework import Diagram, DiagramBuilder
 
@@ -48,6 +51,7 @@ from ms_drake.execution import (
     LIFT_THRESHOLD,
     ActionExecutor,
     FullBackend,
+    ObjectCarrier,
     PrimitiveBackend,
     tcp_offset_of,
 )
@@ -61,7 +65,7 @@ from ms_drake.objects import get_object
 from ms_drake.perception.association import MaskAssociation
 from ms_drake.perception.masks import TargetAmodalMask, make_amodal_masks, object_labels
 from ms_drake.perception.occupancy import BACKENDS as OCCUPANCY_BACKENDS
-from ms_drake.perception.occupancy import OccupancyEstimator
+from ms_drake.perception.occupancy import OccupancyEstimator, TargetBox
 from ms_drake.perception.ready import ImagesReady
 from ms_drake.perception.segmentation import BACKENDS as SEGMENTATION_BACKENDS
 from ms_drake.perception.segmentation import Segmenter
@@ -72,6 +76,7 @@ from ms_drake.policies.selector import PolicySelector
 from ms_drake.pushing import PushPlanner, PushPolicySystem, check_push_policy
 from ms_drake.scenario import load_scenario
 from ms_drake.station import get_plant, station_objects
+from ms_drake.station.environments import dropoff_points
 
 
 GRASP_PLANNERS = ("indexed", "image")
@@ -242,6 +247,10 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
                               "sim=SimulationInfo.from_station(station), or segmentation='euclidean' on hardware")
     if params.policy == "oracle" and sim is None:
         raise ControllerError("the oracle policy reads the true object poses: it needs sim=SimulationInfo")
+    if target_shape is None and params.policy in OCCUPANCY_POLICIES and sim is not None and sim.target_id:
+        # In simulation the target's model is known: X-Ray estimates occupancy from its size.
+        full = next(o.full_name for o in station_objects(sim.plant) if o.model_name == sim.target_id)
+        target_shape = TargetBox.from_object(full)
     needs_occupancy = target_shape is not None  # built whenever the target's shape is known
     if params.policy in (*OCCUPANCY_POLICIES, "oracle") and target_shape is None:
         raise ControllerError(f"policy {params.policy!r} needs target_shape= (occupancy.TargetMesh or TargetBox)")
@@ -378,6 +387,20 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
     builder.Connect(executor.history_port, selector.GetInputPort("history"))
     if sim is not None:
         pose_inputs.append(executor.poses_port)
+    carrier = None
+    if params.fidelity == "primitive":
+        # The primitive mode's lifted objects leave the bin for a drop-off tray, carried in physics.
+        radii = {o.model_name: 0.5 * float(np.linalg.norm(get_object(o.full_name).extents))
+                 for o in station_objects(sim.plant)}
+        carrier = builder.AddSystem(ObjectCarrier(sim.plant, backend.objects, dropoff_points(scenario.environment),
+                                                  travel_z=workspace.floor_z + workspace.wall_height + 0.12,
+                                                  camera=camera, radii=radii, period=params.period))
+        carrier.set_name("object_carrier")
+        builder.Connect(executor.removed_port, carrier.GetInputPort("removed"))
+        builder.Connect(carrier.GetOutputPort("carrying"), executor.carrying_port)
+        pose_inputs.append(carrier.GetInputPort("body_poses"))
+        builder.ExportInput(carrier.GetInputPort("body_spatial_velocities"), "body_spatial_velocities")
+        builder.ExportOutput(carrier.GetOutputPort("applied_spatial_force"), "applied_spatial_force")
     ready = builder.AddSystem(ImagesReady(camera.width, camera.height))
     ready.set_name("images_ready")
     rgb_inputs.append(ready.GetInputPort("rgb_image"))
@@ -395,7 +418,7 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
                              else selector.GetOutputPort("action"), port_name)
     for port_name, port in outputs.items():
         builder.ExportOutput(port, port_name)
-    controller = BinSearchController(builder, backend, params, target_id)
+    controller = BinSearchController(builder, backend, params, target_id, scenario)
     controller.set_name(name)
     return controller
 
@@ -406,13 +429,66 @@ class BinSearchController(Diagram):
     simulated robot where the controller expects it; `target_id`: the target's object id in
     simulation ("" when unknown)."""
 
-    def __init__(self, builder: DiagramBuilder, backend, params: BinSearchParams, target_id: str):
+    def __init__(self, builder: DiagramBuilder, backend, params: BinSearchParams, target_id: str, scenario=None):
         super().__init__()
         builder.BuildInto(self)
-        self._backend, self.params, self.target_id = backend, params, target_id
+        self._backend, self.params, self.target_id, self.scenario = backend, params, target_id, scenario
 
     def initial_commands(self) -> dict:
         return self._backend.initial_commands()
+
+
+def search_scenario(scenario, heap, fidelity: str = "primitive", policy: str = "largest"):
+    """The station scenario of a search of `heap` on `scenario`'s station: its objects are the
+    heap's (scenario_with_heap) and, in the primitive mode, the plant steps at the primitive mode's
+    rate (10 ms; 5 ms for the selectors that push: execution.PRIMITIVE_PUSH_TIME_STEP, where the
+    floating jaw's push moves objects as the YuMi's does). `scenario` is not changed."""
+    from ms_drake.execution import PRIMITIVE_PUSH_TIME_STEP
+    from ms_drake.policies.bin_selectors import PUSHING
+    from ms_drake.scenes.heaps import scenario_with_heap
+
+    check_policy(policy)
+    if fidelity not in FIDELITIES:
+        raise ControllerError(f"fidelity {fidelity!r} unknown; choose one of {', '.join(FIDELITIES)}")
+    s = scenario_with_heap(copy.deepcopy(scenario), heap)
+    if fidelity == "primitive":
+        s.plant_config.time_step = PRIMITIVE_PUSH_TIME_STEP if policy in PUSHING else 0.01
+    return s
+
+
+def _search_parts(diagram):
+    """(station, BinSearchController) inside a search diagram (as the README builds it)."""
+    controllers = [sys for sys in diagram.GetSystems() if isinstance(sys, BinSearchController)]
+    stations = []
+    for sys in diagram.GetSystems():
+        if isinstance(sys, Diagram) and not isinstance(sys, BinSearchController):
+            try:
+                sys.GetSubsystemByName("plant")
+            except RuntimeError:
+                continue
+            stations.append(sys)
+    if len(controllers) != 1 or len(stations) != 1:
+        raise ControllerError(f"the diagram holds {len(stations)} station(s) and {len(controllers)} bin-search "
+                              "controller(s); set_initial_conditions needs exactly one of each (MakeStation and "
+                              "MakeBinSearchController added to one DiagramBuilder)")
+    return stations[0], controllers[0]
+
+
+def set_initial_conditions(diagram, context, heap) -> None:
+    """The search's initial conditions in `context`, the root context of `diagram` (e.g.
+    `simulator.get_mutable_context()`): the heap's objects at their saved poses, at rest, and the
+    robot where the controller starts (arm parked out of the camera's view, jaw open, vacuum off).
+    `diagram` holds one station built from `search_scenario(scenario, heap, ...)` (or
+    `scenario_with_heap`) and one controller of MakeBinSearchController."""
+    from ms_drake.scenes.heaps import set_heap_poses
+    from ms_drake.station.robots import set_arm_positions
+
+    station, controller = _search_parts(diagram)
+    set_heap_poses(station, context, heap)
+    plant = get_plant(station)
+    robot = controller.scenario.robot.name
+    if robot:
+        set_arm_positions(plant, plant.GetMyMutableContextFromRoot(context), robot, controller.initial_commands())
 
 
 def connect_controller(builder: DiagramBuilder, controller, station) -> None:

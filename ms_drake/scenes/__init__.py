@@ -1,6 +1,7 @@
 """Scenes: bin heaps (drop simulation), shelf scenes, table scenes."""
 
 from ms_drake.scenes.heaps import (  # noqa: F401
+    SEARCH_HEAPS,
     HeapParams,
     generate_heap,
     heap_from_dict,

@@ -5,7 +5,8 @@ configs, environment, objects, robot and grippers, Finalize, cameras, visualizat
 
 Exported ports (names identical in sim and hardware, DESIGN.md):
 - ``<cam>.rgb_image``, ``<cam>.depth_image`` (32F metres), ``<cam>.label_image`` for each camera;
-- sim-only: ``body_poses``, ``query_object``, ``contact_results``, ``state`` (plant state).
+- sim-only: ``body_poses``, ``body_spatial_velocities``, ``query_object``, ``contact_results``, ``state``
+  (plant state); input ``applied_spatial_force`` (external forces on bodies; stations without suction cups).
 Robot ports (``<arm>.position`` ...) are added by the robot drivers.
 
 Objects are model instances named ``obj<k>__<set>__<name>`` (see `station_objects`). Their
@@ -214,6 +215,12 @@ def MakeStation(scenario: Scenario, meshcat=None, hardware: bool | None = None, 
                                  f"{cam_name}.label_image")
 
     builder.ExportOutput(plant.get_body_poses_output_port(), "body_poses")
+    builder.ExportOutput(plant.get_body_spatial_velocities_output_port(), "body_spatial_velocities")
+    if not builder.IsConnectedOrExported(plant.get_applied_spatial_force_input_port()):
+        # External forces on bodies (simulation only), e.g. execution.ObjectCarrier taking a lifted
+        # object to a drop-off tray in the primitive mode; stations with suction cups use the
+        # plant's input for the cups' forces and have no such port.
+        builder.ExportInput(plant.get_applied_spatial_force_input_port(), "applied_spatial_force")
     builder.ExportOutput(scene_graph.get_query_output_port(), "query_object")
     builder.ExportOutput(plant.get_contact_results_output_port(), "contact_results")
     builder.ExportOutput(plant.get_state_output_port(), "state")
