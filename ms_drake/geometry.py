@@ -5,6 +5,9 @@
   silhouette.
 - `Workspace`: the bin's inner box in the world, read from a bin scenario.
 - `depth_array`, `world_points`: depth images as arrays and as world points.
+- `preprocess_depth`: the one preprocessing of a sensor's depth image (hole filling) that every
+  learned model and every depth baseline applies before it reads depth. It lives here, below
+  perception, grasping and pushing, because all three consume depth.
 
 Only numpy, cv2 and pydrake value types are imported here, so every layer may import it.
 """
@@ -115,6 +118,39 @@ def depth_array(depth) -> np.ndarray:
     d = np.asarray(depth.data if hasattr(depth, "data") else depth, dtype=np.float64)
     d = d[..., 0] if d.ndim == 3 else d
     return np.where(np.isfinite(d) & (d > 0), d, np.nan)
+
+
+#: Radius (px) of cv2.inpaint's neighbourhood in `preprocess_depth`.
+INPAINT_RADIUS = 3
+
+
+def depth_holes(depth: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the pixels a depth sensor returned nothing for (0, negative or NaN). +inf,
+    Drake's "farther than the clipping range", is not a hole: nothing is there to fill in."""
+    d = np.asarray(depth)
+    return ~(d > 0) & ~np.isposinf(d)
+
+
+def preprocess_depth(depth) -> np.ndarray:
+    """The depth image every learned model and depth baseline reads: (H, W) float32 metres with the
+    sensor's holes (`depth_holes`) filled by OpenCV inpainting (Navier-Stokes, radius
+    `INPAINT_RADIUS` px) of the depth normalised to [0, 1] over its valid range, as the reference
+    filled its real images' missing depth (dissertation line 879; the ``perception`` package's
+    depth inpainting). A depth image without holes (every clean render) is returned with its values
+    unchanged; +inf pixels stay +inf. `depth`: an ImageDepth32F or an (H, W[, 1]) array."""
+    d = np.asarray(depth.data if hasattr(depth, "data") else depth, np.float32)
+    d = d[..., 0] if d.ndim == 3 else d
+    holes = depth_holes(d)
+    valid = np.isfinite(d) & (d > 0)
+    if not holes.any() or not valid.any():
+        return d
+    lo, hi = float(d[valid].min()), float(d[valid].max())
+    span = max(hi - lo, 1e-6)
+    norm = np.where(valid, (d - lo) / span, np.where(holes, 0.0, 1.0)).astype(np.float32)
+    filled = cv2.inpaint(norm, holes.astype(np.uint8), INPAINT_RADIUS, cv2.INPAINT_NS)
+    out = d.copy()
+    out[holes] = lo + np.clip(filled[holes], 0.0, 1.0) * span
+    return out
 
 
 def world_points(camera: PinholeCamera, depth: np.ndarray) -> np.ndarray:

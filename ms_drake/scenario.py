@@ -138,15 +138,47 @@ class RobotConfig:
     drivers: typing.Mapping[str, typing.Union[ArmDriver, JawDriver, SuctionDriver]] = field(default_factory=dict)
 
 
+#: Depth sensor presets (ms_drake.station.sensor_model.PRESETS holds their parameters).
+DEPTH_SENSOR_PRESETS = ("none", "phoxi", "l515", "primesense")
+#: Override fields of DepthSensorConfig that are probabilities (in [0, 1]).
+_PROBABILITIES = ("edge_dropout", "grazing_dropout", "dark_threshold", "dark_dropout", "pixel_dropout")
+
+
+@dataclass
+class DepthSensorConfig:
+    """The depth sensor model of one camera (ms_drake.station.sensor_model): a `preset` (none,
+    phoxi, l515, primesense) and optional overrides of its parameters (unset: the preset's value;
+    units and meaning: sensor_model.DepthSensorParams). Ignored by the hardware station."""
+
+    preset: str = "none"
+    noise_a: typing.Optional[float] = None
+    noise_b: typing.Optional[float] = None
+    depth_unit: typing.Optional[float] = None
+    disparity_step: typing.Optional[float] = None
+    focal_baseline: typing.Optional[float] = None
+    edge_jump: typing.Optional[float] = None
+    edge_width: typing.Optional[int] = None
+    edge_dropout: typing.Optional[float] = None
+    grazing_deg: typing.Optional[float] = None
+    grazing_dropout: typing.Optional[float] = None
+    dark_threshold: typing.Optional[float] = None
+    dark_dropout: typing.Optional[float] = None
+    holes: typing.Optional[float] = None
+    hole_radius: typing.Optional[float] = None
+    pixel_dropout: typing.Optional[float] = None
+
+
 @dataclass
 class Scenario:
-    """One station. Every random choice of the station flows from `random_seed`."""
+    """One station. Every random choice of the station flows from `random_seed`. `depth_sensors`:
+    the depth sensor model of each camera by camera name (cameras not listed: perfect depth)."""
 
     random_seed: int = 0
     environment: EnvironmentConfig = field(default_factory=EnvironmentConfig)
     objects: ObjectsConfig = field(default_factory=ObjectsConfig)
     robot: RobotConfig = field(default_factory=RobotConfig)
     cameras: typing.Mapping[str, CameraConfig] = field(default_factory=dict)
+    depth_sensors: typing.Mapping[str, DepthSensorConfig] = field(default_factory=dict)
     plant_config: MultibodyPlantConfig = field(default_factory=MultibodyPlantConfig)
     scene_graph_config: SceneGraphConfig = field(default_factory=SceneGraphConfig)
     simulator_config: SimulatorConfig = field(default_factory=SimulatorConfig)
@@ -281,6 +313,8 @@ def _check_values(s: Scenario, ck: _Checker):
     for name, cam in s.cameras.items():
         if cam.width <= 0 or cam.height <= 0:
             ck.fail(f"cameras.{name}", f"image size {cam.width}x{cam.height} must be positive")
+    for name, ds in s.depth_sensors.items():
+        _check_depth_sensor(s, name, ds, ck)
     if s.plant_config.time_step < 0:
         ck.fail("plant_config.time_step", f"{s.plant_config.time_step!r}: must be >= 0")
     contact_models = ("point", "hydroelastic", "hydroelastic_with_fallback")
@@ -288,6 +322,26 @@ def _check_values(s: Scenario, ck: _Checker):
         ck.fail("plant_config.contact_model", f"{s.plant_config.contact_model!r}; allowed: {', '.join(contact_models)}")
     if s.objects.compliance not in OBJECT_COMPLIANCE:
         ck.fail("objects.compliance", f"{s.objects.compliance!r}; allowed: {', '.join(OBJECT_COMPLIANCE)}")
+
+
+def _check_depth_sensor(s: Scenario, name: str, ds: DepthSensorConfig, ck: _Checker):
+    key = f"depth_sensors.{name}"
+    if name not in s.cameras:
+        ck.fail(key, f"no camera named {name!r}; cameras of this scenario: {', '.join(s.cameras) or '(none)'}")
+    if not s.cameras[name].depth:
+        ck.fail(key, f"camera {name!r} renders no depth image (depth: false); set depth: true or remove {key}")
+    if ds.preset not in DEPTH_SENSOR_PRESETS:
+        ck.fail(f"{key}.preset", f"unknown preset {ds.preset!r}; allowed: {', '.join(DEPTH_SENSOR_PRESETS)}")
+    for f in dataclasses.fields(DepthSensorConfig):
+        v = getattr(ds, f.name)
+        if f.name == "preset" or v is None:
+            continue
+        if f.name in _PROBABILITIES and not 0.0 <= v <= 1.0:
+            ck.fail(f"{key}.{f.name}", f"{v!r}: must be between 0 and 1")
+        if f.name == "grazing_deg" and not 0.0 <= v <= 90.0:
+            ck.fail(f"{key}.{f.name}", f"{v!r}: must be between 0 and 90 degrees")
+        if v < 0:
+            ck.fail(f"{key}.{f.name}", f"{v!r}: must be >= 0")
 
 
 def resolve_robot_config(robot_config):

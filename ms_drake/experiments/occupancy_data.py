@@ -60,7 +60,7 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.sensors import CameraInfo
 
 from ms_drake.errors import DatasetError, HeapError
-from ms_drake.geometry import PinholeCamera, Workspace
+from ms_drake.geometry import PinholeCamera, Workspace, preprocess_depth
 from ms_drake.parallel import run_shard_jobs
 from ms_drake.paths import make_parser
 from ms_drake.perception.occupancy import (
@@ -78,6 +78,7 @@ from ms_drake.perception.occupancy_net import (
     working_target,
 )
 from ms_drake.scenario import load_scenario
+from ms_drake.station.sensor_model import apply_depth_sensor, depth_sensor_params, image_rng
 from ms_drake.experiments.xray import XRAY_COMPACT_HEAPS
 from ms_drake.scenes.heaps import HeapParams, generate_heap
 from ms_drake.station.station import add_environment, add_objects
@@ -257,16 +258,22 @@ def sample_target_in_pile(heap, ws: Workspace, box: TargetBox, rng: np.random.Ge
 
 
 def make_samples(scenario, heap, views: int, rng: np.random.Generator, ratios=TARGET_RATIOS,
-                 box_sizes=None, best_match: float | None = None, ground_truth: str = "generator") -> list[dict]:
+                 box_sizes=None, best_match: float | None = None, ground_truth: str = "generator",
+                 sensor: str = "none") -> list[dict]:
     """`views` samples of one heap (see the module doc). box_sizes: explicit targets to draw from
     instead of the training boxes (out-of-set targets; specs of `target_shape`). ground_truth:
     "generator" (AnalyticOccupancy, the target placed by `sample_target`) or "posterior" (the
-    target's own amodal mask, placed by `sample_target_in_pile`)."""
+    target's own amodal mask, placed by `sample_target_in_pile`). sensor: a depth sensor preset
+    (ms_drake.station.sensor_model) applied to the network's input only, then the hole filling
+    (geometry.preprocess_depth), as the estimator reads a camera's depth; view v's draws come from
+    image_rng(heap seed, "overhead", v), apart from `rng`, so every preset gets the same heaps,
+    cameras and targets. The ground truth comes from the perfect depth."""
+    params = depth_sensor_params(sensor)
     nominal = PinholeCamera.from_config(scenario.cameras[next(iter(scenario.cameras))])
     ws = Workspace.from_scenario(scenario)
     renderer = HeapRenderer(scenario, heap)
     out = []
-    for _ in range(views):
+    for v in range(views):
         cam = random_camera(nominal, rng)
         depth = renderer.depth(cam)
         if box_sizes is None:
@@ -285,7 +292,11 @@ def make_samples(scenario, heap, views: int, rng: np.random.Generator, ratios=TA
         else:
             shape = box.target_mesh() if isinstance(box, LyingCylinder) else box
             rho = AnalyticOccupancy(cam, ws, shape, best_match=best_match).estimate(d2, modal)
-        x = working_inputs(d2, modal)
+        seen = d2
+        if not params.is_identity():
+            seen = preprocess_depth(apply_depth_sensor(d2, params, image_rng(heap.seed, "overhead", float(v)),
+                                                       cam.fx, cam.fy, cam.cx, cam.cy))
+        x = working_inputs(seen, modal)
         out.append(dict(x=x.astype(np.float16), y=working_target(rho).astype(np.float16), ratio=k,
                         visible=int(modal.sum()), heap_seed=int(heap.seed), size=np.array([box.length, box.width,
                                                                                              box.thickness])))
@@ -293,9 +304,10 @@ def make_samples(scenario, heap, views: int, rng: np.random.Generator, ratios=TA
 
 
 def shard_job(job: tuple) -> dict:
-    """(out, k, seed, heaps_per_shard, views, sets, targets, test_only, layout, best_match, ground_truth) -> writes
-    shard k; module-level for pickling."""
-    out, k, seed, heaps_per_shard, views, sets, targets, test_only, layout, best_match, ground_truth = job
+    """(out, k, seed, heaps_per_shard, views, sets, targets, test_only, layout, best_match, ground_truth[, sensor])
+    -> writes shard k; module-level for pickling."""
+    out, k, seed, heaps_per_shard, views, sets, targets, test_only, layout, best_match, ground_truth = job[:11]
+    sensor = job[11] if len(job) > 11 else "none"
     split = shard_split(k, test_only)
     path = Path(out) / f"shard_{k:05d}_{split}.npz"
     if path.exists():
@@ -314,7 +326,7 @@ def shard_job(job: tuple) -> dict:
             failed += 1
             continue
         samples += make_samples(scenario, heap, views, rng, box_sizes=targets, best_match=best_match,
-                                ground_truth=ground_truth)
+                                ground_truth=ground_truth, sensor=sensor)
         for s in samples[-views:]:
             s["set"] = oset
             s["objects"] = ",".join(heap.object_names())
@@ -329,7 +341,7 @@ def shard_job(job: tuple) -> dict:
                         set=np.array([s["set"] for s in samples]),
                         objects=np.array([s["objects"] for s in samples]), split=np.array(split),
                         layout=np.array(layout), best_match=np.array(-1.0 if best_match is None else best_match),
-                        ground_truth=np.array(ground_truth))
+                        ground_truth=np.array(ground_truth), sensor=np.array(sensor))
     os.replace(tmp, path)
     return dict(shard=k, samples=len(samples), skipped=False, cpu=time.process_time() - t0, failed_heaps=failed)
 
@@ -338,7 +350,7 @@ def write_occupancy_dataset(out, count: int, seed: int = 0, views: int = 8, heap
                             workers: int = 1, use_ray: bool = False, ray_address: str | None = None,
                             progress=None, sets=OBJECT_SETS, targets=None, test_only: bool = False,
                             layout: str = "spread", best_match: float | None = None,
-                            ground_truth: str = "generator") -> dict:
+                            ground_truth: str = "generator", sensor: str = "none") -> dict:
     """Shards of about `count` images into `out` (see the module doc); returns counts.
     targets: (length, width, thickness) boxes or ("cylinder", length, diameter) cylinders to use
     instead of the ten training boxes (an out-of-set evaluation set; each sample's ratio is the
@@ -349,8 +361,10 @@ def write_occupancy_dataset(out, count: int, seed: int = 0, views: int = 8, heap
     the observed modal mask); ground_truth: `GROUND_TRUTHS` ("posterior": each sample's target
     amodal mask, the target placed in the pile as the `xray_compact` heaps place it; the MSE
     minimiser over such labels is the probability that a pixel holds the target given the image);
-    a folder holds one layout, one best_match and one ground truth."""
+    sensor: the depth sensor preset of the network inputs (`make_samples`);
+    a folder holds one layout, one best_match, one ground truth and one sensor."""
     check_layout(layout)
+    depth_sensor_params(sensor)  # an unknown preset fails here
     check_ground_truth(ground_truth)
     if ground_truth == "posterior" and best_match is not None:
         raise DatasetError("best_match is a setting of the generator's ground truth; the posterior ground truth "
@@ -368,6 +382,7 @@ def write_occupancy_dataset(out, count: int, seed: int = 0, views: int = 8, heap
             there = str(z["layout"]) if "layout" in z.files else "spread"
             bm = float(z["best_match"]) if "best_match" in z.files else -1.0
             gt = str(z["ground_truth"]) if "ground_truth" in z.files else "generator"
+            sens = str(z["sensor"]) if "sensor" in z.files else "none"
         if there != layout:
             raise DatasetError(f"{out} holds {there!r} heaps ({f.name}) and --layout is {layout!r}; "
                                f"write the {layout!r} heaps into a folder of their own")
@@ -377,8 +392,11 @@ def write_occupancy_dataset(out, count: int, seed: int = 0, views: int = 8, heap
         if gt != ground_truth:
             raise DatasetError(f"{out} holds shards with the {gt!r} ground truth ({f.name}) and --ground-truth is "
                                f"{ground_truth!r}; write them into a folder of their own")
+        if sens != sensor:
+            raise DatasetError(f"{out} holds shards made with the {sens!r} depth sensor ({f.name}), asked for "
+                               f"{sensor!r}; write them into a folder of their own")
     jobs = [(str(out), k, int(seed), heaps_per_shard, views, tuple(sets), targets, test_only, layout, best_match,
-             ground_truth)
+             ground_truth, sensor)
             for k in range(shards)]
     todo = [j for j in jobs if not (out / f"shard_{j[1]:05d}_{shard_split(j[1], test_only)}.npz").exists()]
     res = dict(shards=shards, skipped=shards - len(todo), written=0, failed=[])

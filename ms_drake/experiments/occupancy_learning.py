@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from ms_drake.errors import DatasetError
-from ms_drake.experiments.occupancy_data import load_dataset
+from ms_drake.experiments.occupancy_data import load_dataset, write_occupancy_dataset
 from ms_drake.experiments.training import (
     fit_batch,
     resume,
@@ -252,16 +252,31 @@ def metrics_table(d: dict, pred: np.ndarray, ratios=(1, 2, 5, 10)) -> list[dict]
     return rows
 
 
-def bench_occupancy(data, weights=None, scaling: bool = False, timed: int = 50, seed: int = 0) -> dict:
+def sensor_test_set(folder, sensor: str, images: int, seed: int = 7, workers: int = 1, progress=None) -> Path:
+    """``folder/<sensor>``: a test-only occupancy set of about `images` samples (held-out occluders)
+    whose network inputs went through the depth sensor preset `sensor` and the hole filling
+    (occupancy_data.make_samples); made if absent (resumable). The same `seed` gives the same heaps,
+    cameras, targets and ground truth for every preset, so the presets compare on the same images."""
+    out = Path(folder) / sensor
+    write_occupancy_dataset(out, images, seed=seed, workers=workers, test_only=True, sensor=sensor,
+                            progress=progress)
+    return out
+
+
+def bench_occupancy(data, weights=None, scaling: bool = False, timed: int = 50, seed: int = 0,
+                    sensor: str | None = None, sensor_images: int = 96, sensor_seed: int = 7) -> dict:
     """Table 8.1 rows on the test shards of `data` (the estimator's output: the network under the
     seen-target constraint, scaled to a maximum of 1; `raw_rows`: the network alone), two
-    baselines, and the inference time.
+    baselines, and the inference time. sensor: bench on `sensor_test_set(data, sensor,
+    sensor_images, sensor_seed)` instead (made first if absent).
 
     Baselines: "uniform" predicts one value over the bin's pixels (the uniform distribution scaled
     to a maximum of 1); "modal" predicts the observed modal mask (nothing when hidden).
     Timing: `LearnedOccupancy.estimate` on full 640 x 480 inputs (preprocessing, forward pass,
     upsampling; the cost does not depend on the content), one torch thread, median of `timed` calls,
     wall and CPU time of the process (on a shared machine the CPU time is the cost on one core)."""
+    if sensor is not None:
+        data = sensor_test_set(data, sensor, sensor_images, sensor_seed)
     torch = torch_setup(seed, 1)
     d = load_dataset(data, "test")
     net, ck = load_model(weights)
@@ -291,5 +306,5 @@ def bench_occupancy(data, weights=None, scaling: bool = False, timed: int = 50, 
         cpu.append(time.process_time() - c)
     return dict(rows=rows, raw_rows=raw_rows, baselines=base, ms_per_image=1000 * float(np.median(times)),
                 cpu_ms_per_image=1000 * float(np.median(cpu)), timed=timed,
-                scaling=scaling, weights=str(weights or "shipped"), test_images=len(pred),
+                scaling=scaling, weights=str(weights or "shipped"), test_images=len(pred), data=str(data), sensor=sensor,
                 files=len(d["files"]), torch_threads=torch.get_num_threads())

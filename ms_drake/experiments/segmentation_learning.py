@@ -64,6 +64,7 @@ from ms_drake.perception.segmentation_net import (
 )
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import HeapParams, generate_heap
+from ms_drake.station.sensor_model import apply_depth_sensor, depth_sensor_params, image_rng
 
 CROP_SHAPE = (96, 128)
 BENCH_BACKENDS = ("euclidean", "region_growing", "learned", "ground_truth")
@@ -341,10 +342,26 @@ def sensor_rng(seed: int, cam: PinholeCamera, scenario=None) -> np.random.Genera
     return rng
 
 
-def make_segmenter(backend: str, cam: PinholeCamera, workspace: Workspace, weights=None) -> Segmenter:
+def make_segmenter(backend: str, cam: PinholeCamera, workspace: Workspace, weights=None,
+                   fill_holes: bool = True) -> Segmenter:
     if backend == "learned":
-        return Segmenter("learned", weights=weights)
-    return Segmenter(backend, camera=cam, workspace=workspace, label_to_id={})
+        return Segmenter("learned", weights=weights, fill_holes=fill_holes)
+    return Segmenter(backend, camera=cam, workspace=workspace, label_to_id={}, fill_holes=fill_holes)
+
+
+#: The camera name the benchmark images' sensor model draws with (BinHeap15's overhead camera).
+BENCH_CAMERA = "overhead"
+
+
+def sensor_image(depth: np.ndarray, seed: int, cam: PinholeCamera, sensor: str) -> np.ndarray:
+    """Benchmark image `seed`'s depth through the depth sensor model `sensor` (a preset name of
+    ms_drake.station.sensor_model), drawn from image_rng(seed, BENCH_CAMERA, 0): what the station's
+    overhead camera with that model gives for a scenario with random_seed = seed at time 0. No
+    colour image here, so no dark-surface dropout."""
+    params = depth_sensor_params(sensor)
+    if params.is_identity():
+        return depth
+    return apply_depth_sensor(depth, params, image_rng(seed, BENCH_CAMERA, 0.0), cam.fx, cam.fy, cam.cx, cam.cy)
 
 
 def cached_bench_image(seed: int, noise: float, dropout: float, scenario, cache) -> tuple:
@@ -374,10 +391,12 @@ def cached_bench_image(seed: int, noise: float, dropout: float, scenario, cache)
 
 
 def bench_job(job: tuple) -> list[dict]:
-    """(backend, seeds, noise, dropout, weights[, cache]) -> per image: RLEs of ground truth and
-    detections, seconds; module-level for pickling."""
+    """(backend, seeds, noise, dropout, weights[, cache[, sensor[, fill_holes]]]) -> per image: RLEs of
+    ground truth and detections, seconds; module-level for pickling."""
     backend, seeds, noise, dropout, weights = job[:5]
     cache = job[5] if len(job) > 5 else None
+    sensor = job[6] if len(job) > 6 else "none"
+    fill_holes = job[7] if len(job) > 7 else True
     scenario = load_scenario(None, "BinHeap15")
     ws = Workspace.from_scenario(scenario)
     out, learned = [], None
@@ -387,11 +406,12 @@ def bench_job(job: tuple) -> list[dict]:
         except HeapError as e:
             out.append(dict(seed=s, error=str(e)))
             continue
+        depth = sensor_image(depth, s, cam, sensor)
         if backend == "learned":
-            learned = learned or make_segmenter("learned", cam, ws, weights)
+            learned = learned or make_segmenter("learned", cam, ws, weights, fill_holes)
             seg = learned
         else:
-            seg = make_segmenter(backend, cam, ws)
+            seg = make_segmenter(backend, cam, ws, fill_holes=fill_holes)
         t, c = time.perf_counter(), time.process_time()
         pred = gt if backend == "ground_truth" else seg.segment(depth=depth)
         dt, dc = time.perf_counter() - t, time.process_time() - c
@@ -400,14 +420,18 @@ def bench_job(job: tuple) -> list[dict]:
 
 
 def bench_segmentation(backend: str, images: int, seed_start: int, workers: int = 1, noise: float = 0.0,
-                       dropout: float = 0.0, weights=None, progress=None, chunk: int = 10, cache=None) -> dict:
+                       dropout: float = 0.0, weights=None, progress=None, chunk: int = 10, cache=None,
+                       sensor: str = "none", fill_holes: bool = True) -> dict:
     """Table B.1 row of `backend` on images seed_start .. seed_start + images - 1 (module doc).
-    cache: a folder keeping the rendered images (and ground truth) for the other backends."""
+    cache: a folder keeping the rendered images (and ground truth) for the other backends.
+    sensor: a depth sensor preset applied to each image (`sensor_image`; the cache keeps the
+    clean image); fill_holes: the segmenter reads its depth through geometry.preprocess_depth."""
     if backend not in BENCH_BACKENDS:
         raise DatasetError(f"--backend {backend!r}: choose one of {', '.join(BENCH_BACKENDS)}")
+    depth_sensor_params(sensor)  # an unknown preset fails here, before any job
     seeds = list(range(seed_start, seed_start + images))
     jobs = [(backend, tuple(seeds[i:i + chunk]), noise, dropout, None if weights is None else str(weights),
-             None if cache is None else str(cache)) for i in range(0, len(seeds), chunk)]
+             None if cache is None else str(cache), sensor, bool(fill_holes)) for i in range(0, len(seeds), chunk)]
     rows = []
     for r in run_jobs(bench_job, jobs, workers=workers, max_tasks_per_child=5):
         if not r.ok:
@@ -422,6 +446,6 @@ def bench_segmentation(backend: str, images: int, seed_start: int, workers: int 
     secs = [r["seconds"] for r in ok]
     return dict(backend=backend, ap=m["AP"], ap50=m["AP50"], ar=m["AR100"], images=len(ok), gt=m["gt"], dt=m["dt"],
                 failed_images=[r["seed"] for r in rows if "gt" not in r], seed_start=seed_start, noise=noise,
-                dropout=dropout, seconds_median=statistics.median(secs) if secs else 0.0,
+                dropout=dropout, sensor=sensor, fill_holes=bool(fill_holes), seconds_median=statistics.median(secs) if secs else 0.0,
                 cpu_seconds_median=statistics.median([r["cpu_seconds"] for r in ok]) if ok else 0.0,
                 weights=None if weights is None else str(weights))

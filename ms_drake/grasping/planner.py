@@ -47,7 +47,7 @@ from pydrake.systems.framework import LeafSystem
 from pydrake.systems.sensors import CameraInfo, ImageDepth32F
 from scipy.spatial import QhullError
 
-from ms_drake.geometry import as_matrix4, transform_points
+from ms_drake.geometry import as_matrix4, preprocess_depth, transform_points
 from ms_drake.grasping.evaluator import MODELS, GraspEvaluator
 from ms_drake.grasping.grasp import GraspError
 from ms_drake.grasping.samplers import (
@@ -226,7 +226,7 @@ class GraspPlanner(LeafSystem):
         masks = self.masks_port.Eval(context)
         objects = self.objects_port.Eval(context) if self.objects_port.HasValue(context) else ()
         X_WC = self.camera_pose_port.Eval(context) if self.camera_pose_port.HasValue(context) else None
-        output.set_value(self.plan(np.asarray(depth.data, float)[..., 0], masks, objects, X_WC))
+        output.set_value(self.plan(np.asarray(preprocess_depth(depth), float), masks, objects, X_WC))
 
 
 class ObjectGeometrySource(LeafSystem):
@@ -386,7 +386,7 @@ class LazyGraspPlanner(LeafSystem):
         return tuple(out)
 
     def _calc(self, context, output):
-        depth = np.asarray(self.depth_port.Eval(context).data, float)[..., 0]
+        depth = np.asarray(preprocess_depth(self.depth_port.Eval(context)), float)
         masks = self.masks_port.Eval(context)
         geoms = {o.id: o for o in (self.objects_port.Eval(context) if self.objects_port.HasValue(context) else ())}
         output.set_value(LazyGrasps(lambda oid: self.plan_object(depth, masks, geoms, oid), masks.ids))

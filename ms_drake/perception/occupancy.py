@@ -69,7 +69,7 @@ from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.sensors import ApplyCameraConfig, ImageDepth32F
 
 from ms_drake.errors import PerceptionError
-from ms_drake.geometry import PinholeCamera, Workspace, as_matrix4, depth_array
+from ms_drake.geometry import PinholeCamera, Workspace, as_matrix4, depth_array, preprocess_depth
 from ms_drake.objects import get_object
 from ms_drake.perception.occupancy_net import LearnedOccupancy
 from ms_drake.types import OccupancyMap, TargetEstimate
@@ -438,7 +438,7 @@ class AnalyticOccupancy:
         return out
 
     def estimate(self, depth, target_mask: np.ndarray) -> np.ndarray:
-        matches = self.match(depth, target_mask)
+        matches = self.match(preprocess_depth(depth), target_mask)
         self.last_matches = int(matches.sum())
         return normalize_occupancy(self.accumulate(matches), target_mask)
 
@@ -525,7 +525,7 @@ class RenderedOccupancy:
         return np.where(np.isfinite(d) & (d > 0), d, np.inf)
 
     def estimate(self, depth, target_mask: np.ndarray) -> np.ndarray:
-        D = depth_array(depth)
+        D = depth_array(preprocess_depth(depth))
         D = np.where(np.isfinite(D), D, np.inf)
         M = np.asarray(target_mask, bool)
         m = int(M.sum())
@@ -597,4 +597,4 @@ class OccupancyEstimator(LeafSystem):
             raise PerceptionError("OccupancyEstimator: the depth_image input is not connected")
         target = self.target_port.Eval(context) if self.target_port.HasValue(context) else None
         mask = target.mask if (target is not None and target.visible) else np.zeros(self.shape, bool)
-        output.set_value(OccupancyMap(self.backend.estimate(self.depth_port.Eval(context), mask)))
+        output.set_value(OccupancyMap(self.backend.estimate(preprocess_depth(self.depth_port.Eval(context)), mask)))

@@ -47,6 +47,7 @@ import cv2
 import numpy as np
 
 from ms_drake.errors import PerceptionError
+from ms_drake.geometry import preprocess_depth
 from ms_drake.objects.registry import TARGET_AREA, TARGET_RATIOS, target_box_size  # noqa: F401 (re-exported)
 from ms_drake.paths import models_dir
 from ms_drake.perception.weights import load_network
@@ -288,9 +289,9 @@ class LearnedOccupancy:
         return y
 
     def estimate(self, depth, target_mask: np.ndarray) -> np.ndarray:
-        d = np.asarray(depth.data if hasattr(depth, "data") else depth, np.float32)
-        d = d[..., 0] if d.ndim == 3 else d
-        return full_resolution(self.predict_working(working_inputs(d, target_mask)))
+        """(H, W) distribution from a depth image (read through geometry.preprocess_depth) and the
+        target's modal mask."""
+        return full_resolution(self.predict_working(working_inputs(preprocess_depth(depth), target_mask)))
 
 
 def file_digest(path: Path) -> str:

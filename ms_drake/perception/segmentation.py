@@ -46,7 +46,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from ms_drake.errors import PerceptionError
-from ms_drake.geometry import PinholeCamera, Workspace, depth_array, world_points
+from ms_drake.geometry import PinholeCamera, Workspace, depth_array, preprocess_depth, world_points
 from ms_drake.perception.masks import label_image_to_masks
 from ms_drake.perception.segmentation_net import LearnedSegmentation
 from ms_drake.types import InstanceMasks
@@ -182,10 +182,13 @@ class Segmenter(LeafSystem):
     label_to_id: render label -> object id (masks.object_labels(plant)), for ground_truth.
     params: EuclideanParams / RegionGrowingParams (defaults: tuned values).
     weights: the learned backend's weights file (default: the shipped models/weights/segmentation.pt).
+    fill_holes: the depth backends read the depth through geometry.preprocess_depth (the sensor's
+    holes filled; a clean render is unchanged); False reads the raw depth (for ablations).
     """
 
     def __init__(self, backend: str, camera: PinholeCamera | None = None, workspace: Workspace | None = None,
-                 label_to_id: dict[int, str] | None = None, params=None, min_pixels: int = 20, weights=None):
+                 label_to_id: dict[int, str] | None = None, params=None, min_pixels: int = 20, weights=None,
+                 fill_holes: bool = True):
         super().__init__()
         if backend not in BACKENDS:
             raise PerceptionError(f"Segmenter backend {backend!r} unknown; choose one of {', '.join(BACKENDS)}")
@@ -210,6 +213,7 @@ class Segmenter(LeafSystem):
             params = {"euclidean": EuclideanParams(), "region_growing": RegionGrowingParams()}.get(backend)
         self.params = params
         self.learned = LearnedSegmentation(weights) if backend == "learned" else None
+        self.fill_holes = bool(fill_holes)
 
     def segment(self, depth=None, labels=None) -> InstanceMasks:
         """The computation behind the output port (depth: (H, W) metres; labels: (H, W) ints)."""
@@ -219,6 +223,8 @@ class Segmenter(LeafSystem):
             return label_image_to_masks(np.asarray(labels), self.label_to_id, self.min_pixels)
         if depth is None:
             raise PerceptionError(f"Segmenter({self.backend}): connect or fix the depth_image input")
+        if self.fill_holes:
+            depth = preprocess_depth(depth)
         if self.backend == "learned":
             return self.learned.segment(depth_array(depth))
         P_W = world_points(self.camera, depth_array(depth))

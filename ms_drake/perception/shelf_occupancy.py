@@ -28,6 +28,7 @@ from pydrake.systems.framework import LeafSystem
 from pydrake.systems.sensors import ImageDepth32F
 
 from ms_drake.errors import PerceptionError
+from ms_drake.geometry import preprocess_depth
 from ms_drake.paths import models_dir
 from ms_drake.perception.shelf_occupancy_net import IMAGE_SHAPE, LearnedShelfOccupancy
 from ms_drake.shelf_geometry import (
@@ -119,7 +120,7 @@ class ShelfOccupancyEstimator(LeafSystem):
             if not self.depth_port.HasValue(context):
                 raise PerceptionError("ShelfOccupancyEstimator('learned'): connect the depth_image input (the shelf "
                                       "camera's depth, e.g. ShelfDepthCamera's)")
-            depth = np.array(self.depth_port.Eval(context).data, np.float32)[:, :, 0]
+            depth = preprocess_depth(self.depth_port.Eval(context))
             p = self.model.predict(depth, self.target_size if self.target_size is not None else DEFAULT_TARGET)
             output.set_value(ShelfOccupancy(np.zeros((0, 0)), p))
             return

@@ -45,7 +45,7 @@ from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 
 from ms_drake.errors import PerceptionError
-from ms_drake.geometry import depth_array, world_points
+from ms_drake.geometry import depth_array, preprocess_depth, world_points
 from ms_drake.perception.target import red_pixels
 from ms_drake.shelf_geometry import ShelfGeometry
 from ms_drake.types import InstanceMasks, ShelfObject, ShelfScene
@@ -76,8 +76,9 @@ of its x, y and z ranges left out of the extents (a noisy sensor's stray points)
 
 
 def shelf_points(geometry: ShelfGeometry, depth) -> np.ndarray:
-    """(H, W, 3) shelf-frame points of the shelf camera's depth image (NaN where invalid)."""
-    return world_points(geometry.camera, depth_array(depth)) - np.asarray(geometry.origin, float)
+    """(H, W, 3) shelf-frame points of the shelf camera's depth image (holes filled by
+    geometry.preprocess_depth; NaN where invalid)."""
+    return world_points(geometry.camera, depth_array(preprocess_depth(depth))) - np.asarray(geometry.origin, float)
 
 
 def shelf_foreground(geometry: ShelfGeometry, P: np.ndarray, margin: float) -> np.ndarray:

@@ -36,7 +36,7 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt
 
 from ms_drake.errors import MsDrakeError
-from ms_drake.geometry import PinholeCamera, Workspace, depth_array, world_points
+from ms_drake.geometry import PinholeCamera, Workspace, depth_array, preprocess_depth, world_points
 from ms_drake.types import InstanceMasks, Push
 
 
@@ -204,8 +204,9 @@ def _inside_walls(omap: ObstacleMap, xy: np.ndarray, radius: float) -> np.ndarra
 
 def plan_pushes(depth, masks: InstanceMasks, camera: PinholeCamera, workspace: Workspace,
                 params: PushParams = PushParams()) -> tuple[Push, ...]:
-    """A push for every mask that has a valid one (ids from the masks), in mask order."""
-    D = depth_array(depth)
+    """A push for every mask that has a valid one (ids from the masks), in mask order; the depth is
+    read through geometry.preprocess_depth."""
+    D = depth_array(preprocess_depth(depth))
     if len(masks) and masks.masks.shape[1:] != D.shape:
         raise PushError(f"masks are {masks.masks.shape[2]}x{masks.masks.shape[1]} but the depth image "
                         f"{D.shape[1]}x{D.shape[0]}; segment the same camera's image")

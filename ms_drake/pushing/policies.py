@@ -54,7 +54,7 @@ import coal
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-from ms_drake.geometry import PinholeCamera, Workspace, depth_array, transform_points
+from ms_drake.geometry import PinholeCamera, Workspace, depth_array, preprocess_depth, transform_points
 from ms_drake.pushing.free_space import MAX_PUSH_HEIGHT, MIN_PUSH_HEIGHT, PushError, push_height
 from ms_drake.types import InstanceMasks, ObjectGeometry, Push
 
@@ -372,8 +372,9 @@ class ImageChecker:
 
 def image_scene(depth, masks: InstanceMasks, camera: PinholeCamera, workspace: Workspace,
                 params: PolicyParams = PolicyParams(), max_points: int = 400) -> PushScene:
-    """A PushScene from a depth image and instance masks (one object per mask)."""
-    D = depth_array(depth)
+    """A PushScene from a depth image (read through geometry.preprocess_depth) and instance masks
+    (one object per mask)."""
+    D = depth_array(preprocess_depth(depth))
     if len(masks) and masks.masks.shape[1:] != D.shape:
         raise PushError(f"masks are {masks.masks.shape[2]}x{masks.masks.shape[1]} but the depth image "
                         f"{D.shape[1]}x{D.shape[0]}; segment the same camera's image")

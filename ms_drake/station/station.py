@@ -35,6 +35,7 @@ from ms_drake.station import drivers, robots
 from ms_drake.station import hardware as hw
 from ms_drake.station.environments import environment_sdf
 from ms_drake.station.labels import make_depth_label_image
+from ms_drake.station.sensor_model import DepthSensorModel, depth_sensor_params
 
 OBJECT_PREFIX = "obj"
 
@@ -157,6 +158,21 @@ def _label_image_port(builder, sensor, scene_graph, cam, label_images: str):
 LABEL_IMAGES = ("render", "depth")
 
 
+def _depth_image_port(builder, sensor, scenario: Scenario, cam_name: str):
+    """The camera's depth image through its depth sensor model (scenario.depth_sensors; the
+    RgbdSensor's own port when the model is `none`). Label images keep the perfect depth."""
+    params = depth_sensor_params(scenario.depth_sensors.get(cam_name, "none"))
+    if params.is_identity():
+        return sensor.depth_image_32F_output_port()
+    info = sensor.default_depth_render_camera().core().intrinsics()
+    model = builder.AddNamedSystem(f"depth_sensor_{cam_name}", DepthSensorModel.from_camera_info(
+        params, info, scenario.random_seed, cam_name))
+    builder.Connect(sensor.depth_image_32F_output_port(), model.GetInputPort("depth_image"))
+    if scenario.cameras[cam_name].rgb:
+        builder.Connect(sensor.color_image_output_port(), model.GetInputPort("rgb_image"))
+    return model.GetOutputPort("depth_image")
+
+
 def MakeStation(scenario: Scenario, meshcat=None, hardware: bool | None = None, lcm=None,
                 target_index: int = -1, name: str = "station", label_images: str = "depth",
                 extra_objects=()):
@@ -209,7 +225,7 @@ def MakeStation(scenario: Scenario, meshcat=None, hardware: bool | None = None, 
         if cam.rgb:
             builder.ExportOutput(sensor.color_image_output_port(), f"{cam_name}.rgb_image")
         if cam.depth:
-            builder.ExportOutput(sensor.depth_image_32F_output_port(), f"{cam_name}.depth_image")
+            builder.ExportOutput(_depth_image_port(builder, sensor, scenario, cam_name), f"{cam_name}.depth_image")
         if cam.label:
             builder.ExportOutput(_label_image_port(builder, sensor, scene_graph, cam, label_images),
                                  f"{cam_name}.label_image")
@@ -226,9 +242,29 @@ def MakeStation(scenario: Scenario, meshcat=None, hardware: bool | None = None, 
     builder.ExportOutput(plant.get_state_output_port(), "state")
     if meshcat is not None:
         ApplyVisualizationConfig(scenario.visualization, builder, meshcat=meshcat)
+        frame_meshcat_view(meshcat, scenario)
     diagram = builder.Build()
     diagram.set_name(name)
     return diagram
+
+
+# Meshcat's viewpoint on each environment, relative to its origin: (camera, look-at point) [m].
+MESHCAT_VIEWS = {
+    "bin": ([-0.55, -0.75, 0.75], [0.0, 0.0, 0.0]),  # from the robot's side, above: the bin and its trays
+    "shelf": ([0.55, -1.6, 0.9], [0.0, 0.0, 0.3]),  # in front of the open shelf, a little to the side
+    "table": ([0.9, -1.2, 0.9], [0.0, 0.0, 0.05]),
+}
+
+
+def frame_meshcat_view(meshcat, scenario: Scenario) -> None:
+    """Point Meshcat's camera at the scenario's environment (a recording then opens framed on the
+    bin, shelf or table, not at Meshcat's default view from afar)."""
+    env = scenario.environment
+    if env.type not in MESHCAT_VIEWS:
+        return
+    origin = np.asarray(env.position, float)
+    eye, at = MESHCAT_VIEWS[env.type]
+    meshcat.SetCameraPose(origin + np.asarray(eye), origin + np.asarray(at))
 
 
 def get_plant(station) -> MultibodyPlant:
