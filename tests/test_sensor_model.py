@@ -142,7 +142,9 @@ def test_grazing_surfaces_lose_returns():
     den = 1.0 - np.tan(np.radians(80.0)) * y
     steep = np.broadcast_to(np.where(den > 0.2, 0.8 / np.maximum(den, 0.2), np.inf), (H, W)).astype(np.float32)
     out = _apply(p, steep)
-    rows = slice(int(INTRINSICS[5]) - 30, int(INTRINSICS[5]) + 60)  # incidence 75-85 degrees
+    # incidence 77-81 degrees, neighbouring pixels < 1 cm apart (farther down the plane's rows are
+    # depth steps: the edge term's, switched off here)
+    rows = slice(int(INTRINSICS[5]) - 30, int(INTRINSICS[5]) + 10)
     assert (out[rows] == 0).mean() > 0.4
 
 
