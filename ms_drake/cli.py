@@ -62,7 +62,7 @@ from ms_drake.experiments.matcher_data import (
     write_matcher_dataset,
 )
 from ms_drake.experiments.matcher_learning import train_matcher
-from ms_drake.experiments.rollout import SEARCH_OCCUPANCIES
+from ms_drake.experiments.rollout import SCENARIOS, SEARCH_OCCUPANCIES
 from ms_drake.experiments.mppi_bench import PLANNERS as MPPI_PLANNERS
 from ms_drake.experiments.mppi_bench import bench_mppi
 from ms_drake.experiments.occupancy_data import GROUND_TRUTHS, HEAP_LAYOUTS, write_occupancy_dataset
@@ -143,7 +143,7 @@ from ms_drake.perception.segmentation_net import load_model as load_segmentation
 from ms_drake.perception.shelf_occupancy_net import load_model as load_shelf_occupancy_net
 from ms_drake.perception.segmentation import BACKENDS as SEGMENTATION_BACKENDS
 from ms_drake.perception.target import BACKENDS as DETECTOR_BACKENDS
-from ms_drake.policies.bin_search import GRASP_PLANNERS
+from ms_drake.policies.bin_search import GRASP_PLANNERS, ControllerError, check_search_scenario
 from ms_drake.policies.bin_selectors import POLICIES as BIN_POLICIES
 from ms_drake.policies.bin_selectors import OCCUPANCY_POLICIES, check_policy
 from ms_drake.pushing import POLICIES as PUSH_POLICIES
@@ -189,6 +189,18 @@ def _fail(msg: str, code: int = 2):
 
 def _scenario(file: Optional[Path], name: str):
     return load_scenario(file, name)
+
+
+def _need_search_scenario(file: Optional[Path], name: str, fidelity: str):
+    """The bin-search station of --scenario / --scenario-file (name "" = the fidelity's default), or
+    one clear error: an unknown name, or a station the search cannot run on."""
+    name = name or SCENARIOS[fidelity]
+    scenario = _scenario(file, name)
+    try:
+        check_search_scenario(scenario, fidelity, name)
+    except ControllerError as e:
+        _fail(f"--scenario {name}: {e}")
+    return scenario
 
 
 def _choose(option: str, value, choices, quote: bool = True) -> None:
@@ -295,12 +307,18 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
                                         help="shelf: the controller's perception, ground_truth (the simulation's "
                                              "body poses) or depth (the camera images only, as on hardware)"),
          method: str = typer.Option("coal_reconstruction", "--method",
-                                    help=f"rearrange: the collision checker, {', '.join(REARRANGE_METHODS)}")):
+                                    help=f"rearrange: the collision checker, {', '.join(REARRANGE_METHODS)}"),
+         scenario: str = typer.Option("", "--scenario", help="bin: the station (default FloatingGripperBin; a "
+                                      "robot's, e.g. YuMiBin or PandaBin, searches with that robot in physics)"),
+         scenario_file: Optional[Path] = ScenarioFile):
     """A full search with per-step PNGs, a GIF and a Meshcat recording: `bin` (heap, X-Ray on the
     floating gripper: masks, occupancy, action) or `shelf` (a shelf scene searched by the Fetch with
     the bluction tool in Drake physics: depth, distribution, action)."""
     if kind not in ("bin", "shelf", "rearrange"):
         _fail(f"demo {kind!r}: choose bin, shelf or rearrange")
+    if kind != "bin" and (scenario or scenario_file is not None):
+        _fail(f"--scenario: demo {kind} runs on its own station ({'FetchShelf' if kind == 'shelf' else 'PandaTable'}); "
+              "--scenario picks the bin demo's station")
     if kind == "rearrange":
         _choose("--method", method, REARRANGE_METHODS, quote=False)
         out = out or Path("out/demo_rearrange")
@@ -327,6 +345,9 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
         _echo_written(written)
         typer.echo(f"wrote {len(written)} files to {out} in {time.perf_counter() - t:.1f} s")
         return
+    station = _scenario(scenario_file, scenario or SCENARIOS["primitive"])
+    fidelity = "primitive" if station.robot.name == "floating" else "full"
+    _need_search_scenario(scenario_file, scenario or SCENARIOS["primitive"], fidelity)
     out = out or Path("out/demo")
     seed = DEMO_SEED if seed is None else seed
     objects = 15 if objects is None else objects
@@ -334,9 +355,10 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
     horizon = 10 if horizon is None else horizon
     check_policy(policy)
     t = time.perf_counter()
-    typer.echo(f"generating a {objects}-object heap (seed {seed}) and searching it with {policy} ...")
+    typer.echo(f"generating a {objects}-object heap (seed {seed}) and searching it with {policy} "
+               f"({station.robot.name if fidelity == 'full' else 'floating gripper'}, {fidelity} fidelity) ...")
     written = run_demo(out, seed=seed, objects=objects, policy=policy, horizon=horizon, meshcat_html=meshcat,
-                       log=typer.echo)
+                       log=typer.echo, scenario=station, fidelity=fidelity)
     _echo_written(written)
     typer.echo(f"wrote {len(written)} files to {out} in {time.perf_counter() - t:.1f} s")
 
@@ -486,7 +508,12 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
                  seed_start: int = _seed_start("First heap seed (S)"),
                  workers: int = _workers("Parallel workers (W)"),
                  out: Path = JsonlOut,
-                 fidelity: str = typer.Option("primitive", "--fidelity", help="primitive | full"),
+                 fidelity: str = typer.Option("primitive", "--fidelity", help="primitive (the floating gripper, "
+                                              "grasp outcomes from the contact models) | full (the scenario's robot "
+                                              "in physics)"),
+                 scenario: str = typer.Option("", "--scenario", help="The station: a bin scenario name (default "
+                                              "FloatingGripperBin for primitive, YuMiBin for full; PandaBin: the Panda)"),
+                 scenario_file: Optional[Path] = ScenarioFile,
                  horizon: Optional[int] = typer.Option(None, "--horizon", min=1, help="Action budget (default 2N)"),
                  ray: bool = Ray,
                  ray_address: Optional[str] = RayAddress,
@@ -558,6 +585,7 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
     if protocol in XRAY_PROTOCOLS and horizon is None:
         horizon = XRAY_HORIZON
     _choose("--fidelity", fidelity, FIDELITIES)
+    _need_search_scenario(scenario_file, scenario, fidelity)
     _need_jsonl(out)
     _choose("--occupancy", occupancy, SEARCH_OCCUPANCIES)
     if occupancy != "learned" and (occupancy_weights is not None or policy not in OCCUPANCY_POLICIES):
@@ -583,7 +611,8 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
                   segmenter=segmenter, detector=detector, push_policy=push_policy, grasp_planner=grasp_planner,
                   heap_engine=heap_engine, grasp_outcome=grasp_outcome, grasp_samples=grasp_samples,
                   occupancy_weights=str(occupancy_weights) if occupancy_weights is not None else "",
-                  occupancy=occupancy, skip_failed=skip_failed, jaw_contact=jaw_contact)
+                  occupancy=occupancy, skip_failed=skip_failed, jaw_contact=jaw_contact, scenario=scenario,
+                  scenario_file=str(scenario_file) if scenario_file is not None else "")
     if s["resumed"]:
         typer.echo(f"resuming: {s['resumed']} of {heaps_} rollouts already in {out}")
     typer.echo(format_summary(policy, s))

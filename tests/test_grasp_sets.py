@@ -191,7 +191,8 @@ def test_indexed_planner_wired_in_the_search_diagram():
         heap_grasp_inputs,
         scene_shapes,
     )
-    from ms_drake.experiments.rollout import SearchParams, _set_initial, build_search
+    from ms_drake.experiments.rollout import SearchParams, build_search
+    from ms_drake.policies.bin_search import set_initial_conditions
     from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap
 
     heap = generate_heap(load_scenario(None, "BinHeap15"), 4, seed=3, params=SEARCH_HEAPS)
@@ -200,7 +201,7 @@ def test_indexed_planner_wired_in_the_search_diagram():
     gp = system.controller.GetSubsystemByName("grasp_planner")
     assert isinstance(gp, IndexedGraspPlanner) and len(gp.sets) == len(heap.objects)
     ctx = Simulator(system.diagram).get_mutable_context()
-    _set_initial(system, ctx, heap)
+    set_initial_conditions(system.diagram, ctx, heap)
     grasps = system.output(ctx, "grasps")
     action = system.output(ctx, "action")
     assert action.kind == "grasp" and action.grasp.object_id in grasps.planned

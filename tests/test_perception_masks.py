@@ -103,7 +103,8 @@ def test_target_amodal_mask_alone_picks_the_target_or_nothing():
 def test_target_amodal_mask_wired_in_the_oracle_controller(small_heap):
     """The oracle's bin-search diagram: station body_poses -> AmodalMasks -> TargetAmodalMask ->
     PolicySelector.target_amodal; the mask is the target's silhouette at its pose in the plant."""
-    from ms_drake.experiments.rollout import SearchParams, _set_initial, build_search
+    from ms_drake.experiments.rollout import SearchParams, build_search
+    from ms_drake.policies.bin_search import set_initial_conditions
     from ms_drake.scenario import load_scenario
 
     system = build_search(load_scenario(None, "FloatingGripperBin"), small_heap,
@@ -112,7 +113,7 @@ def test_target_amodal_mask_wired_in_the_oracle_controller(small_heap):
     pick, amodal, selector = subsystems["TargetAmodalMask"], subsystems["AmodalMasks"], subsystems["PolicySelector"]
     assert pick.target_id == system.target_id
     ctx = system.diagram.CreateDefaultContext()
-    _set_initial(system, ctx, small_heap)
+    set_initial_conditions(system.diagram, ctx, small_heap)
     mask = pick.get_output_port().Eval(pick.GetMyContextFromRoot(ctx))
     full = amodal.get_output_port().Eval(amodal.GetMyContextFromRoot(ctx))
     assert mask.shape == (480, 640) and mask.dtype == bool and mask.sum() > 500

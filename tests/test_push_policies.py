@@ -10,11 +10,11 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.sensors import ImageDepth32F
 
-from ms_drake.experiments.rollout import SearchParams, _set_initial, build_search
+from ms_drake.experiments.rollout import SearchParams, build_search
+from ms_drake.policies.bin_search import BinSearchParams, set_initial_conditions
 from ms_drake.geometry import PinholeCamera, Workspace, world_points
 from ms_drake.perception.masks import object_labels
 from ms_drake.perception.segmentation import Segmenter
-from ms_drake.policies.bin_search import BinSearchParams
 from ms_drake.pushing import (
     POLICIES,
     PolicyParams,
@@ -279,7 +279,7 @@ def test_push_policy_in_the_bin_search_controller(small_heap):
     sysm = system.controller.GetSubsystemByName("push_planner")
     assert isinstance(sysm, PushPolicySystem) and sysm.policy == "max_clearance"
     ctx = Simulator(system.diagram).get_mutable_context()
-    _set_initial(system, ctx, small_heap)
+    set_initial_conditions(system.diagram, ctx, small_heap)
     pushes = system.output(ctx, "pushes")
     masks = system.output(ctx, "masks")
     assert len(pushes) == 1 and pushes[0].object_id in masks.ids

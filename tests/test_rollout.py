@@ -22,14 +22,15 @@ def scene(heap4):
     """A search system on heap4 and its first observation: depth, masks, object geometry."""
     from pydrake.systems.analysis import Simulator
 
-    from ms_drake.experiments.rollout import SearchParams, _set_initial, build_search
+    from ms_drake.experiments.rollout import SearchParams, build_search
+    from ms_drake.policies.bin_search import set_initial_conditions
     from ms_drake.scenario import load_scenario
 
     params = SearchParams(policy="largest", seed=5, time_step=0.01, grasp_planner="image")
     system = build_search(load_scenario(None, "FloatingGripperBin"), heap4, params)
     sim = Simulator(system.diagram)
     ctx = sim.get_mutable_context()
-    _set_initial(system, ctx, heap4)
+    set_initial_conditions(system.diagram, ctx, heap4)
     gp = system.controller.GetSubsystemByName("grasp_planner")
     gctx = gp.GetMyContextFromRoot(ctx)
     depth = np.asarray(gp.depth_port.Eval(gctx).data, float)[..., 0]

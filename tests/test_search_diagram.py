@@ -202,3 +202,17 @@ def test_the_diagram_example_agrees_with_bench_search_action_by_action(tmp_path,
         assert (got["success"], got["actions"], got["action_kinds"], got["stop_reason"]) == \
             (rec["success"], rec["actions"], rec["action_kinds"], rec["stop_reason"]), seed
         assert got["grasp_objects"] == rec["grasp_objects"], seed
+
+
+@pytest.mark.parametrize("args,message", [
+    (["bench", "search", "--policy", "largest", "--scenario", "FetchShelf"], "a bin search needs a bin scenario"),
+    (["bench", "search", "--policy", "largest", "--scenario", "PandaBin"], "use fidelity full for a robot"),
+    (["bench", "search", "--policy", "largest", "--scenario", "Nope"], "no scenario named 'Nope'"),
+    (["bench", "search", "--policy", "largest", "--fidelity", "full", "--scenario", "BinHeap15"], "has no robot"),
+    (["demo", "--scenario", "PandaTable"], "a bin search needs a bin scenario"),
+    (["demo", "shelf", "--scenario", "PandaBin"], "runs on its own station"),
+])
+def test_unsuitable_scenarios_get_one_clear_error(tmp_path, args, message):
+    out = subprocess.run([str(Path(sys.executable).parent / "ms-drake"), *args, "--out", str(tmp_path / "o.jsonl")],
+                         cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 2 and message in out.stderr and "Traceback" not in out.stderr

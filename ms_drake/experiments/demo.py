@@ -1,4 +1,5 @@
-"""`ms-drake demo`: one full X-Ray search on the floating gripper (primitive fidelity), written out.
+"""`ms-drake demo`: one full X-Ray search, written out: on the floating gripper (primitive fidelity)
+by default, or with a robot's station (YuMiBin, PandaBin) in physics.
 
 The heap is one of Table 8.2's (`protocol="xray"`, ms_drake.experiments.xray: the lid target
 dropped first, 14 unseen mesh objects piled on it; X-Ray reads the learned occupancy), seed
@@ -71,6 +72,14 @@ def _draw_action(rgb: np.ndarray, action, camera) -> np.ndarray:
     return pic
 
 
+# How a search ended, in words (the selector's stop reasons).
+SEARCH_ENDS = {"success": "success: the target is out of the bin",
+               "target_removed": "failure: the target left the bin by accident",
+               "no_action": "failure: no action left to plan",
+               "horizon": "failure: the action budget ran out",
+               "too_many_pushes": "failure: too many pushes in a row"}
+
+
 def frame_image(frame, camera) -> np.ndarray:
     """The three panels of one step side by side (RGB, uint8)."""
     rgb = frame.rgb
@@ -78,9 +87,11 @@ def frame_image(frame, camera) -> np.ndarray:
     if frame.target.visible:
         cnts, _ = cv2.findContours(frame.target.mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
         cv2.drawContours(masks, cnts, -1, (255, 0, 0), 3)
-    cv2.putText(masks, f"step {frame.step}: {len(frame.masks)} masks, target "
-                f"{'visible' if frame.target.visible else 'hidden'}", (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.6,
-                (255, 255, 255), 2)
+    if frame.action.kind == "stop":  # the search is over: say how it ended
+        text = f"step {frame.step}: {SEARCH_ENDS.get(frame.action.reason, 'search over: ' + frame.action.reason)}"
+    else:
+        text = f"step {frame.step}: {len(frame.masks)} masks, target {'visible' if frame.target.visible else 'hidden'}"
+    cv2.putText(masks, text, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 2)
     occ = _overlay_occupancy(rgb, frame.occupancy)
     cv2.putText(occ, "target occupancy (X-Ray)", (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 2)
     return np.concatenate([masks, occ, _draw_action(rgb, frame.action, camera)], axis=1)
@@ -91,8 +102,10 @@ PROTOCOLS = ("xray", "ch7")
 
 
 def run_demo(out: Path, seed: int = DEMO_SEED, objects: int = 15, policy: str = "xray", horizon: int = 10,
-             meshcat_html: bool = True, log=print, protocol: str = "xray") -> dict:
-    """Generate the heap, write the initial scene, run the search and write its pictures."""
+             meshcat_html: bool = True, log=print, protocol: str = "xray", scenario=None,
+             fidelity: str = "primitive") -> dict:
+    """Generate the heap, write the initial scene, run the search and write its pictures.
+    scenario: the station (default FloatingGripperBin); fidelity "full" searches with its robot."""
     if protocol not in PROTOCOLS:
         raise ValueError(f"demo protocol {protocol!r} unknown; choose one of {', '.join(PROTOCOLS)}")
     out = Path(out)
@@ -106,11 +119,11 @@ def run_demo(out: Path, seed: int = DEMO_SEED, objects: int = 15, policy: str = 
     meshcat = None
     if meshcat_html:
         meshcat = Meshcat()
-    params = SearchParams(policy=policy, fidelity="primitive", horizon=horizon, seed=seed,
-                          time_step=primitive_time_step(policy))
-    scenario = load_scenario(None, SCENARIOS["primitive"])
+    params = SearchParams(policy=policy, fidelity=fidelity, horizon=horizon, seed=seed,
+                          time_step=primitive_time_step(policy) if fidelity == "primitive" else None)
+    scenario = scenario if scenario is not None else load_scenario(None, SCENARIOS["primitive"])
     system = build_search(scenario, heap, params, meshcat=meshcat)
-    res = run_search(system, heap, params, keep_frames=True, meshcat=meshcat)
+    res = run_search(system, heap, params, keep_frames=True, meshcat=meshcat, after=1.5 if meshcat else 0.0)
     camera = PinholeCamera.from_config(system.scenario.cameras["overhead"])
     written.update(write_search_pictures(out, [(fr.step, frame_image(fr, camera)) for fr in res.frames], res.record(),
                                          meshcat, gif_seconds=1.0))

@@ -116,14 +116,16 @@ heap_generator_key; one made with other settings raises HeapError (files without
 OPTION_DEFAULTS = (("segmenter", "ground_truth"), ("detector", "color"), ("push_policy", ""),
                    ("grasp_planner", "image"), ("heap_engine", "drake"), ("grasp_outcome", "draw"),
                    ("grasp_samples", 8), ("occupancy_weights", ""), ("occupancy", "learned"),
-                   ("skip_failed", False), ("jaw_contact", "center"))
+                   ("skip_failed", False), ("jaw_contact", "center"), ("scenario", ""), ("scenario_file", ""))
 
 
 def search_options(fidelity: str = "primitive", segmenter: str = "ground_truth", detector: str = "color",
                    push_policy: str = "", grasp_planner: str = "", heap_engine: str = "drake",
                    grasp_outcome: str = "draw", grasp_samples: int = 8, occupancy_weights: str = "",
-                   occupancy: str = "learned", skip_failed: bool = False, jaw_contact: str = "center") -> dict:
-    """The options of a run: the controller's (SearchParams keywords; grasp_planner resolved as the
+                   occupancy: str = "learned", skip_failed: bool = False, jaw_contact: str = "center",
+                   scenario: str = "", scenario_file: str = "") -> dict:
+    """The options of a run: the station (scenario name and file, "" = the fidelity's default:
+    FloatingGripperBin for primitive, YuMiBin for full), the controller's (SearchParams keywords; grasp_planner resolved as the
     controller resolves it, "" = indexed for the primitive fidelity, image for the full one;
     grasp_samples: the image planners' candidates per mask; occupancy_weights: the learned
     occupancy's weights file, "" = the shipped one; occupancy: X-Ray's estimator, SEARCH_OCCUPANCIES;
@@ -142,7 +144,7 @@ def search_options(fidelity: str = "primitive", segmenter: str = "ground_truth",
     return {"segmenter": segmenter, "detector": detector, "push_policy": push_policy, "grasp_planner": grasp_planner,
             "heap_engine": heap_engine, "grasp_outcome": grasp_outcome, "grasp_samples": int(grasp_samples),
             "occupancy_weights": str(occupancy_weights), "occupancy": occupancy, "skip_failed": bool(skip_failed),
-            "jaw_contact": jaw_contact}
+            "jaw_contact": jaw_contact, "scenario": str(scenario), "scenario_file": str(scenario_file)}
 
 
 def rollout_job(job: tuple) -> dict:
@@ -152,9 +154,13 @@ def rollout_job(job: tuple) -> dict:
     protocol = rest[1] if len(rest) > 1 else "ch7"
     opts = dict(rest[2] if len(rest) > 2 else search_options(fidelity))
     engine = opts.pop("heap_engine", "drake")
+    scenario, scenario_file = opts.pop("scenario", ""), opts.pop("scenario_file", "")
     heap = cached_heap(objects, seed, rest[0] if rest else None, protocol, engine)
-    rec = rollout(policy, objects, seed, fidelity, horizon, heap=heap, **opts).record()
+    rec = rollout(policy, objects, seed, fidelity, horizon, heap=heap, scenario_name=scenario or None,
+                  scenario_file=scenario_file or None, **opts).record()
     rec["heap_engine"] = engine
+    if scenario or scenario_file:
+        rec.update(scenario=scenario, scenario_file=scenario_file)
     rec["heap_digest"] = heap_digest(heap)
     rec["code"] = code_version()
     rec["horizon"] = horizon
@@ -292,7 +298,8 @@ def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, wo
               protocol: str = "ch7", segmenter: str = "ground_truth", detector: str = "color",
               push_policy: str = "", grasp_planner: str = "", heap_engine: str = "drake",
               grasp_outcome: str = "draw", grasp_samples: int = 8, occupancy_weights: str = "",
-              occupancy: str = "learned", skip_failed: bool = False, jaw_contact: str = "center") -> dict:
+              occupancy: str = "learned", skip_failed: bool = False, jaw_contact: str = "center",
+              scenario: str = "", scenario_file: str = "") -> dict:
     """The missing rollouts of every run (policy, N, result file) on seeds S..S+K-1, all through
     ONE pool of `workers` processes; each record is appended (flushed, fsync'ed) to its run's file
     as it completes, so a killed run loses only the rollouts in flight and the same command
@@ -302,13 +309,13 @@ def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, wo
     push_policy: the *_push selectors' push policy (SearchParams.push_policy, "" = Ch. 7's);
     grasp_planner: SearchParams.grasp_planner ("" = the fidelity's default); heap_engine: the
     heaps' drop physics (HEAP_ENGINES); grasp_outcome / grasp_samples / occupancy_weights / occupancy / skip_failed /
-    jaw_contact: SearchParams'. A
+    jaw_contact: SearchParams'; scenario / scenario_file: the station (search_options). A
     record counts as done only when all of these match.
     Returns {(policy, N): summary}."""
     if heap_engine not in HEAP_ENGINES:
         raise ValueError(f"heap engine {heap_engine!r} unknown; choose one of {', '.join(HEAP_ENGINES)}")
     opts = search_options(fidelity, segmenter, detector, push_policy, grasp_planner, heap_engine, grasp_outcome,
-                          grasp_samples, occupancy_weights, occupancy, skip_failed, jaw_contact)
+                          grasp_samples, occupancy_weights, occupancy, skip_failed, jaw_contact, scenario, scenario_file)
     jobs, done = [], {}
     for policy, objects, out in runs:
         out = Path(out)
@@ -361,7 +368,8 @@ def run_bench(policy: str, objects: int, heaps: int, seed_start: int, out: Path,
               protocol: str = "ch7", segmenter: str = "ground_truth", detector: str = "color",
               push_policy: str = "", grasp_planner: str = "", heap_engine: str = "drake",
               grasp_outcome: str = "draw", grasp_samples: int = 8, occupancy_weights: str = "",
-              occupancy: str = "learned", skip_failed: bool = False, jaw_contact: str = "center") -> dict:
+              occupancy: str = "learned", skip_failed: bool = False, jaw_contact: str = "center",
+              scenario: str = "", scenario_file: str = "") -> dict:
     """Run the missing rollouts of seeds S..S+K-1, append them to `out`; returns the summary."""
     return run_suite([(policy, objects, Path(out))], heaps, seed_start, workers=workers, fidelity=fidelity,
                      horizon=horizon, use_ray=use_ray, ray_address=ray_address, progress=progress,
@@ -369,7 +377,8 @@ def run_bench(policy: str, objects: int, heaps: int, seed_start: int, out: Path,
                      push_policy=push_policy, grasp_planner=grasp_planner,
                      heap_engine=heap_engine, grasp_outcome=grasp_outcome,
                      grasp_samples=grasp_samples, occupancy_weights=occupancy_weights,
-                     occupancy=occupancy, skip_failed=skip_failed, jaw_contact=jaw_contact)[(policy, objects)]
+                     occupancy=occupancy, skip_failed=skip_failed, jaw_contact=jaw_contact, scenario=scenario,
+                     scenario_file=scenario_file)[(policy, objects)]
 
 
 def truncate_record(rec: dict, horizon: int) -> dict:

@@ -30,6 +30,7 @@ from ms_drake.policies.bin_search import (
     BinSearchParams,
     MakeBinSearchController,
     SimulationInfo,
+    check_search_scenario,
     connect_controller,
     search_scenario,
     set_initial_conditions,
@@ -278,9 +279,12 @@ class SearchObserver:
         self.executor = system.controller.GetSubsystemByName("action_executor")
         self.seen_visible, self.frames, self.grasp_plans = False, [], 0
         self._last_steps, self._step_grasps = -1, None
+        self.t_end = None  # when the search ended (its status done)
 
     def __call__(self, context):
         ctx = self.executor.GetMyContextFromRoot(context)
+        if self.t_end is None and self.system.output(context, "status").done:
+            self.t_end = float(context.get_time())
         if self.executor.ready_to_act(ctx):
             steps = self.system.output(context, "status").steps
             if steps != self._last_steps:
@@ -305,11 +309,12 @@ class SearchObserver:
 
 
 def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: float | None = None,
-               keep_frames: bool = False, meshcat=None, on_idle=None) -> RolloutResult:
+               keep_frames: bool = False, meshcat=None, on_idle=None, after: float = 0.0) -> RolloutResult:
     """Simulate the search diagram until it ends itself (the executor's termination event) or
     `max_sim_time` passes; returns the rollout's result (with frames if asked). Nothing here changes
     the plant after the initial conditions: removals, the end and blow-ups happen inside the diagram.
-    on_idle(system, context, step): see SearchObserver."""
+    on_idle(system, context, step): see SearchObserver. after: simulate on so many seconds once the
+    search has ended (a recording then shows the last object carried away; the record is the same)."""
     n = len(heap.objects)
     horizon = params.horizon if params.horizon is not None else 2 * n
     max_sim_time = max_sim_time or 30.0 + 12.0 * horizon
@@ -326,6 +331,11 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
     try:
         simulator.Initialize()
         simulator.AdvanceTo(max_sim_time)
+        if after > 0:
+            simulator.AdvanceTo(context.get_time() + after)
+            if keep_frames and observer.frames and observer.frames[-1].action.kind == "stop":
+                # the last frame shows the scene the search left behind (the last object carried away)
+                observer.frames[-1] = _frame(system, context, observer.frames[-1].step)
     except RuntimeError as e:  # Drake solver failures and the executor's non-finite check
         failure = "sim_blew_up"
         msg = str(e).splitlines()[0] if str(e) else type(e).__name__
@@ -334,6 +344,7 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
             meshcat.StopRecording()
             meshcat.PublishRecording()
     grasp_plans = observer.finish()
+    t_end = observer.t_end if observer.t_end is not None else float(context.get_time())
     status = system.output(context, "status")
     history = system.output(context, "history")
     if not failure and not status.done:
@@ -352,7 +363,7 @@ def run_search(system: SearchSystem, heap, params: SearchParams, max_sim_time: f
                         success=success,
                         actions=len(history), action_kinds=kinds, failure=failure, stop_reason=reason,
                         seconds=time.perf_counter() - t_wall, cpu_seconds=time.process_time() - t_cpu,
-                        sim_seconds=float(context.get_time()),
+                        sim_seconds=t_end,
                         target=heap.target, segmenter=params.segmenter, detector=params.detector,
                         grasp_successes=sum(1 for o in history if o.action.kind == "grasp" and o.success),
                         grasp_plans=grasp_plans, grasp_planner=system.controller.params.grasp_planner,
@@ -380,14 +391,17 @@ def primitive_time_step(policy: str) -> float:
 
 def rollout(policy: str, objects: int, seed: int, fidelity: str = "primitive", horizon: int | None = None,
             heap=None, keep_frames: bool = False, meshcat=None, scenario_name: str | None = None,
-            **kw) -> RolloutResult:
+            scenario_file: str | None = None, **kw) -> RolloutResult:
     """Generate heap `seed` (N objects, BinHeap15's bin) and search it with `policy` on the station
-    of `scenario_name` (default: FloatingGripperBin for primitive, YuMiBin for full fidelity)."""
+    of `scenario_name` in `scenario_file` (defaults: FloatingGripperBin for primitive, YuMiBin for
+    full fidelity, in diagrams/scenarios.yaml); full fidelity uses the scenario's robot."""
     kw.setdefault("time_step", primitive_time_step(policy) if fidelity == "primitive" else None)
     params = SearchParams(policy=policy, fidelity=fidelity, horizon=horizon, seed=seed, **kw)
     if heap is None:
         heap = generate_heap(load_scenario(None, "BinHeap15"), objects, seed, params=SEARCH_HEAPS)
-    scenario = load_scenario(None, scenario_name or SCENARIOS[fidelity])
+    name = scenario_name or SCENARIOS[fidelity]
+    scenario = load_scenario(scenario_file, name)
+    check_search_scenario(scenario, fidelity, name)
     system = build_search(scenario, heap, params, meshcat=meshcat)
     res = run_search(system, heap, params, keep_frames=keep_frames, meshcat=meshcat)
     res.objects = int(objects)  # the N asked for: what the benchmark's files are keyed by

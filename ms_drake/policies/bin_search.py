@@ -49,6 +49,7 @@ from ms_drake.execution import (
     FIDELITIES,
     GRASP_OUTCOMES,
     LIFT_THRESHOLD,
+    PRIMITIVE_PUSH_TIME_STEP,
     ActionExecutor,
     FullBackend,
     ObjectCarrier,
@@ -71,12 +72,14 @@ from ms_drake.perception.segmentation import BACKENDS as SEGMENTATION_BACKENDS
 from ms_drake.perception.segmentation import Segmenter
 from ms_drake.perception.target import BACKENDS as DETECTOR_BACKENDS
 from ms_drake.perception.target import TargetDetector, render_templates
-from ms_drake.policies.bin_selectors import OCCUPANCY_POLICIES, SelectorParams, check_policy
+from ms_drake.policies.bin_selectors import OCCUPANCY_POLICIES, PUSHING, SelectorParams, check_policy
 from ms_drake.policies.selector import PolicySelector
 from ms_drake.pushing import PushPlanner, PushPolicySystem, check_push_policy
 from ms_drake.scenario import load_scenario
+from ms_drake.scenes.heaps import scenario_with_heap, set_heap_poses
 from ms_drake.station import get_plant, station_objects
 from ms_drake.station.environments import dropoff_points
+from ms_drake.station.robots import set_arm_positions
 
 
 GRASP_PLANNERS = ("indexed", "image")
@@ -438,15 +441,34 @@ class BinSearchController(Diagram):
         return self._backend.initial_commands()
 
 
+BIN_SEARCH_SCENARIOS = "FloatingGripperBin (primitive or full), YuMiBin or PandaBin (full)"
+
+
+def check_search_scenario(scenario, fidelity: str, name: str = "") -> None:
+    """ControllerError (naming the scenario and the fix) unless `scenario` is a station a bin search
+    of `fidelity` runs on: a bin with an overhead camera; the primitive mode on the floating gripper,
+    full fidelity on any robot."""
+    label = f"scenario {name!r}" if name else "the scenario"
+    if fidelity not in FIDELITIES:
+        raise ControllerError(f"fidelity {fidelity!r} unknown; choose one of {', '.join(FIDELITIES)}")
+    if scenario.environment.type != "bin":
+        raise ControllerError(f"{label} is a {scenario.environment.type} station; a bin search needs a bin scenario: "
+                              f"{BIN_SEARCH_SCENARIOS}")
+    if "overhead" not in scenario.cameras:
+        raise ControllerError(f"{label} has no overhead camera (cameras: {', '.join(scenario.cameras) or 'none'}); "
+                              "add one as in diagrams/scenarios.yaml's bin scenarios")
+    if fidelity == "primitive" and scenario.robot.name != "floating":
+        raise ControllerError(f"{label} has the robot {scenario.robot.name or 'none'!r}: the primitive mode runs on the "
+                              "floating gripper (FloatingGripperBin); use fidelity full for a robot")
+    if fidelity == "full" and not scenario.robot.name:
+        raise ControllerError(f"{label} has no robot: full fidelity needs one ({BIN_SEARCH_SCENARIOS})")
+
+
 def search_scenario(scenario, heap, fidelity: str = "primitive", policy: str = "largest"):
     """The station scenario of a search of `heap` on `scenario`'s station: its objects are the
     heap's (scenario_with_heap) and, in the primitive mode, the plant steps at the primitive mode's
     rate (10 ms; 5 ms for the selectors that push: execution.PRIMITIVE_PUSH_TIME_STEP, where the
     floating jaw's push moves objects as the YuMi's does). `scenario` is not changed."""
-    from ms_drake.execution import PRIMITIVE_PUSH_TIME_STEP
-    from ms_drake.policies.bin_selectors import PUSHING
-    from ms_drake.scenes.heaps import scenario_with_heap
-
     check_policy(policy)
     if fidelity not in FIDELITIES:
         raise ControllerError(f"fidelity {fidelity!r} unknown; choose one of {', '.join(FIDELITIES)}")
@@ -480,9 +502,6 @@ def set_initial_conditions(diagram, context, heap) -> None:
     robot where the controller starts (arm parked out of the camera's view, jaw open, vacuum off).
     `diagram` holds one station built from `search_scenario(scenario, heap, ...)` (or
     `scenario_with_heap`) and one controller of MakeBinSearchController."""
-    from ms_drake.scenes.heaps import set_heap_poses
-    from ms_drake.station.robots import set_arm_positions
-
     station, controller = _search_parts(diagram)
     set_heap_poses(station, context, heap)
     plant = get_plant(station)
