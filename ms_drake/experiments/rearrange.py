@@ -6,9 +6,12 @@ ms_drake.policies.rearrange wired to the PandaTable station.
 - `table_scene(seed, objects)`: a Table 6.3 scene: `objects` procedural objects in stable poses,
   without collision, in the Panda's reach on the table (ms_drake.scenes.tabletop.place_objects on
   the reachable part), in a seeded random order.
-- `build_rearrange(scenario, scene, params)`: station + controller (three lines) + the robot at
-  home; `run_rearrange(system, ...)`: simulate until the controller is done (or a time limit),
-  judging each attempt with the simulation's truth: grasped = the target rose by more than half
+- `build_rearrange(scenario, scene, params)`: station + controller (three lines) + the run's end
+  (ms_drake.execution.termination.StopWhenDone: 0.5 s after the controller is done, the scene at
+  rest); `set_initial(system, context)`: the initial conditions (the heap's poses, the robot at
+  home); `run_rearrange(system, ...)`: one Simulator.AdvanceTo, which returns when the end stops it
+  (or at the time limit), judging each attempt with the simulation's truth (read by a Simulator
+  monitor at the end's check times, every 0.1 s): grasped = the target rose by more than half
   the lift while the attempt ran; placed = it ends at rest in the zone (its centre within it),
   at least 5 cm from where it started, below 5 cm above the table's or an object's top (not held,
   not thrown away).
@@ -32,11 +35,12 @@ import cv2
 import imageio
 import numpy as np
 from pydrake.geometry import Meshcat
-from pydrake.math import RotationMatrix
+from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
-from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.framework import DiagramBuilder, EventStatus
 
 from ms_drake.errors import MsDrakeError
+from ms_drake.execution.termination import StopWhenDone
 from ms_drake.experiments.harness import read_records
 from ms_drake.objects import get_object
 from ms_drake.objects.registry import get_object_set
@@ -45,6 +49,7 @@ from ms_drake.policies.rearrange import (
     METHODS,
     MakeRearrangementController,
     RearrangeParams,
+    RearrangeStatus,
     connect_controller,
     sim_info,
 )
@@ -62,6 +67,8 @@ BENCH_ZONE = REACH
 #: The demo's zone: beyond the barrier.
 DEMO_ZONE = (-0.40, 0.0, 0.06, 0.28)
 DEMO_SEED = 0
+#: The run's check period [s] and the rest after the controller is done [s] (StopWhenDone).
+CHECK_PERIOD, REST = 0.1, 0.5
 
 
 class RearrangeError(MsDrakeError, ValueError):
@@ -111,6 +118,7 @@ class RearrangeSystem:
     heap: Heap
     targets: tuple  # model names in order
     bodies: dict  # model name -> body index
+    termination: object = None  # StopWhenDone
 
     def station_output(self, context, name):
         return self.station.GetOutputPort(name).Eval(self.station.GetMyContextFromRoot(context))
@@ -133,13 +141,18 @@ def build_rearrange(scenario, heap: Heap, params: RearrangeParams, order=None, m
     controller = builder.AddSystem(MakeRearrangementController(
         scn, params, sim=sim_info(plant, names), targets=targets or len(names), net=net))
     connect_controller(builder, controller, station)
+    end = builder.AddNamedSystem("termination", StopWhenDone(CHECK_PERIOD, REST, status_model=RearrangeStatus(),
+                                                             poses_model=[RigidTransform()]))
+    builder.Connect(controller.GetOutputPort("status"), end.status_port)
+    builder.Connect(station.GetOutputPort("body_poses"), end.poses_port)
     diagram = builder.Build()
     return RearrangeSystem(diagram, station, controller, plant, scn, heap, names,
-                           {o.model_name: int(o.body_index) for o in objs})
+                           {o.model_name: int(o.body_index) for o in objs}, end)
 
 
 def set_initial(system: RearrangeSystem, context) -> None:
-    """The heap's objects at their poses, the Panda at the controller's home."""
+    """The run's initial conditions on the Diagram's root context: the heap's objects at their
+    poses, the Panda at the controller's home."""
     set_heap_poses(system.station, context, system.heap)
     pc = system.plant.GetMyMutableContextFromRoot(context)
     robot = system.plant.GetModelInstanceByName("panda")
@@ -157,52 +170,63 @@ def _in_zone(p, zone, margin: float = 0.0) -> bool:
     return x0 - margin <= p[0] <= x1 + margin and y0 - margin <= p[1] <= y1 + margin
 
 
+class _RearrangeMonitor:
+    """Read-only Simulator monitor of a rearrangement run: at the end's check times, each target's
+    highest centre so far, the attempts as they finish (log) and, every `frame_every` s, the camera
+    image."""
+
+    def __init__(self, system: RearrangeSystem, frame_every: float | None, log):
+        self.system, self.frame_every, self.log = system, frame_every, log
+        self.peak = {k: -np.inf for k in system.bodies}
+        self.frames, self.seen, self.next_frame = [], 0, 0.0
+
+    def __call__(self, ctx):
+        system, t = self.system, ctx.get_time()
+        if not system.termination.is_check_time(t):
+            return EventStatus.Succeeded()
+        poses = system.station_output(ctx, "body_poses")
+        status = system.output(ctx, "status")
+        if status.target in self.peak:
+            self.peak[status.target] = max(self.peak[status.target], poses[system.bodies[status.target]].translation()[2])
+        hist = system.output(ctx, "history")
+        if self.log is not None and len(hist) > self.seen:
+            for o in hist[self.seen:]:
+                self.log(f"    t={t:6.1f} s {o.target} attempt {o.attempt}: {o.status} (mppi calls {o.mppi_calls}, "
+                         f"planning {o.plan_seconds:.1f} s cpu)")
+            self.seen = len(hist)
+        if self.frame_every is not None and t > 0 and t >= self.next_frame - 1e-9:
+            rgb = np.asarray(system.station_output(ctx, "front.rgb_image").data)[:, :, :3].copy()
+            self.frames.append((t, status.phase, rgb))
+            self.next_frame = t + self.frame_every
+        return EventStatus.Succeeded()
+
+
 def run_rearrange(system: RearrangeSystem, params: RearrangeParams, seed: int = 0, max_sim: float = 600.0,
                   frame_every: float | None = None, meshcat=None, log=None) -> RearrangeResult:
-    """Simulate until the controller is done or `max_sim` s (module doc); frame_every: keep the
-    camera's rgb image every so many simulated seconds (the demo's GIF)."""
+    """Simulate until the Diagram's end stops it (the controller done, then 0.5 s of rest) or
+    `max_sim` s (module doc); frame_every: keep the camera's rgb image every so many simulated
+    seconds (the demo's GIF)."""
     sim = Simulator(system.diagram)
     ApplySimulatorConfig(system.scenario.simulator_config, sim)
     ctx = sim.get_mutable_context()
     set_initial(system, ctx)
-    sim.Initialize()
+    start = {k: system.station_output(ctx, "body_poses")[b].translation() for k, b in system.bodies.items()}
+    monitor = _RearrangeMonitor(system, frame_every, log)
+    sim.set_monitor(monitor)
     if meshcat is not None:
         meshcat.StartRecording(set_visualizations_while_recording=False)
-    start = {k: system.station_output(ctx, "body_poses")[b].translation() for k, b in system.bodies.items()}
-    peak = {k: -np.inf for k in system.bodies}
-    frames, t, dt = [], 0.0, 0.1
     wall, cpu = time.perf_counter(), time.process_time()
-    next_frame = 0.0
     failure = ""
-    seen = 0
-    while t < max_sim:
-        t += dt
-        try:
-            sim.AdvanceTo(t)
-        except RuntimeError as e:  # a simulation failure ends the run; its record says so
-            failure = f"simulation: {str(e).splitlines()[0][:120]}"
-            break
-        poses = system.station_output(ctx, "body_poses")
-        status = system.output(ctx, "status")
-        if status.target in peak:
-            peak[status.target] = max(peak[status.target], poses[system.bodies[status.target]].translation()[2])
-        hist = system.output(ctx, "history")
-        if log is not None and len(hist) > seen:
-            for o in hist[seen:]:
-                log(f"    t={t:6.1f} s {o.target} attempt {o.attempt}: {o.status} (mppi calls {o.mppi_calls}, "
-                    f"planning {o.plan_seconds:.1f} s cpu)")
-            seen = len(hist)
-        if frame_every is not None and t >= next_frame:
-            rgb = np.asarray(system.station_output(ctx, "front.rgb_image").data)[:, :, :3].copy()
-            frames.append((t, status.phase, rgb))
-            next_frame = t + frame_every
-        if status.done:
-            # let the scene come to rest
-            sim.AdvanceTo(t + 0.5)
-            break
+    try:
+        sim.AdvanceTo(max_sim)  # returns early when the end stops it (SimulatorStatus: reached termination)
+    except RuntimeError as e:  # a simulation failure ends the run; its record says so
+        failure = f"simulation: {str(e).splitlines()[0][:120]}"
+    finally:
+        sim.clear_monitor()
     if meshcat is not None:
         meshcat.StopRecording()
         meshcat.PublishRecording()
+    peak, frames = monitor.peak, monitor.frames
     poses = system.station_output(ctx, "body_poses")
     hist = tuple(system.output(ctx, "history"))
     lift = params.lift

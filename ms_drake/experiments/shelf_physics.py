@@ -1,23 +1,45 @@
 """Shelf search on the Fetch in Drake physics (Ch. 9.5.2 analogue, Table 9.2).
 
-- `build_shelf_physics(scenario, scene, params)`: the FetchShelf station holding the scene's
-  occluders and target as free bodies (boxes and cylinders of the drawn sizes, DENSITY kg/m^3,
-  compliant hydroelastic; the target in the target colour), the shelf controller
-  (ms_drake.policies.shelf_search) wired in three lines. perception "ground_truth": the controller
-  reads the simulation's body poses (ShelfSimulationInfo); "depth": only the station's camera
-  ports, as on the hardware station (ShelfSegmenter + the learned occupancy; the experiment alone
-  knows the bodies, to measure the target's visibility).
-- `run_shelf_physics(system, scene, params)`: simulate; at every idle step (the executor between
-  actions, the robot parked) the target's visible fraction is measured in the front camera's label
-  image: target pixels / pixels of its silhouette (its eight corners at its current pose projected
-  and filled); the search succeeds at v = 80 % (FOSS's threshold), fails at the horizon H = 2n, when
-  the policy has no action, or when the simulation fails. Per executed action the backend's
-  outcome says whether physics and FOSS agree (ms_drake.execution.shelf_backend: the moved object
-  within 2 cm of FOSS's placement, nothing else moved by more than 2 cm, nothing toppled). With
-  perception "depth" the controller has no body poses and the experiment judges each action
-  instead (`depth_action_outcome`): the true objects before and after it (observed at the idle
-  steps), the estimate it chose matched to a true occluder (footprint IoU, `associate`), and FOSS's
-  prediction on the estimated scene the action was planned in.
+The Diagram is the whole search; a user's script is plain Drake (sims/shelf_search_diagram.py):
+
+    scenario = shelf_physics_scenario(load_scenario(None, "FetchShelf"))
+    builder = DiagramBuilder()
+    station = builder.AddSystem(MakeStation(scenario, extra_objects=shelf_scene_objects(scene)))
+    sim = shelf_simulation_info(get_plant(station), scene)
+    controller = builder.AddSystem(MakeShelfSearchController(scenario, params, sim=sim))
+    connect_controller(builder, controller, station)
+    end = builder.AddSystem(ShelfSearchTermination(camera, sim.bodies[sim.target_id], horizon, params.period))
+    connect_termination(builder, end, station, controller)
+    simulator = Simulator(builder.Build())
+    set_initial_conditions(simulator.get_system(), simulator.get_mutable_context(), scene)
+    simulator.AdvanceTo(T)      # returns when the search is over; end.termination says why
+
+- `build_shelf_physics(scenario, scene, params)`: that Diagram (ShelfPhysicsSystem): the FetchShelf
+  station holding the scene's occluders and target as free bodies (boxes and cylinders of the drawn
+  sizes, DENSITY kg/m^3, compliant hydroelastic; the target in the target colour), the shelf
+  controller (ms_drake.policies.shelf_search) wired in three lines, and the search's end
+  (ms_drake.policies.shelf_termination.ShelfSearchTermination). perception "ground_truth": the
+  controller reads the simulation's body poses (ShelfSimulationInfo); "depth": only the station's
+  camera ports, as on the hardware station (ShelfSegmenter + the learned occupancy; the termination
+  system alone reads the bodies, to measure the target's visibility).
+- `set_initial_conditions(system_or_diagram, context, scene)`: the one call that sets a search's
+  initial conditions on the Diagram's root context: the scene's objects at their poses (resting on
+  the shelf floor) and the Fetch where the controller starts (parked, blade up).
+- `run_shelf_physics(system, scene, params)`: build's Diagram simulated by one
+  `Simulator.AdvanceTo`: the termination system judges every idle step (the executor between
+  actions, the robot parked): the target's visible fraction in the front camera's label image
+  (target pixels / pixels of its silhouette, its eight corners at its current pose projected and
+  filled); the search succeeds at v = 80 % (FOSS's threshold), fails at the horizon H = 2n or when
+  the policy has no action (the Simulator stops there), when the simulation fails (AdvanceTo
+  raises; a non-finite body pose fails it too), or at the time limit. The record is read from the
+  Diagram's output ports; a read-only Simulator monitor keeps, at the idle steps, the true scene
+  (perception "depth") and the pictures (keep_frames). Per executed action the backend's outcome
+  says whether physics and FOSS agree (ms_drake.execution.shelf_backend: the moved object within
+  2 cm of FOSS's placement, nothing else moved by more than 2 cm, nothing toppled). With perception
+  "depth" the controller has no body poses and the experiment judges each action instead
+  (`depth_action_outcome`): the true objects before and after it (observed at the idle steps), the
+  estimate it chose matched to a true occluder (footprint IoU, `associate`), and FOSS's prediction
+  on the estimated scene the action was planned in.
 - `run_shelf_physics_bench(...)`: `ms-drake bench shelf-physics`: one JSON line per scene (seed,
   occluders, policy, perception, success, steps, agreement, `refused`: the candidates each of the
   controller's robot rules dropped, ...), flushed and fsync'ed, resumable.
@@ -45,8 +67,9 @@ import numpy as np
 from pydrake.geometry import Meshcat
 from pydrake.math import RigidTransform
 from pydrake.multibody.tree import BodyIndex
-from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
-from pydrake.systems.framework import DiagramBuilder
+from pydrake.multibody.plant import MultibodyPlant
+from pydrake.systems.analysis import ApplySimulatorConfig, Simulator, SimulatorStatus
+from pydrake.systems.framework import Diagram, DiagramBuilder, EventStatus
 from pydrake.systems.primitives import TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
 from scipy.stats import binomtest
@@ -63,9 +86,16 @@ from ms_drake.objects.sdf import OBJECT_MODULUS, Inertia, Shape, object_sdf
 from ms_drake.parallel import run_jobs
 from ms_drake.policies.shelf_search import (
     MakeShelfSearchController,
+    ShelfSearchController,
     ShelfSearchParams,
     ShelfSimulationInfo,
     connect_controller,
+)
+from ms_drake.policies.shelf_termination import (
+    VISIBILITY,
+    ShelfSearchTermination,
+    connect_termination,
+    target_visible_fraction,
 )
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.shelf import DEFAULT_TARGET, generate_shelf_scene
@@ -78,7 +108,6 @@ from ms_drake.types import Action, ShelfObject, ShelfScene
 SCENARIO = "FetchShelf"
 FIDELITY = "physics"
 DENSITY = 150.0  # kg/m^3: household packaging (a 20 cm cube weighs 1.2 kg; the cup holds ~2 kg in shear)
-VISIBILITY = 0.8
 #: The plant's time step in these runs [s] (the scenario's is 2 ms): the discrete SAP-family solver is
 #: stable at 10 ms here, and the same actions end alike at 2, 5 and 10 ms (to 1-3 mm for pushes and
 #: suction placements; docs/BENCHMARKS.md, "Shelf search on the Fetch (physics)") at a third of
@@ -115,6 +144,11 @@ def shelf_object_sdf(o: ShelfObject, rgba, density: float = DENSITY):
 
 @dataclass
 class ShelfPhysicsSystem:
+    """The Diagram build_shelf_physics makes and its parts: the station, its plant, the controller,
+    the termination system (ShelfSearchTermination), the scenario it was built from (its plant's
+    time step and no scenario objects), the shelf bodies (ShelfSimulationInfo) and the front
+    camera's model."""
+
     diagram: object
     station: object
     plant: object
@@ -124,12 +158,16 @@ class ShelfPhysicsSystem:
     camera: PinholeCamera
     camera_name: str = "front"
     perception: str = "ground_truth"
+    termination: object = None
 
     def output(self, context, name):
         return self.controller.GetOutputPort(name).Eval(self.controller.GetMyContextFromRoot(context))
 
     def station_output(self, context, name):
         return self.station.GetOutputPort(name).Eval(self.station.GetMyContextFromRoot(context))
+
+    def termination_output(self, context, name):
+        return self.termination.GetOutputPort(name).Eval(self.termination.GetMyContextFromRoot(context))
 
 
 def with_time_step(scenario, time_step: float | None):
@@ -143,67 +181,119 @@ def with_time_step(scenario, time_step: float | None):
     return dataclasses.replace(scenario, plant_config=config)
 
 
-def build_shelf_physics(scenario, scene: ShelfScene, params: ShelfSearchParams, meshcat=None,
-                        time_step: float | None = TIME_STEP, perception: str = "ground_truth") -> ShelfPhysicsSystem:
-    """The station with the scene's objects and the shelf controller, wired (module docstring);
-    time_step: the plant's (None: the scenario's); perception: the controller's ("ground_truth" or
-    "depth")."""
-    if scene.target is None:
-        raise ShelfPhysicsError("build_shelf_physics: the scene needs its target (generate_shelf_scene)")
+def shelf_physics_scenario(scenario, time_step: float | None = TIME_STEP):
+    """The shelf scenario of these runs: its plant's time step `time_step` (None: the scenario's)
+    and no scenario objects (the shelf scene's objects come as `shelf_scene_objects`)."""
     if scenario.environment.type != "shelf":
         raise ShelfPhysicsError(f"scenario environment is {scenario.environment.type!r}: use FetchShelf")
-    scenario = dataclasses.replace(with_time_step(scenario, time_step),
-                                   objects=dataclasses.replace(scenario.objects, count=0, names=[]))
+    return dataclasses.replace(with_time_step(scenario, time_step),
+                               objects=dataclasses.replace(scenario.objects, count=0, names=[]))
+
+
+def shelf_scene_objects(scene: ShelfScene, density: float = DENSITY) -> list:
+    """MakeStation's extra_objects for a shelf scene: ("shelf/<id>", sdf) of every occluder and
+    the target (shelf_object_sdf; the target in the target colour)."""
+    if scene.target is None:
+        raise ShelfPhysicsError("the shelf scene needs its target (generate_shelf_scene)")
     objs = list(scene.objects) + [scene.target]
-    extra = [(f"shelf/{o.id}", shelf_object_sdf(o, TARGET_RGBA if o is scene.target else OCCLUDER_RGBA))
-             for o in objs]
-    builder = DiagramBuilder()
-    station = builder.AddSystem(MakeStation(scenario, meshcat=meshcat, extra_objects=extra))
-    plant = get_plant(station)
+    return [(f"shelf/{o.id}", shelf_object_sdf(o, TARGET_RGBA if o is scene.target else OCCLUDER_RGBA, density))
+            for o in objs]
+
+
+def shelf_simulation_info(plant, scene: ShelfScene) -> ShelfSimulationInfo:
+    """ShelfSimulationInfo of a station's plant holding `scene` (shelf_scene_objects): each shelf
+    object's body index and shape, and the target's id."""
     by_name = {so.full_name: so for so in station_objects(plant)}
+    objs = list(scene.objects) + ([scene.target] if scene.target is not None else [])
+    missing = [o.id for o in objs if f"shelf/{o.id}" not in by_name]
+    if missing:
+        raise ShelfPhysicsError(f"the station's plant has no shelf object {', '.join(missing)}: build the station "
+                                "with MakeStation(scenario, extra_objects=shelf_scene_objects(scene)) of this scene")
     bodies = {o.id: ShelfBody(int(by_name[f"shelf/{o.id}"].body_index), o) for o in objs}
-    sim = ShelfSimulationInfo(bodies, scene.target.id)
-    if perception == "depth":  # the controller sees the cameras only; `sim` stays with the experiment
+    return ShelfSimulationInfo(bodies, scene.target.id if scene.target is not None else "")
+
+
+def search_horizon(params: ShelfSearchParams, scene: ShelfScene) -> int:
+    """The action budget H: params.horizon, or 2n for n occluders."""
+    return int(params.horizon) if params.horizon is not None else 2 * len(scene.objects)
+
+
+def build_shelf_physics(scenario, scene: ShelfScene, params: ShelfSearchParams, meshcat=None,
+                        time_step: float | None = TIME_STEP, perception: str = "ground_truth") -> ShelfPhysicsSystem:
+    """The station with the scene's objects, the shelf controller and the search's end, wired
+    (module docstring); time_step: the plant's (None: the scenario's); perception: the controller's
+    ("ground_truth" or "depth")."""
+    if scene.target is None:
+        raise ShelfPhysicsError("build_shelf_physics: the scene needs its target (generate_shelf_scene)")
+    scenario = shelf_physics_scenario(scenario, time_step)
+    builder = DiagramBuilder()
+    station = builder.AddSystem(MakeStation(scenario, meshcat=meshcat, extra_objects=shelf_scene_objects(scene)))
+    plant = get_plant(station)
+    sim = shelf_simulation_info(plant, scene)
+    if perception == "depth":  # the controller sees the cameras only; `sim` stays with the termination system
         controller = builder.AddSystem(MakeShelfSearchController(scenario, params, perception="depth"))
     else:
         controller = builder.AddSystem(MakeShelfSearchController(scenario, params, sim=sim, perception=perception))
     connect_controller(builder, controller, station)
-    diagram = builder.Build()
     camera = PinholeCamera.from_config(scenario.cameras[params.camera])
+    termination = builder.AddNamedSystem("termination", ShelfSearchTermination(
+        camera, sim.bodies[sim.target_id], search_horizon(params, scene), params.period))
+    connect_termination(builder, termination, station, controller, params.camera)
+    diagram = builder.Build()
     return ShelfPhysicsSystem(diagram, station, plant, controller, scenario, sim, camera, params.camera,
-                              perception)
+                              perception, termination)
 
 
-def set_initial(system: ShelfPhysicsSystem, context, scene: ShelfScene) -> None:
-    """The objects at the scene's poses (resting on the shelf floor) and the Fetch parked."""
-    pc = system.plant.GetMyMutableContextFromRoot(context)
-    origin = np.asarray(system.scenario.environment.position, float)
-    for b in system.sim.bodies.values():
+def _subsystems(diagram):
+    for s in diagram.GetSystems():
+        yield s
+        if isinstance(s, Diagram):
+            yield from _subsystems(s)
+
+
+def set_initial_conditions(system_or_diagram, context, scene: ShelfScene) -> None:
+    """A shelf search's initial conditions on the root `context` of its Diagram (a
+    ShelfPhysicsSystem or any Diagram holding a FetchShelf station with the scene's objects and a
+    shelf controller, e.g. sims/shelf_search_diagram.py's): every object of `scene` (occluders
+    and target) at its pose, resting on the shelf floor, and the Fetch at the controller's initial
+    commands (parked out of the camera's view), the blade up."""
+    diagram = system_or_diagram.diagram if isinstance(system_or_diagram, ShelfPhysicsSystem) else system_or_diagram
+    if not isinstance(diagram, Diagram):
+        raise ShelfPhysicsError(f"set_initial_conditions: give the search's Diagram (or a ShelfPhysicsSystem), got "
+                                f"{type(system_or_diagram).__name__}")
+    systems = list(_subsystems(diagram))
+    plants = [s for s in systems if isinstance(s, MultibodyPlant)]
+    controllers = [s for s in systems if isinstance(s, ShelfSearchController)]
+    if len(plants) != 1 or len(controllers) != 1:
+        raise ShelfPhysicsError(f"set_initial_conditions: the Diagram holds {len(plants)} MultibodyPlant(s) and "
+                                f"{len(controllers)} shelf controller(s); it needs one station (MakeStation) and one "
+                                "MakeShelfSearchController")
+    plant, controller = plants[0], controllers[0]
+    sim = shelf_simulation_info(plant, scene)
+    pc = plant.GetMyMutableContextFromRoot(context)
+    origin = np.asarray(controller.backend.origin, float)
+    for b in sim.bodies.values():
         o = b.shape
         X = RigidTransform(origin + [o.x, o.y, o.height / 2 + 1e-4])
-        system.plant.SetFreeBodyPose(pc, system.plant.get_body(BodyIndex(b.body_index)), X)
-    set_arm_positions(system.plant, pc, "fetch", system.controller.initial_commands())
-    q = system.plant.GetPositions(pc)
-    q[system.plant.GetJointByName("blade_joint").position_start()] = np.pi
-    system.plant.SetPositions(pc, q)
+        plant.SetFreeBodyPose(pc, plant.get_body(BodyIndex(b.body_index)), X)
+    set_arm_positions(plant, pc, "fetch", controller.initial_commands())
+    q = plant.GetPositions(pc)
+    q[plant.GetJointByName("blade_joint").position_start()] = np.pi
+    plant.SetPositions(pc, q)
+
+
+#: Shorter name of set_initial_conditions.
+set_initial = set_initial_conditions
 
 
 def target_visibility(system: ShelfPhysicsSystem, context) -> float:
-    """Target pixels in the front label image / pixels of its silhouette at its current pose."""
+    """Target pixels in the front label image / pixels of its silhouette at its current pose
+    (ms_drake.policies.shelf_termination.target_visible_fraction)."""
     label = np.asarray(system.station_output(context, f"{system.camera_name}.label_image").data)[:, :, 0]
     b = system.sim.bodies[system.sim.target_id]
-    poses = system.station_output(context, "body_poses")
-    X = poses[b.body_index]
+    X = system.station_output(context, "body_poses")[b.body_index]
     t = b.shape
-    half = 0.5 * np.array([t.width, t.depth, t.height])
-    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * half
-    pts = (X.rotation().matrix() @ corners.T).T + X.translation()
-    uv, _ = system.camera.project(pts)
-    sil = np.zeros(label.shape, np.uint8)
-    cv2.fillConvexPoly(sil, cv2.convexHull(np.round(uv).astype(np.int32)), 1)
-    total = int(sil.sum())
-    seen = int(np.count_nonzero((label == b.body_index) & (sil > 0)))
-    return seen / total if total else 0.0
+    return target_visible_fraction(label, X, (t.width, t.depth, t.height), b.body_index, system.camera)
 
 
 @dataclass
@@ -223,60 +313,89 @@ class ShelfPhysicsResult:
     frames: list = field(default_factory=list)
 
 
+class IdleStepRecorder:
+    """A read-only Simulator monitor (`simulator.set_monitor(recorder)`) of a shelf search: at every
+    idle step the termination system judges (ShelfCheck.judging at its check times) it keeps the
+    judged visibility, the true scene (observe: (ShelfScene, toppled ids)) by history length when
+    `truths`, and a ShelfFrame when `keep_frames`. It evaluates output ports only and never
+    changes the context."""
+
+    def __init__(self, system: ShelfPhysicsSystem, horizon: int, truths: bool = False, keep_frames: bool = False):
+        self.system, self.horizon = system, int(horizon)
+        self.keep_truths, self.keep_frames = bool(truths), bool(keep_frames)
+        self.truths: dict = {}
+        self.frames: list = []
+        self.visible = 0.0
+        self.origin = np.asarray(system.scenario.environment.position, float)
+
+    def __call__(self, context):
+        system = self.system
+        if system.termination.is_check_time(context.get_time()):
+            check = system.termination_output(context, "check")
+            if check.judging:
+                self._record(context, check)
+        return EventStatus.Succeeded()
+
+    def _record(self, context, check) -> None:
+        system = self.system
+        self.visible = check.visible
+        if self.keep_truths:
+            self.truths[check.steps] = observe(system.station_output(context, "body_poses"), system.sim.bodies,
+                                               self.origin, system.sim.target_id)
+        if self.keep_frames:
+            action = system.output(context, "action") if check.visible < VISIBILITY and check.steps < self.horizon \
+                else None
+            rgb = np.array(system.station_output(context, f"{system.camera_name}.rgb_image").data)[..., :3].copy()
+            depth = np.array(system.station_output(context, f"{system.camera_name}.depth_image").data)[..., 0].copy()
+            self.frames.append(ShelfFrame(check.steps, rgb, depth, system.output(context, "occupancy_history"),
+                                          action, check.visible, system.output(context, "scene")))
+
+
+def end_time(max_sim_time: float, period: float) -> float:
+    """The first check time k * period at or after max_sim_time."""
+    k = max(0, int(np.ceil(max_sim_time / period)) - 1)
+    while k * period < max_sim_time:
+        k += 1
+    return k * period
+
+
 def run_shelf_physics(system: ShelfPhysicsSystem, scene: ShelfScene, params: ShelfSearchParams,
                       keep_frames: bool = False, meshcat=None, max_sim_time: float | None = None) -> ShelfPhysicsResult:
+    """Simulate build_shelf_physics's Diagram until its termination system stops it, the simulation
+    fails, or max_sim_time (default 60 s + 45 s per action of the horizon); the record (module
+    docstring) from its output ports and the idle-step monitor (IdleStepRecorder)."""
     n = len(scene.objects)
-    horizon = params.horizon if params.horizon is not None else 2 * n
+    horizon = system.termination.horizon
     max_sim_time = max_sim_time or 60.0 + 45.0 * horizon
     t_wall, t_cpu = time.perf_counter(), time.process_time()
     simulator = Simulator(system.diagram)
     ApplySimulatorConfig(system.scenario.simulator_config, simulator)
     context = simulator.get_mutable_context()
-    set_initial(system, context, scene)
-    simulator.Initialize()
-    frames, visible, last_steps, k, t = [], 0.0, -1, 0, 0.0
-    truths = {}  # perception "depth": the true scene (and toppled ids) at each idle step, by history length
-    origin = np.asarray(system.scenario.environment.position, float)
+    set_initial_conditions(system, context, scene)
+    recorder = IdleStepRecorder(system, horizon, truths=system.perception == "depth", keep_frames=keep_frames)
+    simulator.set_monitor(recorder)
     failure, reason, error = "", "", ""
     if meshcat is not None:
         meshcat.StartRecording(set_visualizations_while_recording=False)
     try:
-        while True:
-            status = system.output(context, "status")
-            if status.done:
-                failure, reason = "no_action", status.stop_reason
-                break
-            if not status.busy and status.steps != last_steps:  # idle: observe, then the next action
-                last_steps = status.steps
-                if system.perception == "depth":
-                    truths[status.steps] = observe(system.station_output(context, "body_poses"), system.sim.bodies,
-                                                   origin, system.sim.target_id)
-                visible = target_visibility(system, context)
-                if keep_frames:
-                    action = system.output(context, "action") if visible < VISIBILITY and status.steps < horizon \
-                        else None
-                    rgb = np.array(system.station_output(context, "front.rgb_image").data)[..., :3].copy()
-                    depth = np.array(system.station_output(context, "front.depth_image").data)[..., 0].copy()
-                    frames.append(ShelfFrame(status.steps, rgb, depth, system.output(context, "occupancy_history"),
-                                             action, visible, system.output(context, "scene")))
-                if visible >= VISIBILITY:
-                    break
-                if status.steps >= horizon:
-                    failure = "horizon"
-                    break
-            if t >= max_sim_time:
-                failure = "timeout"
-                break
-            k += 1
-            t = k * params.period
-            simulator.AdvanceTo(t)
+        status = simulator.AdvanceTo(end_time(max_sim_time, system.termination.period))
+        if status.reason() == SimulatorStatus.ReturnReason.kReachedTerminationCondition:
+            end = system.termination_output(context, "termination")
+            failure = "" if end.success else end.reason
+            reason = end.message if end.reason == "no_action" else ""
+        else:
+            failure = "timeout"
+        visible = float(system.termination_output(context, "visibility")[0])
     except RuntimeError as e:
         failure, error = "sim_failed", (str(e).splitlines() or [type(e).__name__])[0]
+        visible = recorder.visible
     finally:
+        simulator.clear_monitor()
         if meshcat is not None:
             meshcat.StopRecording()
             meshcat.PublishRecording()
     history = system.output(context, "history")
+    truths = recorder.truths
     if system.perception == "depth":
         foss = Foss(ShelfGeometry.from_scenario(system.scenario, system.camera_name))
         history = tuple(depth_action_outcome(o, truths.get(i), truths.get(i + 1), foss)
@@ -299,7 +418,7 @@ def run_shelf_physics(system: ShelfPhysicsSystem, scene: ShelfScene, params: She
                visible_fraction=float(visible), failure=failure, stop_reason=reason, error=error,
                sim_seconds=float(context.get_time()), seconds=time.perf_counter() - t_wall,
                cpu_seconds=time.process_time() - t_cpu, pid=os.getpid())
-    return ShelfPhysicsResult(rec, frames)
+    return ShelfPhysicsResult(rec, recorder.frames)
 
 
 def depth_action_outcome(outcome, before, after, foss: Foss, tolerance: float = 0.02):
