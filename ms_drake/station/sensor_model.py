@@ -182,7 +182,8 @@ def dropout_probability(z: np.ndarray, p: DepthSensorParams, fx: float, fy: floa
         k = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)
         lo = cv2.erode(zf, k, borderType=cv2.BORDER_REPLICATE)
         hi = cv2.dilate(np.where(valid, z, np.float32(0.0)).astype(np.float32), k, borderType=cv2.BORDER_REPLICATE)
-        smooth = valid & (z - lo <= p.edge_jump) & (hi - z <= p.edge_jump)
+        with np.errstate(invalid="ignore"):  # inf - inf off the valid pixels
+            smooth = valid & (z - lo <= p.edge_jump) & (hi - z <= p.edge_jump)
         q = np.maximum(q, np.where(smooth, g, 0.0).astype(np.float32))
     if rgb is not None and p.dark_dropout > 0 and p.dark_threshold > 0:
         dark = _luminance(rgb) < p.dark_threshold
