@@ -27,8 +27,13 @@ import numpy as np
 import trimesh
 from pydrake.geometry import Box, Convex, Cylinder, Mesh, SceneGraph
 
+from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.multibody.inverse_kinematics import InverseKinematics
+from pydrake.solvers import Solve
+
 from ms_drake.execution.backends import FullBackend, grasp_tool_pose
 from ms_drake.geometry import Workspace, coal_convex
+from ms_drake.planning.cartesian import approach_pose
 from ms_drake.planning.sequences import plan_pick
 from ms_drake.types import Grasp
 
@@ -58,6 +63,14 @@ def _tool_part(shape, X_BG: np.ndarray):
     raise ValueError(f"ArmLinks: tool shape of type {type(shape).__name__}; Box, Cylinder, Convex and Mesh are supported")
 
 
+def _part_hits(part, shape, transform, margin: float) -> bool:
+    """Whether an arm part (coal shape, 3x3 rotation, centre, radius) comes within `margin` of one
+    scene shape at its coal transform."""
+    request = coal.CollisionRequest()
+    request.security_margin = float(margin)
+    return coal.collide(part[0], coal.Transform3s(part[1], part[2]), shape, transform, request, coal.CollisionResult())
+
+
 class ArmLinks:
     """The collision geometry of one arm's links (the bodies its joints move, convex hulls in
     coal) and of its tool (the bodies welded to the last link) on the IK plant, placed at arm
@@ -69,6 +82,7 @@ class ArmLinks:
         inspector = sg.model_inspector()
         self.ik = ik
         self.parts = []  # (body, coal shape, X_BG 4x4, radius)
+        self.plant = plant
         for joint in ik.joints:
             body = joint.child_body()
             for gid in plant.GetCollisionGeometriesForBody(body):
@@ -87,6 +101,10 @@ class ArmLinks:
                            if plant.get_body(i) not in welded]
         self.tool_parts = [(body, *_tool_part(inspector.GetShape(gid), inspector.GetPoseInFrame(gid).GetAsMatrix4()))
                            for body in bodies for gid in plant.GetCollisionGeometriesForBody(body)]
+
+    def names(self, tool: bool = False) -> list[str]:
+        """The body name of each part `at` returns, in its order."""
+        return [b.name() for b, *_ in self.parts + (self.tool_parts if tool else [])]
 
     def at(self, q_arm, tool: bool = False) -> list:
         """[(coal shape, 3x3 rotation, world centre, radius)] of the links (and the tool) at arm
@@ -159,6 +177,113 @@ class PickReach:
                for t in transit[::-1]):  # the low end first
             return True
         return any(scene.hits(links.at(tl.value(t))) for t in np.linspace(t0, t1, self.approach_samples))
+
+    def arm_hit(self, plan, scene) -> str:
+        """What of the arm hits the scene along the plan (arm_hits): "transit:<body>><j>" or
+        "approach:<body>><j>" (the first found; j: the index of the scene part it hits), or ""
+        when nothing does."""
+        tl = plan.timeline
+        t0, t1 = tl.marks["approach"], tl.marks["contact"]
+        links = self.links[plan.arm]
+        transit = np.linspace(0.0, t0, max(2, int(np.ceil(t0 / self.transit_step)) + 1))
+        for where, times, tool, clearance in (("transit", transit[::-1], True, self.transit_clearance),
+                                              ("approach", np.linspace(t0, t1, self.approach_samples), False, 0.0)):
+            names = links.names(tool)
+            for t in times:
+                for name, part in zip(names, links.at(tl.value(t), tool=tool)):
+                    if scene.hits([part], clearance):
+                        j = next(j for j in range(len(scene.shapes))
+                                 if _part_hits(part, scene.shapes[j], scene.transforms[j], clearance))
+                        return f"{where}:{name}>{j}"
+        return ""
+
+    def diagnose(self, grasp: Grasp, scene=None) -> dict:
+        """Why the robot does or does not execute the grasp: {"reason", "step", "detail"}.
+        reason: "ok"; "no_gripper"; "unreachable" (no arm configuration puts the tool at the
+        step's pose, joint limits ignored: out of the arm's workspace); "joint_limits" (one
+        exists, but not within the joint limits); "collision" (the IK's configurations come closer
+        than its min_distance to the bin or the robot itself; detail: the closest pair of bodies);
+        "arm_hits_scene" (a plan exists; the arm's links, or its tool in transit, hit the objects:
+        detail "transit:<body>" / "approach:<body>"). step: "pre_grasp", "approach" or "lift"
+        (the failing step), "" when ok."""
+        plan = self.plan(grasp)
+        if isinstance(plan, str):
+            return {"reason": "no_gripper", "step": "", "detail": plan}
+        if plan.success:
+            hit = self.arm_hit(plan, scene) if scene is not None else ""
+            return {"reason": "arm_hits_scene", "step": "transit" if hit.startswith("transit") else "approach",
+                    "detail": hit} if hit else {"reason": "ok", "step": "", "detail": ""}
+        b = self.backend
+        arm = (b.jaw if grasp.kind == "parallel_jaw" else b.suction)[0]
+        ik, _, q_home = b.ik[arm]
+        axis_only = grasp.kind != "parallel_jaw"
+        X = grasp_tool_pose(grasp)
+        poses = [X] if axis_only else [X, X @ RigidTransform(RotationMatrix.MakeZRotation(np.pi))]
+        pre = [ik.solve(approach_pose(P, 0.10), q_seed=q_home, axis_only=axis_only) for P in poses]
+        if any(r.success for r in pre):  # the straight approach or the lift fails
+            r = next(r for r in pre if r.success)
+            step = "approach_or_lift"
+            target = poses[pre.index(r)]
+            status = plan.status
+        else:
+            step, status, target = "pre_grasp", pre[0].status, approach_pose(poses[0], 0.10)
+            r = pre[0]
+        if status == "collision":
+            return {"reason": "collision", "step": step, "detail": self._closest_pair(ik, r.q)}
+        free = any(self._solves_without_limits(ik, approach_pose(P, 0.10) if step == "pre_grasp" else P, q_home,
+                                               axis_only) for P in poses)
+        return {"reason": "joint_limits" if free else "unreachable", "step": step, "detail": status}
+
+    @staticmethod
+    def _solves_without_limits(ik, X_WT, q_seed, axis_only: bool) -> bool:
+        """Whether some arm configuration (joint limits ignored, no collision check) puts the tool
+        at X_WT, from q_seed and from 4 seeds spread over [-pi, pi]."""
+        plant, ctx = ik.plant, ik.context
+        q_now = plant.GetPositions(ctx).copy()
+        others = np.setdiff1d(np.arange(plant.num_positions()), ik.idx)
+        rng = np.random.default_rng(0)
+        for seed in [np.asarray(q_seed, float)] + [rng.uniform(-np.pi, np.pi, len(ik.idx)) for _ in range(4)]:
+            prog_ik = InverseKinematics(plant, ctx, with_joint_limits=False)
+            prog, q = prog_ik.get_mutable_prog(), prog_ik.q()
+            if len(others):
+                prog.AddBoundingBoxConstraint(q_now[others], q_now[others], q[others])
+            p = X_WT.translation()
+            tol = ik.pos_tol / np.sqrt(3)
+            prog_ik.AddPositionConstraint(ik.frame, np.zeros(3), plant.world_frame(), p - tol, p + tol)
+            if axis_only:
+                prog_ik.AddAngleBetweenVectorsConstraint(ik.frame, [0, 0, 1], plant.world_frame(),
+                                                         X_WT.rotation().matrix()[:, 2], 0.0, ik.ang_tol)
+            else:
+                prog_ik.AddOrientationConstraint(ik.frame, RotationMatrix(), plant.world_frame(), X_WT.rotation(),
+                                                 ik.ang_tol)
+            q0 = q_now.copy()
+            q0[ik.idx] = seed
+            res = Solve(prog, q0)
+            if res.is_success():
+                return True
+        return False
+
+    @staticmethod
+    def _closest_pair(ik, q_arm) -> str:
+        """"<body> - <body>" of the closest pair of collision geometries at arm configuration q_arm."""
+        plant, ctx = ik.plant, ik.context
+        old = plant.GetPositions(ctx).copy()
+        q = old.copy()
+        q[ik.idx] = q_arm
+        plant.SetPositions(ctx, q)
+        try:
+            query = plant.get_geometry_query_input_port().Eval(ctx)
+            pairs = query.ComputeSignedDistancePairwiseClosestPoints(ik.influence + 0.05)
+            if not pairs:
+                return ""
+            p = min(pairs, key=lambda p: p.distance)
+            insp = query.inspector()
+
+            def body(g):
+                return plant.GetBodyFromFrameId(insp.GetFrameId(g)).name()
+            return f"{body(p.id_A)} - {body(p.id_B)} ({1000 * p.distance:.0f} mm)"
+        finally:
+            plant.SetPositions(ctx, old)
 
     def __call__(self, grasp: Grasp, scene=None) -> bool:
         self.checks += 1
