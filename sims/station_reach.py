@@ -5,6 +5,7 @@ every visible object at the heap's initial state) that bin stations' robots exec
     .venv/bin/python sims/station_reach.py --scenario YuMiBin PandaBin --heaps 200 --seed-start 9000 \\
         --out out/station_reach.jsonl --misses out/station_reach_misses --heap-dir out/heaps
 
+`--examples DIR` draws one miss per station, gripper and reason from the records instead.
 Resumable: heaps already in --out are not measured again. --scenario-file: another scenarios
 file (e.g. an older layout: `git show <commit>:diagrams/scenarios.yaml > old.yaml`).
 """
@@ -15,7 +16,13 @@ import argparse
 import json
 import sys
 
-from ms_drake.experiments.station_reach import format_summary, run_station_reach, summarize
+from ms_drake.experiments.station_reach import (
+    draw_examples,
+    format_summary,
+    read_records,
+    run_station_reach,
+    summarize,
+)
 
 
 def main(argv=None) -> int:
@@ -30,7 +37,13 @@ def main(argv=None) -> int:
     ap.add_argument("--misses", default=None, help="folder for pictures of missed grasps")
     ap.add_argument("--pictures", type=int, default=6, help="pictures per station")
     ap.add_argument("--summary", default=None, help="also write the summary as JSON here")
+    ap.add_argument("--examples", default=None,
+                    help="only draw one miss per station, gripper and reason from the records in --out into this folder")
     a = ap.parse_args(argv)
+    if a.examples:
+        for p in draw_examples(read_records(a.out), a.examples, a.objects, a.heap_dir):
+            print(p)
+        return 0
     records = run_station_reach(a.scenario, a.heaps, a.seed_start, a.out, scenario_file=a.scenario_file,
                                 objects=a.objects, heap_dir=a.heap_dir, misses_dir=a.misses,
                                 max_pictures=a.pictures, progress=lambda m: print(m, flush=True))

@@ -261,3 +261,21 @@ def draw_miss(view: dict, g: dict, diag: dict, path, title: str = "") -> Path:
     plt.close(fig)
     return Path(path)
 
+
+
+def draw_examples(records: list[dict], out_dir, objects: int = 15, heap_dir: str | None = None) -> list[Path]:
+    """One picture (draw_miss) per station, gripper kind and miss reason: the first such miss in
+    `records` (seed order)."""
+    seen, paths, views = set(), [], {}
+    for rec in sorted(records, key=lambda r: r["seed"]):
+        for name, diags in rec["stations"].items():
+            for g, d in zip(rec["grasps"], diags):
+                if d is None or d["reason"] == "ok" or (name, g["kind"], d["reason"]) in seen:
+                    continue
+                seen.add((name, g["kind"], d["reason"]))
+                if rec["seed"] not in views:
+                    views[rec["seed"]] = heap_view(cached_heap(objects, rec["seed"], heap_dir))
+                paths.append(draw_miss(views[rec["seed"]], g, d, Path(out_dir) / (
+                    f"{name}_{KIND_LABEL.get(g['kind'], g['kind'])}_{d['reason']}_s{rec['seed']}.png"),
+                    f"{name} seed {rec['seed']}"))
+    return paths
