@@ -118,6 +118,8 @@ from ms_drake.experiments.shelf_learning import (
 from ms_drake.experiments.shelf_physics import DEMO_OCCLUDERS as SHELF_DEMO_OCCLUDERS
 from ms_drake.experiments.shelf_physics import DEMO_SEED as SHELF_DEMO_SEED
 from ms_drake.experiments.shelf_physics import (
+    ShelfPhysicsError,
+    check_shelf_scenario,
     physics_records,
     physics_table,
     physics_vs_foss,
@@ -199,6 +201,16 @@ def _need_search_scenario(file: Optional[Path], name: str, fidelity: str):
     try:
         check_search_scenario(scenario, fidelity, name)
     except ControllerError as e:
+        _fail(f"--scenario {name}: {e}")
+    return scenario
+
+
+def _need_shelf_scenario(file: Optional[Path], name: str):
+    """The shelf station of --scenario / --scenario-file, or one clear error."""
+    scenario = _scenario(file, name)
+    try:
+        check_shelf_scenario(scenario, name)
+    except ShelfPhysicsError as e:
         _fail(f"--scenario {name}: {e}")
     return scenario
 
@@ -309,16 +321,17 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
          method: str = typer.Option("coal_reconstruction", "--method",
                                     help=f"rearrange: the collision checker, {', '.join(REARRANGE_METHODS)}"),
          scenario: str = typer.Option("", "--scenario", help="bin: the station (default FloatingGripperBin; a "
-                                      "robot's, e.g. YuMiBin or PandaBin, searches with that robot in physics)"),
+                                      "robot's, e.g. YuMiBin or PandaBin, searches with that robot in physics); "
+                                      "shelf: a shelf scenario with the Fetch (default FetchShelf)"),
          scenario_file: Optional[Path] = ScenarioFile):
     """A full search with per-step PNGs, a GIF and a Meshcat recording: `bin` (heap, X-Ray on the
     floating gripper: masks, occupancy, action) or `shelf` (a shelf scene searched by the Fetch with
     the bluction tool in Drake physics: depth, distribution, action)."""
     if kind not in ("bin", "shelf", "rearrange"):
         _fail(f"demo {kind!r}: choose bin, shelf or rearrange")
-    if kind != "bin" and (scenario or scenario_file is not None):
-        _fail(f"--scenario: demo {kind} runs on its own station ({'FetchShelf' if kind == 'shelf' else 'PandaTable'}); "
-              "--scenario picks the bin demo's station")
+    if kind == "rearrange" and (scenario or scenario_file is not None):
+        _fail("--scenario: demo rearrange runs on its own station (PandaTable); --scenario picks the bin and "
+              "shelf demos' stations")
     if kind == "rearrange":
         _choose("--method", method, REARRANGE_METHODS, quote=False)
         out = out or Path("out/demo_rearrange")
@@ -338,10 +351,11 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
         _choose("--perception", perception, SHELF_CONTROLLER_PERCEPTIONS, quote=False)
         out = out or Path("out/demo_shelf")
         t = time.perf_counter()
+        station = _need_shelf_scenario(scenario_file, scenario or "FetchShelf")
         typer.echo(f"searching shelf scene {seed} ({objects} occluders) with {policy} on the Fetch "
                    f"({perception} perception) ...")
         written = run_shelf_demo(out, seed=seed, occluders=objects, policy=policy, horizon=horizon,
-                                 meshcat_html=meshcat, log=typer.echo, perception=perception)
+                                 meshcat_html=meshcat, log=typer.echo, perception=perception, scenario=station)
         _echo_written(written)
         typer.echo(f"wrote {len(written)} files to {out} in {time.perf_counter() - t:.1f} s")
         return
@@ -361,6 +375,53 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
                        log=typer.echo, scenario=station, fidelity=fidelity)
     _echo_written(written)
     typer.echo(f"wrote {len(written)} files to {out} in {time.perf_counter() - t:.1f} s")
+
+
+@app.command()
+def perceive(depth: Path = typer.Argument(..., help="Depth image of a bin from above: .npy (float metres) or "
+                                          "16-bit .png (millimetres, 0 = no return)"),
+             intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", help="YAML/JSON camera file: width, "
+                                                       "height, fx, fy, cx, cy [, pose: {xyz, rpy_deg} in the bin's "
+                                                       "frame, bin: [x, y, z]]; default the stations' 640 x 480 "
+                                                       "overhead camera"),
+             rgb: Optional[Path] = typer.Option(None, "--rgb", help="Colour image of the same camera (finds the target "
+                                                "among the masks)"),
+             target: Optional[str] = typer.Option(None, "--target", help="The target object, a registry name "
+                                                  "'<set>/<name>' (its size gives the occupancy; with --rgb its "
+                                                  "rendered views find it)"),
+             target_size: Optional[tuple[float, float, float]] = typer.Option(
+                 None, "--target-size", help="The target's box size L W T [m] (instead of --target)"),
+             segmenter: str = typer.Option("learned", "--segmenter", help="learned | euclidean | region_growing"),
+             out: Path = typer.Option(Path("out/perceive"), "--out", help="Output folder")):
+    """The perception stack on your own depth image: instance masks (PNG and COCO JSON), the target
+    and its occupancy distribution when a target is given, and each stage's CPU time."""
+    from ms_drake.experiments.perceive import PERCEIVE_SEGMENTERS, PerceiveError, load_camera, load_depth
+    from ms_drake.experiments.perceive import perceive as run_perceive
+    from ms_drake.experiments.perceive import write_perception
+
+    _choose("--segmenter", segmenter, PERCEIVE_SEGMENTERS)
+    if target and target_size:
+        _fail("--target and --target-size: give one of them")
+    try:
+        d = load_depth(depth)
+        camera = load_camera(intrinsics, d.shape)
+        colour = None
+        if rgb is not None:
+            import cv2
+            img = cv2.imread(str(rgb), cv2.IMREAD_COLOR)
+            if img is None:
+                raise PerceiveError(f"{rgb}: not a readable colour image")
+            colour = img[..., ::-1].copy()
+        result = run_perceive(d, camera, segmenter=segmenter, rgb=colour, target=target,
+                              target_size=list(target_size) if target_size else None)
+    except PerceiveError as e:
+        _fail(str(e))
+    written = write_perception(out, depth, result, d)
+    _echo_written(written)
+    found = result["target"]
+    typer.echo(f"{len(result['masks'])} masks" + ("" if found is None else
+               f"; target {'mask ' + str(found.instance_index) if found.visible else 'not seen'}")
+               + "; " + ", ".join(f"{k} {v:.0f} ms" for k, v in result["ms"].items()))
 
 
 @app.command()
@@ -903,7 +964,10 @@ def bench_shelf_physics(policy: str = typer.Option(..., "--policy", help=f"Shelf
                         perception: str = typer.Option("ground_truth", "--perception",
                                                        help="The controller's perception: ground_truth (the "
                                                             "simulation's body poses) or depth (the camera "
-                                                            "images only, as on hardware)")):
+                                                            "images only, as on hardware)"),
+                        scenario: str = typer.Option("FetchShelf", "--scenario",
+                                                     help="The station: a shelf scenario with the Fetch"),
+                        scenario_file: Optional[Path] = ScenarioFile):
     """Shelf search on the Fetch in Drake physics (Table 9.2 analogue): scenes S..S+N-1; one JSON
     line per scene (seed, occluders, policy, perception, success, steps, physics-FOSS agreement); resumable."""
     check_shelf_policy(policy)
@@ -913,8 +977,11 @@ def bench_shelf_physics(policy: str = typer.Option(..., "--policy", help=f"Shelf
         _need_weights("--perception depth", None, load_shelf_occupancy_net, "shelf-occupancy")
     if occluders and any(not 2 <= n <= 12 for n in occluders):
         _fail(f"--occluders {occluders}: shelf scenes have 2 to 12 occluders")
+    _need_shelf_scenario(scenario_file, scenario)
+    station = {} if scenario == "FetchShelf" and scenario_file is None else {
+        "scenario_name": scenario, "scenario_file": str(scenario_file) if scenario_file is not None else None}
     run_shelf_physics_bench(policy, scenes, seed_start, out, occluders, workers=workers, log=typer.echo,
-                            fetch_feasible=not foss_choice, perception=perception)
+                            fetch_feasible=not foss_choice, perception=perception, **station)
     recs = physics_records([out], perception)
     typer.echo(physics_table(recs, tuple(dict.fromkeys(r["policy"] for r in recs))))
     typer.echo(f"results in {out}")

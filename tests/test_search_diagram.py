@@ -210,9 +210,25 @@ def test_the_diagram_example_agrees_with_bench_search_action_by_action(tmp_path,
     (["bench", "search", "--policy", "largest", "--scenario", "Nope"], "no scenario named 'Nope'"),
     (["bench", "search", "--policy", "largest", "--fidelity", "full", "--scenario", "BinHeap15"], "has no robot"),
     (["demo", "--scenario", "PandaTable"], "a bin search needs a bin scenario"),
-    (["demo", "shelf", "--scenario", "PandaBin"], "runs on its own station"),
+    (["demo", "shelf", "--scenario", "PandaBin"], "the shelf search needs a shelf scenario"),
+    (["demo", "rearrange", "--scenario", "PandaBin"], "runs on its own station"),
+    (["bench", "shelf-physics", "--policy", "der3", "--scenario", "YuMiBin"], "the shelf search needs a shelf"),
 ])
 def test_unsuitable_scenarios_get_one_clear_error(tmp_path, args, message):
     out = subprocess.run([str(Path(sys.executable).parent / "ms-drake"), *args, "--out", str(tmp_path / "o.jsonl")],
                          cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert out.returncode == 2 and message in out.stderr and "Traceback" not in out.stderr
+
+
+def test_the_diagram_example_agrees_with_bench_search_on_a_robot_in_full_fidelity(tmp_path):
+    """The Panda in physics: a non-target object carried to a drop-off tray, then the target."""
+    bench = tmp_path / "panda.jsonl"
+    _run([str(Path(sys.executable).parent / "ms-drake"), "bench", "search", "--policy", "largest", "--fidelity", "full",
+          "--scenario", "PandaBin", "--objects", "6", "--heaps", "1", "--seed-start", "0", "--out", str(bench)])
+    (rec,) = map(json.loads, bench.read_text().splitlines())
+    assert rec["scenario"] == "PandaBin" and rec["fidelity"] == "full"
+    got = json.loads(_run([sys.executable, "sims/bin_search_diagram.py", "--scenario", "PandaBin", "--fidelity", "full",
+                           "--seed", "0", "--policy", "largest", "--objects", "6"]).strip().splitlines()[-1])
+    assert (got["success"], got["actions"], got["action_kinds"], got["stop_reason"], got["grasp_objects"]) == \
+        (rec["success"], rec["actions"], rec["action_kinds"], rec["stop_reason"], rec["grasp_objects"])
+    assert rec["actions"] >= 2 and rec["grasp_objects"][-1] == "target"

@@ -312,7 +312,9 @@ def connect_executor(builder, executor: ActionExecutor, station, selector=None):
 
 def remove_objects(plant, plant_context, body_indices) -> None:
     """Move bodies far out of the scene (1 m apart, 5 m below the floor), at rest and locked, so
-    they neither fall forever nor touch anything: the scene edit of a lifted object."""
+    they neither fall forever nor touch anything. A scene-setup tool for experiments that start
+    from a recorded state (a replayed attempt, the push study's states); a search never calls it:
+    its diagram carries lifted objects to the drop-off trays."""
     for j, b in enumerate(body_indices):
         body = plant.get_body(BodyIndex(int(b)))
         X = RigidTransform([20.0 + 1.0 * int(b), 0.0, -5.0])

@@ -472,13 +472,28 @@ def _refused(reasons) -> dict:
     return out
 
 
+def check_shelf_scenario(scenario, name: str = "") -> None:
+    """ShelfPhysicsError (naming the scenario and the fix) unless `scenario` is a shelf station with
+    the Fetch and its bluction tool, as the shelf search needs."""
+    label = f"scenario {name!r}" if name else "the scenario"
+    if scenario.environment.type != "shelf":
+        raise ShelfPhysicsError(f"{label} is a {scenario.environment.type} station; the shelf search needs a shelf "
+                                "scenario with the Fetch (FetchShelf)")
+    if scenario.robot.name != "fetch" or "bluction" not in scenario.robot.grippers:
+        raise ShelfPhysicsError(f"{label} has the robot {scenario.robot.name or 'none'!r} with "
+                                f"{', '.join(scenario.robot.grippers) or 'no grippers'}; the shelf search runs on the "
+                                "Fetch with the bluction tool (FetchShelf)")
+
+
 def shelf_physics_rollout(policy: str, seed: int, occluders: int | None = None, horizon: int | None = None,
                           scenario_name: str = SCENARIO, meshcat=None, keep_frames: bool = False,
                           time_step: float | None = TIME_STEP, perception: str = "ground_truth",
-                          **params) -> ShelfPhysicsResult:
+                          scenario_file: str | None = None, **params) -> ShelfPhysicsResult:
     """Generate the scene of `seed` (occluders: None draws 2-12 from the seed) and search it with the
-    controller's `perception`; params: further ShelfSearchParams (e.g. fetch_feasible=False, speed=0.2)."""
-    scenario = load_scenario(None, scenario_name)
+    controller's `perception` on the station `scenario_name` of `scenario_file` (default FetchShelf
+    of diagrams/scenarios.yaml); params: further ShelfSearchParams (e.g. fetch_feasible=False, speed=0.2)."""
+    scenario = load_scenario(scenario_file, scenario_name)
+    check_shelf_scenario(scenario, scenario_name)
     geometry = ShelfGeometry.from_scenario(scenario)
     sample = generate_shelf_scene(geometry, seed, occluders, DEFAULT_TARGET)
     params = ShelfSearchParams(policy=policy, horizon=horizon, seed=seed, **params)
@@ -761,13 +776,14 @@ def _action_panel(rgb: np.ndarray, frame: ShelfFrame, system: ShelfPhysicsSystem
 
 def run_shelf_demo(out, seed: int = DEMO_SEED, occluders: int = DEMO_OCCLUDERS, policy: str = "bluction_dar",
                    horizon: int | None = None, meshcat_html: bool = True, log=print,
-                   perception: str = "ground_truth") -> dict:
+                   perception: str = "ground_truth", scenario=None) -> dict:
     """One search on the Fetch (module docstring) with the controller's `perception`: step_kk.png
     (depth | distribution | action on the observed scene), search.gif, search.json and
     meshcat_recording.html in `out`."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    scenario = load_scenario(None, SCENARIO)
+    scenario = scenario if scenario is not None else load_scenario(None, SCENARIO)
+    check_shelf_scenario(scenario)
     sample = generate_shelf_scene(ShelfGeometry.from_scenario(scenario), seed, occluders, DEFAULT_TARGET)
     params = ShelfSearchParams(policy=policy, horizon=horizon, seed=seed)
     meshcat = Meshcat() if meshcat_html else None

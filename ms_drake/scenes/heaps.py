@@ -244,7 +244,7 @@ class _DropWorld:
         plant, sg = AddMultibodyPlant(cfg, builder)
         sg.set_config(scenario.scene_graph_config)
         parser = make_parser(plant)
-        add_environment(plant, scenario, parser)
+        add_environment(plant, scenario, parser, dropoffs=False)  # heaps never depend on the drop-off trays
         instances = []
         for k, full in enumerate(names):
             sdf = get_object(full).sdf(object_model_name(k, full), friction=scenario.objects.friction,

@@ -84,7 +84,7 @@ def _boxes(type_: str, size, t: float) -> list[tuple[str, Shape, tuple]]:
             ("wall_py", Shape("box", (x, t, z), pose=(0, y / 2 + t / 2, z / 2, 0, 0, 0)), BIN_RGBA),
             ("wall_ny", Shape("box", (x, t, z), pose=(0, -y / 2 - t / 2, z / 2, 0, 0, 0)), BIN_RGBA),
             ("support", Shape("box", (1.6, 1.2, 0.05), pose=(0, 0, -t - 0.025, 0, 0, 0)), SUPPORT_RGBA),
-        ] + _tray_boxes(size, t)
+        ]
     if type_ == "shelf":
         return [
             ("floor", Shape("box", (x + 2 * t, y + t, t), pose=(0, t / 2, -t / 2, 0, 0, 0)), SHELF_RGBA),
@@ -105,10 +105,15 @@ def _boxes(type_: str, size, t: float) -> list[tuple[str, Shape, tuple]]:
 
 
 def environment_sdf(type_: str, size, wall_thickness: float = 0.03, friction: float = 0.5,
-                    model_name: str = "environment") -> str:
-    """SDF text of the environment `type_` with inner `size` (see module docstring)."""
+                    model_name: str = "environment", dropoffs: bool = True) -> str:
+    """SDF text of the environment `type_` with inner `size` (see module docstring); a bin's
+    drop-off trays only with `dropoffs` (the stations have them; the heap generators' drop worlds
+    do not, so a heap does not depend on them)."""
     parts = []
-    for name, shape, rgba in _boxes(type_, size, wall_thickness):
+    boxes = _boxes(type_, size, wall_thickness)
+    if dropoffs and type_ == "bin":
+        boxes = boxes + _tray_boxes(size, wall_thickness)
+    for name, shape, rgba in boxes:
         geom = _geometry_xml(shape)
         parts.append(
             f'<visual name="{name}_visual">{_pose_xml(shape.pose)}<geometry>{geom}</geometry>'

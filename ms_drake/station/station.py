@@ -97,10 +97,11 @@ def default_object_poses(scenario: Scenario, n: int) -> list[RigidTransform]:
     return out
 
 
-def add_environment(plant: MultibodyPlant, scenario: Scenario, parser=None):
+def add_environment(plant: MultibodyPlant, scenario: Scenario, parser=None, dropoffs: bool = True):
+    """The scenario's environment welded to the world (a bin's drop-off trays only with `dropoffs`)."""
     env = scenario.environment
     parser = parser or make_parser(plant)
-    sdf = environment_sdf(env.type, env.resolved_size(), env.wall_thickness, env.friction)
+    sdf = environment_sdf(env.type, env.resolved_size(), env.wall_thickness, env.friction, dropoffs=dropoffs)
     (mi,) = parser.AddModelsFromString(sdf, "sdf")
     body = plant.GetBodyByName(env.type, mi)
     plant.WeldFrames(plant.world_frame(), body.body_frame(), RigidTransform(list(env.position)))
