@@ -215,6 +215,18 @@ def _need_shelf_scenario(file: Optional[Path], name: str):
     return scenario
 
 
+def _need_rearrange_scenario(file: Optional[Path], name: str):
+    """The rearrangement's station of --scenario / --scenario-file, or one clear error."""
+    from ms_drake.experiments.rearrange import RearrangeError, check_rearrange_scenario
+
+    scenario = _scenario(file, name)
+    try:
+        check_rearrange_scenario(scenario, name)
+    except RearrangeError as e:
+        _fail(f"--scenario {name}: {e}")
+    return scenario
+
+
 def _choose(option: str, value, choices, quote: bool = True) -> None:
     """Fail unless `value` (given with `option`) is one of `choices`; `quote`: show it as a repr."""
     if value not in choices:
@@ -322,23 +334,22 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
                                     help=f"rearrange: the collision checker, {', '.join(REARRANGE_METHODS)}"),
          scenario: str = typer.Option("", "--scenario", help="bin: the station (default FloatingGripperBin; a "
                                       "robot's, e.g. YuMiBin or PandaBin, searches with that robot in physics); "
-                                      "shelf: a shelf scenario with the Fetch (default FetchShelf)"),
+                                      "shelf: a shelf scenario with the Fetch (default FetchShelf); rearrange: a "
+                                      "table scenario with the Panda (default PandaTable)"),
          scenario_file: Optional[Path] = ScenarioFile):
     """A full search with per-step PNGs, a GIF and a Meshcat recording: `bin` (heap, X-Ray on the
     floating gripper: masks, occupancy, action) or `shelf` (a shelf scene searched by the Fetch with
     the bluction tool in Drake physics: depth, distribution, action)."""
     if kind not in ("bin", "shelf", "rearrange"):
         _fail(f"demo {kind!r}: choose bin, shelf or rearrange")
-    if kind == "rearrange" and (scenario or scenario_file is not None):
-        _fail("--scenario: demo rearrange runs on its own station (PandaTable); --scenario picks the bin and "
-              "shelf demos' stations")
     if kind == "rearrange":
         _choose("--method", method, REARRANGE_METHODS, quote=False)
+        station = _need_rearrange_scenario(scenario_file, scenario or "PandaTable")
         out = out or Path("out/demo_rearrange")
         t = time.perf_counter()
         typer.echo(f"moving the target past the barrier with MPPI ({method}) on the Panda ...")
         written = run_rearrange_demo(out, method=method, seed=REARRANGE_DEMO_SEED if seed is None else seed,
-                                     meshcat_html=meshcat, log=typer.echo)
+                                     meshcat_html=meshcat, log=typer.echo, scenario=station)
         _echo_written(written)
         typer.echo(f"done in {time.perf_counter() - t:.1f} s")
         return
@@ -824,9 +835,12 @@ def bench_push_fidelity(heaps_: int = typer.Option(400, "--heaps", min=1, help="
                         workers: int = _workers(),
                         policies: Optional[list[str]] = typer.Option(None, "--policy", help="Push policies "
                                                                      f"(repeat; default all): {' | '.join(PUSH_POLICIES)}"),
+                        scenario: str = typer.Option("YuMiBin", "--scenario", help="The robot's station of the full "
+                                                     "side (YuMiBin, PandaBin)"),
                         json_out: Optional[Path] = JsonSummary):
-    """Each policy's recorded push on the YuMi (full fidelity) and in the primitive mode from the same
-    state: one JSON line per (heap, policy) with status, agree, gain_sign_agree, object motions, CPU s."""
+    """Each policy's recorded push on a robot (full fidelity, --scenario) and in the primitive mode from
+    the same state: one JSON line per (heap, policy) with status, agree, gain_sign_agree, object motions, CPU s."""
+    _need_search_scenario(None, scenario, "full")
     bad = [p for p in policies or [] if p not in PUSH_POLICIES]
     if bad:
         _fail(f"--policy {', '.join(bad)}: choose from {', '.join(PUSH_POLICIES)}")
@@ -841,7 +855,7 @@ def bench_push_fidelity(heaps_: int = typer.Option(400, "--heaps", min=1, help="
         bar.update(sum(len([p for p in ps if (int(r["seed"]), p) in done])
                        for r, ps in pushed_records(heap_dirs, heaps_, seed_start, pols)))
         s = run_push_fidelity(heap_dirs, heaps_, seed_start, out, workers=workers, policies=pols,
-                              progress=lambda rows: bar.update(len(rows)))
+                              progress=lambda rows: bar.update(len(rows)), scenario=scenario)
     summary = summarize_fidelity(s["rows"])
     typer.echo(f"{len(s['rows'])} of {s['pushes']} pushes on {s['heaps']} heaps in {out}")
     typer.echo(format_fidelity(summary))
@@ -861,16 +875,23 @@ def bench_fidelity(heaps_: int = typer.Option(50, "--heaps", min=1, help="Heaps 
                    out: Path = JsonlOut,
                    workers: int = _workers(),
                    attempts: int = typer.Option(2, "--attempts", min=1, help="First K grasp attempts per heap"),
-                   reach: str = typer.Option("YuMiBin", "--reach", help="The primitive search keeps only grasps "
-                                             "this scenario's robot reaches ('' for none)"),
+                   scenario: str = typer.Option("YuMiBin", "--scenario", help="The robot's station the attempts "
+                                                "are replayed on (YuMiBin, PandaBin)"),
+                   reach: Optional[str] = typer.Option(None, "--reach", help="The primitive search keeps only grasps "
+                                                       "this scenario's robot reaches (default: --scenario's; '' for "
+                                                       "none)"),
                    json_out: Optional[Path] = JsonSummary):
-    """The primitive search's first grasp attempts per heap, each replayed on the YuMi (full
-    fidelity) from the same scene with the same grasp: one JSON line per attempt (primitive and
-    full outcome, CPU s), per-attempt success in each fidelity and their agreement."""
+    """The primitive search's first grasp attempts per heap, each replayed on a robot (full
+    fidelity, --scenario) from the same scene with the same grasp: one JSON line per attempt
+    (primitive and full outcome, CPU s), per-attempt success in each fidelity and their agreement."""
+    _need_search_scenario(None, scenario, "full")
+    reach = scenario if reach is None else reach
+    if reach:
+        _need_search_scenario(None, reach, "full")
     _need_jsonl(out)
     with tqdm(total=heaps_, desc="fidelity", unit="heap") as bar:
         s = run_fidelity(heaps_, seed_start, out, objects=objects, heap_dir=str(heap_dir) if heap_dir else None,
-                         workers=workers, max_attempts=attempts, reach=reach,
+                         workers=workers, max_attempts=attempts, reach=reach, scenario=scenario,
                          progress=lambda rec: bar.update(1 if rec.get("kind") == "heap" else 0))
     typer.echo(format_fidelity_summary(s))
     if json_out is not None:
@@ -997,7 +1018,10 @@ def bench_rearrange(method: Optional[str] = typer.Option(None, "--method",
                     workers: int = _workers("Local worker processes", max=None),
                     trajectories: int = typer.Option(300, "--trajectories", min=1, help="MPPI samples T"),
                     horizon: int = typer.Option(40, "--horizon", min=1, help="MPPI horizon H"),
-                    table: bool = typer.Option(False, "--table", help="Only print the table of --out")):
+                    table: bool = typer.Option(False, "--table", help="Only print the table of --out"),
+                    scenario: str = typer.Option("PandaTable", "--scenario", help="The station: a table scenario "
+                                                 "with the Panda and a front camera"),
+                    scenario_file: Optional[Path] = ScenarioFile):
     """Rearrangement on the Panda in Drake physics (Table 6.3 analogue): scenes S..S+N-1 of K objects,
     each moved (two attempts) to elsewhere on the table by the MPPI controller with the given collision
     checker; one JSON line per scene (grasps attempted / successful, placements, sim minutes, cpu
@@ -1008,8 +1032,11 @@ def bench_rearrange(method: Optional[str] = typer.Option(None, "--method",
     if table:
         _need_results((out,), "bench rearrange")
     else:
+        _need_rearrange_scenario(scenario_file, scenario)
+        station = {} if scenario == "PandaTable" and scenario_file is None else {
+            "scenario_name": scenario, "scenario_file": str(scenario_file) if scenario_file is not None else None}
         run_rearrange_bench(method, scenes, seed_start, out, objects=objects, workers=workers, log=typer.echo,
-                            trajectories=trajectories, horizon=horizon)
+                            trajectories=trajectories, horizon=horizon, **station)
     typer.echo(rearrange_table(rearrange_records([out])))
     typer.echo(f"results in {out}")
 

@@ -211,7 +211,9 @@ def test_the_diagram_example_agrees_with_bench_search_action_by_action(tmp_path,
     (["bench", "search", "--policy", "largest", "--fidelity", "full", "--scenario", "BinHeap15"], "has no robot"),
     (["demo", "--scenario", "PandaTable"], "a bin search needs a bin scenario"),
     (["demo", "shelf", "--scenario", "PandaBin"], "the shelf search needs a shelf scenario"),
-    (["demo", "rearrange", "--scenario", "PandaBin"], "runs on its own station"),
+    (["demo", "rearrange", "--scenario", "PandaBin"], "the rearrangement runs on a table with the Panda"),
+    (["bench", "rearrange", "--method", "ik_line", "--scenario", "FetchShelf"], "runs on a table with the Panda"),
+    (["bench", "fidelity", "--scenario", "FetchShelf"], "a bin search needs a bin scenario"),
     (["bench", "shelf-physics", "--policy", "der3", "--scenario", "YuMiBin"], "the shelf search needs a shelf"),
 ])
 def test_unsuitable_scenarios_get_one_clear_error(tmp_path, args, message):

@@ -190,20 +190,23 @@ def replay_full(attempt: Attempt, scenario_name: str = "YuMiBin", max_sim_time: 
 
 # ------------------------------------------------------------------------------------ benchmark
 def heap_job(job: tuple) -> list[dict]:
-    """(objects, seed, heap_dir, max_attempts, policy, reach) -> records of one heap: one per
-    attempt (kind "attempt") and one for the heap (kind "heap": the primitive search's result).
+    """(objects, seed, heap_dir, max_attempts, policy, reach[, scenario]) -> records of one heap: one
+    per attempt (kind "attempt") and one for the heap (kind "heap": the primitive search's result).
     reach: SearchParams.reach of the primitive search ("" none, "YuMiBin": only the YuMi's
-    reachable grasps). Module level for pickling."""
-    objects, seed, heap_dir, max_attempts, policy, reach = job
+    reachable grasps); scenario: the robot's station the attempts are replayed on (default
+    YuMiBin). Module level for pickling."""
+    objects, seed, heap_dir, max_attempts, policy, reach, *rest = job
+    scenario = rest[0] if rest else "YuMiBin"
     heap = cached_heap(objects, seed, heap_dir)
     t = time.process_time()
     attempts, res = primitive_attempts(heap, policy=policy, max_attempts=max_attempts, reach=reach)
     prim_cpu = time.process_time() - t
     recs = []
     for a in attempts:
-        r = replay_full(a)
+        r = replay_full(a, scenario)
         g = a.grasp
         recs.append({"kind": "attempt", "seed": int(seed), "objects": int(objects), "reach": reach, "step": a.step,
+                     "scenario": scenario,
                      "grasp": g.kind, "object": g.object_id, "target": a.target, "quality": float(g.quality),
                      "tilt_deg": float(np.degrees(np.arccos(np.clip(-np.asarray(g.approach)[2], -1, 1)))),
                      "center": [float(v) for v in g.center], "approach": [float(v) for v in g.approach],
@@ -215,7 +218,8 @@ def heap_job(job: tuple) -> list[dict]:
                  "primitive_success": bool(res.success), "primitive_actions": int(res.actions),
                  "primitive_grasps": sum(1 for k in res.action_kinds if k == "grasp"),
                  "primitive_lifts": int(res.grasp_successes), "primitive_failure": res.failure,
-                 "attempts_replayed": len(attempts), "primitive_cpu_seconds": prim_cpu, "pid": os.getpid()})
+                 "attempts_replayed": len(attempts), "primitive_cpu_seconds": prim_cpu, "pid": os.getpid(),
+                 "scenario": scenario})
     return recs
 
 
@@ -226,17 +230,19 @@ def _read(path: Path) -> list[dict]:
 
 def run_fidelity(heaps: int, seed_start: int, out, objects: int = 10, heap_dir: str | None = None,
                  workers: int = 1, max_attempts: int | None = 3, policy: str = "largest", reach: str = "YuMiBin",
-                 progress=None) -> dict:
-    """The paired benchmark: heaps S..S+K-1 not yet in `out` (a heap is done once its "heap"
-    record is there; its records are written together, so a killed run loses only the heaps in
+                 progress=None, scenario: str = "YuMiBin") -> dict:
+    """The paired benchmark, the attempts replayed on `scenario`'s robot: heaps S..S+K-1 not yet in
+    `out` (a heap is done once its "heap" record is there; its records are written together, so a killed run loses only the heaps in
     flight and the same command resumes). Returns `summarize` of the file."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    done = {int(r["seed"]) for r in _read(out) if r.get("kind") == "heap" and r.get("objects") == objects}
+    mine = lambda r: r.get("objects") == objects and r.get("scenario", "YuMiBin") == scenario  # noqa: E731
+    done = {int(r["seed"]) for r in _read(out) if r.get("kind") == "heap" and mine(r)}
     # attempt records of heaps without their heap record (a torn run) are dropped before rerunning
-    keep = [r for r in _read(out) if r.get("objects") != objects or int(r["seed"]) in done]
+    keep = [r for r in _read(out) if not mine(r) or int(r["seed"]) in done]
     out.write_text("".join(json.dumps(r) + "\n" for r in keep))
-    jobs = [(objects, k, heap_dir, max_attempts, policy, reach) for k in range(seed_start, seed_start + heaps) if k not in done]
+    jobs = [(objects, k, heap_dir, max_attempts, policy, reach, scenario)
+            for k in range(seed_start, seed_start + heaps) if k not in done]
     with out.open("a") as f:
         for res in run_jobs(heap_job, jobs, workers=workers):
             if not res.ok:
@@ -249,8 +255,7 @@ def run_fidelity(heaps: int, seed_start: int, out, objects: int = 10, heap_dir: 
             os.fsync(f.fileno())
             if progress is not None:
                 progress(res.value[-1])
-    recs = [r for r in _read(out) if r.get("objects") == objects
-            and seed_start <= int(r["seed"]) < seed_start + heaps]
+    recs = [r for r in _read(out) if mine(r) and seed_start <= int(r["seed"]) < seed_start + heaps]
     return summarize(recs)
 
 

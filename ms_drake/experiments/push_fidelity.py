@@ -113,7 +113,7 @@ def agreement(prim: dict, full: dict, abs_tol: float = AGREE_ABS, rel_tol: float
 class FidelityPair:
     """The two worlds of one heap record, its state loaded in both, its before metrics."""
 
-    def __init__(self, rec: dict, params: StudyParams | None = None):
+    def __init__(self, rec: dict, params: StudyParams | None = None, scenario: str = "YuMiBin"):
         params = params or StudyParams()
         if "state" not in rec:
             raise ValueError(f"heap {rec.get('seed')}: the record has no pushed state (stop {rec.get('stop')!r})")
@@ -124,7 +124,8 @@ class FidelityPair:
         self.worlds = {}
         for side in SIDES:
             p = replace(params, time_step=COARSE_STEP) if side == "coarse" else params
-            w = PushWorld(heap, p, fidelity="full" if side == "full" else "primitive")
+            w = PushWorld(heap, p, fidelity="full" if side == "full" else "primitive",
+                          scenario_name=scenario if side == "full" else None)
             w.set_state(rec["state"])
             self.worlds[side] = (w, w.snapshot())
         self.build_cpu_s = time.process_time() - c
@@ -184,9 +185,10 @@ class FidelityPair:
 
 
 def fidelity_job(job: tuple) -> list[dict]:
-    """(heap record, policies, StudyParams dict) -> one row per policy (module-level for pools)."""
-    rec, policies, params = job
-    pair = FidelityPair(rec, StudyParams(**params))
+    """(heap record, policies, StudyParams dict[, robot scenario]) -> one row per policy (module-level
+    for pools)."""
+    rec, policies, params, *rest = job
+    pair = FidelityPair(rec, StudyParams(**params), rest[0] if rest else "YuMiBin")
     return [pair.compare(p, rec["policies"][p]["push"], rec["policies"][p].get("overall_gain")) for p in policies]
 
 
@@ -207,9 +209,10 @@ def pushed_records(heap_dirs, heaps: int, seed_start: int = 0, policies=POLICIES
 
 
 def run_push_fidelity(heap_dirs, heaps: int, seed_start: int, out: Path, workers: int = 1, policies=POLICIES,
-                      params: StudyParams | None = None, progress=None) -> dict:
+                      params: StudyParams | None = None, progress=None, scenario: str = "YuMiBin") -> dict:
     """Rows of every (heap, policy) push of the first `heaps` improvable heaps into `out` (JSON lines,
-    resumable: finished (seed, policy) rows are kept and skipped). progress(rows) after each heap."""
+    resumable: finished (seed, policy) rows are kept and skipped), the full side on `scenario`'s
+    robot. progress(rows) after each heap."""
     for p in policies:
         check_push_policy(p)
     params = params or StudyParams()
@@ -223,7 +226,7 @@ def run_push_fidelity(heap_dirs, heaps: int, seed_start: int, out: Path, workers
     for r, ps in recs:
         todo = [p for p in ps if (int(r["seed"]), p) not in done]
         if todo:
-            jobs.append((r, todo, asdict(params)))
+            jobs.append((r, todo, asdict(params), scenario))
     failed = []
     for res in run_jobs(fidelity_job, jobs, workers=workers):
         if res.ok:

@@ -265,15 +265,30 @@ def bench_params(method: str, seed: int, **overrides) -> RearrangeParams:
     return RearrangeParams(method=method, zone=BENCH_ZONE, seed=seed, **overrides)
 
 
-def rearrange_rollout(method: str, seed: int, objects: int = 10, max_sim: float = 900.0, **overrides) -> dict:
-    scenario = load_scenario(None, SCENARIO)
+def check_rearrange_scenario(scenario, name: str = "") -> None:
+    """RearrangeError (naming the scenario and the fix) unless `scenario` is a table station with the
+    Panda and a front camera, as the rearrangement needs."""
+    label = f"scenario {name!r}" if name else "the scenario"
+    if scenario.environment.type != "table" or scenario.robot.name != "panda" or "front" not in scenario.cameras:
+        raise RearrangeError(f"{label} is a {scenario.environment.type} station with the robot "
+                             f"{scenario.robot.name or 'none'!r} and cameras {', '.join(scenario.cameras) or 'none'}; "
+                             "the rearrangement runs on a table with the Panda and a front camera (PandaTable)")
+
+
+def rearrange_rollout(method: str, seed: int, objects: int = 10, max_sim: float = 900.0,
+                      scenario_name: str = SCENARIO, scenario_file: str | None = None, **overrides) -> dict:
+    """One Table 6.3 scene on the station `scenario_name` of `scenario_file` (default PandaTable)."""
+    scenario = load_scenario(scenario_file, scenario_name)
+    check_rearrange_scenario(scenario, scenario_name)
     heap = table_scene(scenario, seed, objects)
     order = list(np.random.default_rng([seed, 31]).permutation(len(heap.objects)))
     params = bench_params(method, seed, **overrides)
     system = build_rearrange(scenario, heap, params, order=order)
     res = run_rearrange(system, params, seed, max_sim=max_sim)
+    station = {} if scenario_name == SCENARIO and scenario_file is None else {"scenario": scenario_name,
+                                                                             "scenario_file": scenario_file or ""}
     return {"seed": int(seed), **res.record, "trajectories": params.trajectories, "horizon": params.horizon,
-            "order": list(system.targets)}
+            "order": list(system.targets), **station}
 
 
 def _key(r: dict) -> tuple:
@@ -344,13 +359,14 @@ def rearrange_table(records: list[dict]) -> str:
 
 # --------------------------------------------------------------------------------- demo
 def run_rearrange_demo(out, method: str = "coal_reconstruction", seed: int = DEMO_SEED, meshcat_html: bool = True,
-                       log=print, **overrides) -> dict:
+                       log=print, scenario=None, **overrides) -> dict:
     """`ms-drake demo rearrange`: the barrier scene; rearrange.gif (the front camera, one frame per
     simulated second, the FSM's state written on it), rearrange.json and meshcat_recording.html
     in `out`. Returns {name: path} and the record under "record"."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    scenario = load_scenario(None, SCENARIO)
+    scenario = scenario if scenario is not None else load_scenario(None, SCENARIO)
+    check_rearrange_scenario(scenario)
     heap = barrier_scene()
     params = RearrangeParams(method=method, zone=DEMO_ZONE, seed=seed, **overrides)
     meshcat = Meshcat() if meshcat_html else None
