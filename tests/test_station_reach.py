@@ -22,7 +22,7 @@ def test_summarize_counts_per_station_and_kind(tmp_path):
     assert s["YuMiBin"]["parallel_jaw"]["reached"] == 1 and s["YuMiBin"]["parallel_jaw"]["of"] == 2
     assert s["YuMiBin"]["suction"]["reasons"] == {"joint_limits@pre_grasp": 2}
     assert "suction" not in s["PandaBin"]  # no suction cup: not counted
-    assert "| PandaBin | jaw | 1/2 |" in format_summary(s, 2)
+    assert "| PandaBin | jaw | 1/2 | 50.0 %" in format_summary(s, 2)
     p = tmp_path / "r.jsonl"
     p.write_text(json.dumps(recs[0]) + "\n" + '{"seed": 3, "cut')  # a line cut by an interrupted run
     assert [r["seed"] for r in read_records(p)] == [1]
