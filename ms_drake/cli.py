@@ -293,6 +293,36 @@ def _job_bar(total: int, desc: str, unit: str, name=None):
     return bar, progress
 
 
+class _RolloutProgress:
+    """`bench search`'s progress: the resume notice first, then a bar (i of N, rate, ETA) with one
+    line per finished rollout; Ctrl-C then says how far the run got and how to resume it."""
+
+    def __init__(self, total: int, out: Path):
+        self.total, self.out, self.bar, self.done = int(total), out, None, 0
+
+    def start(self, done: int, todo: int):
+        self.done = done
+        if done:
+            typer.echo(f"resuming: {done} of {self.total} rollouts already in {self.out}; running the other {todo}")
+        self.bar = tqdm(total=todo, desc="rollouts", unit="rollout")
+
+    def __call__(self, rec):
+        self.done += 1
+        if self.bar is not None:
+            self.bar.write(f"seed {rec['seed']}: {'success' if rec['success'] else rec['failure']} after "
+                           f"{rec['actions']} actions ({rec.get('seconds', 0.0):.1f} s)")
+            self.bar.update(1)
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
+
+    def interrupted(self):
+        self.close()
+        typer.echo(f"stopped after {self.done} of {self.total} rollouts; run the same command to resume", err=True)
+        raise typer.Exit(130)
+
+
 def _epoch_bar(epochs: int):
     """A tqdm bar over each epoch's batches and the training progress callback `(epoch, b, n, loss)` for it."""
     bar = tqdm(desc="training", unit="batch")
@@ -673,20 +703,19 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
     if detector == "learned":
         _need_weights("--detector learned", None, load_matcher, "matcher")
 
-    def progress(rec):
-        typer.echo(f"seed {rec['seed']}: {'success' if rec['success'] else rec['failure']} after "
-                   f"{rec['actions']} actions ({rec.get('seconds', 0.0):.1f} s)")
-
-    s = run_bench(policy, objects, heaps_, seed_start, out, workers=workers, fidelity=fidelity, horizon=horizon,
-                  use_ray=ray or ray_address is not None, ray_address=ray_address, progress=progress,
-                  heap_dir=str(heap_dir) if heap_dir is not None else None, protocol=protocol,
-                  segmenter=segmenter, detector=detector, push_policy=push_policy, grasp_planner=grasp_planner,
-                  heap_engine=heap_engine, grasp_outcome=grasp_outcome, grasp_samples=grasp_samples,
-                  occupancy_weights=str(occupancy_weights) if occupancy_weights is not None else "",
-                  occupancy=occupancy, skip_failed=skip_failed, jaw_contact=jaw_contact, scenario=scenario,
-                  scenario_file=str(scenario_file) if scenario_file is not None else "")
-    if s["resumed"]:
-        typer.echo(f"resuming: {s['resumed']} of {heaps_} rollouts already in {out}")
+    progress = _RolloutProgress(heaps_, out)
+    try:
+        s = run_bench(policy, objects, heaps_, seed_start, out, workers=workers, fidelity=fidelity, horizon=horizon,
+                      use_ray=ray or ray_address is not None, ray_address=ray_address, progress=progress,
+                      heap_dir=str(heap_dir) if heap_dir is not None else None, protocol=protocol,
+                      segmenter=segmenter, detector=detector, push_policy=push_policy, grasp_planner=grasp_planner,
+                      heap_engine=heap_engine, grasp_outcome=grasp_outcome, grasp_samples=grasp_samples,
+                      occupancy_weights=str(occupancy_weights) if occupancy_weights is not None else "",
+                      occupancy=occupancy, skip_failed=skip_failed, jaw_contact=jaw_contact, scenario=scenario,
+                      scenario_file=str(scenario_file) if scenario_file is not None else "")
+    except KeyboardInterrupt:
+        progress.interrupted()
+    progress.close()
     typer.echo(format_summary(policy, s))
     typer.echo(f"results in {out}")
 

@@ -234,3 +234,25 @@ def test_the_diagram_example_agrees_with_bench_search_on_a_robot_in_full_fidelit
     assert (got["success"], got["actions"], got["action_kinds"], got["stop_reason"], got["grasp_objects"]) == \
         (rec["success"], rec["actions"], rec["action_kinds"], rec["stop_reason"], rec["grasp_objects"])
     assert rec["actions"] >= 2 and rec["grasp_objects"][-1] == "target"
+
+
+def test_bench_search_shows_progress_and_ctrl_c_says_how_to_resume(tmp_path):
+    import signal
+    import time
+
+    out = tmp_path / "runs.jsonl"
+    cmd = [str(Path(sys.executable).parent / "ms-drake"), "bench", "search", "--policy", "largest", "--objects", "6",
+           "--heaps", "40", "--out", str(out)]
+    p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 600 and not (out.exists() and out.read_text().count("\n") >= 1):
+        time.sleep(0.5)
+    p.send_signal(signal.SIGINT)
+    stdout, stderr = p.communicate(timeout=300)
+    assert p.returncode == 130, stderr[-1000:]
+    done = out.read_text().count("\n")
+    assert f"stopped after {done} of 40 rollouts; run the same command to resume" in stderr
+    assert "rollouts:" in stderr and "Traceback" not in stderr  # the progress bar (tqdm writes to stderr)
+    cmd[cmd.index("40")] = str(done + 1)  # the same run, one more heap: the notice comes first
+    rerun = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert rerun.returncode == 0 and rerun.stdout.startswith(f"resuming: {done} of {done + 1} rollouts already in")

@@ -309,7 +309,9 @@ def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, wo
     push_policy: the *_push selectors' push policy (SearchParams.push_policy, "" = Ch. 7's);
     grasp_planner: SearchParams.grasp_planner ("" = the fidelity's default); heap_engine: the
     heaps' drop physics (HEAP_ENGINES); grasp_outcome / grasp_samples / occupancy_weights / occupancy / skip_failed /
-    jaw_contact: SearchParams'; scenario / scenario_file: the station (search_options). A
+    jaw_contact: SearchParams'; scenario / scenario_file: the station (search_options). progress(rec)
+    is called with each record; an object with a `start(done, todo)` method is told first what is
+    already done and what will run. A
     record counts as done only when all of these match.
     Returns {(policy, N): summary}."""
     if heap_engine not in HEAP_ENGINES:
@@ -325,6 +327,8 @@ def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, wo
                  for k in range(seed_start, seed_start + heaps)
                  if k not in done[(policy, objects)]]
     files = {(policy, objects): Path(out) for policy, objects, out in runs}
+    if progress is not None and hasattr(progress, "start"):  # before any rollout: (already done, to run)
+        progress.start(sum(len(d & set(range(seed_start, seed_start + heaps))) for d in done.values()), len(jobs))
     t0 = time.perf_counter()
     handles = {}
     try:
