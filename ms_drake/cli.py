@@ -1428,6 +1428,9 @@ def data_segmentation(count: int = typer.Option(..., "--count", min=1, help="Ima
                       noise: float = typer.Option(0.0, "--noise", min=0.0, help="Gaussian depth noise sigma, m"),
                       dropout: float = typer.Option(0.0, "--dropout", min=0.0, max=0.99,
                                                     help="Missing-pixel rate (half single pixels, half at edges)"),
+                      sensor: str = typer.Option("none", "--sensor", help="Depth sensor model: none | random (a preset "
+                                                 "and its parameters drawn per image) | phoxi | l515 | primesense; "
+                                                 "the inputs are made from the hole-filled depth"),
                       workers: int = _workers(),
                       ray: bool = Ray,
                       ray_address: Optional[str] = RayAddress):
@@ -1436,7 +1439,7 @@ def data_segmentation(count: int = typer.Option(..., "--count", min=1, help="Ima
     t0 = time.perf_counter()
     bar, progress = _job_bar(-(-count // (views * heaps_per_shard)), "shards", "shard")
     res = write_segmentation_dataset(out, count, seed, views, heaps_per_shard, workers, ray or ray_address is not None,
-                                     ray_address, progress, noise=noise, dropout=dropout)
+                                     ray_address, progress, noise=noise, dropout=dropout, sensor=sensor)
     bar.close()
     wall = time.perf_counter() - t0
     per = f"; {res['cpu'] / res['images']:.3f} CPU-s and {wall * workers / res['images']:.3f} wall-s x workers " \

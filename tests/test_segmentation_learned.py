@@ -13,6 +13,7 @@ from pydrake.systems.sensors import ImageDepth32F
 
 from ms_drake.errors import DatasetError, PerceptionError
 from ms_drake.experiments.segmentation_data import (
+    draw_sensor,
     load_working,
     sensor_model,
     write_segmentation_dataset,
@@ -75,6 +76,47 @@ def test_writer_coco_files_and_split_by_object(tiny_dataset):
     assert w["x"].shape == (8, 2, *WORK_SHAPE) and w["lab"].shape == (8, *WORK_SHAPE) and w["lab"].max() >= 1
     with pytest.raises(DatasetError, match="no test shards"):
         load_working(out / "nothing", "test")
+
+
+def test_data_command_draws_sensor_presets_per_image_reproducibly(tmp_path, tiny_dataset):
+    from typer.testing import CliRunner
+
+    from ms_drake.cli import app
+    from ms_drake.station.sensor_model import PRESETS
+
+    # The draw: a function of (seed, shard, heap, view) alone; every preset comes up.
+    draws = [draw_sensor("random", 5, k, j, v) for k in range(4) for j in range(2) for v in range(4)]
+    assert {d[0] for d in draws} == set(PRESETS)
+    again = draw_sensor("random", 5, 3, 1, 2)
+    assert again[:2] == draws[-2][:2] and again[2].random() == draws[-2][2].random()
+    jittered = [p for name, p, _ in draws if name == "l515"]
+    assert jittered and all(p != PRESETS["l515"] for p in jittered)
+    assert draw_sensor("phoxi", 5, 0, 0, 0)[1] == PRESETS["phoxi"]
+    with pytest.raises(DatasetError, match="sensor"):
+        draw_sensor("kinect", 0, 0, 0, 0)
+
+    # The command: one heap, 4 views, each through its own preset; a rerun writes the same shard.
+    z = []
+    for run in ("a", "b"):
+        r = CliRunner().invoke(app, ["data", "segmentation", "--count", "4", "--views", "4", "--heaps-per-shard", "1",
+                                    "--seed", "3", "--sensor", "random", "--out", str(tmp_path / run)])
+        assert r.exit_code == 0, r.output
+        z.append(np.load(tmp_path / run / "shard_00000_train.npz"))
+    assert len(set(z[0]["sensor"])) >= 2 and "none" in set(z[0]["sensor"])
+    for key in ("sensor", "sensor_params", "depth", "x", "lab"):
+        assert np.array_equal(z[0][key], z[1][key]), key
+    # The same heap and camera as the data without sensors (tiny_dataset: seed 3); the holes are
+    # filled before the network's inputs are made, as the station's consumers read the depth.
+    clean = np.load(tiny_dataset[0] / "shard_00000_train.npz")
+    assert "sensor" not in clean.files and np.array_equal(clean["labels"][:2], z[0]["labels"][:2])
+    for name, depth, x in zip(z[0]["sensor"], z[0]["depth"], z[0]["x"]):
+        if name == "none":
+            assert not (depth == 0).any()
+        else:
+            assert (depth == 0).any()
+        assert np.all(x[1] == 1.0)  # valid fraction: every pixel after hole filling
+    assert CliRunner().invoke(app, ["data", "segmentation", "--count", "1", "--sensor", "kinect",
+                                    "--out", str(tmp_path / "c")]).exit_code != 0
 
 
 def test_sensor_model_noise_and_dropout():

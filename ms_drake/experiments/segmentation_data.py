@@ -20,11 +20,23 @@ COCO annotation files ``shard_<k>_<split>.json``, then merges the latter into
    noise): Gaussian depth noise of `noise` m and missing pixels (depth 0) with probability
    `dropout`, half of them as single pixels and half at depth discontinuities (> 5 mm to a
    neighbour), where structured-light sensors lose their returns.
+5. depth sensor models (``sensor``, optional, off by default): the station's camera models
+   (ms_drake.station.sensor_model). ``sensor="random"`` draws, per image, one of the presets
+   (none, phoxi, l515, primesense, equally likely) and jitters its parameters (`draw_sensor`:
+   noise x 0.5-2, edge / grazing / single-pixel dropout x 0.5-1.5, blob count x 0.5-2 and size
+   x 0.7-1.4, edge band +-1 px, grazing onset +-10 deg); a preset name applies that preset
+   unchanged to every image. The draw comes from a Generator seeded by (seed, shard, heap, view)
+   alone, so the heaps and cameras are those of the data without sensors and a rerun draws the
+   same presets. The network's inputs ``x`` are made from the depth as the station's consumers
+   read it (`geometry.preprocess_depth`, hole filling, then `working_inputs`), ``depth`` keeps
+   the sensor's raw image (holes = 0); shards then also hold ``sensor`` (each image's preset)
+   and ``sensor_params`` (n, len(SENSOR_FIELDS)) float32.
 
 Shards hold ``depth`` (n, 480, 640) float16 m, ``labels`` (n, 480, 640) uint8 (0 = none, k =
 the k-th object of the image's ``objects``), the network's working arrays ``x`` (n, 2, 192, 256)
 float16 and ``lab`` (n, 192, 256) uint8 (segmentation_net), ``K`` (n, 3, 3) and ``X_WC`` (n, 4, 4)
-of each camera, ``objects`` (comma-separated full names), ``set`` and ``heap_seed``.
+of each camera, ``objects`` (comma-separated full names), ``set`` and ``heap_seed`` (and with a
+sensor model ``sensor`` and ``sensor_params``).
 
 Splits, by image and by object: every fifth shard is a "test" shard whose heaps draw only from
 the test split of their object set (`occupancy_data.shard_split`; the registry splits every set
@@ -36,6 +48,7 @@ by (seed, shard, heap).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -54,7 +67,7 @@ from ms_drake.experiments.occupancy_data import (
     shard_split,
     truncated_poisson,
 )
-from ms_drake.geometry import PinholeCamera
+from ms_drake.geometry import PinholeCamera, preprocess_depth
 from ms_drake.parallel import run_shard_jobs
 from ms_drake.perception.segmentation_net import (
     MIN_GT_PIXELS,
@@ -63,12 +76,15 @@ from ms_drake.perception.segmentation_net import (
 )
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import HeapParams, generate_heap
+from ms_drake.station.sensor_model import PRESETS, DepthSensorParams, apply_depth_sensor
 from ms_drake.station.station import station_objects
 from ms_drake.types import InstanceMasks
 
 OBJECT_SETS = ("ycb", "random_urdfs", "procedural")
 MEAN_OBJECTS, MAX_OBJECTS = 7.5, 10
 IMAGE_ID_STRIDE = 10_000  # COCO image id = shard * stride + index in the shard
+SENSOR_OPTIONS = ("none", "random", *[p for p in PRESETS if p != "none"])
+SENSOR_FIELDS = tuple(f.name for f in dataclasses.fields(DepthSensorParams))
 
 
 class LabelledHeapRenderer(HeapRenderer):
@@ -107,6 +123,31 @@ def sensor_model(depth: np.ndarray, rng: np.random.Generator, noise: float = 0.0
     return d
 
 
+def draw_sensor(sensor: str, seed: int, k: int, j: int, v: int) -> tuple[str, DepthSensorParams, np.random.Generator]:
+    """(preset name, parameters, Generator for the model's own draws) of view v of heap j of shard k
+    (module doc, item 5); seeded by (seed, k, j, v) only, so reproducible and independent of the
+    heap's and the camera's draws."""
+    if sensor not in SENSOR_OPTIONS:
+        raise DatasetError(f"sensor {sensor!r}: choose one of {', '.join(SENSOR_OPTIONS)}")
+    rng = np.random.default_rng([int(seed), int(k), int(j), int(v), 29])
+    if sensor != "random":
+        return sensor, PRESETS[sensor], rng
+    name = str(rng.choice(list(PRESETS)))
+    p = PRESETS[name]
+    if p.is_identity():
+        return name, p, rng
+    u = rng.uniform
+    p = dataclasses.replace(
+        p, noise_a=p.noise_a * u(0.5, 2.0), noise_b=p.noise_b * u(0.5, 2.0),
+        edge_width=max(1, p.edge_width + int(rng.integers(-1, 2))),
+        edge_dropout=min(1.0, p.edge_dropout * u(0.5, 1.5)),
+        grazing_deg=float(np.clip(p.grazing_deg + u(-10.0, 10.0), 45.0, 85.0)),
+        grazing_dropout=min(1.0, p.grazing_dropout * u(0.5, 1.5)),
+        holes=p.holes * u(0.5, 2.0), hole_radius=p.hole_radius * u(0.7, 1.4),
+        pixel_dropout=min(0.05, p.pixel_dropout * u(0.5, 1.5)))
+    return name, p, rng
+
+
 def ground_truth(labels: np.ndarray, label_to_name: dict[int, str]) -> tuple[np.ndarray, list[str]]:
     """(instance image uint8: 0 none, k = objects[k - 1]; objects seen with >= MIN_GT_PIXELS pixels)."""
     out = np.zeros(labels.shape, np.uint8)
@@ -127,16 +168,24 @@ def instance_masks(inst: np.ndarray, names) -> InstanceMasks:
 
 
 def render_views(scenario, heap, views: int, rng: np.random.Generator, noise: float = 0.0,
-                 dropout: float = 0.0) -> list[dict]:
-    """`views` images of one heap: dict(depth, inst, objects, cam)."""
+                 dropout: float = 0.0, sensor: str = "none", sensor_key: tuple = (0, 0, 0)) -> list[dict]:
+    """`views` images of one heap: dict(depth, inst, objects, cam); with a `sensor` (module doc,
+    item 5; `sensor_key` = (seed, shard, heap) of the draw) also sensor, sensor_params and x (the
+    network's inputs from the hole-filled depth)."""
     nominal = PinholeCamera.from_config(scenario.cameras[next(iter(scenario.cameras))])
     r = LabelledHeapRenderer(scenario, heap)
     out = []
-    for _ in range(views):
+    for v in range(views):
         cam = random_camera(nominal, rng)
         depth = sensor_model(r.depth(cam), rng, noise, dropout)
         inst, names = ground_truth(r.labels(cam), r.label_to_name)
-        out.append(dict(depth=depth, inst=inst, objects=names, cam=cam))
+        im = dict(depth=depth, inst=inst, objects=names, cam=cam)
+        if sensor != "none":
+            name, params, srng = draw_sensor(sensor, *sensor_key, v)
+            depth = apply_depth_sensor(depth, params, srng, cam.fx, cam.fy, cam.cx, cam.cy)
+            im.update(depth=depth, sensor=name, x=working_inputs(preprocess_depth(depth)),
+                      sensor_params=np.array([getattr(params, f) for f in SENSOR_FIELDS], np.float32))
+        out.append(im)
     return out
 
 
@@ -170,8 +219,10 @@ def coco_annotations(images: list[dict], image_ids: list[int], file_name: str) -
 
 
 def shard_job(job: tuple) -> dict:
-    """(out, k, seed, heaps, views, sets, noise, dropout) -> writes shard k; module-level for pickling."""
-    out, k, seed, heaps, views, sets, noise, dropout = job
+    """(out, k, seed, heaps, views, sets, noise, dropout[, sensor]) -> writes shard k; module-level for
+    pickling."""
+    out, k, seed, heaps, views, sets, noise, dropout = job[:8]
+    sensor = job[8] if len(job) > 8 else "none"
     split = shard_split(k)
     path = Path(out) / f"shard_{k:05d}_{split}.npz"
     if path.exists():
@@ -184,7 +235,7 @@ def shard_job(job: tuple) -> dict:
         except HeapError:
             failed += 1
             continue
-        for im in render_views(scenario, heap, views, rng, noise, dropout):
+        for im in render_views(scenario, heap, views, rng, noise, dropout, sensor, (seed, k, j)):
             im.update(set=oset, heap_seed=int(heap.seed))
             images.append(im)
     if not images:
@@ -193,10 +244,12 @@ def shard_job(job: tuple) -> dict:
     coco = coco_annotations(images, ids, path.name)
     cam_K = np.stack([[[c.fx, 0, c.cx], [0, c.fy, c.cy], [0, 0, 1]] for c in (im["cam"] for im in images)])
     tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
+    extra = {} if sensor == "none" else dict(sensor=np.array([im["sensor"] for im in images]),
+                                             sensor_params=np.stack([im["sensor_params"] for im in images]))
     np.savez_compressed(
-        tmp, depth=np.stack([im["depth"] for im in images]).astype(np.float16),
+        tmp, **extra, depth=np.stack([im["depth"] for im in images]).astype(np.float16),
         labels=np.stack([im["inst"] for im in images]),
-        x=np.stack([working_inputs(im["depth"]) for im in images]).astype(np.float16),
+        x=np.stack([im["x"] if "x" in im else working_inputs(im["depth"]) for im in images]).astype(np.float16),
         lab=np.stack([working_labels(im["inst"]) for im in images]),
         K=cam_K, X_WC=np.stack([im["cam"].X_WC.GetAsMatrix4() for im in images]),
         objects=np.array([",".join(im["objects"]) for im in images]), set=np.array([im["set"] for im in images]),
@@ -229,19 +282,22 @@ def merge_coco(folder, split: str) -> Path:
 
 def write_segmentation_dataset(out, count: int, seed: int = 0, views: int = 4, heaps_per_shard: int = 8,
                                workers: int = 1, use_ray: bool = False, ray_address: str | None = None,
-                               progress=None, sets=OBJECT_SETS, noise: float = 0.0, dropout: float = 0.0) -> dict:
+                               progress=None, sets=OBJECT_SETS, noise: float = 0.0, dropout: float = 0.0,
+                               sensor: str = "none") -> dict:
     """Shards of about `count` images into `out` (see the module doc), then coco_train.json and
-    coco_test.json; returns counts."""
+    coco_test.json; returns counts. sensor: "none", "random" or a preset (module doc, item 5)."""
     if views < 1 or heaps_per_shard < 1:
         raise DatasetError(f"views={views}, heaps_per_shard={heaps_per_shard}: both must be >= 1")
     if noise < 0 or not 0 <= dropout < 1:
         raise DatasetError(f"noise={noise}, dropout={dropout}: need noise >= 0 and 0 <= dropout < 1")
+    if sensor not in SENSOR_OPTIONS:
+        raise DatasetError(f"--sensor {sensor!r}: choose one of {', '.join(SENSOR_OPTIONS)}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     per = views * heaps_per_shard
     shards = -(-int(count) // per)
     jobs = [(str(out), k, int(seed), heaps_per_shard, views, tuple(sets), float(noise), float(dropout))
-            for k in range(shards)]
+            + ((sensor,) if sensor != "none" else ()) for k in range(shards)]
     todo = [j for j in jobs if not (out / f"shard_{j[1]:05d}_{shard_split(j[1])}.npz").exists()]
     res = dict(shards=shards, skipped=shards - len(todo), written=0, failed=[], images=0, cpu=0.0)
     run_shard_jobs(shard_job, todo, res, ("images", "cpu"), progress, workers=workers, use_ray=use_ray,
