@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 from typing import Optional
 
+import cv2
 import numpy as np
 import typer
 from tqdm import tqdm
@@ -89,7 +90,12 @@ from ms_drake.experiments.push_study import (
 )
 from ms_drake.experiments.rearrange import DEMO_SEED as REARRANGE_DEMO_SEED
 from ms_drake.experiments.rearrange import METHODS as REARRANGE_METHODS
+from ms_drake.experiments.perceive import PERCEIVE_SEGMENTERS, PerceiveError, load_camera, load_depth
+from ms_drake.experiments.perceive import perceive as run_perceive
+from ms_drake.experiments.perceive import write_perception
 from ms_drake.experiments.rearrange import (
+    RearrangeError,
+    check_rearrange_scenario,
     rearrange_records,
     rearrange_table,
     run_rearrange_bench,
@@ -217,8 +223,6 @@ def _need_shelf_scenario(file: Optional[Path], name: str):
 
 def _need_rearrange_scenario(file: Optional[Path], name: str):
     """The rearrangement's station of --scenario / --scenario-file, or one clear error."""
-    from ms_drake.experiments.rearrange import RearrangeError, check_rearrange_scenario
-
     scenario = _scenario(file, name)
     try:
         check_rearrange_scenario(scenario, name)
@@ -436,10 +440,6 @@ def perceive(depth: Path = typer.Argument(..., help="Depth image of a bin from a
              out: Path = typer.Option(Path("out/perceive"), "--out", help="Output folder")):
     """The perception stack on your own depth image: instance masks (PNG and COCO JSON), the target
     and its occupancy distribution when a target is given, and each stage's CPU time."""
-    from ms_drake.experiments.perceive import PERCEIVE_SEGMENTERS, PerceiveError, load_camera, load_depth
-    from ms_drake.experiments.perceive import perceive as run_perceive
-    from ms_drake.experiments.perceive import write_perception
-
     _choose("--segmenter", segmenter, PERCEIVE_SEGMENTERS)
     if target and target_size:
         _fail("--target and --target-size: give one of them")
@@ -448,7 +448,6 @@ def perceive(depth: Path = typer.Argument(..., help="Depth image of a bin from a
         camera = load_camera(intrinsics, d.shape)
         colour = None
         if rgb is not None:
-            import cv2
             img = cv2.imread(str(rgb), cv2.IMREAD_COLOR)
             if img is None:
                 raise PerceiveError(f"{rgb}: not a readable colour image")

@@ -75,7 +75,7 @@ SLOW_CHAINS = {("train", "collision")}  # data collision: a whole shard of scene
 # commands a tiny run of which is in another test file (through the CLI)
 ELSEWHERE = {
     ("demo",): "test_cli.py", ("scene",): "test_cli.py", ("heaps",): "test_cli.py", ("diagram",): "test_cli.py",
-    ("bench", "search"): "test_harness.py", ("bench", "replay"): "test_harness.py",
+    ("bench", "search"): "test_harness.py", ("bench", "replay"): "test_harness.py", ("perceive",): "test_perceive.py",
 }
 # --help only, and why
 HELP_ONLY = {

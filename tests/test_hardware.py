@@ -143,8 +143,10 @@ def test_hardware_station_has_the_simulated_station_ports(name):
     sim = MakeStation(scenario)
     names = lambda s, kind: {getattr(s, f"get_{kind}_port")(i).get_name()  # noqa: E731
                              for i in range(getattr(s, f"num_{kind}_ports")())}
-    assert names(hw, "input") == names(sim, "input")
-    assert names(hw, "output") == names(sim, "output") - {"body_poses", "query_object", "contact_results", "state"}
+    # simulation-only ports: the plant's state and forces, the scene graph's queries
+    assert names(hw, "input") == names(sim, "input") - {"applied_spatial_force"}
+    assert names(hw, "output") == names(sim, "output") - {"body_poses", "body_spatial_velocities", "query_object",
+                                                          "contact_results", "state"}
 
 
 def test_nothing_is_commanded_before_the_first_status():

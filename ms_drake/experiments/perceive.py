@@ -33,6 +33,7 @@ from pycocotools import mask as mask_utils
 from pydrake.math import RigidTransform, RollPitchYaw
 
 from ms_drake.errors import MsDrakeError
+from ms_drake.experiments.scene_images import colorize_masks
 from ms_drake.geometry import PinholeCamera, Workspace, preprocess_depth
 from ms_drake.objects import get_object
 from ms_drake.perception.occupancy import OccupancyEstimator, TargetBox
@@ -243,8 +244,6 @@ def _depth_picture(depth: np.ndarray) -> np.ndarray:
 
 def write_perception(out, depth_path, result: dict, depth: np.ndarray) -> dict:
     """masks.png, masks.json, occupancy.png / .npy, perceive.json in `out`; returns {name: path}."""
-    from ms_drake.experiments.scene_images import colorize_masks
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     masks, found, occ = result["masks"], result["target"], result["occupancy"]

@@ -24,6 +24,8 @@ import os
 import time
 from pathlib import Path
 
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
 
 from ms_drake.execution.reach import PickReach
@@ -242,11 +244,7 @@ def run_station_reach(scenarios: list[str], heaps: int, seed_start: int, out: st
 def draw_miss(view: dict, g: dict, diag: dict, path, title: str = "") -> Path:
     """The overhead RGB image with the grasp drawn (the grasp point, its approach projected, a jaw's
     axis) and the reason, as a PNG at `path`."""
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     cam = view["camera"]
     c = np.asarray(g["center"], float)
     a = np.asarray(g["approach"], float)
