@@ -1395,7 +1395,7 @@ def bench_shelf_occupancy_cmd(
         weights: Optional[Path] = typer.Option(None, "--weights", help="Weights (default: shipped)"),
         out: Optional[Path] = typer.Option(None, "--out", help="Also write the results as JSON here")):
     """Held-out accuracy of the learned shelf occupancy: total variation of P(x), balanced accuracy
-    and IoU (line 1466's thresholds) per target height, against a uniform P(x); inference ms."""
+    and IoU (at the reference's thresholds) per target height, against a uniform P(x); inference ms."""
     _need_weights("--weights", weights, load_shelf_occupancy_net, "shelf-occupancy")
     res = bench_shelf_occupancy(data, weights)
     typer.echo(f"{res['test_scenes']} test scenes (seeds {res['test_seeds'][0]}-{res['test_seeds'][1]})")

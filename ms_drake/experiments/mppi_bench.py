@@ -1,4 +1,4 @@
-"""Speed of one MPPI call on the Panda with a point-cloud collision checker (issue 13's speed goals):
+"""Speed of one MPPI call on the Panda with a point-cloud collision checker (the speed goals: faster than pytorch_mppi):
 `ms-drake bench mppi`.
 
 Setup per scene seed: the PandaTable robot (Panda + jaw at its base, the table as environment),
