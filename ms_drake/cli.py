@@ -199,36 +199,28 @@ def _scenario(file: Optional[Path], name: str):
     return load_scenario(file, name)
 
 
-def _need_search_scenario(file: Optional[Path], name: str, fidelity: str):
-    """The bin-search station of --scenario / --scenario-file (name "" = the fidelity's default), or
-    one clear error: an unknown name, or a station the search cannot run on."""
-    name = name or SCENARIOS[fidelity]
+def _need_station(file: Optional[Path], name: str, check):
+    """The station of --scenario NAME / --scenario-file FILE, or one clear error: an unknown name, or a
+    station `check(scenario, name)` refuses (it raises the project's error naming the fix)."""
     scenario = _scenario(file, name)
     try:
-        check_search_scenario(scenario, fidelity, name)
-    except ControllerError as e:
+        check(scenario, name)
+    except (ControllerError, ShelfPhysicsError, RearrangeError) as e:
         _fail(f"--scenario {name}: {e}")
     return scenario
+
+
+def _need_search_scenario(file: Optional[Path], name: str, fidelity: str):
+    """A bin-search station for `fidelity` (name "" = the fidelity's default)."""
+    return _need_station(file, name or SCENARIOS[fidelity], lambda s, n: check_search_scenario(s, fidelity, n))
 
 
 def _need_shelf_scenario(file: Optional[Path], name: str):
-    """The shelf station of --scenario / --scenario-file, or one clear error."""
-    scenario = _scenario(file, name)
-    try:
-        check_shelf_scenario(scenario, name)
-    except ShelfPhysicsError as e:
-        _fail(f"--scenario {name}: {e}")
-    return scenario
+    return _need_station(file, name, check_shelf_scenario)
 
 
 def _need_rearrange_scenario(file: Optional[Path], name: str):
-    """The rearrangement's station of --scenario / --scenario-file, or one clear error."""
-    scenario = _scenario(file, name)
-    try:
-        check_rearrange_scenario(scenario, name)
-    except RearrangeError as e:
-        _fail(f"--scenario {name}: {e}")
-    return scenario
+    return _need_station(file, name, check_rearrange_scenario)
 
 
 def _choose(option: str, value, choices, quote: bool = True) -> None:

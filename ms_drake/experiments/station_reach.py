@@ -29,6 +29,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from ms_drake.execution.reach import PickReach
+from ms_drake.experiments.fidelity import wilson as fidelity_wilson
 from ms_drake.experiments.harness import cached_heap
 from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.grasping.grasp_sets import load_grasp_set
@@ -122,14 +123,10 @@ def heap_reach(heap, reaches: dict, view: dict | None = None) -> dict:
     return out
 
 
-def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    if n == 0:
-        return (float("nan"), float("nan"))
-    p = k / n
-    d = 1 + z * z / n
-    c = (p + z * z / (2 * n)) / d
-    h = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
-    return (max(0.0, c - h), min(1.0, c + h))
+def wilson(k: int, n: int) -> tuple[float, float]:
+    """Wilson score 95 % interval of k successes in n trials, clipped to [0, 1]."""
+    lo, hi = fidelity_wilson(k, n)
+    return (max(0.0, lo), min(1.0, hi))
 
 
 def summarize(records: list[dict]) -> dict:
