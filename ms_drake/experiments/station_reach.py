@@ -19,7 +19,6 @@ Wilson 95 % intervals; `draw_miss` the overhead RGB image with a missed grasp dr
 from __future__ import annotations
 
 import json
-import math
 import os
 import time
 from pathlib import Path
