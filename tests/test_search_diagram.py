@@ -223,7 +223,7 @@ def test_unsuitable_scenarios_get_one_clear_error(tmp_path, args, message):
 
 
 def test_the_diagram_example_agrees_with_bench_search_on_a_robot_in_full_fidelity(tmp_path):
-    """The Panda in physics: a non-target object carried to a drop-off tray, then the target."""
+    """The Panda in physics: its grasps of non-target objects carry them to a drop-off tray."""
     bench = tmp_path / "panda.jsonl"
     _run([str(Path(sys.executable).parent / "ms-drake"), "bench", "search", "--policy", "largest", "--fidelity", "full",
           "--scenario", "PandaBin", "--objects", "6", "--heaps", "1", "--seed-start", "0", "--out", str(bench)])
@@ -233,7 +233,7 @@ def test_the_diagram_example_agrees_with_bench_search_on_a_robot_in_full_fidelit
                            "--seed", "0", "--policy", "largest", "--objects", "6"]).strip().splitlines()[-1])
     assert (got["success"], got["actions"], got["action_kinds"], got["stop_reason"], got["grasp_objects"]) == \
         (rec["success"], rec["actions"], rec["action_kinds"], rec["stop_reason"], rec["grasp_objects"])
-    assert rec["actions"] >= 2 and rec["grasp_objects"][-1] == "target"
+    assert rec["actions"] >= 2 and any(o not in ("", "target") for o in rec["grasp_objects"])  # a carried occluder
 
 
 def test_bench_search_shows_progress_and_ctrl_c_says_how_to_resume(tmp_path):

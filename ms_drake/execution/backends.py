@@ -235,12 +235,13 @@ class FullBackend(_Base):
     scenario: the station's scenario (its robot, grippers and environment; objects are ignored).
     grip_force: the jaw's force limit while it grips [N]; by default the closing force the jaw
     grasp models score with (robots.CLOSING_FORCE), so the station executes a grasp
-    with the force its quality assumed."""
+    with the force its quality assumed. via_clearance: the move from park to a grasp passes above
+    its pre-grasp pose, this high over the bin's walls [m] (plan_pick's via_z)."""
 
     def __init__(self, scenario, objects: dict, workspace, target_id: str = "", seed: int = 0, settle: float = 0.5,
                  lift: float = 0.15, speed: float = 0.25, close_time: float = 0.5, hold_time: float = 0.3,
                  park_distance: float = 0.35, park_height: float = 0.10, grip_force: float = CLOSING_FORCE,
-                 drop_height: float = 0.25):
+                 drop_height: float = 0.25, via_clearance: float = 0.25):
         super().__init__(objects, workspace, target_id, seed, settle)
         if not scenario.robot.name:
             raise ExecutionError("full fidelity needs a robot: the scenario has none (robot.name is empty); "
@@ -255,6 +256,9 @@ class FullBackend(_Base):
             raise ExecutionError(f"robot {scenario.robot.name!r} carries no parallel jaw or suction cup "
                                  f"(grippers: {', '.join(g for _, g, _ in chosen)}); a bin search needs one")
         self.lift, self.speed, self.close_time, self.hold_time = lift, speed, close_time, hold_time
+        # The move from park to a grasp passes above its pre-grasp pose at this height: over the
+        # walls and the heap, not through them.
+        self.via_z = workspace.floor_z + workspace.wall_height + via_clearance
         if grip_force <= 0:
             raise ExecutionError(f"grip_force must be > 0 N, got {grip_force}")
         self.grip_force = float(grip_force)
@@ -324,7 +328,7 @@ class FullBackend(_Base):
             q_now = np.asarray(hold[f"{arm}.position"], float)
             plan = plan_pick(ik, limits, q_now, grasp_tool_pose(g), arm, port, g.kind, lift=self.lift,
                              speed=self.speed, close_time=self.close_time, hold_time=self.hold_time,
-                             force_limit=self.grip_force, max_opening=JAW_OPENING)
+                             force_limit=self.grip_force, max_opening=JAW_OPENING, via_z=self.via_z)
             if not plan.success:
                 return plan.status
             b = self.objects.get(g.object_id)

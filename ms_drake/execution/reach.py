@@ -159,7 +159,7 @@ class PickReach:
         arm, port = tool
         ik, limits, q_home = b.ik[arm]
         return plan_pick(ik, limits, q_home, grasp_tool_pose(grasp), arm, port, grasp.kind, lift=b.lift,
-                         speed=b.speed, close_time=b.close_time, hold_time=b.hold_time)
+                         speed=b.speed, close_time=b.close_time, hold_time=b.hold_time, via_z=b.via_z)
 
     def status(self, grasp: Grasp) -> str:
         """"ok", the IK status of the failing step, or "no_<kind>_gripper"."""

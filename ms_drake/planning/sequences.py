@@ -178,14 +178,26 @@ def _line(ik, q_start, displacement, limits, speed):
     return plan_cartesian_line(ik, ik_pose(ik, q_start), displacement, q_start, limits, max_speed=speed)
 
 
-def _start(q_home, q_first, from_home: bool, limits) -> Timeline:
-    """A timeline that rests 0.2 s, then (from_home) moves from q_home to q_first, where the
-    sequence's first straight line begins (without from_home it starts there)."""
+def _start(q_home, q_first, from_home: bool, limits, q_via=None) -> Timeline:
+    """A timeline that rests 0.2 s, then (from_home) moves from q_home to q_first (through q_via
+    when given), where the sequence's first straight line begins (without from_home it starts there)."""
     tl = Timeline(q_home if from_home else q_first)
     tl.hold(0.2)
     if from_home:
-        tl.play(plan_joint_motion([q_home, q_first], limits))
+        tl.play(plan_joint_motion([q_home, q_first] if q_via is None else [q_home, q_via, q_first], limits))
     return tl
+
+
+def _via(ik, q_pre, X_pre: RigidTransform, via_z: float | None, axis_only: bool):
+    """The configuration with the tool as at the pre-grasp pose but raised to the world height via_z
+    (None when no raise is needed or it does not solve): the transit from park comes down to the
+    pre-grasp from above instead of sweeping through the heap."""
+    if via_z is None or X_pre.translation()[2] >= via_z:
+        return None
+    p = X_pre.translation().copy()
+    p[2] = via_z
+    res = ik.solve(RigidTransform(X_pre.rotation(), p), q_seed=q_pre, axis_only=axis_only)
+    return nearest_equivalent(ik, res.q, q_pre) if res.success else None
 
 
 def _pick_lines(ik, limits, q_home, X_grasp, approach, lift, speed, axis_only):
@@ -209,10 +221,12 @@ def _pick_lines(ik, limits, q_home, X_grasp, approach, lift, speed, axis_only):
 def plan_pick(ik, limits, q_home, X_grasp: RigidTransform, arm: str, gripper_port: str, kind: str,
               approach: float = 0.10, lift: float = 0.20, force_limit: float = CLOSING_FORCE, max_opening: float = 0.10,
               close_time: float = 0.8, hold_time: float = 0.5, speed: float = 0.15,
-              blade: float | None = None, from_home: bool = True) -> PickPlan:
+              blade: float | None = None, from_home: bool = True, via_z: float | None = None) -> PickPlan:
     """Plan a pick at the tool pose X_grasp (kind: parallel_jaw | suction | bluction).
     from_home False: the timeline starts at the pre-grasp configuration (build_run puts the arm
-    there), skipping the joint motion from home. X_grasp: RigidTransform or 4x4 array."""
+    there), skipping the joint motion from home. via_z: the move from home passes above the
+    pre-grasp pose at this world height (e.g. above a bin's walls and heap; None: straight there).
+    X_grasp: RigidTransform or 4x4 array."""
     X_grasp = as_rigid_transform(X_grasp, "X_grasp")
     axis_only = kind != "parallel_jaw"
     # A parallel jaw is symmetric: the tool turned by pi about its axis is the same grasp (the
@@ -229,7 +243,8 @@ def plan_pick(ik, limits, q_home, X_grasp: RigidTransform, arm: str, gripper_por
         return PickPlan(False, failure, arm, X_target=X_grasp)
     q_pre, approach_plan, lift_plan = lines
     X_grasp = X
-    tl = _start(q_home, q_pre, from_home, limits)
+    q_via = _via(ik, q_pre, ik_pose(ik, q_pre), via_z, axis_only) if from_home else None
+    tl = _start(q_home, q_pre, from_home, limits, q_via)
     tl.mark("approach")
     tl.play(approach_plan.trajectory)
     tl.mark("contact")
