@@ -15,6 +15,7 @@ exit with status 2; they never show a traceback.
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import functools
 import json
@@ -30,6 +31,7 @@ from typing import Optional
 import cv2
 import numpy as np
 import typer
+from pydrake.common.yaml import yaml_dump_typed
 from tqdm import tqdm
 
 from ms_drake.collision.checker import METHODS as COLLISION_METHODS
@@ -38,21 +40,20 @@ from ms_drake.collision.checker import default_weights as default_collision_weig
 from ms_drake.collision.checker import load_collision_net
 from ms_drake.collision.scene_net import NetConfig as CollisionNetConfig
 from ms_drake.errors import MsDrakeError
-from ms_drake.execution import FIDELITIES, GRASP_OUTCOMES
+from ms_drake.execution import FIDELITIES
 from ms_drake.experiments.collision_data import (
     SCENES_PER_SHARD as COLLISION_SCENES_PER_SHARD,
 )
 from ms_drake.experiments.collision_data import write_collision_dataset
 from ms_drake.experiments.collision_learning import bench_collision, train_collision
-from ms_drake.experiments.demo import DEMO_SEED, run_demo
+from ms_drake.experiments.demo import DEMO_CONFIG, DEMO_SEED, run_demo
 from ms_drake.experiments.grasp_figure import grasp_figure
 from ms_drake.experiments.grasp_set_data import write_grasp_sets
 from ms_drake.experiments.harness import (
-    HEAP_ENGINES,
     format_summary,
     paired_comparison,
     plot,
-    read_records,
+    read_search_records,
     check_record_heaps,
     replay_records,
     run_bench,
@@ -63,7 +64,6 @@ from ms_drake.experiments.matcher_data import (
     write_matcher_dataset,
 )
 from ms_drake.experiments.matcher_learning import train_matcher
-from ms_drake.experiments.rollout import SCENARIOS, SEARCH_OCCUPANCIES
 from ms_drake.experiments.mppi_bench import PLANNERS as MPPI_PLANNERS
 from ms_drake.experiments.mppi_bench import bench_mppi
 from ms_drake.experiments.occupancy_data import GROUND_TRUTHS, HEAP_LAYOUTS, write_occupancy_dataset
@@ -133,15 +133,8 @@ from ms_drake.experiments.shelf_physics import (
     run_shelf_physics_bench,
 )
 from ms_drake.experiments.shelf_segmentation import bench_shelf_segmentation
-from ms_drake.experiments.xray import (
-    PROTOCOLS,
-    XRAY_HORIZON,
-    XRAY_OBJECTS,
-    XRAY_PROTOCOLS,
-)
 from ms_drake.foss import SUCTION_LIFTS
 from ms_drake.grasping.evaluator import MODELS
-from ms_drake.grasping.planner import JAW_CONTACTS
 from ms_drake.objects import available_sets, get_object_set
 from ms_drake.parallel import run_jobs
 from ms_drake.paths import model_path
@@ -149,16 +142,21 @@ from ms_drake.perception.matcher_net import load_matcher
 from ms_drake.perception.occupancy_net import load_model as load_occupancy_net
 from ms_drake.perception.segmentation_net import load_model as load_segmentation_net
 from ms_drake.perception.shelf_occupancy_net import load_model as load_shelf_occupancy_net
-from ms_drake.perception.segmentation import BACKENDS as SEGMENTATION_BACKENDS
 from ms_drake.perception.target import BACKENDS as DETECTOR_BACKENDS
-from ms_drake.policies.bin_search import GRASP_PLANNERS, ControllerError, check_search_scenario
+from ms_drake.policies.bin_search import (
+    DEFAULT_SCENARIOS,
+    ControllerError,
+    check_search_scenario,
+    load_bin_search_config,
+)
 from ms_drake.policies.bin_selectors import POLICIES as BIN_POLICIES
-from ms_drake.policies.bin_selectors import OCCUPANCY_POLICIES, check_policy
+from ms_drake.policies.bin_selectors import OCCUPANCY_POLICIES
 from ms_drake.pushing import POLICIES as PUSH_POLICIES
 from ms_drake.policies.shelf import SHELF_POLICIES, check_shelf_policy
 from ms_drake.policies.shelf_search import PERCEPTIONS as SHELF_CONTROLLER_PERCEPTIONS
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import HeapParams, generate_heap, heap_to_dict
+from ms_drake.scenes.layouts import HEAP_LAYOUTS as SEARCH_HEAP_LAYOUTS
 from ms_drake.station import MakeStation
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
@@ -212,7 +210,7 @@ def _need_station(file: Optional[Path], name: str, check):
 
 def _need_search_scenario(file: Optional[Path], name: str, fidelity: str):
     """A bin-search station for `fidelity` (name "" = the fidelity's default)."""
-    return _need_station(file, name or SCENARIOS[fidelity], lambda s, n: check_search_scenario(s, fidelity, n))
+    return _need_station(file, name or DEFAULT_SCENARIOS[fidelity], lambda s, n: check_search_scenario(s, fidelity, n))
 
 
 def _need_shelf_scenario(file: Optional[Path], name: str):
@@ -347,7 +345,8 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
          out: Optional[Path] = typer.Option(None, help="Output folder (default out/demo, out/demo_shelf)"),
          seed: Optional[int] = typer.Option(None, help=f"Heap seed (default {DEMO_SEED}: a Table 8.2 heap) / shelf scene seed "
                                                         f"(default {SHELF_DEMO_SEED})"),
-         objects: Optional[int] = typer.Option(None, min=1, max=60, help="Objects in the heap (default 15) / "
+         objects: Optional[int] = typer.Option(None, min=2, max=60, help="Objects in the heap, the target "
+                                                                         "included (default 15) / "
                                                                          f"occluders on the shelf (default {SHELF_DEMO_OCCLUDERS})"),
          policy: Optional[str] = typer.Option(None, help="Selector (default: X-Ray) / shelf policy "
                                                          "(default: bluction_dar)"),
@@ -396,20 +395,18 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
         _echo_written(written)
         typer.echo(f"wrote {len(written)} files to {out} in {time.perf_counter() - t:.1f} s")
         return
-    station = _scenario(scenario_file, scenario or SCENARIOS["primitive"])
+    station = _scenario(scenario_file, scenario or DEFAULT_SCENARIOS["primitive"])
     fidelity = "primitive" if station.robot.name == "floating" else "full"
-    _need_search_scenario(scenario_file, scenario or SCENARIOS["primitive"], fidelity)
+    cfg = _bin_search_config(policy or DEMO_CONFIG.policy, fidelity, scenario, scenario_file, None, None)
+    cfg.heap = DEMO_CONFIG.heap if objects is None else dataclasses.replace(DEMO_CONFIG.heap, objects=objects - 1)
+    if horizon is not None:
+        cfg.horizon = horizon
     out = out or Path("out/demo")
     seed = DEMO_SEED if seed is None else seed
-    objects = 15 if objects is None else objects
-    policy = policy or "xray"
-    horizon = 10 if horizon is None else horizon
-    check_policy(policy)
     t = time.perf_counter()
-    typer.echo(f"generating a {objects}-object heap (seed {seed}) and searching it with {policy} "
+    typer.echo(f"generating a {cfg.heap.objects + 1}-object heap (seed {seed}) and searching it with {cfg.policy} "
                f"({station.robot.name if fidelity == 'full' else 'floating gripper'}, {fidelity} fidelity) ...")
-    written = run_demo(out, seed=seed, objects=objects, policy=policy, horizon=horizon, meshcat_html=meshcat,
-                       log=typer.echo, scenario=station, fidelity=fidelity)
+    written = run_demo(out, cfg, seed=seed, meshcat_html=meshcat, log=typer.echo)
     _echo_written(written)
     typer.echo(f"wrote {len(written)} files to {out} in {time.perf_counter() - t:.1f} s")
 
@@ -593,122 +590,86 @@ bench_app = typer.Typer(add_completion=False, no_args_is_help=True, help="Mechan
 app.add_typer(bench_app, name="bench")
 
 
+ConfigFile = typer.Option(None, "--config", help="A named setting (table_8_2: the defaults; ch7: Fig. 7.4 and "
+                          "Table C.1) or a YAML file of any of BinSearchConfig's fields (`ms-drake bench config` "
+                          "prints them all)")
+SetOption = typer.Option(None, "--set", help="Override one config field, repeatable: KEY=VALUE, e.g. "
+                         "heap.objects=15, heap.layout=bin_set, horizon=30, segmenter=learned, "
+                         "ablation.grasp_outcome=draw (the fields: `ms-drake bench config`)")
+
+
+def _bin_search_config(policy: Optional[str], fidelity: Optional[str], scenario: str,
+                       scenario_file: Optional[Path], config: Optional[str], sets: Optional[list[str]]):
+    """The BinSearchConfig of a command's options: defaults < --config file < the named options < --set."""
+    fields = {k: v for k, v in dict(policy=policy, fidelity=fidelity, scenario=scenario or None,
+                                    scenario_file=str(scenario_file) if scenario_file else None).items()
+              if v is not None}
+    try:
+        cfg = load_bin_search_config(config, sets or (), **fields)
+    except MsDrakeError as e:
+        _fail(str(e))
+    _need_search_scenario(Path(cfg.scenario_file) if cfg.scenario_file else None,
+                          cfg.scenario or DEFAULT_SCENARIOS[cfg.fidelity], cfg.fidelity)
+    # The learned parts' weights load here once, before any worker starts (not as a failure per rollout).
+    if cfg.policy in OCCUPANCY_POLICIES and cfg.ablation.occupancy == "learned":
+        _need_weights("occupancy_weights", Path(cfg.occupancy_weights) if cfg.occupancy_weights else None,
+                      load_occupancy_net, "occupancy")
+    if cfg.segmenter == "learned":
+        _need_weights("segmenter learned", None, load_segmentation_net, "segmentation")
+    if cfg.detector == "learned":
+        _need_weights("detector learned", None, load_matcher, "matcher")
+    return cfg
+
+
 @bench_app.command("search")
 def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " + ", ".join(BIN_POLICIES)),
-                 objects: Optional[int] = typer.Option(None, "--objects", min=1, max=60,
-                                                       help="Objects per heap (N; default 15, xray: 14 besides the target)"),
                  heaps_: int = typer.Option(10, "--heaps", min=1, help="Number of heaps (K)"),
                  seed_start: int = _seed_start("First heap seed (S)"),
-                 workers: int = _workers("Parallel workers (W)"),
                  out: Path = JsonlOut,
-                 fidelity: str = typer.Option("primitive", "--fidelity", help="primitive (the floating gripper, "
-                                              "grasp outcomes from the contact models) | full (the scenario's robot "
-                                              "in physics)"),
+                 config: Optional[str] = ConfigFile,
+                 set_: Optional[list[str]] = SetOption,
+                 fidelity: Optional[str] = typer.Option(None, "--fidelity", help="primitive (default: the floating "
+                                                        "gripper, grasp outcomes from the contact models) | full (the "
+                                                        "scenario's robot in physics)"),
                  scenario: str = typer.Option("", "--scenario", help="The station: a bin scenario name (default "
                                               "FloatingGripperBin for primitive, YuMiBin for full; PandaBin: the Panda)"),
                  scenario_file: Optional[Path] = ScenarioFile,
-                 horizon: Optional[int] = typer.Option(None, "--horizon", min=1, help="Action budget (default 2N)"),
+                 workers: int = _workers("Parallel workers (W)"),
                  ray: bool = Ray,
                  ray_address: Optional[str] = RayAddress,
                  heap_dir: Optional[Path] = typer.Option(
-                     None, "--heap-dir", help="Folder of cached heaps (heap_N<N>_s<seed>.json), shared by "
-                     "runs of several policies so they search the same heaps; made on first use"),
-                 protocol: str = typer.Option("ch7", "--protocol", help="Heaps: ch7 (N objects of the scenario's "
-                                              "set) | xray (Table 8.2: the target dropped first under N = 14 mesh "
-                                              "objects unseen in training; H = 10) | xray_hidden (the same, "
-                                              "target fully hidden at the start) | xray_ycb (as xray, the "
-                                              "occluders unseen YCB and packaged objects) | xray_occluded (xray_ycb's "
-                                              "occluders, every object offset from the heap centre at sigma 8 cm, "
-                                              "the target fully hidden at the start) | xray_small (the "
-                                              "xray_occluded heaps with a 4.5 x 4.5 x 0.5 cm target) | xray_tiny "
-                                              "(with a 3.5 x 3.5 x 0.5 cm target) | xray_compact (the 4.5 cm "
-                                              "target, every object dropped from 20 cm within +-2.5 cm of a "
-                                              "heap centre, as the reference's generator settings)"),
-                 segmenter: str = typer.Option("ground_truth", "--segmenter", help="Instance masks: ground_truth "
-                                               "(label image) | euclidean | region_growing | learned (depth)"),
-                 detector: str = typer.Option("color", "--detector", help="Target detector: color (HSV, red "
-                                              "target) | template | learned (siamese matcher on target views)"),
-                 push_policy: str = typer.Option("", "--push-policy", help="The *_push selectors' pushes: "
-                                                 "'' = the Ch. 7 free-space push of every object, or a Ch. 4 "
-                                                 f"policy ({' | '.join(PUSH_POLICIES)})"),
-                 grasp_planner: str = typer.Option("", "--grasp-planner", help="Grasps: '' = the fidelity's "
-                                                   "default (indexed for primitive, image for full) | "
-                                                   f"{' | '.join(GRASP_PLANNERS)}"),
-                 heap_engine: str = typer.Option("drake", "--heap-engine", help="Drop physics of the ch7 heaps: "
-                                                 f"{' | '.join(HEAP_ENGINES)} (Bullet: ~4x cheaper per heap)"),
-                 grasp_outcome: str = typer.Option("draw", "--grasp-outcome", help="Primitive grasp outcome: draw "
-                                                   "(success with probability = quality) | threshold (deterministic: "
-                                                   "quality >= 0.5, the state unchanged on a failure) | checked (that test, and only "
-                                                   "grasps that pass it are attempted) | nominal (deterministic: the "
-                                                   "unperturbed contact model lifts the object; --grasp-planner image)"),
-                 grasp_samples: int = typer.Option(8, "--grasp-samples", min=1, help="Candidates the image grasp "
-                                                   "planners sample per mask (each gripper)"),
-                 jaw_contact: str = typer.Option("center", "--jaw-contact", help="The image jaw planner's depth "
-                                                 "rule: center (the jaws' centre under the object's top) | pad "
-                                                 "(the pads' lower edge: thin objects lying flat get jaw grasps)"),
-                 skip_failed: bool = typer.Option(False, "--skip-failed", help="A grasp that failed is not "
-                                                  "attempted again on the state it failed on (any grasp outcome; "
-                                                  "always so with nominal): the selector walks on to its next mask"),
-                 occupancy_weights: Optional[Path] = typer.Option(None, "--occupancy-weights", help="Weights of "
-                                                                  "the learned occupancy (X-Ray; default: the shipped "
-                                                                  "models/weights/occupancy.pt); kept in each record"),
-                 occupancy: str = typer.Option("learned", "--occupancy", help="X-Ray's occupancy: learned (the "
-                                               "network, from the depth image and the target's size) | analytic_image "
-                                               "(the ground-truth generator on the depth image and the target's box, "
-                                               "no pose: what the network learns) | analytic_image_best (the same, a partly "
-                                               "seen target keeping its best-matching placements) | analytic (the generator on the "
-                                               "target's mesh at its true pose: privileged)")):
-    """Search heaps S..S+K-1 with a policy; one JSON line per rollout (resumable), then a summary."""
-    check_policy(policy)
-    _choose("--grasp-outcome", grasp_outcome, GRASP_OUTCOMES)
-    _choose("--jaw-contact", jaw_contact, JAW_CONTACTS)
-    _choose("--heap-engine", heap_engine, HEAP_ENGINES)
-    if grasp_planner:
-        _choose("--grasp-planner", grasp_planner, GRASP_PLANNERS)
-    if push_policy:
-        _choose("--push-policy", push_policy, PUSH_POLICIES)
-    _choose("--segmenter", segmenter, SEGMENTATION_BACKENDS)
-    _choose("--detector", detector, DETECTOR_BACKENDS)
-    _choose("--protocol", protocol, PROTOCOLS)
-    if heap_engine != "drake" and protocol != "ch7":
-        _fail(f"--heap-engine {heap_engine}: only with --protocol ch7 (the {protocol} heaps are dropped with Bullet "
-              "and settled in Drake)")
-    if objects is None:
-        objects = XRAY_OBJECTS if protocol in XRAY_PROTOCOLS else 15
-    if protocol in XRAY_PROTOCOLS and horizon is None:
-        horizon = XRAY_HORIZON
-    _choose("--fidelity", fidelity, FIDELITIES)
-    _need_search_scenario(scenario_file, scenario, fidelity)
+                     None, "--heap-dir", help="Folder of cached heaps, shared by runs of several policies so they "
+                     "search the same heaps; made on first use")):
+    """Search heaps S..S+K-1 with a policy; one JSON line per rollout (resumable), then a summary.
+    With no --config or --set it runs Table 8.2's setting (14 household objects on a hidden 4.5 cm
+    target, 10 actions, ground-truth masks)."""
+    if fidelity is not None:
+        _choose("--fidelity", fidelity, FIDELITIES)
+    cfg = _bin_search_config(policy, fidelity, scenario, scenario_file, config, set_)
     _need_jsonl(out)
-    _choose("--occupancy", occupancy, SEARCH_OCCUPANCIES)
-    if occupancy != "learned" and (occupancy_weights is not None or policy not in OCCUPANCY_POLICIES):
-        _fail(f"--occupancy {occupancy}: only for {' or '.join(OCCUPANCY_POLICIES)}, without --occupancy-weights")
-    if occupancy_weights is not None and policy not in OCCUPANCY_POLICIES:
-        _fail(f"--occupancy-weights: the {policy} policy reads no occupancy; use it with "
-              f"{' or '.join(OCCUPANCY_POLICIES)}")
-    # The learned parts' weights load here once, before any worker starts (not as a failure per rollout).
-    if policy in OCCUPANCY_POLICIES and occupancy == "learned":
-        _need_weights("--occupancy-weights", occupancy_weights, load_occupancy_net, "occupancy")
-    if segmenter == "learned":
-        _need_weights("--segmenter learned", None, load_segmentation_net, "segmentation")
-    if detector == "learned":
-        _need_weights("--detector learned", None, load_matcher, "matcher")
-
     progress = _RolloutProgress(heaps_, out)
     try:
-        s = run_bench(policy, objects, heaps_, seed_start, out, workers=workers, fidelity=fidelity, horizon=horizon,
-                      use_ray=ray or ray_address is not None, ray_address=ray_address, progress=progress,
-                      heap_dir=str(heap_dir) if heap_dir is not None else None, protocol=protocol,
-                      segmenter=segmenter, detector=detector, push_policy=push_policy, grasp_planner=grasp_planner,
-                      heap_engine=heap_engine, grasp_outcome=grasp_outcome, grasp_samples=grasp_samples,
-                      occupancy_weights=str(occupancy_weights) if occupancy_weights is not None else "",
-                      occupancy=occupancy, skip_failed=skip_failed, jaw_contact=jaw_contact, scenario=scenario,
-                      scenario_file=str(scenario_file) if scenario_file is not None else "")
+        s = run_bench(cfg, heaps_, seed_start, out, workers=workers, use_ray=ray or ray_address is not None,
+                      ray_address=ray_address, progress=progress,
+                      heap_dir=str(heap_dir) if heap_dir is not None else None)
     except KeyboardInterrupt:
         progress.interrupted()
     progress.close()
     typer.echo(format_summary(policy, s))
     typer.echo(f"results in {out}")
+
+
+@bench_app.command("config")
+def bench_config(policy: Optional[str] = typer.Option(None, "--policy", help="Selector: " + ", ".join(BIN_POLICIES)),
+                 config: Optional[str] = ConfigFile,
+                 set_: Optional[list[str]] = SetOption):
+    """Print the bin-search config that `bench search` with these options runs (YAML: every field
+    and its value; the heap layouts are listed below it)."""
+    cfg = _bin_search_config(policy, None, "", None, config, set_)
+    typer.echo(yaml_dump_typed(cfg).rstrip())
+    typer.echo("# heap layouts (heap.layout):")
+    for name, layout in SEARCH_HEAP_LAYOUTS.items():
+        typer.echo(f"#   {name}: {layout.description}")
 
 
 @bench_app.command("plot")
@@ -1198,7 +1159,7 @@ def data_occupancy(count: int = typer.Option(..., "--count", min=1, help="Images
                    test_only: bool = typer.Option(False, "--test-only", help="Every shard a test shard"),
                    layout: str = typer.Option("spread", "--layout", help="How the heaps are dropped: spread "
                                               "(Gaussian offsets, released just above the pile) or compact "
-                                              "(as --protocol xray_compact: centre +-10 cm, offsets +-2.5 cm, "
+                                              "(as the bin search's compact heap layout: centre +-10 cm, offsets +-2.5 cm, "
                                               "released from 20 cm)"),
                    best_match: Optional[float] = typer.Option(None, "--best-match", min=0.0, max=0.99,
                                                               help="Ground truth of a partly seen target no grid "
@@ -1208,7 +1169,7 @@ def data_occupancy(count: int = typer.Option(..., "--count", min=1, help="Images
                    ground_truth: str = typer.Option("generator", "--ground-truth", help="generator (the "
                                                     "reference's: every placement the image allows) or posterior "
                                                     "(the target's own amodal mask, the target placed in the pile "
-                                                    "as --protocol xray_compact places it)")):
+                                                    "as the compact heap layout places it)")):
     """Depth images + target modal masks + ground-truth occupancy (ten box aspect ratios), split by
     image and by object, sharded; shards already written are kept."""
     try:
@@ -1278,7 +1239,7 @@ def bench_paired(a: Path = typer.Argument(..., help="Result .jsonl of policy A")
                  b: Path = typer.Argument(..., help="Result .jsonl of policy B (the same heaps)")):
     """Paired sign test of success, A vs B, on the heaps both files hold."""
     _need_results((a, b), "bench search")
-    r = paired_comparison(read_records(a), read_records(b), (str(a), str(b)))
+    r = paired_comparison(read_search_records(a), read_search_records(b), (str(a), str(b)))
     typer.echo(f"{r['heaps']} heaps: only A {len(r['only_a'])}, only B {len(r['only_b'])}, both {r['both']}, "
                f"neither {r['neither']}; two-sided sign test p = {r['p']:.3g}")
     typer.echo(f"only A: {r['only_a']}")

@@ -1,14 +1,13 @@
 """A bin mechanical search as a user writes it: build the Diagram, simulate it with Drake.
 
-    python sims/bin_search_diagram.py --scenario FloatingGripperBin --seed 3 --policy largest
-    python sims/bin_search_diagram.py --scenario PandaBin --seed 3 --policy largest --fidelity full
+    python sims/bin_search_diagram.py --seed 3 --policy xray                       # Table 8.2's setting
+    python sims/bin_search_diagram.py --seed 3 --config ch7 --set heap.objects=10  # Ch. 7's
+    python sims/bin_search_diagram.py --scenario PandaBin --seed 3 --fidelity full
 
-Prints one JSON line (seed, success, actions, action_kinds, stop_reason, grasp_objects); with the same scenario,
-seed and policy it is the record of `ms-drake bench search` action by action (the same heap: N =
-15 objects, or the target and 14 others for X-Ray, as `bench search` draws them).
+Prints one JSON line (seed, success, actions, action_kinds, stop_reason, grasp_objects); with the
+same options and seed it is the record of `ms-drake bench search` action by action (the same heap
+and the same controller).
 """
-
-from __future__ import annotations
 
 import argparse
 import json
@@ -17,37 +16,39 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 
 from ms_drake.policies.bin_search import (
-    BinSearchParams,
     MakeBinSearchController,
     SimulationInfo,
+    config_scenario,
     connect_controller,
+    load_bin_search_config,
     search_scenario,
     set_initial_conditions,
 )
-from ms_drake.scenario import load_scenario
-from ms_drake.scenes import SEARCH_HEAPS, generate_heap
+from ms_drake.scenes.layouts import layout_heap
 from ms_drake.station import MakeStation
 
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenario", default="FloatingGripperBin", help="a bin scenario of diagrams/scenarios.yaml")
-    ap.add_argument("--scenario-file", default=None, help="the scenario file (default: diagrams/scenarios.yaml)")
     ap.add_argument("--seed", type=int, default=0, help="the heap's seed (and the controller's)")
-    ap.add_argument("--policy", default="largest", help="largest | xray | random | preempted_random | ...")
-    ap.add_argument("--fidelity", default="primitive", choices=("primitive", "full"))
-    ap.add_argument("--objects", type=int, default=15, help="objects in the heap (N)")
+    ap.add_argument("--policy", default=None, help="xray (default) | largest | random | preempted_random | ...")
+    ap.add_argument("--fidelity", default=None, choices=("primitive", "full"))
+    ap.add_argument("--scenario", default=None, help="a bin scenario of diagrams/scenarios.yaml")
+    ap.add_argument("--scenario-file", default=None, help="the scenario file (default: diagrams/scenarios.yaml)")
+    ap.add_argument("--config", default=None, help="a named setting (table_8_2, ch7) or a BinSearchConfig YAML file")
+    ap.add_argument("--set", action="append", default=[], help="KEY=VALUE override, e.g. heap.objects=10")
     a = ap.parse_args(argv)
+    named = {k: v for k, v in dict(policy=a.policy, fidelity=a.fidelity, scenario=a.scenario,
+                                   scenario_file=a.scenario_file).items() if v is not None}
+    config = load_bin_search_config(a.config, a.set, **named, seed=a.seed)
 
-    scenario = load_scenario(a.scenario_file, a.scenario)
-    heap = generate_heap(load_scenario(a.scenario_file, "BinHeap15"), a.objects, a.seed, params=SEARCH_HEAPS)
+    scenario = config_scenario(config)         # FloatingGripperBin unless the config names another station
+    heap = layout_heap(config.heap, a.seed)    # the objects, their poses and the target, as data
 
     builder = DiagramBuilder()
-    station = builder.AddSystem(MakeStation(search_scenario(scenario, heap, a.fidelity, a.policy),
-                                            target_index=heap.target_index))
+    station = builder.AddSystem(MakeStation(search_scenario(scenario, heap, config), target_index=heap.target_index))
     controller = builder.AddSystem(MakeBinSearchController(
-        scenario, BinSearchParams(policy=a.policy, fidelity=a.fidelity, horizon=2 * len(heap.objects), seed=a.seed),
-        sim=SimulationInfo.from_station(station, heap.target_index)))
+        scenario, config, sim=SimulationInfo.from_station(station, heap.target_index)))
     connect_controller(builder, controller, station)
     diagram = builder.Build()
 

@@ -6,20 +6,26 @@ gripper. ImagesReady alone."""
 import dataclasses
 import shutil
 
+import cv2
+
 import numpy as np
 import pytest
 from pydrake.lcm import DrakeLcm
 from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import DiagramBuilder
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.sensors import ImageDepth32F, ImageRgba8U
 
 from ms_drake.execution import LIFT_THRESHOLD
-from ms_drake.experiments.rollout import SearchParams, build_search, run_search
+from ms_drake.geometry import PinholeCamera
+from ms_drake.types import Grasp, InstanceMasks, OccupancyMap, TargetEstimate
+from ms_drake.experiments.rollout import build_search, run_search
 from ms_drake.perception.occupancy import TargetBox
 from ms_drake.perception.occupancy_net import default_weights
 from ms_drake.perception.ready import ImagesReady
 from ms_drake.policies.bin_search import (
-    BinSearchParams,
+    BinSearchAblation,
+    BinSearchConfig,
     ControllerError,
     MakeBinSearchController,
     SimulationInfo,
@@ -30,9 +36,8 @@ from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap, scenario_with_heap, set_heap_poses
 from ms_drake.station import MakeStation, get_plant, station_objects
 from ms_drake.station.emulator import MakeEmulatedRobot
-from ms_drake.station.robots import set_arm_positions
 
-HARDWARE = BinSearchParams(policy="largest", fidelity="full", segmentation="euclidean", horizon=1)
+HARDWARE = BinSearchConfig(policy="largest", fidelity="full", segmenter="euclidean", horizon=1)
 YUMI_COMMANDS = ["yumi_right.position", "yumi_left.position", "yumi_right_jaw.position",
                  "yumi_right_jaw.force_limit", "yumi_left_suction.suction"]
 OUTPUTS = ["action", "history", "outcome", "removed", "status", "masks", "target", "grasps"]
@@ -90,7 +95,7 @@ def test_checked_outcome_attempts_only_grasps_that_lift(yumi_images):
     chooses passes that test (or it stops); with "draw" it is SelectorParams' 0.15."""
     s, (rgb, depth) = yumi_images
     for outcome, t in (("draw", 0.15), ("checked", LIFT_THRESHOLD)):
-        controller = MakeBinSearchController(s, dataclasses.replace(HARDWARE, grasp_outcome=outcome))
+        controller = MakeBinSearchController(s, dataclasses.replace(HARDWARE, ablation=BinSearchAblation(grasp_outcome=outcome)))
         assert controller.GetSubsystemByName("policy_selector").params.t_thresh == t
         ctx = controller.CreateDefaultContext()
         controller.GetInputPort("overhead.rgb_image").FixValue(ctx, rgb)
@@ -99,10 +104,10 @@ def test_checked_outcome_attempts_only_grasps_that_lift(yumi_images):
         assert action.kind == "stop" or action.grasp.quality >= t
         assert action.kind == "stop" or action.grasp.lifts is not None  # the image planner's nominal verdict
     # "nominal": the selector does not retry a failed grasp on its state; the others retry
-    nominal = MakeBinSearchController(s, dataclasses.replace(HARDWARE, grasp_outcome="nominal"))
+    nominal = MakeBinSearchController(s, dataclasses.replace(HARDWARE, ablation=BinSearchAblation(grasp_outcome="nominal")))
     assert nominal.GetSubsystemByName("policy_selector").params.retry_failed is False
     assert controller.GetSubsystemByName("policy_selector").params.retry_failed is True
-    skipping = MakeBinSearchController(s, dataclasses.replace(HARDWARE, skip_failed=True))
+    skipping = MakeBinSearchController(s, dataclasses.replace(HARDWARE, ablation=BinSearchAblation(skip_failed=True)))
     assert skipping.GetSubsystemByName("policy_selector").params.skip_failed is True
     assert controller.GetSubsystemByName("policy_selector").params.skip_failed is False
 
@@ -113,7 +118,7 @@ def test_jaw_contact_reaches_the_jaw_planner(yumi_images):
     from ms_drake.grasping.planner import PAD_BELOW
     s, (rgb, depth) = yumi_images
     for rule, span in (("center", 0.0), ("pad", PAD_BELOW)):
-        controller = MakeBinSearchController(s, dataclasses.replace(HARDWARE, jaw_contact=rule))
+        controller = MakeBinSearchController(s, dataclasses.replace(HARDWARE, ablation=BinSearchAblation(jaw_contact=rule)))
         planners = controller.GetSubsystemByName("grasp_planner").planners
         jaw = [p for p in planners if p.model != "suction"]
         assert jaw and all(p.jaw_contact == rule and p.evaluator.pad_span == span for p in jaw)
@@ -122,31 +127,32 @@ def test_jaw_contact_reaches_the_jaw_planner(yumi_images):
         controller.GetInputPort("overhead.depth_image").FixValue(ctx, depth)
         assert controller.GetOutputPort("action").Eval(ctx).kind in ("grasp", "stop")
     with pytest.raises(ControllerError, match="jaw_contact 'tip' unknown; choose one of center, pad"):
-        dataclasses.replace(HARDWARE, jaw_contact="tip")
+        BinSearchAblation(jaw_contact="tip")
 
 def test_controller_rejects_settings_it_cannot_honour(yumi_images):
     s, _ = yumi_images
     with pytest.raises(ControllerError, match="ground_truth' reads the simulated label image"):
-        MakeBinSearchController(s, BinSearchParams(fidelity="full"))
+        MakeBinSearchController(s, BinSearchConfig(fidelity="full"))
     with pytest.raises(ControllerError, match="primitive' runs in simulation on the floating gripper"):
-        MakeBinSearchController(s, BinSearchParams(fidelity="primitive", segmentation="euclidean"))
+        MakeBinSearchController(s, BinSearchConfig(policy="largest", fidelity="primitive", segmenter="euclidean"))
     with pytest.raises(ControllerError, match="needs target_shape"):
-        MakeBinSearchController(s, BinSearchParams(policy="xray", fidelity="full", segmentation="euclidean"))
+        MakeBinSearchController(s, BinSearchConfig(policy="xray", fidelity="full", segmenter="euclidean"))
     with pytest.raises(ControllerError, match="camera 'front' is not a camera"):
-        MakeBinSearchController(s, BinSearchParams(fidelity="full", segmentation="euclidean", camera="front"))
-    with pytest.raises(ControllerError, match="segmentation 'sonar' unknown"):
-        BinSearchParams(segmentation="sonar")
+        MakeBinSearchController(s, BinSearchConfig(fidelity="full", segmenter="euclidean", camera="front"))
+    with pytest.raises(ControllerError, match="segmenter 'sonar' unknown"):
+        BinSearchConfig(segmenter="sonar")
     with pytest.raises(ControllerError, match="grasp_outcome .coin. unknown; choose one of draw, threshold, checked"):
-        BinSearchParams(grasp_outcome="coin")
+        BinSearchAblation(grasp_outcome="coin")
     with pytest.raises(ControllerError, match="grasp_outcome 'nominal' needs.*grasp_planner is 'indexed'"):
-        BinSearchParams(grasp_outcome="nominal", grasp_planner="indexed")
-    assert BinSearchParams(grasp_outcome="nominal", fidelity="full").grasp_planner == "image"
-    with pytest.raises(ControllerError, match="occupancy_weights: no such file 'nowhere.pt'"):
-        BinSearchParams(occupancy_weights="nowhere.pt")
-    with pytest.raises(ControllerError, match="is for the learned occupancy backend; occupancy is 'analytic'"):
-        BinSearchParams(occupancy="analytic", occupancy_weights=str(default_weights()))
-    with pytest.raises(ControllerError, match="occupancy_best_match is for the analytic occupancy backend"):
-        BinSearchParams(occupancy_best_match=0.05)
+        BinSearchConfig(grasp_planner="indexed")
+    assert BinSearchConfig(grasp_planner="indexed", ablation=BinSearchAblation(grasp_outcome="draw")).grasp_planner \
+        == "indexed"
+    with pytest.raises(ControllerError, match="occupancy_weights 'nowhere.pt': file not found"):
+        BinSearchConfig(occupancy_weights="nowhere.pt")
+    with pytest.raises(ControllerError, match="is for the learned occupancy; ablation.occupancy is 'analytic'"):
+        BinSearchConfig(occupancy_weights=str(default_weights()), ablation=BinSearchAblation(occupancy="analytic"))
+    with pytest.raises(ControllerError, match="ablation.occupancy 'exact' unknown"):
+        BinSearchAblation(occupancy="exact")
 
 
 def test_the_learned_occupancy_reads_the_weights_it_is_given(yumi_images, tmp_path):
@@ -155,7 +161,7 @@ def test_the_learned_occupancy_reads_the_weights_it_is_given(yumi_images, tmp_pa
     shutil.copy(default_weights(), weights)
     shape = TargetBox(0.045, 0.045, 0.005)
     for given, used in (("", default_weights()), (str(weights), weights)):
-        controller = MakeBinSearchController(s, BinSearchParams(policy="xray", fidelity="full", segmentation="euclidean",
+        controller = MakeBinSearchController(s, BinSearchConfig(policy="xray", fidelity="full", segmenter="euclidean",
                                                                 occupancy_weights=given), target_shape=shape)
         assert controller.GetSubsystemByName("occupancy_estimator").backend.weights == used
 
@@ -166,7 +172,7 @@ def test_three_lines_wire_the_controller_to_a_simulated_station(heap4):
     builder = DiagramBuilder()
     station = builder.AddSystem(MakeStation(s, target_index=heap4.target_index))
     controller = builder.AddSystem(MakeBinSearchController(
-        s, BinSearchParams(policy="largest", horizon=8, seed=5, grasp_planner="image"), sim=SimulationInfo.from_station(station,
+        s, BinSearchConfig(policy="largest", horizon=8, seed=5), sim=SimulationInfo.from_station(station,
                                                                                         heap4.target_index)))
     connect_controller(builder, controller, station)
     diagram = builder.Build()
@@ -223,7 +229,7 @@ def test_the_controller_drives_the_hardware_station_over_lcm(heap4):
 
 @pytest.mark.parametrize("scenario_name", ["PandaBin", "FloatingGripperBin"])
 def test_full_fidelity_runs_on_the_panda_and_the_floating_gripper(heap4, scenario_name):
-    params = SearchParams(policy="largest", fidelity="full", horizon=2, seed=0)
+    params = BinSearchConfig(policy="largest", fidelity="full", horizon=2, seed=0)
     system = build_search(load_scenario(None, scenario_name), heap4, params)
     assert system.controller.GetSubsystemByName("grasp_planner").planners[0].model == "soft_point"
     assert len(system.controller.GetSubsystemByName("grasp_planner").planners) == 1  # jaw only: no suction
@@ -231,3 +237,94 @@ def test_full_fidelity_runs_on_the_panda_and_the_floating_gripper(heap4, scenari
     # a non-target object, then the target: both lifted by the arm through compliant contact
     assert (res.actions, res.action_kinds, res.grasp_successes) == (2, ["grasp", "grasp"], 2)
     assert (res.success, res.stop_reason) == (True, "success")
+
+
+class _Threshold(LeafSystem):
+    """A user's segmenter: pixels above the bin floor, split into connected regions (OpenCV)."""
+
+    def __init__(self, floor_depth: float):
+        super().__init__()
+        self.floor_depth = floor_depth
+        self.DeclareAbstractInputPort("depth_image", AbstractValue.Make(ImageDepth32F()))
+        self.DeclareAbstractOutputPort("masks", lambda: AbstractValue.Make(InstanceMasks(np.zeros((0, 1, 1), bool), (), np.zeros(0))),
+                                       self._masks)
+
+    def _masks(self, context, out):
+        depth = np.array(self.get_input_port().Eval(context).data)[..., 0]
+        n, labels = cv2.connectedComponents((depth < self.floor_depth - 0.005).astype(np.uint8))
+        masks = np.stack([labels == k for k in range(1, n) if (labels == k).sum() > 200])
+        out.set_value(InstanceMasks(masks, tuple(f"seg_{k}" for k in range(len(masks))), np.ones(len(masks))))
+
+
+class _FirstMaskIsTheTarget(LeafSystem):
+    """A user's target detector: the first mask."""
+
+    def __init__(self):
+        super().__init__()
+        self.DeclareAbstractInputPort("masks", AbstractValue.Make(InstanceMasks(np.zeros((0, 1, 1), bool), (), np.zeros(0))))
+        self.DeclareAbstractOutputPort("target", lambda: AbstractValue.Make(TargetEstimate(False, np.zeros((1, 1), bool))),
+                                       self._target)
+
+    def _target(self, context, out):
+        m = self.get_input_port().Eval(context)
+        out.set_value(TargetEstimate(True, m.masks[0], 1.0, 0) if len(m) else TargetEstimate(False, np.zeros((1, 1), bool)))
+
+
+class _OneSuctionGraspPerMask(LeafSystem):
+    """A user's grasp planner: a vertical suction grasp at each mask's highest point."""
+
+    def __init__(self, camera):
+        super().__init__()
+        self.camera = camera
+        self.DeclareAbstractInputPort("depth_image", AbstractValue.Make(ImageDepth32F()))
+        self.DeclareAbstractInputPort("masks", AbstractValue.Make(InstanceMasks(np.zeros((0, 1, 1), bool), (), np.zeros(0))))
+        self.DeclareAbstractOutputPort("grasps", lambda: AbstractValue.Make(()), self._grasps)
+
+    def _grasps(self, context, out):
+        depth = np.array(self.GetInputPort("depth_image").Eval(context).data)[..., 0]
+        masks = self.GetInputPort("masks").Eval(context)
+        grasps = []
+        for oid, m in zip(masks.ids, masks.masks):
+            v, u = np.unravel_index(np.where(m, depth, np.inf).argmin(), depth.shape)
+            p_C = self.camera.deproject(depth)[v, u]
+            p = self.camera.X_WC.multiply(p_C)
+            grasps.append(Grasp("suction", tuple(p), (0.0, 0.0, -1.0), object_id=oid, quality=0.9))
+        out.set_value(tuple(grasps))
+
+
+class _UniformOverTheTarget(LeafSystem):
+    """A user's occupancy estimator: uniform over the target's mask."""
+
+    def __init__(self):
+        super().__init__()
+        self.DeclareAbstractInputPort("target", AbstractValue.Make(TargetEstimate(False, np.zeros((1, 1), bool))))
+        self.DeclareAbstractOutputPort("occupancy", lambda: AbstractValue.Make(OccupancyMap(np.zeros((1, 1)))),
+                                       self._occupancy)
+
+    def _occupancy(self, context, out):
+        m = self.get_input_port().Eval(context).mask.astype(float)
+        out.set_value(OccupancyMap(m / max(m.sum(), 1.0)))
+
+
+def test_the_controller_takes_a_user_s_own_segmenter_detector_grasp_planner_and_occupancy(yumi_images):
+    """Each part given as a Drake System replaces the named one, wired by its port names; X-Ray
+    then chooses among the user's grasps with the user's occupancy."""
+    s, (rgb, depth) = yumi_images
+    camera = PinholeCamera.from_config(s.cameras["overhead"])
+    d = np.array(depth.data)[..., 0]
+    floor = float(np.percentile(d[np.isfinite(d)], 90))  # most of the image is the bin floor
+    parts = dict(segmenter=_Threshold(floor), target_detector=_FirstMaskIsTheTarget(),
+                 grasp_planner=_OneSuctionGraspPerMask(camera), occupancy_estimator=_UniformOverTheTarget())
+    controller = MakeBinSearchController(s, BinSearchConfig(policy="xray", fidelity="full", horizon=1), **parts)
+    for part, system in parts.items():
+        assert controller.GetSubsystemByName(part) is system
+    assert set(_names(controller, "in")) == {"overhead.depth_image", "overhead.rgb_image"}
+    ctx = controller.CreateDefaultContext()
+    controller.GetInputPort("overhead.rgb_image").FixValue(ctx, rgb)
+    controller.GetInputPort("overhead.depth_image").FixValue(ctx, depth)
+    masks = controller.GetOutputPort("masks").Eval(ctx)
+    grasps = controller.GetOutputPort("grasps").Eval(ctx)
+    assert len(masks) >= 1 and len(grasps) == len(masks)
+    assert controller.GetOutputPort("occupancy").Eval(ctx).distribution.sum() == pytest.approx(1.0)
+    action = controller.GetOutputPort("action").Eval(ctx)
+    assert action.kind == "grasp" and action.grasp in grasps

@@ -109,7 +109,7 @@ def _weights_files(tmp_path, other: str) -> dict:
 
 # (command line with W for the weights file, a shipped file holding another network)
 WEIGHTS_OPTIONS = [
-    (["bench", "search", "--policy", "xray", "--heaps", "1", "--occupancy-weights", "W", "--out", "OUT/r.jsonl"],
+    (["bench", "search", "--policy", "xray", "--heaps", "1", "--set", "occupancy_weights=W", "--out", "OUT/r.jsonl"],
      "matcher.pt"),
     (["train", "occupancy", "--data", "OUT", "--init", "W", "--out", "OUT/o.pt"], "matcher.pt"),
     (["train", "segmentation", "--data", "OUT", "--init", "W", "--out", "OUT/s.pt"], "occupancy.pt"),
@@ -125,8 +125,8 @@ WEIGHTS_OPTIONS = [
 
 
 def test_every_weights_option_is_tested():
-    tested = {(args[0], args[1], next(a for a in args if a in ("--occupancy-weights", "--init", "--encoders",
-                                                               "--weights"))) for args, _ in WEIGHTS_OPTIONS}
+    tested = {(args[0], args[1], next(a for a in args if a in ("--set", "--init", "--encoders", "--weights")))
+              for args, _ in WEIGHTS_OPTIONS}
     for path, command in _commands():
         for p in command.params:
             if set(p.opts) & {"--weights", "--occupancy-weights", "--init", "--encoders"}:
@@ -137,7 +137,7 @@ def test_every_weights_option_is_tested():
 @pytest.mark.parametrize("args, other", WEIGHTS_OPTIONS, ids=lambda x: " ".join(x[:2]) if isinstance(x, list) else "")
 def test_weights_that_do_not_load_fail_at_start(capsys, tmp_path, args, other, case):
     weights, needle = _weights_files(tmp_path, other)[case]
-    argv = [str(weights) if a == "W" else a.replace("OUT", str(tmp_path)) for a in args]
+    argv = [str(weights) if a == "W" else a.replace("=W", f"={weights}").replace("OUT", str(tmp_path)) for a in args]
     code, out, err = run_cli(capsys, *argv)
     assert_one_error(code, err, weights.name, "ms-drake train")
     assert needle in err or case == "other", err
@@ -162,7 +162,6 @@ READERS = [
     (["bench", "shelf-table", "F"], "shelf_dar.jsonl", "steps"),
     (["bench", "shelf-physics-table", "F"], "shelf_physics_der3.jsonl", "occluders"),
     (["bench", "rearrange", "--table", "--out", "F"], "rearrange_net.jsonl", "method"),
-    (["sims/xray_table.py", "F"], "demo_xray_50.jsonl", "policy"),
 ]
 
 
@@ -251,7 +250,7 @@ def test_resuming_a_file_with_a_corrupt_line_stops_before_any_rollout(capsys, tm
     out = tmp_path / "r.jsonl"
     lines = _records("demo_xray_50.jsonl", 2)
     out.write_text("\n".join([lines[0], "garbage", lines[1]]) + "\n")
-    code, _, err = run_cli(capsys, "bench", "search", "--policy", "largest", "--objects", "2", "--heaps", "1",
+    code, _, err = run_cli(capsys, "bench", "search", "--policy", "largest", "--config", "ch7", "--heaps", "1",
                            "--out", out)
     assert_one_error(code, err, str(out), "line 2")
     assert len(out.read_text().splitlines()) == 3

@@ -191,10 +191,11 @@ def heap5():
 
 
 def test_one_search_step_primitive(heap5):
-    from ms_drake.experiments.rollout import SearchParams, build_search, run_search
+    from ms_drake.experiments.rollout import build_search, run_search
+    from ms_drake.policies.bin_search import load_bin_search_config
     from ms_drake.scenario import load_scenario
 
-    params = SearchParams(policy="largest", fidelity="primitive", horizon=1, seed=0, grasp_planner="image")
+    params = load_bin_search_config("ch7", policy="largest", horizon=1, seed=0, grasp_planner="image")
     system = build_search(load_scenario(None, "FloatingGripperBin"), heap5, params)
     res = run_search(system, heap5, params)
     # one grasp lifts an object other than the target; the horizon of 1 action ends the search
@@ -231,10 +232,11 @@ def test_executor_wired_in_diagram_with_fixed_action():
 
 
 def test_one_search_step_full_yumi(heap5):
-    from ms_drake.experiments.rollout import SearchParams, build_search, run_search
+    from ms_drake.experiments.rollout import build_search, run_search
+    from ms_drake.policies.bin_search import load_bin_search_config
     from ms_drake.scenario import load_scenario
 
-    params = SearchParams(policy="largest", fidelity="full", horizon=1, seed=0)
+    params = load_bin_search_config("ch7", policy="largest", fidelity="full", horizon=1, seed=0, grasp_planner="image")
     system = build_search(load_scenario(None, "YuMiBin"), heap5, params)
     res = run_search(system, heap5, params)
     # one grasp lifts an object other than the target; the horizon of 1 action ends the search

@@ -8,7 +8,7 @@ import pytest
 import ms_drake
 
 NAMES = ["load_scenario", "MakeStation", "generate_heap", "scenario_with_heap", "set_heap_poses",
-         "MakeBinSearchController", "BinSearchParams", "SimulationInfo", "connect_controller",
+         "MakeBinSearchController", "BinSearchConfig", "load_bin_search_config", "HeapConfig", "layout_heap", "SimulationInfo", "connect_controller",
          "MakeShelfSearchController", "ShelfSearchParams", "MakeRearrangementController", "RearrangeParams",
          "rollout"]
 

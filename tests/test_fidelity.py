@@ -9,6 +9,7 @@ import trimesh
 from ms_drake.execution.reach import PickReach
 from ms_drake.experiments.fidelity import (
     build_replay,
+    fidelity_config,
     primitive_attempts,
     replay_full,
     summarize,
@@ -88,7 +89,7 @@ def test_wilson_and_summary():
 @pytest.fixture(scope="module")
 def attempts4():
     heap = generate_heap(load_scenario(None, "BinHeap15"), 4, seed=3, params=SEARCH_HEAPS)
-    attempts, res = primitive_attempts(heap, seed=0, max_attempts=2, reach="YuMiBin")
+    attempts, res = primitive_attempts(heap, fidelity_config(4, reach="YuMiBin"), seed=0, max_attempts=2)
     return heap, attempts, res
 
 

@@ -191,13 +191,13 @@ def test_indexed_planner_wired_in_the_search_diagram():
         heap_grasp_inputs,
         scene_shapes,
     )
-    from ms_drake.experiments.rollout import SearchParams, build_search
-    from ms_drake.policies.bin_search import set_initial_conditions
+    from ms_drake.experiments.rollout import build_search
+    from ms_drake.policies.bin_search import load_bin_search_config, set_initial_conditions
     from ms_drake.scenes.heaps import SEARCH_HEAPS, generate_heap
 
     heap = generate_heap(load_scenario(None, "BinHeap15"), 4, seed=3, params=SEARCH_HEAPS)
     system = build_search(load_scenario(None, "FloatingGripperBin"), heap,
-                          SearchParams(policy="largest", seed=5, time_step=0.01))
+                          load_bin_search_config("ch7", policy="largest", seed=5))
     gp = system.controller.GetSubsystemByName("grasp_planner")
     assert isinstance(gp, IndexedGraspPlanner) and len(gp.sets) == len(heap.objects)
     ctx = Simulator(system.diagram).get_mutable_context()
@@ -217,5 +217,5 @@ def test_indexed_planner_wired_in_the_search_diagram():
             assert grasp_collisions(g, [sh for sh in shapes if sh[0] != oid], 0.002) == set()
     # the image-based planner stays an option
     image = build_search(load_scenario(None, "FloatingGripperBin"), heap,
-                         SearchParams(policy="largest", seed=5, time_step=0.01, grasp_planner="image"))
+                         load_bin_search_config("ch7", policy="largest", seed=5, grasp_planner="image"))
     assert not isinstance(image.controller.GetSubsystemByName("grasp_planner"), IndexedGraspPlanner)

@@ -1,7 +1,7 @@
 """The bin-search benchmark harness: `ms-drake bench search` on tiny heaps, resume, failures, plots."""
 
+import dataclasses
 import json
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -12,22 +12,31 @@ import pytest
 
 from ms_drake.errors import HeapError
 from ms_drake.experiments.harness import (
-    cached_heap,
     failed_grasps,
     failure_classes,
     final_records,
-    heap_generator_key,
     paired_comparison,
     read_records,
     run_bench,
     summarize,
 )
+from ms_drake.policies.bin_search import BinSearchConfig, load_bin_search_config
+from ms_drake.scenes.layouts import HeapConfig, cached_heap, heap_generator_key
 from ms_drake.paths import code_version
-from ms_drake.perception.occupancy_net import default_weights
 from ms_drake.scenes.heaps import heap_digest, load_heap
 from ms_drake.types import Heap, ObjectPose
 
 CLI = [sys.executable, "-m", "ms_drake.cli"]
+TINY = ["--config", "ch7", "--set", "heap.objects=2", "--set", "horizon=3"]  # Ch. 7's setting on 2-object heaps
+
+
+def tiny(**fields) -> BinSearchConfig:
+    """The Ch. 7 setting on 2-object heaps, H = 3, with `fields` (ablation: a dict) changed."""
+    ablation = fields.pop("ablation", {})
+    cfg = load_bin_search_config("ch7", policy=fields.pop("policy", "largest"), horizon=fields.pop("horizon", 3),
+                                 heap=HeapConfig(fields.pop("layout", "bin_set"), 2), **fields)
+    cfg.ablation = type(cfg.ablation)(**{**cfg.ablation.__dict__, **ablation})
+    return BinSearchConfig(**cfg.to_dict())
 
 
 def run(*args, check=True):
@@ -39,8 +48,7 @@ def run(*args, check=True):
 
 def test_bench_search_writes_resumes_and_summarizes(tmp_path):
     out = tmp_path / "r.jsonl"
-    p = run("bench", "search", "--policy", "largest", "--objects", 2, "--heaps", 1, "--seed-start", 5,
-            "--horizon", 3, "--out", out)
+    p = run("bench", "search", "--policy", "largest", *TINY, "--heaps", 1, "--seed-start", 5, "--out", out)
     recs = read_records(out)
     assert [r["seed"] for r in recs] == [5]
     r = recs[0]
@@ -55,38 +63,42 @@ def test_bench_search_writes_resumes_and_summarizes(tmp_path):
     assert "success" in p.stdout and "SEM" in p.stdout and "quartiles" in p.stdout
     # Interrupted run: a torn last line; the rerun keeps seed 5, drops the torn line, runs seed 6 only.
     out.write_text(out.read_text() + '{"seed": 6, "pol')
-    p = run("bench", "search", "--policy", "largest", "--objects", 2, "--heaps", 2, "--seed-start", 5,
-            "--horizon", 3, "--out", out, "--heap-dir", tmp_path / "heaps")
+    p = run("bench", "search", "--policy", "largest", *TINY, "--heaps", 2, "--seed-start", 5,
+            "--out", out, "--heap-dir", tmp_path / "heaps")
     assert "resuming: 1 of 2" in p.stdout
-    assert [f.name for f in (tmp_path / "heaps").iterdir()] == ["heap_N2_s6.json"]  # cached for other policies
+    assert [f.name for f in (tmp_path / "heaps").iterdir()] == ["heap_bin_set_N2_s6.json"]  # cached for other policies
     recs = read_records(out)
     assert sorted(x["seed"] for x in recs) == [5, 6]
     assert recs[0] == r  # the finished result was not lost or redone
     # Each record names the heap it searched: the digest of the cached heap file.
-    assert recs[1]["heap_digest"] == heap_digest(load_heap(tmp_path / "heaps" / "heap_N2_s6.json"))
+    assert recs[1]["heap_digest"] == heap_digest(load_heap(tmp_path / "heaps" / "heap_bin_set_N2_s6.json"))
     assert recs[1]["code"] == code_version() != ""  # the commit that ran it
     p = run("bench", "plot", out, "--out", tmp_path / "plots")
     for f in ("cumulative_successes.png", "actions_histogram.png"):
         assert (tmp_path / "plots" / f).stat().st_size > 5000
-    # --skip-failed is an option of the run: kept in its record, not resumed from the others
-    p = run("bench", "search", "--policy", "largest", "--objects", 2, "--heaps", 1, "--seed-start", 5,
-            "--horizon", 3, "--out", out, "--skip-failed")
+    # an ablation switch is part of the run's config: kept in its record, not resumed from the others
+    p = run("bench", "search", "--policy", "largest", *TINY, "--heaps", 1, "--seed-start", 5,
+            "--out", out, "--set", "ablation.skip_failed=true")
     assert "resuming" not in p.stdout
-    assert [x["skip_failed"] for x in read_records(out)] == [False, False, True]
+    assert [x["config"]["ablation"]["skip_failed"] for x in read_records(out)] == [False, False, True]
+    # the whole config is in each record: a replay needs nothing else
+    assert BinSearchConfig(**recs[0]["config"]) == dataclasses.replace(tiny(), seed=0)
 
 
 def test_a_failing_rollout_is_named_and_the_benchmark_goes_on(tmp_path):
     out = tmp_path / "f.jsonl"
-    # horizon 0 is refused inside the worker (SelectorParams): each rollout fails, none is lost.
-    s = run_bench("random", 2, 2, 0, out, workers=1, horizon=0)
+    # a scenario file that is not there fails inside the worker: each rollout fails, none is lost.
+    cfg = tiny(policy="random")
+    cfg.scenario_file = str(tmp_path / "gone.yaml")
+    s = run_bench(cfg, 2, 0, out, workers=1)
     recs = read_records(out)
-    assert [x["failure"] for x in recs] == ["worker_died", "worker_died"] and "horizon" in recs[0]["error"]
+    assert [x["failure"] for x in recs] == ["worker_died", "worker_died"] and "gone.yaml" in recs[0]["error"]
     assert s["rollouts"] == 2 and s["success_rate"] == 0.0 and s["failures"] == {"worker_died": 2}
 
 
 def test_summary_statistics():
     recs = [dict(seed=k, policy="p", objects=3, fidelity="primitive", success=k % 2 == 0, actions=k % 4 + 1,
-                 failure="" if k % 2 == 0 else "horizon", seconds=1.0) for k in range(40)]
+                 failure="" if k % 2 == 0 else "horizon", seconds=1.0, config={"policy": "p"}) for k in range(40)]
     s = summarize(recs)
     assert s["success_rate"] == 0.5 and s["success_ci"][0] < 0.5 < s["success_ci"][1]
     assert np.isclose(s["mean_actions"], 2.5) and s["actions_ci"][0] < 2.5 < s["actions_ci"][1]
@@ -117,90 +129,80 @@ def test_bad_bench_input(tmp_path):
     assert p.returncode == 2 and "primitive" in p.stderr
     p = run("bench", "plot", tmp_path / "missing.jsonl", check=False)
     assert p.returncode == 2 and "no such result file" in p.stderr
-    p = run("bench", "search", "--policy", "largest", "--grasp-planner", "dexnet", "--out", tmp_path / "x.jsonl",
+    for setting, message in [("grasp_planner=dexnet", "grasp_planner 'dexnet' unknown; choose one of indexed, image"),
+                             ("heap.layout=pile", "heap layout 'pile' unknown; choose one of compact"),
+                             ("ablation.grasp_outcome=coin", "ablation.grasp_outcome 'coin' unknown; choose one of"),
+                             ("heap.colour=red", "The fields ['colour'] were unknown"),
+                             ("horizon", "write key=value")]:
+        p = run("bench", "search", "--policy", "largest", "--set", setting, "--out", tmp_path / "x.jsonl", check=False)
+        assert p.returncode == 2 and message in p.stderr and "Traceback" not in p.stderr, (setting, p.stderr)
+    p = run("bench", "search", "--policy", "largest", "--config", "table_9_9", "--out", tmp_path / "x.jsonl",
             check=False)
-    assert p.returncode == 2 and "--grasp-planner 'dexnet'" in p.stderr and "indexed, image" in p.stderr
-    p = run("bench", "search", "--policy", "largest", "--heap-engine", "physx", "--out", tmp_path / "x.jsonl",
-            check=False)
-    assert p.returncode == 2 and "--heap-engine 'physx'" in p.stderr and "drake, bullet" in p.stderr
-    p = run("bench", "search", "--policy", "xray", "--protocol", "xray", "--heap-engine", "bullet",
-            "--out", tmp_path / "x.jsonl", check=False)
-    assert p.returncode == 2 and "only with --protocol ch7" in p.stderr
-    p = run("bench", "search", "--policy", "largest", "--grasp-outcome", "coin", "--out", tmp_path / "x.jsonl",
-            check=False)
-    assert p.returncode == 2 and "--grasp-outcome 'coin'" in p.stderr and "draw, threshold" in p.stderr
+    assert p.returncode == 2 and "no such file or named setting" in p.stderr and "ch7" in p.stderr
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("heap: {objects: many}\n")
+    p = run("bench", "search", "--policy", "largest", "--config", bad, "--out", tmp_path / "x.jsonl", check=False)
+    assert p.returncode == 2 and str(bad) in p.stderr and "Traceback" not in p.stderr
 
 
-def test_a_run_resumes_only_the_records_of_its_own_grasp_planner(tmp_path):
+def test_the_defaults_are_table_8_2_s_setting_and_a_config_round_trips(tmp_path):
+    from pydrake.common.yaml import yaml_dump_typed
+
+    cfg = BinSearchConfig()
+    assert (cfg.heap.layout, cfg.heap.objects, cfg.horizon, cfg.grasp_planner, cfg.grasp_samples) == \
+        ("compact", 14, 10, "image", 32)
+    assert (cfg.ablation.grasp_outcome, cfg.ablation.jaw_contact, cfg.segmenter) == ("nominal", "pad", "ground_truth")
+    assert load_bin_search_config("table_8_2") == cfg
+    ch7 = load_bin_search_config("ch7", ["heap.objects=10", "ablation.skip_failed=true"])
+    assert (ch7.heap.layout, ch7.heap.objects, ch7.grasp_planner, ch7.ablation.grasp_outcome) == \
+        ("bin_set", 10, "indexed", "draw") and ch7.ablation.skip_failed
+    f = tmp_path / "mine.yaml"
+    f.write_text(yaml_dump_typed(ch7))
+    assert load_bin_search_config(f) == ch7 == BinSearchConfig(**ch7.to_dict())
+    p = run("bench", "config", "--config", f, "--set", "horizon=7")
+    assert "horizon: 7" in p.stdout and "layout: bin_set" in p.stdout and "compact:" in p.stdout
+
+
+def test_a_run_resumes_only_the_records_of_its_own_config(tmp_path):
     out = tmp_path / "g.jsonl"
-    assert run_bench("largest", 2, 1, 5, out, horizon=3)["ran"] == 1  # primitive default: the grasp sets
-    s = run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="image")
-    assert s["resumed"] == 0 and s["ran"] == 1
+    assert run_bench(tiny(), 1, 5, out)["ran"] == 1
+    for changed in (tiny(grasp_planner="image"), tiny(grasp_planner="image", grasp_samples=3),
+                    tiny(ablation={"skip_failed": True}), tiny(ablation={"grasp_outcome": "threshold"})):
+        s = run_bench(changed, 1, 5, out)
+        assert (s["ran"], s["resumed"]) == (1, 0)
+        assert run_bench(changed, 1, 5, out)["ran"] == 0  # the same config again: resumed
     recs = read_records(out)
-    assert [r["grasp_planner"] for r in recs] == ["indexed", "image"]
-    s = run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="image", grasp_outcome="threshold")
-    assert s["resumed"] == 0 and s["ran"] == 1  # another grasp outcome: its own record
-    assert [r["grasp_outcome"] for r in read_records(out)] == ["draw", "draw", "threshold"]
-    s = run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="image", grasp_samples=3)
-    assert s["resumed"] == 0 and s["ran"] == 1  # other planner samples: its own record
-    assert [r["grasp_samples"] for r in read_records(out)] == [8, 8, 8, 3]
-    assert run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="image", grasp_samples=3)["ran"] == 0
-    s = run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="image", grasp_samples=3, skip_failed=True)
-    assert s["resumed"] == 0 and s["ran"] == 1  # failed objects passed over: its own record
-    assert [r["skip_failed"] for r in read_records(out)] == [False, False, False, False, True]
-    s = run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="image", grasp_samples=3, jaw_contact="pad")
-    assert s["resumed"] == 0 and s["ran"] == 1  # the pad rule: its own record
-    assert [r["jaw_contact"] for r in read_records(out)] == ["center"] * 5 + ["pad"]
-    with pytest.raises(ValueError, match="jaw contact 'tip' unknown; choose one of center, pad"):
-        run_bench("largest", 2, 1, 5, out, horizon=3, jaw_contact="tip")
-    assert run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="indexed")["resumed"] == 1
-    # a record without the key predates the grasp sets: it was searched with the image planner
-    # (and one without grasp_samples with the default 8 candidates)
-    old = {k: v for k, v in recs[1].items() if k not in ("grasp_planner", "grasp_samples")}
-    out.write_text(json.dumps(old) + "\n")
-    assert run_bench("largest", 2, 1, 5, out, horizon=3, grasp_planner="image")["ran"] == 0
-    assert run_bench("largest", 2, 1, 5, out, horizon=3)["ran"] == 1
+    assert [(r["config"]["grasp_planner"], r["config"]["grasp_samples"], r["config"]["ablation"]["skip_failed"],
+             r["config"]["ablation"]["grasp_outcome"]) for r in recs] == [
+        ("indexed", 8, False, "draw"), ("image", 8, False, "draw"), ("image", 3, False, "draw"),
+        ("indexed", 8, True, "draw"), ("indexed", 8, False, "threshold")]
+    assert run_bench(tiny(), 1, 5, out)["resumed"] == 1
+    assert len(final_records(recs)) == 5
 
 
-def test_a_run_resumes_only_the_records_of_its_own_occupancy_estimator(tmp_path):
-    out, weights = tmp_path / "w.jsonl", tmp_path / "tuned.pt"
-    shutil.copy(default_weights(), weights)
-    assert run_bench("xray", 2, 1, 5, out, horizon=1, grasp_planner="image")["ran"] == 1
-    s = run_bench("xray", 2, 1, 5, out, horizon=1, grasp_planner="image", occupancy_weights=str(weights))
-    assert s["resumed"] == 0 and s["ran"] == 1
-    assert [r["occupancy_weights"] for r in read_records(out)] == ["", str(weights)]
-    assert run_bench("xray", 2, 1, 5, out, horizon=1, grasp_planner="image", occupancy_weights=str(weights))["ran"] == 0
-    assert run_bench("xray", 2, 1, 5, out, horizon=1, grasp_planner="image", occupancy="analytic_image")["ran"] == 1
-    assert [r["occupancy"] for r in read_records(out)] == ["learned", "learned", "analytic_image"]
-    p = run("bench", "search", "--policy", "xray", "--occupancy", "analytic_image", "--occupancy-weights", weights,
-            "--out", tmp_path / "x.jsonl", check=False)
-    assert p.returncode == 2 and "without --occupancy-weights" in p.stderr
-    p = run("bench", "search", "--policy", "largest", "--occupancy-weights", weights, "--out", tmp_path / "x.jsonl",
-            check=False)
-    assert p.returncode == 2 and "the largest policy reads no occupancy" in p.stderr
-    p = run("bench", "search", "--policy", "xray", "--occupancy-weights", tmp_path / "none.pt", "--out",
-            tmp_path / "x.jsonl", check=False)
-    assert p.returncode == 2 and "none.pt not found" in p.stderr
+def test_a_record_without_a_config_is_named(tmp_path):
+    out = tmp_path / "old.jsonl"
+    out.write_text(json.dumps(dict(seed=1, policy="largest", objects=2, success=True, actions=1)) + "\n")
+    p = run("bench", "search", "--policy", "largest", *TINY, "--heaps", 1, "--out", out, check=False)
+    assert p.returncode == 2 and "line 1: the record has no 'config'" in p.stderr
 
 
-def test_bullet_heaps_are_cached_and_matched_apart_from_drake_heaps(tmp_path):
+def test_heap_layouts_are_cached_apart_and_a_cache_of_other_settings_is_refused(tmp_path):
     out, heaps = tmp_path / "e.jsonl", tmp_path / "heaps"
-    assert run_bench("largest", 2, 1, 5, out, horizon=3, heap_dir=str(heaps))["ran"] == 1
-    s = run_bench("largest", 2, 1, 5, out, horizon=3, heap_dir=str(heaps), heap_engine="bullet")
+    assert run_bench(tiny(), 1, 5, out, heap_dir=str(heaps))["ran"] == 1
+    s = run_bench(tiny(layout="bin_set_bullet"), 1, 5, out, heap_dir=str(heaps))
     assert s["resumed"] == 0 and s["ran"] == 1
-    assert sorted(f.name for f in heaps.iterdir()) == ["heap_N2_s5.json", "heap_bullet_N2_s5.json"]
-    assert [r["heap_engine"] for r in read_records(out)] == ["drake", "bullet"]
-    assert run_bench("largest", 2, 1, 5, out, horizon=3, heap_dir=str(heaps), heap_engine="bullet")["ran"] == 0
-    a, b = (json.loads((heaps / f).read_text()) for f in ("heap_N2_s5.json", "heap_bullet_N2_s5.json"))
+    assert sorted(f.name for f in heaps.iterdir()) == ["heap_bin_set_N2_s5.json", "heap_bin_set_bullet_N2_s5.json"]
+    assert [r["config"]["heap"]["layout"] for r in read_records(out)] == ["bin_set", "bin_set_bullet"]
+    assert run_bench(tiny(layout="bin_set_bullet"), 1, 5, out, heap_dir=str(heaps))["ran"] == 0
+    a, b = (json.loads((heaps / f).read_text()) for f in ("heap_bin_set_N2_s5.json", "heap_bin_set_bullet_N2_s5.json"))
     assert a["objects"] != b["objects"]  # two drop simulations of the same seed
     # Each file keeps its generator's key; a cache made with other settings is refused, by name.
-    assert a["generator"] == heap_generator_key(2, "ch7", "drake") != b["generator"]
-    assert cached_heap(2, 5, str(heaps)).objects == load_heap(heaps / "heap_N2_s5.json").objects
-    (heaps / "heap_N2_s5.json").write_text(json.dumps(dict(a, generator="0123456789abcdef")))
-    with pytest.raises(HeapError, match="heap_N2_s5.json: this cached heap was made with other generator settings"):
-        cached_heap(2, 5, str(heaps))
-    (heaps / "heap_N2_s5.json").write_text(json.dumps({k: v for k, v in a.items() if k != "generator"}))
-    assert cached_heap(2, 5, str(heaps)).objects == load_heap(heaps / "heap_N2_s5.json").objects  # older files load
+    assert a["generator"] == heap_generator_key(HeapConfig("bin_set", 2)) != b["generator"]
+    assert cached_heap(HeapConfig("bin_set", 2), 5, heaps).objects == load_heap(heaps / "heap_bin_set_N2_s5.json").objects
+    (heaps / "heap_bin_set_N2_s5.json").write_text(json.dumps(dict(a, generator="0123456789abcdef")))
+    with pytest.raises(HeapError, match="heap_bin_set_N2_s5.json: this cached heap was made with other generator"):
+        cached_heap(HeapConfig("bin_set", 2), 5, heaps)
 
 
 def test_truncating_a_record_to_a_smaller_budget():
@@ -229,26 +231,26 @@ def test_a_rollout_cut_at_a_smaller_budget_equals_a_run_with_that_budget():
     keys = ("success", "actions", "action_kinds", "failure")
     seed = 14  # a heap whose random search takes more than three grasps
     heap = generate_heap(load_scenario(None, "BinHeap15"), 5, seed=seed)
-    long = rollout("random", 5, seed, heap=heap, horizon=8, grasp_planner="image").record()
+    cfg = load_bin_search_config("ch7", policy="random", grasp_planner="image", horizon=8)
+    long = rollout(cfg, seed, heap=heap).record()
     assert long["actions"] >= 4 and long["action_kinds"] == ["grasp"] * long["actions"]
     for h in (2, 3):
-        short = rollout("random", 5, seed, heap=heap, horizon=h, grasp_planner="image").record()
+        short = rollout(dataclasses.replace(cfg, horizon=h), seed, heap=heap).record()
         assert {k: short[k] for k in keys} == {k: truncate_record(long, h)[k] for k in keys}
 
 
 def test_a_killed_two_worker_run_resumes(tmp_path):
-    """sims/bench_search.py with a pool of 2: kill the whole run after its first result, rerun the
-    same command: every seed once, the first result kept; heaps made by the workers, each once."""
-    import json
+    """`bench search --workers 2`: kill the whole run after its first result, rerun the same
+    command: every seed once, the first result kept; heaps made by the workers, each once."""
     import os
     import signal
     import time
-    from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]
-    cmd = [sys.executable, str(root / "sims" / "bench_search.py"), "--objects", "2", "--heaps", "3",
-           "--seed-start", "40", "--policies", "largest", "--horizon", "2", "--workers", "2", "--out", str(tmp_path)]
-    out = tmp_path / "largest_N2_H2.jsonl"
+    out = tmp_path / "largest.jsonl"
+    cmd = [*CLI, "bench", "search", "--policy", "largest", "--config", "ch7", "--set", "heap.objects=2", "--set",
+           "horizon=2", "--heaps", "3", "--seed-start", "40", "--workers", "2", "--out", str(out),
+           "--heap-dir", str(tmp_path / "heaps")]
     p = subprocess.Popen(cmd, cwd=root, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
     try:
         t0 = time.time()
@@ -267,18 +269,17 @@ def test_a_killed_two_worker_run_resumes(tmp_path):
     # every rollout ran in a pool worker: the killed run's in its workers, the rest in fresh ones
     assert p.pid not in {x["pid"] for x in first}
     assert not {x["pid"] for x in recs[len(first):]} & ({rerun.pid} | {x["pid"] for x in first})
-    assert sorted(f.name for f in (tmp_path / "heaps").iterdir()) == [f"heap_N2_s{k}.json" for k in (40, 41, 42)]
-    assert "| largest | 2 | 2 |" in stdout
+    assert sorted(f.name for f in (tmp_path / "heaps").iterdir()) == [f"heap_bin_set_N2_s{k}.json" for k in (40, 41, 42)]
+    assert stdout.startswith(f"resuming: {len(first)} of 3") and "3 rollouts" in stdout
 
 
 def test_recorded_searches_replay_and_a_changed_record_is_named(tmp_path):
     out, heaps = tmp_path / "r.jsonl", tmp_path / "heaps"
-    run("bench", "search", "--policy", "largest", "--objects", 2, "--heaps", 2, "--seed-start", 5, "--horizon", 3,
-        "--out", out, "--heap-dir", heaps)
+    run("bench", "search", "--policy", "largest", *TINY, "--heaps", 2, "--seed-start", 5, "--out", out, "--heap-dir", heaps)
     p = run("bench", "replay", out, "--heap-dir", heaps)
     assert "largest seed 5: same; heap same" in p.stdout and "2 of 2 records replay" in p.stdout
     recs = read_records(out)
-    assert all(r["horizon"] == 3 for r in recs)
+    assert all(r["config"]["horizon"] == 3 for r in recs)
     # A record that no longer matches what the code does: its outcome flipped, its heap another.
     recs[1] = dict(recs[1], action_successes=[not x for x in recs[1]["action_successes"]], heap_digest="0" * 16)
     out.write_text("".join(json.dumps(r) + "\n" for r in recs))
@@ -300,7 +301,7 @@ def test_heap_digest_names_the_state_and_pairing_refuses_different_heaps(tmp_pat
     assert heap_digest(heap) == heap_digest(Heap(seed=3, environment="bin", objects=heap.objects))
     assert heap_digest(moved) != heap_digest(heap)
     rec = lambda seed, ok, digest: dict(seed=seed, policy="p", objects=2, fidelity="primitive", success=ok,
-                                        actions=1, heap_digest=digest)
+                                        actions=1, heap_digest=digest, config={})
     a = [rec(3, True, heap_digest(heap)), rec(4, True, "x")]
     b = [rec(3, False, heap_digest(heap)), rec(4, False, "x")]
     assert paired_comparison(a, b)["only_a"] == [3, 4]
@@ -326,7 +327,8 @@ def test_code_version_names_the_checkout_s_commit():
 
 
 def test_paired_comparison_gives_the_difference_with_a_bootstrap_interval():
-    rec = lambda seed, ok: dict(seed=seed, policy="p", objects=2, fidelity="primitive", success=ok, actions=1)
+    rec = lambda seed, ok: dict(seed=seed, policy="p", objects=2, fidelity="primitive", success=ok, actions=1,
+                                config={})
     a = [rec(k, k % 4 != 0) for k in range(200)]  # 75 %
     b = [rec(k, k % 2 == 0) for k in range(200)]  # 50 %
     c = paired_comparison(a, b)

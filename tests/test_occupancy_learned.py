@@ -8,7 +8,6 @@ import trimesh
 from pydrake.systems.sensors import ImageDepth32F
 
 from ms_drake.errors import DatasetError, PerceptionError
-from ms_drake.execution import ExecutionError
 from ms_drake.experiments.occupancy_data import (
     PILE_SPREAD,
     LyingCylinder,
@@ -31,8 +30,11 @@ from ms_drake.experiments.occupancy_learning import (
     train_occupancy,
     train_steps,
 )
-from ms_drake.experiments.rollout import IMAGE_BEST_MATCH, SearchParams, build_search
-from ms_drake.experiments.xray import XRAY_COMPACT_HEAPS, XRAY_TARGET, xray_heap
+from ms_drake.experiments.rollout import build_search
+from ms_drake.policies.bin_search import IMAGE_BEST_MATCH, BinSearchAblation, ControllerError, load_bin_search_config
+from ms_drake.scenes.layouts import HEAP_LAYOUTS as SEARCH_LAYOUTS
+from ms_drake.scenes.layouts import LID_TARGET as XRAY_TARGET
+from ms_drake.scenes.layouts import HeapConfig, layout_heap
 from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.objects import get_object
 from ms_drake.perception.occupancy import AnalyticOccupancy, OccupancyEstimator, TargetBox
@@ -85,7 +87,8 @@ def test_dataset_writer_splits_by_object_and_reloads(tiny):
 def test_compact_layout_drops_as_xray_compact_and_keeps_a_folder_to_one_layout(tmp_path):
     c = layout_heap_params("compact", "train")
     assert (c.center_uniform, c.offset_uniform, c.drop_height, c.split) == (
-        XRAY_COMPACT_HEAPS.center_uniform, XRAY_COMPACT_HEAPS.offset_uniform, XRAY_COMPACT_HEAPS.drop_height, "train")
+        *(getattr(SEARCH_LAYOUTS["compact"].params, k) for k in ("center_uniform", "offset_uniform", "drop_height")),
+        "train")
     assert layout_heap_params("spread", "test") == HeapParams(engine="bullet", split="test", render=False)
     out = tmp_path / "c"
     assert write_occupancy_dataset(out, count=2, seed=3, views=2, heaps_per_shard=1, sets=("procedural",),
@@ -285,10 +288,10 @@ def test_learned_estimator_alone():
 
 
 def test_learned_estimator_in_the_xray_controller_without_privileged_state():
-    heap = xray_heap(5002, occluders=4)  # the target seen and graspable (collision-free) at the start
+    heap = layout_heap(HeapConfig("lid", 4), 5002)  # the target seen and graspable (collision-free) at the start
     assert heap.target == XRAY_TARGET and heap.target_index == 0
-    system = build_search(load_scenario(None, "FloatingGripperBin"), heap, SearchParams(policy="xray", horizon=2,
-                                                                                        time_step=0.01))
+    system = build_search(load_scenario(None, "FloatingGripperBin"), heap,
+                          load_bin_search_config("ch7", policy="xray", horizon=2))
     est = system.controller.GetSubsystemByName("occupancy_estimator")
     assert isinstance(est.backend, LearnedOccupancy)  # from the target's size: no pose anywhere
     assert [est.get_input_port(i).get_name() for i in range(est.num_input_ports())] == ["depth_image", "target"]
@@ -308,9 +311,10 @@ def test_learned_estimator_in_the_xray_controller_without_privileged_state():
 
 
 def test_analytic_image_occupancy_is_the_generator_on_the_targets_box_without_its_pose():
-    heap = xray_heap(5002, occluders=4)
+    heap = layout_heap(HeapConfig("lid", 4), 5002)
     scenario = load_scenario(None, "FloatingGripperBin")
-    est = {occ: build_search(scenario, heap, SearchParams(policy="xray", horizon=2, time_step=0.01, occupancy=occ))
+    est = {occ: build_search(scenario, heap, load_bin_search_config("ch7", [f"ablation.occupancy={occ}"], policy="xray",
+                                                                    horizon=2))
            .controller.GetSubsystemByName("occupancy_estimator").backend
            for occ in ("analytic_image", "analytic_image_best", "analytic")}
     box = TargetBox.from_object(heap.target)
@@ -318,8 +322,8 @@ def test_analytic_image_occupancy_is_the_generator_on_the_targets_box_without_it
         assert isinstance(est[occ], AnalyticOccupancy) and est[occ].mesh is None
         assert est[occ].box == box and est[occ].best_match == best_match
     assert est["analytic"].mesh is not None  # the privileged one: the target's mesh at its true pose
-    with pytest.raises(ExecutionError, match="occupancy 'exact' unknown; choose one of learned, analytic_image"):
-        SearchParams(occupancy="exact")
+    with pytest.raises(ControllerError, match="occupancy 'exact' unknown; choose one of learned, analytic_image"):
+        BinSearchAblation(occupancy="exact")
 
 
 def test_flute_target_is_a_lying_cylinder_seen_from_above():

@@ -103,12 +103,12 @@ def test_target_amodal_mask_alone_picks_the_target_or_nothing():
 def test_target_amodal_mask_wired_in_the_oracle_controller(small_heap):
     """The oracle's bin-search diagram: station body_poses -> AmodalMasks -> TargetAmodalMask ->
     PolicySelector.target_amodal; the mask is the target's silhouette at its pose in the plant."""
-    from ms_drake.experiments.rollout import SearchParams, build_search
-    from ms_drake.policies.bin_search import set_initial_conditions
+    from ms_drake.experiments.rollout import build_search
+    from ms_drake.policies.bin_search import load_bin_search_config, set_initial_conditions
     from ms_drake.scenario import load_scenario
 
     system = build_search(load_scenario(None, "FloatingGripperBin"), small_heap,
-                          SearchParams(policy="oracle", seed=5, time_step=0.01))
+                          load_bin_search_config("ch7", policy="oracle", seed=5))
     subsystems = {type(sub).__name__: sub for sub in system.controller.GetSystems()}
     pick, amodal, selector = subsystems["TargetAmodalMask"], subsystems["AmodalMasks"], subsystems["PolicySelector"]
     assert pick.target_id == system.target_id

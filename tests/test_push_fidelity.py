@@ -95,12 +95,16 @@ def test_push_out_of_reach_is_unreachable(box_pair):
 
 def test_the_study_and_the_pushing_selectors_push_at_the_same_plant_step():
     from ms_drake.execution import PRIMITIVE_PUSH_TIME_STEP
-    from ms_drake.experiments.rollout import primitive_time_step
+    from ms_drake.policies.bin_search import BinSearchConfig, search_scenario
     from ms_drake.policies.bin_selectors import POLICIES as SELECTORS, PUSHING
+    from ms_drake.scenario import load_scenario
+    from ms_drake.types import Heap
 
     assert StudyParams().time_step == PRIMITIVE_PUSH_TIME_STEP == 0.005
+    station, heap = load_scenario(None, "FloatingGripperBin"), Heap(seed=0, environment="bin", objects=())
     for p in SELECTORS:
-        assert primitive_time_step(p) == (PRIMITIVE_PUSH_TIME_STEP if p in PUSHING else 0.01)
+        step = search_scenario(station, heap, BinSearchConfig(policy=p)).plant_config.time_step
+        assert step == (PRIMITIVE_PUSH_TIME_STEP if p in PUSHING else 0.01)
 
 
 def test_a_push_the_home_branch_cannot_line_up_is_planned_from_another_ik_solution():

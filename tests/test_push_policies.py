@@ -10,8 +10,8 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.sensors import ImageDepth32F
 
-from ms_drake.experiments.rollout import SearchParams, build_search
-from ms_drake.policies.bin_search import BinSearchParams, set_initial_conditions
+from ms_drake.experiments.rollout import build_search
+from ms_drake.policies.bin_search import BinSearchConfig, load_bin_search_config, set_initial_conditions
 from ms_drake.geometry import PinholeCamera, Workspace, world_points
 from ms_drake.perception.masks import object_labels
 from ms_drake.perception.segmentation import Segmenter
@@ -274,7 +274,8 @@ def test_system_wired_to_a_station(bin_scenario, small_heap):
 
 
 def test_push_policy_in_the_bin_search_controller(small_heap):
-    params = SearchParams(policy="largest_push", seed=5, time_step=0.01, push_policy="max_clearance")
+    params = load_bin_search_config("ch7", ["ablation.time_step=0.01"], policy="largest_push", seed=5,
+                                    push_policy="max_clearance")
     system = build_search(load_scenario(None, "FloatingGripperBin"), small_heap, params)
     sysm = system.controller.GetSubsystemByName("push_planner")
     assert isinstance(sysm, PushPolicySystem) and sysm.policy == "max_clearance"
@@ -284,7 +285,7 @@ def test_push_policy_in_the_bin_search_controller(small_heap):
     masks = system.output(ctx, "masks")
     assert len(pushes) == 1 and pushes[0].object_id in masks.ids
     with pytest.raises(PushError, match="choose one of quasi_random"):
-        BinSearchParams(policy="largest_push", push_policy="sideways")
+        BinSearchConfig(policy="largest_push", push_policy="sideways")
 
 
 def test_state_checks_use_the_convex_hull_not_its_box():
@@ -304,7 +305,7 @@ def test_state_checks_use_the_convex_hull_not_its_box():
 def test_every_planner_pushes_at_least_the_minimum_height_above_the_floor():
     """A 2 cm box would be pushed at 1 cm (half its height): every planner raises the tool centre
     to MIN_PUSH_HEIGHT (the YuMi's fingertips and IK floor margin); a 5 cm one at 2.5 cm."""
-    from ms_drake.pushing import MIN_PUSH_HEIGHT, PushParams, obstacle_map, plan_pushes, push_height
+    from ms_drake.pushing import MIN_PUSH_HEIGHT, PushParams, plan_pushes, push_height
 
     assert MIN_PUSH_HEIGHT == 0.02 and P.min_push_height == PushParams().min_push_height == MIN_PUSH_HEIGHT
     assert push_height(0.1, 0.12) == pytest.approx(0.12) and push_height(0.1, 0.15) == pytest.approx(0.125)

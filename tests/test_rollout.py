@@ -22,11 +22,11 @@ def scene(heap4):
     """A search system on heap4 and its first observation: depth, masks, object geometry."""
     from pydrake.systems.analysis import Simulator
 
-    from ms_drake.experiments.rollout import SearchParams, build_search
-    from ms_drake.policies.bin_search import set_initial_conditions
+    from ms_drake.experiments.rollout import build_search
+    from ms_drake.policies.bin_search import load_bin_search_config, set_initial_conditions
     from ms_drake.scenario import load_scenario
 
-    params = SearchParams(policy="largest", seed=5, time_step=0.01, grasp_planner="image")
+    params = load_bin_search_config("ch7", policy="largest", seed=5, grasp_planner="image")
     system = build_search(load_scenario(None, "FloatingGripperBin"), heap4, params)
     sim = Simulator(system.diagram)
     ctx = sim.get_mutable_context()
@@ -126,10 +126,11 @@ def test_lazy_grasp_planner_alone(scene):
 
 def test_rollout_is_reproducible_from_its_seed(heap4):
     from ms_drake.experiments.rollout import rollout
+    from ms_drake.policies.bin_search import load_bin_search_config
 
     timing = ("seconds", "cpu_seconds")
-    a, b = ({k: v for k, v in rollout("largest", 4, 3, heap=heap4, grasp_planner="image").record().items() if k not in timing}
-            for _ in range(2))
+    cfg = load_bin_search_config("ch7", ["heap.objects=4"], policy="largest", grasp_planner="image", horizon=8)
+    a, b = ({k: v for k, v in rollout(cfg, 3, heap=heap4).record().items() if k not in timing} for _ in range(2))
     assert a == b
     # the target grasped at the first action
     assert {k: a[k] for k in ("success", "actions", "action_kinds", "stop_reason", "grasp_plans", "target")} == \
@@ -150,12 +151,13 @@ def test_lazy_planner_wired_in_the_search_diagram(scene):
 
 
 def test_the_scenarios_simulator_config_is_applied(heap4):
-    from ms_drake.experiments.rollout import SearchParams, build_search, run_search
+    from ms_drake.experiments.rollout import build_search, run_search
+    from ms_drake.policies.bin_search import load_bin_search_config
     from ms_drake.scenario import load_scenario
 
     scenario = load_scenario(None, "FloatingGripperBin")
     scenario.simulator_config.integration_scheme = "no_such_integrator"
-    params = SearchParams(policy="largest", seed=5, time_step=0.01, horizon=1)
+    params = load_bin_search_config("ch7", policy="largest", seed=5, horizon=1)
     system = build_search(scenario, heap4, params)
     with pytest.raises(Exception, match="no_such_integrator"):
         run_search(system, heap4, params)

@@ -19,7 +19,7 @@ from pydrake.systems.framework import DiagramBuilder
 from ms_drake.execution import ActionExecutor, CarrierError, ObjectCarrier, PrimitiveBackend
 from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.policies.bin_search import (
-    BinSearchParams,
+    load_bin_search_config,
     ControllerError,
     MakeBinSearchController,
     SimulationInfo,
@@ -144,9 +144,10 @@ def heap4():
 def test_a_search_diagram_ends_itself_with_the_lifted_objects_in_the_trays(heap4):
     scenario = load_scenario(None, "FloatingGripperBin")
     builder = DiagramBuilder()
-    station = builder.AddSystem(MakeStation(search_scenario(scenario, heap4), target_index=heap4.target_index))
+    config = load_bin_search_config("ch7", policy="largest", horizon=8, seed=1)
+    station = builder.AddSystem(MakeStation(search_scenario(scenario, heap4, config), target_index=heap4.target_index))
     controller = builder.AddSystem(MakeBinSearchController(
-        scenario, BinSearchParams(policy="largest", horizon=8, seed=1),
+        scenario, config,
         sim=SimulationInfo.from_station(station, heap4.target_index)))
     connect_controller(builder, controller, station)
     diagram = builder.Build()
@@ -187,15 +188,18 @@ def _run(args):
     return out.stdout
 
 
-@pytest.mark.parametrize("policy,first,count", [("largest", 0, 3), ("xray", 3, 1)])
-def test_the_diagram_example_agrees_with_bench_search_action_by_action(tmp_path, policy, first, count):
+@pytest.mark.parametrize("policy,first,count,config", [
+    ("largest", 0, 3, ["--config", "ch7", "--set", "heap.objects=10", "--set", "horizon=20"]),
+    ("xray", 5000, 1, []),  # the defaults: Table 8.2's setting
+])
+def test_the_diagram_example_agrees_with_bench_search_action_by_action(tmp_path, policy, first, count, config):
     bench = tmp_path / "bench.jsonl"
     seeds = range(first, first + count)
     _run([str(Path(sys.executable).parent / "ms-drake"), "bench", "search", "--policy", policy,
-          "--heaps", str(count), "--seed-start", str(first), "--objects", "10", "--out", str(bench)])
+          "--heaps", str(count), "--seed-start", str(first), *config, "--out", str(bench)])
     records = {r["seed"]: r for r in map(json.loads, bench.read_text().splitlines())}
     for seed in seeds:
-        line = _run([sys.executable, "sims/bin_search_diagram.py", "--seed", str(seed), "--policy", policy, "--objects", "10"])
+        line = _run([sys.executable, "sims/bin_search_diagram.py", "--seed", str(seed), "--policy", policy, *config])
         got = json.loads(line.strip().splitlines()[-1])
         rec = records[seed]
         assert set(got) >= {"seed", "success", "actions", "action_kinds", "stop_reason"}
@@ -225,12 +229,13 @@ def test_unsuitable_scenarios_get_one_clear_error(tmp_path, args, message):
 def test_the_diagram_example_agrees_with_bench_search_on_a_robot_in_full_fidelity(tmp_path):
     """The Panda in physics: its grasps of non-target objects carry them to a drop-off tray."""
     bench = tmp_path / "panda.jsonl"
+    config = ["--config", "ch7", "--set", "heap.objects=6", "--set", "horizon=12"]
     _run([str(Path(sys.executable).parent / "ms-drake"), "bench", "search", "--policy", "largest", "--fidelity", "full",
-          "--scenario", "PandaBin", "--objects", "6", "--heaps", "1", "--seed-start", "0", "--out", str(bench)])
+          "--scenario", "PandaBin", *config, "--heaps", "1", "--seed-start", "0", "--out", str(bench)])
     (rec,) = map(json.loads, bench.read_text().splitlines())
-    assert rec["scenario"] == "PandaBin" and rec["fidelity"] == "full"
+    assert rec["config"]["scenario"] == "PandaBin" and rec["fidelity"] == "full"
     got = json.loads(_run([sys.executable, "sims/bin_search_diagram.py", "--scenario", "PandaBin", "--fidelity", "full",
-                           "--seed", "0", "--policy", "largest", "--objects", "6"]).strip().splitlines()[-1])
+                           "--seed", "0", "--policy", "largest", *config]).strip().splitlines()[-1])
     assert (got["success"], got["actions"], got["action_kinds"], got["stop_reason"], got["grasp_objects"]) == \
         (rec["success"], rec["actions"], rec["action_kinds"], rec["stop_reason"], rec["grasp_objects"])
     assert rec["actions"] >= 2 and any(o not in ("", "target") for o in rec["grasp_objects"])  # a carried occluder
@@ -241,8 +246,8 @@ def test_bench_search_shows_progress_and_ctrl_c_says_how_to_resume(tmp_path):
     import time
 
     out = tmp_path / "runs.jsonl"
-    cmd = [str(Path(sys.executable).parent / "ms-drake"), "bench", "search", "--policy", "largest", "--objects", "6",
-           "--heaps", "40", "--out", str(out)]
+    cmd = [str(Path(sys.executable).parent / "ms-drake"), "bench", "search", "--policy", "largest", "--config", "ch7",
+           "--set", "heap.objects=6", "--heaps", "40", "--out", str(out)]
     p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     t0 = time.monotonic()
     while time.monotonic() - t0 < 600 and not (out.exists() and out.read_text().count("\n") >= 1):

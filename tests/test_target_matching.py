@@ -6,17 +6,16 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
-from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.sensors import ImageLabel16I, ImageRgba8U
 
 from ms_drake.errors import DatasetError, PerceptionError
 from ms_drake.experiments.matcher_data import bench_target_detection, detection_metrics, matcher_shard_job
 from ms_drake.experiments.matcher_learning import PairSampler
-from ms_drake.experiments.rollout import SearchParams, build_search
+from ms_drake.experiments.rollout import build_search
 from ms_drake.perception.association import MaskAssociation, associate
 from ms_drake.perception.matcher_net import SIZE, crop, default_weights, make_net, occlude
 from ms_drake.perception.target import TargetDetector, Template, render_templates
-from ms_drake.policies.bin_search import BinSearchParams, ControllerError
+from ms_drake.policies.bin_search import BinSearchConfig, ControllerError, load_bin_search_config
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import set_heap_poses
 from ms_drake.types import InstanceMasks
@@ -122,7 +121,7 @@ def test_learned_detector_needs_templates_and_a_known_backend():
     with pytest.raises(PerceptionError, match="color, template, learned"):
         TargetDetector("siamese")
     with pytest.raises(ControllerError, match="color, template, learned"):
-        BinSearchParams(detector="sift")
+        BinSearchConfig(detector="sift")
 
 
 def test_mask_association_alone():
@@ -155,8 +154,8 @@ def test_controller_with_the_learned_detector_and_segmenter_finds_the_target(sma
     s = load_scenario(None, "FloatingGripperBin")
     est = {}
     for seg, det in (("ground_truth", "color"), ("ground_truth", "learned"), ("learned", "learned")):
-        system = build_search(s, heap, SearchParams(policy="largest", seed=1, time_step=0.01, segmenter=seg,
-                                                    detector=det))
+        system = build_search(s, heap, load_bin_search_config("ch7", policy="largest", seed=1, segmenter=seg,
+                                                              detector=det))
         assert system.controller.GetSubsystemByName("target_detector").backend == det
         ctx = system.diagram.CreateDefaultContext()
         set_heap_poses(system.station, ctx, heap)

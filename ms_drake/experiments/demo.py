@@ -1,10 +1,10 @@
 """`ms-drake demo`: one full X-Ray search, written out: on the floating gripper (primitive fidelity)
 by default, or with a robot's station (YuMiBin, PandaBin) in physics.
 
-The heap is one of Table 8.2's (`protocol="xray"`, ms_drake.experiments.xray: the lid target
-dropped first, 14 unseen mesh objects piled on it; X-Ray reads the learned occupancy), seed
-`DEMO_SEED` by default: its target starts hidden. `protocol="ch7"` searches a heap of the
-scenario's objects instead (SEARCH_HEAPS; the target is the most occluded object).
+The search is the default BinSearchConfig (Table 8.2's setting) on a heap of the ``lid`` layout
+(scenes.layouts: the 6 cm lid dropped first, 14 unseen mesh objects piled on it; X-Ray reads the
+learned occupancy), seed `DEMO_SEED` by default: its target starts hidden. `DEMO_CONFIG` is that
+config; pass another to search other heaps or with other settings.
 
 Outputs in the folder: the initial scene (overhead_{rgb,depth,masks,target}.png, heap.json, as
 `ms-drake scene`), then per step k: step_kk.png (three panels: RGB with the instance masks and
@@ -15,6 +15,7 @@ meshcat_recording.html (the whole search, a Meshcat StaticHtml recording).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -22,23 +23,16 @@ import cv2
 import numpy as np
 from pydrake.geometry import Meshcat
 
-from ms_drake.experiments.rollout import (
-    SCENARIOS,
-    SearchParams,
-    build_search,
-    primitive_time_step,
-    run_search,
-)
+from ms_drake.experiments.rollout import build_search, run_search
 from ms_drake.experiments.scene_images import (
     colorize_masks,
-    make_scene,
     write_scene_images,
     write_search_pictures,
 )
-from ms_drake.experiments.xray import xray_heap
 from ms_drake.geometry import PinholeCamera
+from ms_drake.policies.bin_search import BinSearchConfig, config_scenario
 from ms_drake.scenario import load_scenario
-from ms_drake.scenes.heaps import SEARCH_HEAPS
+from ms_drake.scenes.layouts import HEAP_SCENARIO, HeapConfig, layout_heap
 
 
 def _overlay_occupancy(rgb: np.ndarray, occ) -> np.ndarray:
@@ -98,35 +92,27 @@ def frame_image(frame, camera) -> np.ndarray:
 
 
 DEMO_SEED = 5000
-PROTOCOLS = ("xray", "ch7")
+DEMO_CONFIG = BinSearchConfig(policy="xray", heap=HeapConfig(layout="lid", objects=14))
 
 
-def run_demo(out: Path, seed: int = DEMO_SEED, objects: int = 15, policy: str = "xray", horizon: int = 10,
-             meshcat_html: bool = True, log=print, protocol: str = "xray", scenario=None,
-             fidelity: str = "primitive") -> dict:
-    """Generate the heap, write the initial scene, run the search and write its pictures.
-    scenario: the station (default FloatingGripperBin); fidelity "full" searches with its robot."""
-    if protocol not in PROTOCOLS:
-        raise ValueError(f"demo protocol {protocol!r} unknown; choose one of {', '.join(PROTOCOLS)}")
+def run_demo(out: Path, config: BinSearchConfig = DEMO_CONFIG, seed: int = DEMO_SEED, meshcat_html: bool = True,
+             log=print) -> dict:
+    """Generate heap `seed` of config.heap, write the initial scene, run the search of `config` on
+    its station (config.scenario; a robot's searches in physics) and write its pictures."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()
-    base = load_scenario(None, "BinHeap15")
-    heap = (xray_heap(seed, objects - 1) if protocol == "xray" else  # Table 8.2's heaps
-            make_scene(base, seed, objects, params=SEARCH_HEAPS))  # the Ch. 7 search's heaps (Drake drop world)
+    config = dataclasses.replace(config, seed=int(seed))
+    scenario = config_scenario(config)
+    heap = layout_heap(config.heap, seed)
     log(f"  {len(heap.objects)} objects settled in {time.perf_counter() - t:.1f} s; target {heap.target}")
-    written = write_scene_images(base, heap, out, meshcat_html=False)
-    meshcat = None
-    if meshcat_html:
-        meshcat = Meshcat()
-    params = SearchParams(policy=policy, fidelity=fidelity, horizon=horizon, seed=seed,
-                          time_step=primitive_time_step(policy) if fidelity == "primitive" else None)
-    scenario = scenario if scenario is not None else load_scenario(None, SCENARIOS["primitive"])
-    system = build_search(scenario, heap, params, meshcat=meshcat)
-    res = run_search(system, heap, params, keep_frames=True, meshcat=meshcat, after=1.5 if meshcat else 0.0)
+    written = write_scene_images(load_scenario(None, HEAP_SCENARIO), heap, out, meshcat_html=False)
+    meshcat = Meshcat() if meshcat_html else None
+    system = build_search(scenario, heap, config, meshcat=meshcat)
+    res = run_search(system, heap, config, keep_frames=True, meshcat=meshcat, after=1.5 if meshcat else 0.0)
     camera = PinholeCamera.from_config(system.scenario.cameras["overhead"])
     written.update(write_search_pictures(out, [(fr.step, frame_image(fr, camera)) for fr in res.frames], res.record(),
                                          meshcat, gif_seconds=1.0))
-    log(f"  {policy}: {'success' if res.success else res.failure} after {res.actions} actions "
+    log(f"  {config.policy}: {'success' if res.success else res.failure} after {res.actions} actions "
         f"({', '.join(res.action_kinds) or 'none'}) in {res.seconds:.1f} s")
     return written

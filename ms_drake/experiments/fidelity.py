@@ -34,8 +34,10 @@ from ms_drake.execution import (
     connect_executor,
     remove_objects,
 )
-from ms_drake.experiments.harness import cached_heap, read_records
-from ms_drake.experiments.rollout import SearchParams, build_search, primitive_time_step, run_search
+from ms_drake.experiments.harness import read_records
+from ms_drake.experiments.rollout import build_search, run_search
+from ms_drake.policies.bin_search import BinSearchConfig, load_bin_search_config
+from ms_drake.scenes.layouts import HeapConfig, cached_heap
 from ms_drake.geometry import Workspace, as_rigid_transform
 from ms_drake.parallel import run_jobs
 from ms_drake.scenario import load_scenario
@@ -58,14 +60,20 @@ class Attempt:
     target: bool = False  # the grasped object is the target
 
 
-def primitive_attempts(heap, policy: str = "largest", seed: int | None = None, max_attempts: int | None = None,
-                       scenario_name: str = "FloatingGripperBin", **kw) -> tuple[list[Attempt], object]:
-    """Search `heap` in the primitive mode (the rollout's settings: its plant step, the grasp-set
-    planner) and return its grasp attempts, each with the scene before it, and the RolloutResult.
+def fidelity_config(objects: int, policy: str = "largest", reach: str = "") -> BinSearchConfig:
+    """The primitive search whose grasp attempts the benchmark replays: the Ch. 7 setting (the named
+    setting "ch7") on N-object heaps with the budget 2N; reach: keep only grasps this robot reaches
+    ("" none, or a scenario name such as "YuMiBin")."""
+    return load_bin_search_config("ch7", policy=policy, reach=reach, horizon=2 * int(objects),
+                                  heap=HeapConfig("bin_set", int(objects)))
+
+
+def primitive_attempts(heap, config: BinSearchConfig, seed: int | None = None, max_attempts: int | None = None,
+                       scenario_name: str = "FloatingGripperBin") -> tuple[list[Attempt], object]:
+    """Search `heap` in the primitive mode with `config` (fidelity_config) and return its grasp
+    attempts, each with the scene before it, and the RolloutResult.
     max_attempts: keep the first K grasp attempts (the search runs to its end regardless)."""
-    seed = heap.seed if seed is None else seed
-    kw.setdefault("time_step", primitive_time_step(policy))
-    params = SearchParams(policy=policy, fidelity="primitive", seed=seed, **kw)
+    params = dataclasses.replace(config, seed=heap.seed if seed is None else seed)
     system = build_search(load_scenario(None, scenario_name), heap, params)
     names = {o.model_name: k for k, o in enumerate(station_objects(system.plant))}
     attempts = []
@@ -192,14 +200,14 @@ def replay_full(attempt: Attempt, scenario_name: str = "YuMiBin", max_sim_time: 
 def heap_job(job: tuple) -> list[dict]:
     """(objects, seed, heap_dir, max_attempts, policy, reach[, scenario]) -> records of one heap: one
     per attempt (kind "attempt") and one for the heap (kind "heap": the primitive search's result).
-    reach: SearchParams.reach of the primitive search ("" none, "YuMiBin": only the YuMi's
+    reach: BinSearchConfig.reach of the primitive search ("" none, "YuMiBin": only the YuMi's
     reachable grasps); scenario: the robot's station the attempts are replayed on (default
     YuMiBin). Module level for pickling."""
     objects, seed, heap_dir, max_attempts, policy, reach, *rest = job
     scenario = rest[0] if rest else "YuMiBin"
-    heap = cached_heap(objects, seed, heap_dir)
+    heap = cached_heap(HeapConfig("bin_set", objects), seed, heap_dir)
     t = time.process_time()
-    attempts, res = primitive_attempts(heap, policy=policy, max_attempts=max_attempts, reach=reach)
+    attempts, res = primitive_attempts(heap, fidelity_config(objects, policy, reach), max_attempts=max_attempts)
     prim_cpu = time.process_time() - t
     recs = []
     for a in attempts:

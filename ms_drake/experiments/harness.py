@@ -1,10 +1,11 @@
 """The bin-search benchmark: many rollouts in parallel -> JSON lines -> summary and plots.
 
-One JSON line per rollout (RolloutResult.record(): seed, policy, fidelity, objects, success,
-actions, action_kinds, failure, stop_reason, seconds, ...; and heap_digest, the fingerprint of the
-heap searched, scenes.heaps.heap_digest, so that two runs compared on "the same heaps" can be
-checked to be: a heap cache left by other generator code gives other heaps under the same seeds;
-and code, the commit that ran it, paths.code_version). A rollout that raises or whose worker
+A run is a BinSearchConfig (policies.bin_search: the station, the heaps, the controller) searched on
+heaps S..S+K-1. One JSON line per rollout (RolloutResult.record(): seed, policy, fidelity, objects,
+success, actions, action_kinds, failure, stop_reason, seconds, ...; config, the run's whole config
+but the seed, from which `bench replay` re-runs it; heap_digest, the fingerprint of the heap
+searched, scenes.heaps.heap_digest, so that two runs compared on "the same heaps" can be checked to
+be; and code, the commit that ran it, paths.code_version). A rollout that raises or whose worker
 dies becomes a line with failure "worker_died" (and the error), so the benchmark goes on; such
 lines are retried by the next run of the same command (resume), every other line is final. Lines
 are flushed and fsync'ed one by one: an interrupted run loses at most the rollouts in flight, and a
@@ -19,8 +20,6 @@ efficiency metric report those).
 
 from __future__ import annotations
 
-import dataclasses
-import hashlib
 import json
 import os
 import time
@@ -31,141 +30,26 @@ import numpy as np
 from scipy.stats import binomtest
 
 from ms_drake.errors import HeapError
-from ms_drake.execution import GRASP_OUTCOMES
 from ms_drake.experiments.figures import figure_dir, save_png
 from ms_drake.experiments.records import read_record_file
-from ms_drake.grasping.planner import JAW_CONTACTS
-from ms_drake.experiments.rollout import REFERENCE_FAILURE_CLASSES, SEARCH_OCCUPANCIES, rollout
-from ms_drake.experiments.xray import PROTOCOLS, XRAY_HORIZON, XRAY_PROTOCOLS, xray_heap, xray_heap_settings
+from ms_drake.experiments.rollout import REFERENCE_FAILURE_CLASSES, rollout
 from ms_drake.parallel import run_jobs
 from ms_drake.paths import code_version
-from ms_drake.scenario import load_scenario
-from ms_drake.scenes.heaps import (
-    SEARCH_HEAPS,
-    HeapParams,
-    generate_heap,
-    heap_digest,
-    heap_to_dict,
-    load_heap,
-)
+from ms_drake.policies.bin_search import BinSearchConfig
+from ms_drake.scenes.heaps import heap_digest
+from ms_drake.scenes.layouts import HeapConfig, cached_heap
 
 BOOTSTRAP = 2000
-# Drop physics of the "ch7" heaps: the compliant Drake drop world (SEARCH_HEAPS, the tables'
-# default) or Bullet (HeapParams' default engine, ~4x cheaper per heap).
-HEAP_ENGINES = {"drake": SEARCH_HEAPS, "bullet": HeapParams(engine="bullet")}
-
-
-def heap_generator_key(objects: int, protocol: str = "ch7", engine: str = "drake") -> str:
-    """A fingerprint of what makes the heaps of (protocol, N, engine): the HeapParams, the object
-    pool (X-Ray protocols) or the scenario's object set (ch7). A cached heap file keeps it, so a
-    cache left by other generator settings is refused instead of silently reused."""
-    if protocol in XRAY_PROTOCOLS:
-        params, pool = xray_heap_settings(protocol)
-        what = {"params": dataclasses.asdict(params), "pool": list(pool)}
-    else:
-        objs = load_scenario(None, "BinHeap15").objects
-        what = {"params": dataclasses.asdict(HEAP_ENGINES[engine]), "set": objs.set, "split": objs.split}
-    text = json.dumps({"protocol": protocol, "objects": int(objects), **what}, sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
-
-
-def cached_heap(objects: int, seed: int, heap_dir: str | None, protocol: str = "ch7", engine: str = "drake"):
-    """Heap `seed` of N objects (BinHeap15's bin), read from / saved to `heap_dir` when given, so
-    several policies search the very same heaps without regenerating them (a heap is a pure
-    function of (protocol, N, seed); the file is written atomically). protocol "ch7": N objects of
-    the scenario's set (heap_N<N>_s<seed>.json); "xray": the target dropped first under N unseen
-    mesh objects (ms_drake.experiments.xray; heap_xray_N<N>_s<seed>.json); "xray_hidden": those
-whose target starts fully hidden (heap_xray_hidden_N<N>_s<seed>.json); "xray_ycb": the target under
-unseen YCB and packaged objects (heap_xray_ycb_N<N>_s<seed>.json); "xray_occluded": those spread as
-Section 8.3's heaps with the target fully hidden (heap_xray_occluded_N<N>_s<seed>.json); "xray_small": those
-with the 4.5 cm target (heap_xray_small_N<N>_s<seed>.json), "xray_tiny" with the 3.5 cm one, "xray_compact"
-dropped as the reference's generator settings give (heap_xray_compact_N<N>_s<seed>.json). engine (HEAP_ENGINES):
-the "ch7" heaps' drop physics; Bullet heaps are heap_bullet_N<N>_s<seed>.json. A file keeps its
-heap_generator_key; one made with other settings raises HeapError (files without a key load)."""
-    if protocol not in PROTOCOLS:
-        raise ValueError(f"protocol {protocol!r} unknown; choose one of {', '.join(PROTOCOLS)}")
-    if engine not in HEAP_ENGINES:
-        raise ValueError(f"heap engine {engine!r} unknown; choose one of {', '.join(HEAP_ENGINES)}")
-    if engine != "drake" and protocol != "ch7":
-        raise ValueError(f"heap engine {engine!r} applies to the ch7 protocol only (the {protocol} heaps are "
-                         "dropped with Bullet and settled in Drake)")
-    stem = (f"heap_N{objects}_s{seed}" if engine == "drake" else f"heap_{engine}_N{objects}_s{seed}") \
-        if protocol == "ch7" else f"heap_{protocol}_N{objects}_s{seed}"
-    path = Path(heap_dir) / f"{stem}.json" if heap_dir else None
-    key = heap_generator_key(objects, protocol, engine) if path is not None else ""
-    if path is not None and path.exists():
-        made_by = json.loads(path.read_text()).get("generator")
-        if made_by is not None and made_by != key:
-            raise HeapError(f"{path}: this cached heap was made with other generator settings (key {made_by}, "
-                            f"today's {key}): its seed no longer names today's heap. Delete the file, or give "
-                            "a fresh --heap-dir.")
-        return load_heap(path)
-    heap = (xray_heap(seed, objects, protocol) if protocol in XRAY_PROTOCOLS else
-            generate_heap(load_scenario(None, "BinHeap15"), objects, seed, params=HEAP_ENGINES[engine]))
-    if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(json.dumps({**heap_to_dict(heap), "generator": key}))
-        os.replace(tmp, path)
-    return heap
-
-
-# The options a record is matched on when a run resumes: (key, the value a record without the key
-# had). A record without "grasp_planner" predates the grasp sets: image planner; without
-# "heap_engine", its heap came from the Drake drop world.
-OPTION_DEFAULTS = (("segmenter", "ground_truth"), ("detector", "color"), ("push_policy", ""),
-                   ("grasp_planner", "image"), ("heap_engine", "drake"), ("grasp_outcome", "draw"),
-                   ("grasp_samples", 8), ("occupancy_weights", ""), ("occupancy", "learned"),
-                   ("skip_failed", False), ("jaw_contact", "center"), ("scenario", ""), ("scenario_file", ""))
-
-
-def search_options(fidelity: str = "primitive", segmenter: str = "ground_truth", detector: str = "color",
-                   push_policy: str = "", grasp_planner: str = "", heap_engine: str = "drake",
-                   grasp_outcome: str = "draw", grasp_samples: int = 8, occupancy_weights: str = "",
-                   occupancy: str = "learned", skip_failed: bool = False, jaw_contact: str = "center",
-                   scenario: str = "", scenario_file: str = "") -> dict:
-    """The options of a run: the station (scenario name and file, "" = the fidelity's default:
-    FloatingGripperBin for primitive, YuMiBin for full), the controller's (SearchParams keywords; grasp_planner resolved as the
-    controller resolves it, "" = indexed for the primitive fidelity, image for the full one;
-    grasp_samples: the image planners' candidates per mask; occupancy_weights: the learned
-    occupancy's weights file, "" = the shipped one; occupancy: X-Ray's estimator, SEARCH_OCCUPANCIES;
-    skip_failed: a failed grasp is not attempted again on the state it failed on; jaw_contact: the
-    image jaw planner's depth rule, JAW_CONTACTS) and the heaps' drop engine (HEAP_ENGINES)."""
-    if occupancy not in SEARCH_OCCUPANCIES:
-        raise ValueError(f"occupancy {occupancy!r} unknown; choose one of {', '.join(SEARCH_OCCUPANCIES)}")
-    if grasp_outcome not in GRASP_OUTCOMES:
-        raise ValueError(f"grasp outcome {grasp_outcome!r} unknown; choose one of {', '.join(GRASP_OUTCOMES)}")
-    if jaw_contact not in JAW_CONTACTS:
-        raise ValueError(f"jaw contact {jaw_contact!r} unknown; choose one of {', '.join(JAW_CONTACTS)}")
-    if int(grasp_samples) < 1:
-        raise ValueError(f"grasp_samples must be >= 1 candidate per mask, got {grasp_samples!r}")
-    if not grasp_planner:
-        grasp_planner = "indexed" if fidelity == "primitive" else "image"
-    return {"segmenter": segmenter, "detector": detector, "push_policy": push_policy, "grasp_planner": grasp_planner,
-            "heap_engine": heap_engine, "grasp_outcome": grasp_outcome, "grasp_samples": int(grasp_samples),
-            "occupancy_weights": str(occupancy_weights), "occupancy": occupancy, "skip_failed": bool(skip_failed),
-            "jaw_contact": jaw_contact, "scenario": str(scenario), "scenario_file": str(scenario_file)}
 
 
 def rollout_job(job: tuple) -> dict:
-    """(policy, objects, seed, fidelity, horizon[, heap_dir[, protocol[, options]]]) -> record;
-    options: search_options(); module-level for pickling."""
-    policy, objects, seed, fidelity, horizon, *rest = job
-    protocol = rest[1] if len(rest) > 1 else "ch7"
-    opts = dict(rest[2] if len(rest) > 2 else search_options(fidelity))
-    engine = opts.pop("heap_engine", "drake")
-    scenario, scenario_file = opts.pop("scenario", ""), opts.pop("scenario_file", "")
-    heap = cached_heap(objects, seed, rest[0] if rest else None, protocol, engine)
-    rec = rollout(policy, objects, seed, fidelity, horizon, heap=heap, scenario_name=scenario or None,
-                  scenario_file=scenario_file or None, **opts).record()
-    rec["heap_engine"] = engine
-    if scenario or scenario_file:
-        rec.update(scenario=scenario, scenario_file=scenario_file)
+    """(config as a dict, seed, heap folder) -> the record of that rollout; module-level for pickling."""
+    config_dict, seed, heap_dir = job
+    config = BinSearchConfig(**config_dict)
+    heap = cached_heap(config.heap, seed, heap_dir)
+    rec = rollout(config, seed, heap=heap).record()
     rec["heap_digest"] = heap_digest(heap)
     rec["code"] = code_version()
-    rec["horizon"] = horizon
-    if protocol != "ch7":
-        rec["protocol"] = protocol
     rec["pid"] = os.getpid()
     return rec
 
@@ -175,17 +59,12 @@ REPLAY_KEYS = ("success", "actions", "action_kinds", "grasp_kinds", "action_succ
 
 
 def replay_job(rec: dict, heap_dir: str | None) -> tuple:
-    """The rollout_job that re-runs a record: its policy, N, seed, fidelity, options and protocol;
-    its horizon (a record without one: H = 10 for the X-Ray protocols, else the default 2N)."""
-    protocol = rec.get("protocol", "ch7")
-    horizon = rec["horizon"] if "horizon" in rec else (XRAY_HORIZON if protocol in XRAY_PROTOCOLS else None)
-    opts = {k: rec.get(k, default) for k, default in OPTION_DEFAULTS}
-    return (rec["policy"], int(rec["objects"]), int(rec["seed"]), rec.get("fidelity", "primitive"), horizon, heap_dir,
-            protocol, opts)
+    """The rollout_job that re-runs a record: its config and seed."""
+    return (rec["config"], int(rec["seed"]), heap_dir)
 
 
 def _records_to_replay(path: Path, seeds=None, count: int | None = None) -> list[dict]:
-    recs = [r for r in final_records(read_records(path)) if r.get("failure") != "worker_died"]
+    recs = [r for r in final_records(read_search_records(path)) if r.get("failure") != "worker_died"]
     if seeds is not None:
         want = {int(k) for k in seeds}
         recs = [r for r in recs if int(r["seed"]) in want]
@@ -198,10 +77,10 @@ def _records_to_replay(path: Path, seeds=None, count: int | None = None) -> list
 
 
 def heap_digest_job(job: tuple) -> str:
-    """(objects, seed, heap_dir, protocol, engine) -> the digest of that heap (read from the cache,
+    """(heap config as a dict, seed, heap folder) -> the digest of that heap (read from the cache,
     else generated and cached); module-level for pickling."""
-    objects, seed, heap_dir, protocol, engine = job
-    return heap_digest(cached_heap(objects, seed, heap_dir, protocol, engine))
+    heap, seed, heap_dir = job
+    return heap_digest(cached_heap(HeapConfig(**heap), seed, heap_dir))
 
 
 def check_record_heaps(path: Path, heap_dir: str | None = None, seeds=None, count: int | None = None,
@@ -212,12 +91,12 @@ def check_record_heaps(path: Path, heap_dir: str | None = None, seeds=None, coun
     policy, same, differs (["heap"] or []), heap_same (None without a recorded digest), code."""
     by_job = {}  # one heap job for every record of that heap (a file may hold several policies)
     for r in _records_to_replay(path, seeds, count):
-        job = (int(r["objects"]), int(r["seed"]), heap_dir, r.get("protocol", "ch7"), r.get("heap_engine", "drake"))
+        job = (tuple(sorted(r["config"]["heap"].items())), int(r["seed"]), heap_dir)
         by_job.setdefault(job, []).append(r)
     rows = []
-    for res in run_jobs(heap_digest_job, list(by_job), workers=workers):
+    for res in run_jobs(heap_digest_job, [(dict(j[0]), *j[1:]) for j in by_job], workers=workers):
         err = (res.error or "").strip().splitlines()
-        for rec in by_job[res.job]:
+        for rec in by_job[(tuple(sorted(res.job[0].items())), *res.job[1:])]:
             heap_same = (res.value == rec["heap_digest"]) if res.ok and rec.get("heap_digest") else None
             row = dict(seed=int(rec["seed"]), policy=rec["policy"], same=res.ok and heap_same is not False,
                        differs=["error"] if not res.ok else ([] if heap_same is not False else ["heap"]),
@@ -238,7 +117,7 @@ def replay_records(path: Path, heap_dir: str | None = None, seeds=None, count: i
     heap_same (None when the record has no digest), code (recorded) and code_now."""
     recs = _records_to_replay(path, seeds, count)
     def key(job):  # the job without its heap folder, hashable
-        return (*job[:5], job[6], tuple(sorted(job[7].items())))
+        return (json.dumps(job[0], sort_keys=True), job[1])
 
     by_job = {key(replay_job(r, heap_dir)): r for r in recs}
     rows = []
@@ -267,84 +146,71 @@ def read_records(path: Path) -> list[dict]:
     return read_record_file(path, ("seed",), resume=True)
 
 
+def read_search_records(path: Path) -> list[dict]:
+    """read_records of a `bench search` file: every record must also hold its config."""
+    return read_record_file(path, ("seed", "config"), writer="bench search", resume=True)
+
+
+def config_key(rec: dict) -> str:
+    """The record's config as canonical JSON: the records of one run share it."""
+    return json.dumps(rec["config"], sort_keys=True)
+
+
 def final_records(recs: list[dict]) -> list[dict]:
-    """The last record per (policy, objects, seed, fidelity, options): a retried rollout replaces
-    its failure; runs with other controller options (OPTION_DEFAULTS) in the same file stay apart."""
-    out = {}
-    for r in recs:
-        opts = tuple(r.get(k, default) for k, default in OPTION_DEFAULTS)
-        out[(r.get("policy"), r.get("objects"), int(r["seed"]), r.get("fidelity"), opts)] = r
-    return list(out.values())
+    """The last record per (seed, config): a retried rollout replaces its failure; runs with other
+    configs in the same file stay apart."""
+    return list({(int(r["seed"]), config_key(r)): r for r in recs}.values())
 
 
-def result_file(out_dir, policy: str, objects: int, horizon: int | None = None) -> Path:
-    """<out_dir>/<policy>_N<N>.jsonl (horizon 2N) or <policy>_N<N>_H<H>.jsonl."""
-    return Path(out_dir) / (f"{policy}_N{objects}.jsonl" if horizon is None else f"{policy}_N{objects}_H{horizon}.jsonl")
+def result_file(out_dir, config: BinSearchConfig) -> Path:
+    """<out_dir>/<policy>_<layout>_N<N>_H<H>.jsonl."""
+    return Path(out_dir) / f"{config.policy}_{config.heap.layout}_N{config.heap.objects}_H{config.horizon}.jsonl"
 
 
-def _matches(r: dict, policy: str, objects: int, fidelity: str, opts: dict) -> bool:
-    return (r.get("policy") == policy and r.get("objects") == objects and r.get("fidelity", "primitive") == fidelity
-            and all(r.get(k, default) == opts[k] for k, default in OPTION_DEFAULTS))
+def _done_seeds(path: Path, key: str) -> set[int]:
+    return {int(r["seed"]) for r in final_records(read_search_records(path))
+            if config_key(r) == key and r.get("failure") != "worker_died"}
 
 
-def _done_seeds(path: Path, policy: str, objects: int, fidelity: str, opts: dict) -> set[int]:
-    return {int(r["seed"]) for r in final_records(read_records(path))
-            if _matches(r, policy, objects, fidelity, opts) and r.get("failure") != "worker_died"}
-
-
-def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, workers: int = 1,
-              fidelity: str = "primitive", horizon: int | None = None, use_ray: bool = False,
-              ray_address: str | None = None, progress=None, heap_dir: str | None = None,
-              protocol: str = "ch7", segmenter: str = "ground_truth", detector: str = "color",
-              push_policy: str = "", grasp_planner: str = "", heap_engine: str = "drake",
-              grasp_outcome: str = "draw", grasp_samples: int = 8, occupancy_weights: str = "",
-              occupancy: str = "learned", skip_failed: bool = False, jaw_contact: str = "center",
-              scenario: str = "", scenario_file: str = "") -> dict:
-    """The missing rollouts of every run (policy, N, result file) on seeds S..S+K-1, all through
-    ONE pool of `workers` processes; each record is appended (flushed, fsync'ed) to its run's file
-    as it completes, so a killed run loses only the rollouts in flight and the same command
-    resumes it. Jobs are queued run by run (all seeds of the first run, then the next), so with a
-    shared `heap_dir` the first run's workers generate the heaps in parallel, each heap once, and
-    later runs load them. segmenter / detector: the controller's perception (SearchParams);
-    push_policy: the *_push selectors' push policy (SearchParams.push_policy, "" = Ch. 7's);
-    grasp_planner: SearchParams.grasp_planner ("" = the fidelity's default); heap_engine: the
-    heaps' drop physics (HEAP_ENGINES); grasp_outcome / grasp_samples / occupancy_weights / occupancy / skip_failed /
-    jaw_contact: SearchParams'; scenario / scenario_file: the station (search_options). progress(rec)
-    is called with each record; an object with a `start(done, todo)` method is told first what is
-    already done and what will run. A
-    record counts as done only when all of these match.
-    Returns {(policy, N): summary}."""
-    if heap_engine not in HEAP_ENGINES:
-        raise ValueError(f"heap engine {heap_engine!r} unknown; choose one of {', '.join(HEAP_ENGINES)}")
-    opts = search_options(fidelity, segmenter, detector, push_policy, grasp_planner, heap_engine, grasp_outcome,
-                          grasp_samples, occupancy_weights, occupancy, skip_failed, jaw_contact, scenario, scenario_file)
-    jobs, done = [], {}
-    for policy, objects, out in runs:
+def run_suite(runs: list[tuple[BinSearchConfig, Path]], heaps: int, seed_start: int, workers: int = 1,
+              use_ray: bool = False, ray_address: str | None = None, progress=None,
+              heap_dir: str | None = None) -> list[dict]:
+    """The missing rollouts of every run (a config and its result file) on seeds S..S+K-1, all
+    through ONE pool of `workers` processes; each record is appended (flushed, fsync'ed) to its
+    run's file as it completes, so a killed run loses only the rollouts in flight and the same
+    command resumes it (a record counts as done when its config is the run's). Jobs are queued run
+    by run, so with a shared `heap_dir` the first run's workers generate the heaps in parallel, each
+    heap once, and later runs load them. progress(rec) is called with each record; an object with a
+    `start(done, todo)` method is told first what is already done and what will run.
+    Returns one summary per run, in order."""
+    seeds = set(range(seed_start, seed_start + heaps))
+    jobs, done, keys = [], [], []
+    for n, (config, out) in enumerate(runs):
         out = Path(out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        done[(policy, objects)] = _done_seeds(out, policy, objects, fidelity, opts)
-        jobs += [(policy, objects, k, fidelity, horizon, heap_dir, protocol, opts)
-                 for k in range(seed_start, seed_start + heaps)
-                 if k not in done[(policy, objects)]]
-    files = {(policy, objects): Path(out) for policy, objects, out in runs}
+        d = config.to_dict()
+        d.pop("seed")
+        keys.append(json.dumps(d, sort_keys=True))
+        done.append(_done_seeds(out, keys[-1]))
+        jobs += [(d, k, heap_dir, n) for k in sorted(seeds - done[-1])]
     if progress is not None and hasattr(progress, "start"):  # before any rollout: (already done, to run)
-        progress.start(sum(len(d & set(range(seed_start, seed_start + heaps))) for d in done.values()), len(jobs))
+        progress.start(sum(len(d & seeds) for d in done), len(jobs))
     t0 = time.perf_counter()
     handles = {}
     try:
-        for r in run_jobs(rollout_job, jobs, workers=workers, use_ray=use_ray, ray_address=ray_address):
-            policy, objects, seed = r.job[0], r.job[1], r.job[2]
+        for r in run_jobs(_suite_job, jobs, workers=workers, use_ray=use_ray, ray_address=ray_address):
+            config_dict, seed, _, n = r.job
             if r.ok:
                 rec = r.value
             else:
                 err = (r.error or "").strip().splitlines()
-                rec = dict(seed=seed, policy=policy, fidelity=fidelity, objects=objects, success=False,
-                           actions=0, action_kinds=[], failure="worker_died", stop_reason="",
-                           error=err[-1] if err else "", seconds=0.0, **opts)
-            key = (policy, objects)
-            if key not in handles:
-                handles[key] = open(files[key], "a")
-            f = handles[key]
+                rec = dict(seed=seed, policy=config_dict["policy"], fidelity=config_dict["fidelity"],
+                           objects=config_dict["heap"]["objects"], success=False, actions=0, action_kinds=[],
+                           failure="worker_died", stop_reason="", error=err[-1] if err else "", seconds=0.0,
+                           config=config_dict)
+            if n not in handles:
+                handles[n] = open(runs[n][1], "a")
+            f = handles[n]
             f.write(json.dumps(rec) + "\n")
             f.flush()
             os.fsync(f.fileno())
@@ -354,35 +220,25 @@ def run_suite(runs: list[tuple[str, int, Path]], heaps: int, seed_start: int, wo
         for f in handles.values():
             f.close()
     wall = time.perf_counter() - t0
-    out = {}
-    for policy, objects, path in runs:
-        recs = [r for r in final_records(read_records(path))
-                if _matches(r, policy, objects, fidelity, opts)
-                and seed_start <= int(r["seed"]) < seed_start + heaps]
+    out = []
+    for n, (config, path) in enumerate(runs):
+        recs = [r for r in final_records(read_search_records(path)) if config_key(r) == keys[n] and int(r["seed"]) in seeds]
         summ = summarize(recs)
-        summ.update(resumed=len(done[(policy, objects)] & set(range(seed_start, seed_start + heaps))),
-                    ran=sum(1 for j in jobs if j[:2] == (policy, objects)), wall_seconds=wall)
-        out[(policy, objects)] = summ
+        summ.update(resumed=len(done[n] & seeds), ran=sum(1 for j in jobs if j[3] == n), wall_seconds=wall)
+        out.append(summ)
     return out
 
 
-def run_bench(policy: str, objects: int, heaps: int, seed_start: int, out: Path, workers: int = 1,
-              fidelity: str = "primitive", horizon: int | None = None, use_ray: bool = False,
-              ray_address: str | None = None, progress=None, heap_dir: str | None = None,
-              protocol: str = "ch7", segmenter: str = "ground_truth", detector: str = "color",
-              push_policy: str = "", grasp_planner: str = "", heap_engine: str = "drake",
-              grasp_outcome: str = "draw", grasp_samples: int = 8, occupancy_weights: str = "",
-              occupancy: str = "learned", skip_failed: bool = False, jaw_contact: str = "center",
-              scenario: str = "", scenario_file: str = "") -> dict:
-    """Run the missing rollouts of seeds S..S+K-1, append them to `out`; returns the summary."""
-    return run_suite([(policy, objects, Path(out))], heaps, seed_start, workers=workers, fidelity=fidelity,
-                     horizon=horizon, use_ray=use_ray, ray_address=ray_address, progress=progress,
-                     heap_dir=heap_dir, protocol=protocol, segmenter=segmenter, detector=detector,
-                     push_policy=push_policy, grasp_planner=grasp_planner,
-                     heap_engine=heap_engine, grasp_outcome=grasp_outcome,
-                     grasp_samples=grasp_samples, occupancy_weights=occupancy_weights,
-                     occupancy=occupancy, skip_failed=skip_failed, jaw_contact=jaw_contact, scenario=scenario,
-                     scenario_file=scenario_file)[(policy, objects)]
+def _suite_job(job: tuple) -> dict:
+    return rollout_job(job[:3])
+
+
+def run_bench(config: BinSearchConfig, heaps: int, seed_start: int, out: Path, workers: int = 1,
+              use_ray: bool = False, ray_address: str | None = None, progress=None,
+              heap_dir: str | None = None) -> dict:
+    """Run the missing rollouts of `config` on seeds S..S+K-1, append them to `out`; returns the summary."""
+    return run_suite([(config, Path(out))], heaps, seed_start, workers=workers, use_ray=use_ray,
+                     ray_address=ray_address, progress=progress, heap_dir=heap_dir)[0]
 
 
 def truncate_record(rec: dict, horizon: int) -> dict:
@@ -403,6 +259,8 @@ def truncate_record(rec: dict, horizon: int) -> dict:
         return r
     r.update(actions=horizon, action_kinds=list(r.get("action_kinds", []))[:horizon], success=False,
              failure="horizon", stop_reason="horizon", truncated_from=n)
+    if "config" in r:
+        r["config"] = {**r["config"], "horizon": int(horizon)}
     for k in ("grasp_kinds", "action_successes"):
         if k in r:
             r[k] = list(r[k])[:horizon]
@@ -559,7 +417,7 @@ def plot(files: list[Path], out_dir: Path) -> list[Path]:
     of actions per successful rollout) as PNG. Returns the written paths."""
     by_policy: dict[str, list[dict]] = {}
     for f in files:
-        for r in final_records(read_records(Path(f))):
+        for r in final_records(read_search_records(Path(f))):
             by_policy.setdefault(f"{r.get('policy')} (N={r.get('objects')})", []).append(r)
     out_dir = figure_dir(out_dir)
     fig, ax = plt.subplots(figsize=(6, 4))

@@ -9,7 +9,7 @@ central 512 x 384 px of the 640 x 480 overhead image, 4 x 4 blocks -> 128 x 96):
    including thin and small ones), dropped by the heap generator (ms_drake.scenes.heaps, Bullet
    engine) in one of the `HEAP_LAYOUTS`: "spread" (the generator's defaults: truncated Gaussian
    offsets, each object released just above the pile) or "compact" (the `xray_compact` drop of
-   ms_drake.experiments.xray: a heap centre uniform in +-10 cm, offsets uniform in +-2.5 cm,
+   the search's "compact" heap layout (ms_drake.scenes.layouts): a heap centre uniform in +-10 cm, offsets uniform in +-2.5 cm,
    released from 20 cm above the floor, as the reference's dataset generator drops them);
 2. `views` camera views per heap (the heap's cost is shared by its views): the overhead
    PhoXi-like camera with its position jittered (+-2 cm across, 0.75-0.85 m high), tilted by up
@@ -79,7 +79,7 @@ from ms_drake.perception.occupancy_net import (
 )
 from ms_drake.scenario import load_scenario
 from ms_drake.station.sensor_model import apply_depth_sensor, depth_sensor_params, image_rng
-from ms_drake.experiments.xray import XRAY_COMPACT_HEAPS
+from ms_drake.scenes.layouts import HEAP_LAYOUTS as SEARCH_LAYOUTS
 from ms_drake.scenes.heaps import HeapParams, generate_heap
 from ms_drake.station.station import add_environment, add_objects
 
@@ -205,8 +205,8 @@ def insert_target(depth: np.ndarray, cam: PinholeCamera, ws: Workspace, box: Tar
 
 HEAP_LAYOUTS = {
     "spread": {},
-    "compact": dict(center_uniform=XRAY_COMPACT_HEAPS.center_uniform, offset_uniform=XRAY_COMPACT_HEAPS.offset_uniform,
-                    drop_height=XRAY_COMPACT_HEAPS.drop_height),
+    "compact": {k: getattr(SEARCH_LAYOUTS["compact"].params, k) for k in ("center_uniform", "offset_uniform",
+                                                                            "drop_height")},
 }
 
 
@@ -237,7 +237,7 @@ def sample_target(heap, ws: Workspace, box: TargetBox, rng: np.random.Generator)
 
 
 GROUND_TRUTHS = ("generator", "posterior")
-PILE_SPREAD = 0.025  # m: XRAY_COMPACT_HEAPS.offset_uniform, every object's offset from the heap centre
+PILE_SPREAD = 0.025  # m: SEARCH_LAYOUTS["compact"].params.offset_uniform, every object's offset from the heap centre
 
 
 def check_ground_truth(ground_truth: str) -> str:

@@ -16,7 +16,7 @@ from ms_drake.errors import RecordFileError
 
 #: The fields the tables, plots and replays need in every record of each command's result files.
 RECORD_FIELDS = {
-    "bench search": ("seed", "policy", "objects", "success", "actions"),
+    "bench search": ("seed", "policy", "objects", "success", "actions", "config"),
     "bench push": ("seed", "policy", "separation_gain", "jaw_gain", "suction_gain", "overall_gain", "pushed"),
     "bench shelf": ("seed", "policy", "occluders", "success", "steps", "actions"),
     "bench shelf-physics": ("seed", "policy", "occluders", "success", "steps"),

@@ -29,7 +29,7 @@ import numpy as np
 
 from ms_drake.execution.reach import PickReach
 from ms_drake.experiments.fidelity import wilson as fidelity_wilson
-from ms_drake.experiments.harness import cached_heap
+from ms_drake.scenes.layouts import HeapConfig, cached_heap
 from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.grasping.grasp_sets import load_grasp_set
 from ms_drake.grasping.indexed import IndexedGraspPlanner, environment_parts
@@ -212,7 +212,7 @@ def run_station_reach(scenarios: list[str], heaps: int, seed_start: int, out: st
     drawn = {n: 0 for n in scenarios}
     t_start = time.time()
     for i, seed in enumerate(todo):
-        heap = cached_heap(objects, seed, heap_dir)
+        heap = cached_heap(HeapConfig("bin_set", objects), seed, heap_dir)
         view = heap_view(heap)
         rec = heap_reach(heap, reaches, view)
         with open(out, "a") as f:
@@ -278,7 +278,7 @@ def draw_examples(records: list[dict], out_dir, objects: int = 15, heap_dir: str
                     continue
                 seen.add((name, g["kind"], d["reason"]))
                 if rec["seed"] not in views:
-                    views[rec["seed"]] = heap_view(cached_heap(objects, rec["seed"], heap_dir))
+                    views[rec["seed"]] = heap_view(cached_heap(HeapConfig("bin_set", objects), rec["seed"], heap_dir))
                 paths.append(draw_miss(views[rec["seed"]], g, d, Path(out_dir) / (
                     f"{name}_{KIND_LABEL.get(g['kind'], g['kind'])}_{d['reason']}_s{rec['seed']}.png"),
                     f"{name} seed {rec['seed']}"))

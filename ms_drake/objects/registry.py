@@ -21,10 +21,10 @@ Sets:
   `target_box_size`), and ``lid``, the 1:1 box at twice the size (6 x 6 x 0.5 cm; the reference's
   out-of-set "lid", and a target the 3 cm suction cup can seal on), and ``square45``, the 1:1 box
   at 1.5 times its size (4.5 x 4.5 x 0.5 cm: the 3 cm cup seals on it with 7.5 mm to spare a side,
-  while the 3 cm box itself is too narrow for the cup; ms_drake.experiments.xray), and ``square35``
+  while the 3 cm box itself is too narrow for the cup; ms_drake.scenes.layouts), and ``square35``
   at 7 / 6 of its size (3.5 x 3.5 x 0.5 cm: 2.5 mm to spare a side). Not listed by
   available_sets() (no heap draws from it); heaps place one on the floor first
-  (ms_drake.experiments.xray).
+  (ms_drake.scenes.layouts).
 
 An object's full name is ``<set>/<name>``.
 """

@@ -8,11 +8,11 @@ In simulation, start the robot where the controller expects it (parked out of th
 `station.robots.set_arm_positions(plant, plant_context, robot, controller.initial_commands())`.
 
 Inside (DESIGN.md "Data flow"; every planner is a system of the diagram):
-  <cam>.label_image -> Segmenter("ground_truth")   (simulation)  |  <cam>.depth_image -> Segmenter(params.segmentation)
+  <cam>.label_image -> Segmenter("ground_truth")   (simulation)  |  <cam>.depth_image -> Segmenter(params.segmenter)
     (simulation with a depth segmenter: -> MaskAssociation(<cam>.label_image), the masks named
     after the objects behind them so the simulated executor knows what a grasp lifted)
   <cam>.rgb_image + masks -> TargetDetector(params.detector) -> target
-  <cam>.depth_image + target -> OccupancyEstimator(params.occupancy) -> occupancy (given target_shape; xray reads it)
+  <cam>.depth_image + target -> OccupancyEstimator(params.occupancy_estimator) -> occupancy (given target_shape; xray reads it)
   depth + masks (+ body_poses: exact meshes in simulation) -> LazyGraspPlanner -> grasps
     (simulation, params.grasp_planner "indexed": IndexedGraspPlanner on the objects' grasp sets,
     the LazyGraspPlanner for objects without one)
@@ -34,14 +34,16 @@ runs unchanged against the hardware station). Grasp models the robot cannot exec
 a jaw-only robot) are not planned.
 """
 
-from __future__ import annotations
 
 import copy
-from dataclasses import dataclass
+import dataclasses
+import json
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from pydrake.common.yaml import yaml_dump, yaml_load_typed
 from pydrake.systems.framework import Diagram, DiagramBuilder
 
 from ms_drake.errors import MsDrakeError
@@ -65,7 +67,6 @@ from ms_drake.grasping.planner import JAW_CONTACTS, GraspPlanner, LazyGraspPlann
 from ms_drake.objects import get_object
 from ms_drake.perception.association import MaskAssociation
 from ms_drake.perception.masks import TargetAmodalMask, make_amodal_masks, object_labels
-from ms_drake.perception.occupancy import BACKENDS as OCCUPANCY_BACKENDS
 from ms_drake.perception.occupancy import OccupancyEstimator, TargetBox
 from ms_drake.perception.ready import ImagesReady
 from ms_drake.perception.segmentation import BACKENDS as SEGMENTATION_BACKENDS
@@ -75,8 +76,9 @@ from ms_drake.perception.target import TargetDetector, render_templates
 from ms_drake.policies.bin_selectors import OCCUPANCY_POLICIES, PUSHING, SelectorParams, check_policy
 from ms_drake.policies.selector import PolicySelector
 from ms_drake.pushing import PushPlanner, PushPolicySystem, check_push_policy
-from ms_drake.scenario import load_scenario
+from ms_drake.scenario import default_scenarios_file, load_scenario
 from ms_drake.scenes.heaps import scenario_with_heap, set_heap_poses
+from ms_drake.scenes.layouts import HeapConfig
 from ms_drake.station import get_plant, station_objects
 from ms_drake.station.environments import dropoff_points
 from ms_drake.station.robots import set_arm_positions
@@ -89,85 +91,115 @@ class ControllerError(MsDrakeError, ValueError):
     """A controller was asked for with settings it cannot honour (names the setting and the fix)."""
 
 
-@dataclass
-class BinSearchParams:
-    """Settings of the bin-search controller.
+OCCUPANCY_ESTIMATORS = ("learned", "analytic_image", "analytic_image_best", "analytic")
+IMAGE_BEST_MATCH = 0.05  # "analytic_image_best": AnalyticOccupancy(best_match=...)
 
-    policy: a selector of ms_drake.policies.bin_selectors.POLICIES; fidelity: primitive | full;
-    horizon: the action budget H (the reference uses 2N); seed: every random choice of the
-    controller (grasp sampling, random selectors, primitive grasp outcomes).
-    grasp_models: the GraspPlanners whose best grasps the selector compares per object (parallel
-    jaw with a contact model, and "suction"), as in Ch. 7; grasp_params: GraspEvaluator keywords
-    of the jaw models, e.g. {"closing_force": 40.0}.
-    segmentation: "ground_truth" (label image; needs `sim`), "euclidean", "region_growing" or "learned"
-    (depth only, run on hardware). detector: the TargetDetector backend, "color" (HSV, red
-    target), "template" (hue-saturation histograms) or "learned" (the siamese matcher); the last
-    two compare every mask with `templates` views of the target object rendered alone
-    (render_templates; in simulation the target's model comes from `sim`, else pass
-    target_templates= to MakeBinSearchController). occupancy: the OccupancyEstimator backend, "learned" (the
-    network of ms_drake.perception.occupancy_net, from the target's size) or "analytic" (the
-    ground-truth generator; given a TargetMesh with its pose it reads privileged state).
-    period: the executor's update period [s].
-    grasp_planner: "indexed" (in simulation: each object's pre-computed grasp set at its current
-    pose, checked against the scene, ms_drake.grasping.indexed; objects without a set, or
-    without `sim`, are planned on the image) or "image" (the image-based planners only); ""
-    (default): "indexed" for the primitive fidelity, "image" for the full one.
-    reach: with the "indexed" planner, keep only grasps a robot reaches (execution.reach.PickReach:
-    the full backend's pick plan, IK from park): "" (default) no check, "robot" the scenario's own
-    robot, or a scenario name (e.g. "YuMiBin": the primitive mode choosing the YuMi's grasps).
-    push_policy: the pushes of the *_push selectors: "" (default) the Ch. 7 free-space push of
-    every object (PushPlanner), or a Ch. 4 policy of ms_drake.pushing.POLICIES (PushPolicySystem
-    on the depth image and masks: one push, of the object the policy chooses).
-    grasp_outcome: the primitive fidelity's grasp outcome (execution.GRASP_OUTCOMES): "draw"
-    (default; success with probability = quality), "threshold" (deterministic: quality >=
-    execution.LIFT_THRESHOLD), "checked" (that lift test, and the selector attempts only grasps
-    that pass it: SelectorParams.t_thresh = LIFT_THRESHOLD) or "nominal" (deterministic: the
-    nominal contact model lifts the object with the grasp, Grasp.lifts; needs grasp_planner
-    "image"; a grasp that failed is not attempted again on the same state,
-    SelectorParams.retry_failed = False); the full fidelity's outcome is the physics'.
-    skip_failed: an object a grasp failed on is passed over until an action succeeds (the state
-    changes), whatever the outcome model (SelectorParams.skip_failed): the selector walks on to the
-    next mask of its priority list.
-    jaw_contact: the image jaw planner's depth rule, grasping.planner.JAW_CONTACTS: "center"
-    (default) or "pad" (the pads' lower part holds thin objects lying flat; GraspPlanner).
+
+@dataclass
+class BinSearchAblation:
+    """Switches for ablations and for re-running older settings. The defaults are the best settings
+    we know; each other value answers a question the benchmarks ask (docs: "Ablations").
+
+    grasp_outcome: the primitive fidelity's grasp outcome (execution.GRASP_OUTCOMES): "nominal"
+    (default; deterministic: the nominal contact model lifts the object with the grasp, and a grasp
+    that failed is not attempted again on the same state; needs the image grasp planner), "draw"
+    (success with probability = quality, the Ch. 7 model), "threshold" (quality >=
+    execution.LIFT_THRESHOLD) or "checked" (that test, and only grasps that pass it are attempted).
+    The full fidelity's outcome is the physics'.
+    skip_failed: an object a grasp failed on is passed over until an action succeeds.
+    jaw_contact: the image jaw planner's depth rule, grasping.planner.JAW_CONTACTS: "pad" (default;
+    the pads' lower edge, so thin objects lying flat get jaw grasps) or "center".
+    occupancy: X-Ray's occupancy estimator: "learned" (default; the network, from the depth image
+    and the target's size), "analytic_image" (the ground-truth generator on the depth image and the
+    target's box, no pose: what the network learns), "analytic_image_best" (the same, a partly
+    seen target keeping its best-matching placements) or "analytic" (the generator on the target's
+    mesh at its true pose: privileged). The oracle always uses "analytic".
+    time_step / contact_approximation: the plant's step [s] and discrete contact approximation;
+    None keeps the search's (the primitive mode: 10 ms, 5 ms for the pushing selectors; full: the
+    scenario's).
     """
 
-    policy: str = "largest"
-    fidelity: str = "primitive"
-    horizon: int = 30
-    seed: int = 0
-    grasp_models: tuple = ("soft_point", "suction")
-    grasp_samples: int = 8
-    robust_samples: int = 4
-    grasp_params: dict | None = None
-    segmentation: str = "ground_truth"
-    detector: str = "color"
-    templates: int = 5
-    occupancy: str = "learned"  # OccupancyEstimator backend: "learned" (target size only) or "analytic"
-    occupancy_weights: str = ""  # the learned backend's weights file ("": the shipped models/weights/occupancy.pt)
-    occupancy_best_match: float | None = None  # the analytic backend's AnalyticOccupancy(best_match=...)
-    camera: str = "overhead"
-    period: float = 0.05
-    grasp_planner: str = ""
-    push_policy: str = ""
-    reach: str = ""
-    grasp_outcome: str = "draw"
+    grasp_outcome: str = "nominal"
     skip_failed: bool = False
-    jaw_contact: str = "center"
+    jaw_contact: str = "pad"
+    occupancy: str = "learned"
+    time_step: float | None = None
+    contact_approximation: str | None = None
 
     def __post_init__(self):
-        check_policy(self.policy)
         if self.jaw_contact not in JAW_CONTACTS:
-            raise ControllerError(f"jaw_contact {self.jaw_contact!r} unknown; choose one of {', '.join(JAW_CONTACTS)}")
+            raise ControllerError(f"ablation.jaw_contact {self.jaw_contact!r} unknown; choose one of "
+                                  f"{', '.join(JAW_CONTACTS)}")
         if self.grasp_outcome not in GRASP_OUTCOMES:
-            raise ControllerError(f"grasp_outcome {self.grasp_outcome!r} unknown; choose one of "
+            raise ControllerError(f"ablation.grasp_outcome {self.grasp_outcome!r} unknown; choose one of "
                                   f"{', '.join(GRASP_OUTCOMES)}")
+        if self.occupancy not in OCCUPANCY_ESTIMATORS:
+            raise ControllerError(f"ablation.occupancy {self.occupancy!r} unknown; choose one of "
+                                  f"{', '.join(OCCUPANCY_ESTIMATORS)}")
+
+
+@dataclass
+class BinSearchConfig:
+    """One bin search: the station, the heaps and the controller. The defaults are Table 8.2's
+    setting (the best we know); a Drake YAML file of this schema (`load_bin_search_config`) or
+    `--set key=value` overrides any field.
+
+    policy: a selector of ms_drake.policies.bin_selectors.POLICIES. fidelity: "primitive" (the
+    floating gripper; grasp outcomes from the contact models) or "full" (the scenario's robot in
+    physics). scenario / scenario_file: the station ("" = FloatingGripperBin for primitive, YuMiBin
+    for full, in diagrams/scenarios.yaml). heap: the heaps searched (scenes.layouts.HeapConfig).
+    horizon: the action budget H. seed: every random choice of the controller (grasp sampling,
+    random selectors, primitive grasp outcomes); a benchmark sets it to the heap's seed.
+    segmenter: "ground_truth" (the simulated label image), "euclidean", "region_growing" or
+    "learned" (depth only: what runs on a robot). detector: the target detector, "color" (HSV, red
+    target), "template" (hue-saturation histograms) or "learned" (the siamese matcher); the last two
+    compare every mask with `templates` views of the target rendered alone. occupancy_weights: the
+    learned occupancy's weights file ("" = the shipped one).
+    grasp_planner: "image" (the planners sample `grasp_samples` candidates per mask on the depth
+    image) or "indexed" (in simulation: each object's pre-computed grasp set at its current pose,
+    checked against the scene). grasp_models: the planners whose best grasps are compared per object
+    (a parallel-jaw contact model and "suction"); grasp_params: GraspEvaluator keywords of the jaw
+    models, e.g. {closing_force: 40.0}. reach: with the indexed planner, keep only grasps a robot
+    reaches ("" none, "robot" the station's, or a scenario name). push_policy: the pushes of the
+    *_push selectors: "" the Ch. 7 free-space push, or a Ch. 4 policy of ms_drake.pushing.POLICIES.
+    camera: the camera the controller reads; period: the executor's update period [s].
+    """
+
+    policy: str = "xray"
+    fidelity: str = "primitive"
+    scenario: str = ""
+    scenario_file: str = ""
+    heap: HeapConfig = field(default_factory=HeapConfig)
+    horizon: int = 10
+    seed: int = 0
+    segmenter: str = "ground_truth"
+    detector: str = "color"
+    templates: int = 5
+    occupancy_weights: str = ""
+    grasp_planner: str = "image"
+    grasp_models: list[str] = field(default_factory=lambda: ["soft_point", "suction"])
+    grasp_samples: int = 32
+    robust_samples: int = 4
+    grasp_params: dict[str, float] = field(default_factory=dict)
+    reach: str = ""
+    push_policy: str = ""
+    camera: str = "overhead"
+    period: float = 0.05
+    ablation: BinSearchAblation = field(default_factory=BinSearchAblation)
+
+    def __post_init__(self):
+        if isinstance(self.heap, dict):
+            self.heap = HeapConfig(**self.heap)
+        if isinstance(self.ablation, dict):
+            self.ablation = BinSearchAblation(**self.ablation)
+        self.grasp_models = list(self.grasp_models)
+        check_policy(self.policy)
         if self.push_policy:
             check_push_policy(self.push_policy)
         if self.fidelity not in FIDELITIES:
             raise ControllerError(f"fidelity {self.fidelity!r} unknown; choose one of {', '.join(FIDELITIES)}")
-        if self.segmentation not in SEGMENTATION_BACKENDS:
-            raise ControllerError(f"segmentation {self.segmentation!r} unknown; choose one of "
+        if self.segmenter not in SEGMENTATION_BACKENDS:
+            raise ControllerError(f"segmenter {self.segmenter!r} unknown; choose one of "
                                   f"{', '.join(SEGMENTATION_BACKENDS)}")
         if self.detector not in DETECTOR_BACKENDS:
             raise ControllerError(f"detector {self.detector!r} unknown; choose one of {', '.join(DETECTOR_BACKENDS)}")
@@ -175,26 +207,83 @@ class BinSearchParams:
             raise ControllerError(f"templates must be >= 1 view of the target, got {self.templates!r}")
         if int(self.horizon) < 1:
             raise ControllerError(f"horizon must be >= 1 action, got {self.horizon!r}")
-        if not self.grasp_planner:
-            self.grasp_planner = "indexed" if self.fidelity == "primitive" else "image"
+        if int(self.grasp_samples) < 1:
+            raise ControllerError(f"grasp_samples must be >= 1 candidate per mask, got {self.grasp_samples!r}")
         if self.grasp_planner not in GRASP_PLANNERS:
             raise ControllerError(f"grasp_planner {self.grasp_planner!r} unknown; choose one of "
                                   f"{', '.join(GRASP_PLANNERS)}")
-        if self.grasp_outcome == "nominal" and self.grasp_planner != "image":
-            raise ControllerError(f"grasp_outcome 'nominal' needs each grasp's nominal lift verdict, which only the "
-                                  f"image planner computes; grasp_planner is {self.grasp_planner!r}: use "
-                                  "grasp_planner='image' (CLI: --grasp-planner image)")
-        if self.occupancy not in OCCUPANCY_BACKENDS:
-            raise ControllerError(f"occupancy {self.occupancy!r} unknown; choose one of {', '.join(OCCUPANCY_BACKENDS)}")
-        if self.occupancy_weights and self.occupancy != "learned":
-            raise ControllerError(f"occupancy_weights={self.occupancy_weights!r} is for the learned occupancy backend; "
-                                  f"occupancy is {self.occupancy!r}")
-        if self.occupancy_best_match is not None and self.occupancy != "analytic":
-            raise ControllerError(f"occupancy_best_match is for the analytic occupancy backend; occupancy is "
-                                  f"{self.occupancy!r}")
+        if self.ablation.grasp_outcome == "nominal" and self.grasp_planner != "image":
+            raise ControllerError("ablation.grasp_outcome 'nominal' needs each grasp's nominal lift verdict, which "
+                                  f"only the image planner computes; grasp_planner is {self.grasp_planner!r}: set "
+                                  "grasp_planner=image, or another ablation.grasp_outcome (e.g. draw)")
+        if self.occupancy_weights and self.ablation.occupancy != "learned":
+            raise ControllerError(f"occupancy_weights={self.occupancy_weights!r} is for the learned occupancy; "
+                                  f"ablation.occupancy is {self.ablation.occupancy!r}")
         if self.occupancy_weights and not Path(self.occupancy_weights).is_file():
-            raise ControllerError(f"occupancy_weights: no such file {self.occupancy_weights!r}; give a weights file "
+            raise ControllerError(f"occupancy_weights {self.occupancy_weights!r}: file not found; give a weights file "
                                   "written by `ms-drake train occupancy` (or '' for the shipped one)")
+
+    @property
+    def occupancy_estimator(self) -> str:
+        """The OccupancyEstimator backend: "analytic" for the oracle and the analytic ablations."""
+        return "analytic" if self.policy == "oracle" or self.ablation.occupancy.startswith("analytic") else "learned"
+
+    def to_dict(self) -> dict:
+        """The config as plain data (what a record stores; `BinSearchConfig(**d)` reads it back)."""
+        return dataclasses.asdict(self)
+
+    def key(self) -> str:
+        """The config without its seed, as canonical JSON: records of one run share it."""
+        d = self.to_dict()
+        d.pop("seed")
+        return json.dumps(d, sort_keys=True)
+
+
+def named_search_configs() -> dict[str, Path]:
+    """The named bin-search settings: diagrams/search_<name>.yaml beside the scenario file
+    (table_8_2: the defaults; ch7: Fig. 7.4 and Table C.1's setting)."""
+    folder = default_scenarios_file().parent
+    return {p.stem.removeprefix("search_"): p for p in sorted(folder.glob("search_*.yaml"))}
+
+
+def load_bin_search_config(path=None, overrides=(), **fields) -> BinSearchConfig:
+    """A BinSearchConfig: the defaults, then `path` (a Drake YAML file of any subset of the fields,
+    or the name of a setting of named_search_configs(), e.g. "ch7"), then `fields`, then `overrides`,
+    each "dotted.key=value" with a YAML value (e.g. "ablation.grasp_outcome=draw",
+    "heap.objects=15"). Bad keys or values raise ControllerError naming them."""
+    base = BinSearchConfig(**fields) if path is None else None
+    if path is not None:
+        named = named_search_configs()
+        if str(path) in named:
+            path = named[str(path)]
+        elif not Path(path).is_file():
+            raise ControllerError(f"config {str(path)!r}: no such file or named setting; give a YAML file of "
+                                  f"BinSearchConfig's fields or one of {', '.join(named)}")
+        try:
+            base = yaml_load_typed(schema=BinSearchConfig, filename=str(path), defaults=BinSearchConfig())
+        except (RuntimeError, ValueError, TypeError, AssertionError) as e:
+            raise ControllerError(f"{path}: {str(e).splitlines()[0]}") from None
+        base = BinSearchConfig(**{**base.to_dict(), **fields})
+    for item in overrides:
+        key, sep, value = str(item).partition("=")
+        if not sep or not key:
+            raise ControllerError(f"--set {item!r}: write key=value, e.g. ablation.grasp_outcome=draw")
+        tree = value_tree = {}
+        *parents, leaf = key.strip().split(".")
+        for p in parents:
+            value_tree[p] = {}
+            value_tree = value_tree[p]
+        value_tree[leaf] = "__VALUE__"
+        text = yaml_dump(tree).replace("__VALUE__", value.strip() or "''")
+        try:
+            base = yaml_load_typed(schema=BinSearchConfig, data=text, defaults=base)
+        except (RuntimeError, ValueError, TypeError, AssertionError) as e:
+            raise ControllerError(f"--set {item!r}: {str(e).splitlines()[0]}; the keys are the fields of "
+                                  f"BinSearchConfig ({', '.join(f.name for f in dataclasses.fields(BinSearchConfig))}) "
+                                  "and of its heap and ablation parts") from None
+        base = BinSearchConfig(**base.to_dict())  # validated
+    return base
+
 
 
 @dataclass(frozen=True)
@@ -217,7 +306,7 @@ class SimulationInfo:
         return SimulationInfo(plant, objs[target_index].model_name if target_index >= 0 else "")
 
 
-def _backend(scenario, params: BinSearchParams, workspace: Workspace, sim: SimulationInfo | None):
+def _backend(scenario, params: BinSearchConfig, workspace: Workspace, sim: SimulationInfo | None):
     bodies = {}
     if sim is not None:
         bodies = {o.model_name: int(o.body_index) for o in station_objects(sim.plant)}
@@ -228,34 +317,46 @@ def _backend(scenario, params: BinSearchParams, workspace: Workspace, sim: Simul
                                   "(FloatingGripperBin, with sim=SimulationInfo.from_station(station)); "
                                   "use fidelity 'full' for a robot or the hardware station")
         return PrimitiveBackend(bodies, workspace, tcp_offset_of(sim.plant), target_id=target_id, seed=params.seed,
-                                grasp_outcome=params.grasp_outcome)
+                                grasp_outcome=params.ablation.grasp_outcome)
     return FullBackend(scenario, bodies, workspace, target_id=target_id, seed=params.seed)
 
 
-def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim: SimulationInfo | None = None,
+def MakeBinSearchController(scenario, params: BinSearchConfig | None = None, sim: SimulationInfo | None = None,
                             target_shape=None, name: str = "bin_search_controller",
-                            target_templates=None) -> "BinSearchController":
+                            target_templates=None, segmenter=None, target_detector=None, grasp_planner=None,
+                            occupancy_estimator=None) -> "BinSearchController":
     """The controller Diagram of a bin search on `scenario`'s station (see the module docstring).
 
     target_shape: the target's TargetMesh / TargetBox: with it the controller holds the occupancy
     estimator (exported as `occupancy`; the xray and oracle policies need it).
     target_templates: list of perception.target.Template for the template / learned detectors
-    (default in simulation: `params.templates` views of the target rendered in the target colour)."""
-    params = params or BinSearchParams()
+    (default in simulation: `params.templates` views of the target rendered in the target colour).
+
+    Your own parts: a Drake System given here replaces the part `params` names. Each reads the
+    camera's images through input ports named "depth_image" and/or "rgb_image" (the ones it
+    declares are connected) and:
+      segmenter             -> output "masks" (types.InstanceMasks)
+      target_detector       "masks" -> output "target" (types.TargetEstimate)
+      grasp_planner         "masks" -> output "grasps" (a tuple of types.Grasp, or a Mapping object
+                            id -> its best Grasp); an input "objects" gets the exact meshes in simulation
+      occupancy_estimator   "target" -> output "occupancy" (perception.occupancy.Occupancy)
+    In simulation a user's masks are named after the objects behind them (MaskAssociation), as a
+    depth segmenter's are. tests/test_bin_search_controller.py has an example of each."""
+    params = params or BinSearchConfig()
     if params.camera not in scenario.cameras:
         raise ControllerError(f"camera {params.camera!r} is not a camera of the scenario "
                               f"(cameras: {', '.join(scenario.cameras) or 'none'})")
-    if params.segmentation == "ground_truth" and sim is None:
-        raise ControllerError("segmentation 'ground_truth' reads the simulated label image: pass "
-                              "sim=SimulationInfo.from_station(station), or segmentation='euclidean' on hardware")
+    if params.segmenter == "ground_truth" and sim is None and segmenter is None:
+        raise ControllerError("segmenter 'ground_truth' reads the simulated label image: pass "
+                              "sim=SimulationInfo.from_station(station), or segmenter='learned' on hardware")
     if params.policy == "oracle" and sim is None:
         raise ControllerError("the oracle policy reads the true object poses: it needs sim=SimulationInfo")
     if target_shape is None and params.policy in OCCUPANCY_POLICIES and sim is not None and sim.target_id:
         # In simulation the target's model is known: X-Ray estimates occupancy from its size.
         full = next(o.full_name for o in station_objects(sim.plant) if o.model_name == sim.target_id)
         target_shape = TargetBox.from_object(full)
-    needs_occupancy = target_shape is not None  # built whenever the target's shape is known
-    if params.policy in (*OCCUPANCY_POLICIES, "oracle") and target_shape is None:
+    needs_occupancy = target_shape is not None or occupancy_estimator is not None
+    if params.policy in (*OCCUPANCY_POLICIES, "oracle") and not needs_occupancy:
         raise ControllerError(f"policy {params.policy!r} needs target_shape= (occupancy.TargetMesh or TargetBox)")
     cam = params.camera
     cfg = scenario.cameras[cam]
@@ -276,15 +377,27 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
             builder.ConnectInput(name, port)
 
     depth_inputs, rgb_inputs, pose_inputs = [], [], []
-    if params.segmentation == "ground_truth":
+
+    def add_user_part(system, part):
+        """A user's System in place of a named part: its image inputs join the camera's."""
+        system = builder.AddSystem(system)
+        system.set_name(part)
+        for port, inputs in (("depth_image", depth_inputs), ("rgb_image", rgb_inputs)):
+            if system.HasInputPort(port):
+                inputs.append(system.GetInputPort(port))
+        return system
+
+    if segmenter is not None:
+        seg = add_user_part(segmenter, "segmenter")
+    elif params.segmenter == "ground_truth":
         seg = builder.AddSystem(Segmenter("ground_truth", label_to_id=object_labels(sim.plant)))
         export_input([seg.GetInputPort("label_image")], f"{cam}.label_image")
     else:
-        seg = builder.AddSystem(Segmenter(params.segmentation, camera=camera, workspace=workspace))
+        seg = builder.AddSystem(Segmenter(params.segmenter, camera=camera, workspace=workspace))
         depth_inputs.append(seg.GetInputPort("depth_image"))
     seg.set_name("segmenter")
     masks = seg.GetOutputPort("masks")
-    if params.segmentation != "ground_truth" and sim is not None:
+    if (segmenter is not None or params.segmenter != "ground_truth") and sim is not None:
         # Simulation: the segmenter's masks named after the objects behind them, so the simulated
         # executor knows what a grasp lifted (perception.association; pixels unchanged).
         assoc = builder.AddSystem(MaskAssociation(object_labels(sim.plant), camera.width, camera.height))
@@ -293,7 +406,7 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
         export_input([assoc.GetInputPort("label_image")], f"{cam}.label_image")
         masks = assoc.GetOutputPort("masks")
     templates = None
-    if params.detector != "color":
+    if params.detector != "color" and target_detector is None:
         templates = target_templates
         if templates is None:
             if sim is None or not sim.target_id:
@@ -302,17 +415,20 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
                                       "sim=SimulationInfo.from_station(station, target_index)")
             full = next(o.full_name for o in station_objects(sim.plant) if o.model_name == sim.target_id)
             templates = render_templates(scenario, full, int(params.templates), seed=params.seed, camera=cam)
-    det = builder.AddSystem(TargetDetector(params.detector, width=camera.width, height=camera.height,
-                                           templates=templates))
-    det.set_name("target_detector")
-    rgb_inputs.append(det.GetInputPort("rgb_image"))
+    if target_detector is not None:
+        det = add_user_part(target_detector, "target_detector")
+    else:
+        det = builder.AddSystem(TargetDetector(params.detector, width=camera.width, height=camera.height,
+                                               templates=templates))
+        det.set_name("target_detector")
+        rgb_inputs.append(det.GetInputPort("rgb_image"))
     builder.Connect(masks, det.GetInputPort("masks"))
 
     color_cam, _ = cfg.MakeCameras()
     planners = [GraspPlanner(color_cam.core().intrinsics(), camera.X_WC, model=m, num_samples=params.grasp_samples,
                              robust_samples=params.robust_samples, seed=params.seed,
                              evaluator_params=params.grasp_params if m != "suction" else None,
-                             jaw_contact=params.jaw_contact)
+                             jaw_contact=params.ablation.jaw_contact)
                 for m in models]
     grasp = LazyGraspPlanner(planners, camera.width, camera.height, seed=params.seed)
     if params.grasp_planner == "indexed" and sim is not None:
@@ -328,11 +444,14 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
                               seed=params.seed)
         grasp = IndexedGraspPlanner(names, sets, environment_parts(scenario), workspace, camera.width, camera.height,
                                     kinds=grasp_kinds, fallback=grasp, jaw_model=jaw_model, reach=reach)
-    grasp = builder.AddSystem(grasp)
-    grasp.set_name("grasp_planner")
-    depth_inputs.append(grasp.GetInputPort("depth_image"))
+    if grasp_planner is not None:
+        grasp = add_user_part(grasp_planner, "grasp_planner")
+    else:
+        grasp = builder.AddSystem(grasp)
+        grasp.set_name("grasp_planner")
+        depth_inputs.append(grasp.GetInputPort("depth_image"))
     builder.Connect(masks, grasp.GetInputPort("masks"))
-    if sim is not None:
+    if sim is not None and grasp.HasInputPort("objects"):
         objs = station_objects(sim.plant)
         # The grasp meshes are the repaired, closed ones (grasping.meshes.object_mesh): the contact
         # models give every grasp on an open visual mesh quality 0 ("non_watertight_mesh"), and
@@ -345,11 +464,11 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
         builder.Connect(geo.GetOutputPort("objects"), grasp.GetInputPort("objects"))
 
     target_id = sim.target_id if sim is not None else ""
-    t_thresh = LIFT_THRESHOLD if params.grasp_outcome == "checked" else SelectorParams.t_thresh
+    t_thresh = LIFT_THRESHOLD if params.ablation.grasp_outcome == "checked" else SelectorParams.t_thresh
     selector = builder.AddSystem(PolicySelector(params.policy, SelectorParams(horizon=int(params.horizon),
                                                                              seed=params.seed, t_thresh=t_thresh,
-                                                                             retry_failed=params.grasp_outcome != "nominal",
-                                                                             skip_failed=params.skip_failed),
+                                                                             retry_failed=params.ablation.grasp_outcome != "nominal",
+                                                                             skip_failed=params.ablation.skip_failed),
                                                 target_id=target_id, width=camera.width, height=camera.height))
     selector.set_name("policy_selector")
     builder.Connect(masks, selector.GetInputPort("masks"))
@@ -366,13 +485,16 @@ def MakeBinSearchController(scenario, params: BinSearchParams | None = None, sim
         builder.Connect(pushes.GetOutputPort("pushes"), selector.GetInputPort("pushes"))
         outputs["pushes"] = pushes.GetOutputPort("pushes")
     if needs_occupancy:
-        weights = {"weights": params.occupancy_weights} if params.occupancy_weights else {}
-        if params.occupancy_best_match is not None:
-            weights = {"best_match": params.occupancy_best_match}
-        occ = builder.AddSystem(OccupancyEstimator(params.occupancy, camera=camera, workspace=workspace,
-                                                   target_size=target_shape, **weights))
-        occ.set_name("occupancy_estimator")
-        depth_inputs.append(occ.GetInputPort("depth_image"))
+        weights = {"weights": params.occupancy_weights} if params.occupancy_weights and params.policy != "oracle" else {}
+        if params.policy != "oracle" and params.ablation.occupancy == "analytic_image_best":
+            weights = {"best_match": IMAGE_BEST_MATCH}
+        if occupancy_estimator is not None:
+            occ = add_user_part(occupancy_estimator, "occupancy_estimator")
+        else:
+            occ = builder.AddSystem(OccupancyEstimator(params.occupancy_estimator, camera=camera, workspace=workspace,
+                                                       target_size=target_shape, **weights))
+            occ.set_name("occupancy_estimator")
+            depth_inputs.append(occ.GetInputPort("depth_image"))
         builder.Connect(det.GetOutputPort("target"), occ.GetInputPort("target"))
         if params.policy in OCCUPANCY_POLICIES:
             builder.Connect(occ.GetOutputPort("occupancy"), selector.GetInputPort("occupancy"))
@@ -432,7 +554,7 @@ class BinSearchController(Diagram):
     simulated robot where the controller expects it; `target_id`: the target's object id in
     simulation ("" when unknown)."""
 
-    def __init__(self, builder: DiagramBuilder, backend, params: BinSearchParams, target_id: str, scenario=None):
+    def __init__(self, builder: DiagramBuilder, backend, params: BinSearchConfig, target_id: str, scenario=None):
         super().__init__()
         builder.BuildInto(self)
         self._backend, self.params, self.target_id, self.scenario = backend, params, target_id, scenario
@@ -464,18 +586,33 @@ def check_search_scenario(scenario, fidelity: str, name: str = "") -> None:
         raise ControllerError(f"{label} has no robot: full fidelity needs one ({BIN_SEARCH_SCENARIOS})")
 
 
-def search_scenario(scenario, heap, fidelity: str = "primitive", policy: str = "largest"):
+def search_scenario(scenario, heap, config: BinSearchConfig | None = None):
     """The station scenario of a search of `heap` on `scenario`'s station: its objects are the
     heap's (scenario_with_heap) and, in the primitive mode, the plant steps at the primitive mode's
     rate (10 ms; 5 ms for the selectors that push: execution.PRIMITIVE_PUSH_TIME_STEP, where the
-    floating jaw's push moves objects as the YuMi's does). `scenario` is not changed."""
-    check_policy(policy)
-    if fidelity not in FIDELITIES:
-        raise ControllerError(f"fidelity {fidelity!r} unknown; choose one of {', '.join(FIDELITIES)}")
+    floating jaw's push moves objects as the YuMi's does); config.ablation's time_step and
+    contact_approximation override the plant's. `scenario` is not changed."""
+    config = config or BinSearchConfig()
     s = scenario_with_heap(copy.deepcopy(scenario), heap)
-    if fidelity == "primitive":
-        s.plant_config.time_step = PRIMITIVE_PUSH_TIME_STEP if policy in PUSHING else 0.01
+    if config.fidelity == "primitive":
+        s.plant_config.time_step = PRIMITIVE_PUSH_TIME_STEP if config.policy in PUSHING else 0.01
+    if config.ablation.time_step is not None:
+        s.plant_config.time_step = float(config.ablation.time_step)
+    if config.ablation.contact_approximation is not None:
+        s.plant_config.discrete_contact_approximation = config.ablation.contact_approximation
     return s
+
+
+DEFAULT_SCENARIOS = {"primitive": "FloatingGripperBin", "full": "YuMiBin"}  # config.scenario ""
+
+
+def config_scenario(config: BinSearchConfig):
+    """The station scenario `config` names (its scenario and scenario_file; "" = DEFAULT_SCENARIOS
+    of its fidelity), checked for a bin search of its fidelity (check_search_scenario)."""
+    name = config.scenario or DEFAULT_SCENARIOS[config.fidelity]
+    scenario = load_scenario(config.scenario_file or None, name)
+    check_search_scenario(scenario, config.fidelity, name)
+    return scenario
 
 
 def _search_parts(diagram):
