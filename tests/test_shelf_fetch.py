@@ -20,6 +20,7 @@ from ms_drake.experiments.shelf_physics import (
     physics_table,
     physics_vs_foss,
     set_initial,
+    shelf_physics_rollout,
     with_time_step,
 )
 from ms_drake.foss import Foss
@@ -37,7 +38,7 @@ from ms_drake.scenario import load_scenario
 from ms_drake.scenes.shelf import DEFAULT_TARGET, generate_shelf_scene
 from ms_drake.shelf_geometry import ShelfGeometry
 from ms_drake.station import MakeStation, get_plant
-from ms_drake.types import ShelfObject, ShelfScene
+from ms_drake.types import ShelfAction, ShelfObject, ShelfScene
 
 
 @pytest.fixture(scope="module")
@@ -139,6 +140,73 @@ def test_suction_out_of_reach_is_ruled_out_by_its_pull_out(hard_scene):
     pulls = [k for k in backend._feasible if k[0] == "pull" and k[1] == best.object_id]
     assert pulls and all(backend._feasible[k] == status for k in pulls)
     assert not any(k[0] == "suction" and k[1] == best.object_id for k in backend._feasible)
+
+
+def test_reach_check_rejects_a_push_whose_tool_sweeps_a_neighbour(scenario):
+    """Fixed inputs: the push of a cylinder to the right, its left neighbour 1 cm away. The IK plans
+    it (the straight lines know only the shelf), but in the 1 cm gap the blade goes in raised and
+    the shaft over the cylinder, into the taller neighbour: the reach check rejects it; with the
+    neighbour 4.6 cm away the shaft fits beside the cylinder and the same push is accepted."""
+    pushed = ShelfObject("occ01", "cylinder", 0.106, 0.008, 0.18, 0.18, 0.08)
+    target = ShelfObject("target", "box", -0.23, 0.185, 0.06, 0.06, 0.06)
+    push = ShelfAction("push", "occ01", 0.1, 0.0)
+    for x, status in ((-0.064, "collision:path:body-occ02"), (-0.1, "ok")):
+        neighbour = ShelfObject("occ02", "box", x, -0.125, 0.14, 0.18, 0.12)
+        scene = ShelfScene((neighbour, pushed), target, 0)
+        backend = ShelfBackend(scenario, {o.id: ShelfBody(k, o) for k, o in enumerate((neighbour, pushed, target))},
+                               "target")
+        assert Foss(ShelfGeometry.from_scenario(scenario)).step(scene, push)[1].success  # FOSS allows both
+        motion = backend.plan_scene(push, backend.q_park, scene)
+        assert not isinstance(motion, str)  # the IK + Cartesian plan exists either way
+        assert backend.feasible(push, scene) == status
+    # a suction whose pull-out the Fetch cannot reach is rejected before any path is checked
+    deep = ShelfObject("occ00", "box", 0.27, 0.25, 0.05, 0.09, 0.2)
+    scene = ShelfScene((deep,), target, 0)
+    backend = ShelfBackend(scenario, {"occ00": ShelfBody(0, deep), "target": ShelfBody(1, target)}, "target")
+    assert backend.feasible(ShelfAction("suction", "occ00", -0.3, 0.0), scene) in ("unreachable", "collision",
+                                                                                  "shelf_top")
+
+
+@pytest.fixture(scope="module")
+def sweep_scene(scenario):
+    """Seed 300, 4 occluders: DER-3's best push (occ01 to the right) plans on the Fetch, but its tool,
+    raised over occ01 in the 8 mm gap to occ02, sweeps into occ02 (in physics it shoves occ02 18 cm)."""
+    geometry = ShelfGeometry.from_scenario(scenario)
+    scene = generate_shelf_scene(geometry, 300, 4, DEFAULT_TARGET).scene
+    objs = list(scene.objects) + [scene.target]
+    backend = ShelfBackend(scenario, {o.id: ShelfBody(k, o) for k, o in enumerate(objs)}, scene.target.id)
+    return scene, backend, geometry, ground_truth_occupancy(geometry, scene)
+
+
+def test_feasible_selector_passes_over_a_push_into_a_neighbour(sweep_scene):
+    scene, backend, geometry, occupancy = sweep_scene
+    sel = FetchFeasibleSelector("der3", Foss(geometry), backend, ShelfPolicyParams(seed=300))
+    best = sel.rules.select(scene, occupancy.image_x, ()).shelf
+    assert (best.kind, best.object_id) == ("push", "occ01") and best.dx > 0
+    assert not isinstance(backend.plan_scene(best, backend.q_park, scene), str)
+    assert backend.feasible(best, scene).startswith("collision:path:")
+    ctx = sel.CreateDefaultContext()
+    sel.GetInputPort("scene").FixValue(ctx, scene)
+    sel.GetInputPort("occupancy").FixValue(ctx, occupancy)
+    sel.GetInputPort("history").FixValue(ctx, ())
+    chosen = sel.GetOutputPort("action").Eval(ctx)
+    assert chosen.kind == "shelf" and chosen.shelf != best and backend.feasible(chosen.shelf, scene) == "ok"
+    assert chosen.reason.endswith("Fetch-infeasible skipped)") and _skipped(chosen.reason) >= 1
+
+
+def test_search_diagram_executes_the_reachable_choice(sweep_scene):
+    """The wired search (station + controller + termination, one Simulator): its first action is the
+    selector's reachable choice, not the policy's best in FOSS, and it executes without a plan
+    failure."""
+    scene, backend, geometry, occupancy = sweep_scene
+    sel = FetchFeasibleSelector("der3", Foss(geometry), backend, ShelfPolicyParams(seed=300))
+    best = sel.rules.select(scene, occupancy.image_x, ()).shelf
+    chosen = sel.choose(scene, occupancy.image_x, ()).shelf
+    rec = shelf_physics_rollout("der3", 300, 4, horizon=1).record
+    assert rec["fetch_feasible"] and rec["steps"] == 1 and rec["plan_failures"] == 0
+    assert rec["actions_taken"][0] == [chosen.kind, chosen.object_id, round(chosen.dx, 4), round(chosen.dy, 4)]
+    assert rec["actions_taken"][0][:3] != [best.kind, best.object_id, round(best.dx, 4)]
+    assert rec["skipped"] >= 1
 
 
 def test_feasible_selector_alone_fixed_inputs(hard_scene):

@@ -29,6 +29,17 @@ park: the tool level and pointing into the shelf, its tip 15 cm in front of the 
   the front camera's view, which sees the shelf from above the robot, 30 degrees down (the
   reference's Fetch also parks the tool out of view before each image).
 
+Reach (`feasible`, what the shelf controller's selector asks of every candidate before choosing
+it): the plan above from the park pose in the scene, as the executor would make it (IK within the
+joint limits and >= 5 mm from the shelf and the robot itself at every pose and every 2 cm of the
+straight lines), and then that plan's whole path checked every `check_step` seconds
+(`path_clear`): the Fetch's links and the tool (blade up or down as the action holds it) at least
+`clearance` from every other occluder of the scene (the object acted on is the tool's to touch;
+the target is unknown to the robot), the object held by the cup (from contact to release) clear of
+the other occluders, and the joint motions from park and back clear of the shelf and of the robot
+itself. The straight lines' IK knows only the shelf, so a shaft that sweeps over a neighbour
+beside or in front of a pushed object, or a blade lowered into a narrow gap, is found here.
+
 The scene an action is planned in: the objects observed in body_poses (simulation: the backend
 knows the shelf bodies), or else the scene the action was chosen in (Action.scene: the controller's
 estimate from the depth image, on the hardware station or a simulated one used as hardware).
@@ -49,12 +60,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import coal
 import numpy as np
 from pydrake.math import RigidTransform, RotationMatrix
 
 from ms_drake.execution.executor import ExecutionError, Motion
+from ms_drake.execution.reach import ArmLinks
 from ms_drake.foss import Foss, shelf_action
 from ms_drake.geometry import as_rigid_transform
+from ms_drake.grasping.indexed import Scene
 from ms_drake.planning import ik_pose, plan_cartesian_line, plan_joint_motion
 from ms_drake.planning.sequences import Schedule, Timeline, arm_ik, nearest_equivalent
 from ms_drake.robots import BluctionConfig, gripper_port_name
@@ -126,13 +140,15 @@ class ShelfBackend:
     speed / push_speed / slow_speed: the tool's Cartesian speed limits [m/s] in free space, while
     pushing, and for the suction cup's contact, pull and placement lines; settle: the longest wait after a
     motion [s] (the executor ends it earlier once the scene is at rest); tolerance: the agreement
-    tolerance [m] (module docstring)."""
+    tolerance [m] (module docstring); clearance [m] / check_step [s]: the reach check's least distance
+    of the robot to the other occluders and its sampling of the planned path (`path_clear`)."""
 
     def __init__(self, scenario, bodies: dict, target_id: str = "", foss: Foss | None = None, seed: int = 0,
                  speed: float = 0.35, push_speed: float = 0.12, slow_speed: float = 0.15, settle: float = 1.0,
                  tolerance: float = 0.02,
                  staging: float = 0.08, shaft_clearance: float = 0.004, blade_z: float = 0.006,
-                 line_step: float = 0.02, max_pull: float = 0.06, sag_deg: float = SAG_DEG):
+                 line_step: float = 0.02, max_pull: float = 0.06, sag_deg: float = SAG_DEG,
+                 clearance: float = 0.002, check_step: float = 0.02):
         if scenario.environment.type != "shelf" or scenario.robot.name != "fetch":
             raise ExecutionError(f"ShelfBackend drives the Fetch at a shelf (scenario FetchShelf); this scenario has "
                                  f"robot {scenario.robot.name!r} and environment {scenario.environment.type!r}")
@@ -163,6 +179,10 @@ class ShelfBackend:
             raise ExecutionError(f"ShelfBackend sag_deg={sag_deg!r}: give the held object's tilt on the cup in degrees, "
                                  f"0 <= sag_deg < 45 (default {SAG_DEG})")
         self.sag_deg = float(sag_deg)
+        if not (clearance >= 0 and check_step > 0):
+            raise ExecutionError(f"ShelfBackend clearance={clearance!r} m must be >= 0 and check_step={check_step!r} s "
+                                 "> 0 (defaults 0.002 m, 0.02 s)")
+        self.clearance, self.check_step = float(clearance), float(check_step)
         self.cfg = BluctionConfig()
         self.r_shaft = self.cfg.shaft_diameter / 2
         self.blade_z = float(blade_z) + self.cfg.blade_height / 2  # blade centre above the floor
@@ -182,6 +202,7 @@ class ShelfBackend:
                                  f"IK {res.status}; check the scenario's robot.base_position")
         self.q_park = nearest_equivalent(self.cup_ik, res.q, q_seed)
         self._feasible: dict = {}
+        self._links: dict = {}  # "push" / "suction" -> ArmLinks (blade down / up), built on first use
 
     # ------------------------------------------------------------------ helpers
     @staticmethod
@@ -262,7 +283,7 @@ class ShelfBackend:
         target_xy = (o.x + a.dx, o.y) if a.kind == "push" else self.foss.placement_center(o, a.dx, a.dy)
         info = {"step": step, "before": scene, "predicted": predicted, "foss": foss_out.message if not foss_out.success
                 else "ok", "goal_xy": tuple(map(float, target_xy)), "start_xy": (o.x, o.y),
-                "toppled_before": tuple(toppled)}
+                "toppled_before": tuple(toppled), "timeline": tl}
         commands[f"{self.arm}.position"] = tl.value
         return Motion(commands, check_time=tl.duration + self.settle, duration=tl.duration + self.settle, info=info,
                       settle_from=tl.duration)
@@ -281,8 +302,56 @@ class ShelfBackend:
         key = (a.kind, a.object_id, round(a.dx, 3), round(a.dy, 3), footprints)
         if key not in self._feasible:
             m = self.plan_scene(a, self.q_park, scene)
-            self._feasible[key] = m if isinstance(m, str) else "ok"
+            self._feasible[key] = m if isinstance(m, str) else self.path_clear(m, a, scene)
         return self._feasible[key]
+
+    def path_clear(self, motion: Motion, a, scene: ShelfScene) -> str:
+        """"ok" when the planned `motion` of ShelfAction `a` (plan_scene's) keeps the robot clear
+        along its whole path (module docstring, "Reach"), sampled every check_step seconds;
+        otherwise "collision:<phase>:<what>-<what>": "collision:transit:<body>-<occluder>" or
+        "collision:path:<body>-<occluder>" (a robot or tool body; transit: the joint motions from
+        park and back, path: the rest), "collision:held:<id>-<occluder>" (the object on the cup),
+        "collision:transit:shelf_or_self" (a joint motion into the shelf or the robot itself)."""
+        tl = motion.info["timeline"]
+        links = self._arm_links(a.kind)
+        ik = links.ik
+        obstacles = _Obstacles([b for b in scene.objects if b.id != a.object_id], self.origin)
+        names = links.names(tool=True)
+        if a.kind == "suction":
+            # Carried as FOSS carries it: translated with the cup, upright (the tilt the cup's lip
+            # lets it hang at is in the lift, SAG_DEG); shrunk by the IK's position tolerance on
+            # every side, as FOSS's own sweeps pass the others at 0.5 mm.
+            o = scene.object(a.object_id)
+            grip, release = tl.marks["contact"], tl.marks["placed"]
+            held_shape = _object_shape(o, shrink=ik.pos_tol)
+            held_radius = 0.5 * float(np.linalg.norm([o.width, o.depth, o.height]))
+            held_offset = _object_pose(o, self.origin)[:3, 3] - ik_pose(ik, tl.value(grip)).translation()
+        transits = ((0.0, tl.marks["staged"]), (tl.marks["leave"], tl.duration))
+        q_full = ik.plant.GetPositions(ik.context).copy()
+        for t in np.append(np.arange(0.0, tl.duration, self.check_step), tl.duration):
+            q = tl.value(t)
+            in_transit = any(t0 <= t <= t1 for t0, t1 in transits)
+            hit = obstacles.hit(links.at(q, tool=True), self.clearance)
+            if hit is not None:
+                return f"collision:{'transit' if in_transit else 'path'}:{names[hit[0]]}-{hit[1]}"
+            if a.kind == "suction" and grip <= t <= release:
+                centre = ik_pose(ik, q).translation() + held_offset
+                hit = obstacles.hit([(held_shape, np.eye(3), centre, held_radius)], 0.0)
+                if hit is not None:
+                    return f"collision:held:{a.object_id}-{hit[1]}"
+            if in_transit:
+                q_full[ik.idx] = q
+                if ik._min_distance(q_full) < 0.0:
+                    return "collision:transit:shelf_or_self"
+        return "ok"
+
+    def _arm_links(self, kind: str) -> ArmLinks:
+        """The Fetch's links and tool as placed by the IK plant of `kind`'s actions (the blade down
+        for pushes, up for suction)."""
+        if kind not in self._links:
+            ik, keep = (self.blade_ik, self._keep[1]) if kind == "push" else (self.cup_ik, self._keep[0])
+            self._links[kind] = ArmLinks(ik, keep[0])
+        return self._links[kind]
 
     def pulls_out(self, o: ShelfObject, lift: float, footprints: tuple) -> str:
         """"ok" when the Fetch, from its park pose, reaches O's front face with the cup (the joint
@@ -330,6 +399,7 @@ class ShelfBackend:
         for t in trajs:
             if t is not None:
                 tl.play(t)
+        tl.mark("leave")
         tl.play(plan_joint_motion([tl.final(), self.q_park], self.limits))
         return None
 
@@ -341,6 +411,7 @@ class ShelfBackend:
         tl = Timeline(q_now)
         tl.hold(0.05)
         tl.play(plan_joint_motion([q_now, q_stage], self.limits))
+        tl.mark("staged")
         return tl
 
     def _plan_push(self, o: ShelfObject, a, q_now, scene: ShelfScene):
@@ -500,6 +571,51 @@ class ShelfBackend:
         msg = (f"agree={int(agree)} err={err:.3f} moved={moved:.3f} commanded={commanded:.3f} others={others:.3f} "
                f"toppled={','.join(toppled) or '-'} foss={motion.info['foss']}")
         return ActionOutcome(action, bool(ok), message=msg), ()
+
+
+def _object_shape(o: ShelfObject, shrink: float = 0.0):
+    """The coal shape of a shelf object (a box, or an upright cylinder), centred on its middle,
+    `shrink` [m] smaller on every side."""
+    if o.kind == "cylinder":
+        return coal.Cylinder(0.5 * o.width - shrink, o.height - 2 * shrink)
+    return coal.Box(o.width - 2 * shrink, o.depth - 2 * shrink, o.height - 2 * shrink)
+
+
+def _object_pose(o: ShelfObject, origin) -> np.ndarray:
+    """The world pose (4x4) of a shelf object's middle, standing on the floor of the shelf at `origin`."""
+    X = np.eye(4)
+    X[:3, 3] = np.asarray(origin, float) + [o.x, o.y, 0.5 * o.height]
+    return X
+
+
+class _Obstacles(Scene):
+    """The occluders of a shelf scene as coal shapes (ms_drake.grasping.indexed.Scene), with
+    `hit(parts, margin)`: (index of the first part that comes within `margin` of one, its id), or None."""
+
+    def __init__(self, objects, origin):
+        objects = list(objects)
+        self.ids = [o.id for o in objects]
+        super().__init__([(_object_shape(o), _object_pose(o, origin), _object_pose(o, origin)[:3, 3],
+                           0.5 * float(np.linalg.norm([o.width, o.depth, o.height]))) for o in objects])
+        self._margin_request = {}
+
+    def hit(self, parts: list, margin: float = 0.0):
+        if not self.ids:
+            return None
+        if margin not in self._margin_request:
+            request = coal.CollisionRequest()
+            request.security_margin = float(margin)
+            self._margin_request[margin] = request
+        request = self._margin_request[margin]
+        centres = np.array([p[2] for p in parts], float)
+        reach = np.array([p[3] for p in parts], float)[:, None] + self.radii[None] + margin
+        d2 = np.sum((centres[:, None, :] - self.centers[None]) ** 2, axis=2)
+        for i, j in np.argwhere(d2 < reach * reach):  # bounding spheres first, in part order
+            shape, R, c, _ = parts[i]
+            if coal.collide(shape, coal.Transform3s(R, c), self.shapes[j], self.transforms[j], request,
+                            coal.CollisionResult()):
+                return int(i), self.ids[j]
+        return None
 
 
 def agreement(outcome: ActionOutcome) -> bool | None:

@@ -19,7 +19,9 @@ Two perceptions (`perception=`):
   scene -> ShelfOccupancyEstimator("ground_truth") -> occupancy
 Then, in both:
   scene + occupancy + history -> FetchFeasibleSelector(policy) -> action (the policy's best action
-            the Fetch's planner accepts in that scene; params.fetch_feasible=False: the policy's
+            the Fetch reaches in that scene: ShelfBackend.feasible, the plan the executor would
+            make from park, IK within the joint limits, then its whole path clear of the other
+            occluders, the shelf and the robot itself; params.fetch_feasible=False: the policy's
             best in FOSS, ShelfSearchSelector); the action carries the scene it was chosen in
             (Action.scene)
   action -> ActionExecutor(ShelfBackend) -> fetch.position, fetch_bluction.position (blade angle),
@@ -76,8 +78,9 @@ class ShelfSearchParams:
     policy); psi: the suction / push cost ratio; camera: the shelf camera; period: the executor's
     and selector's update period [s]; speed / push_speed / slow_speed: the tool's Cartesian speed limits [m/s]
     (ShelfBackend);
-    fetch_feasible: choose the policy's best action the Fetch can execute (FetchFeasibleSelector,
-    checking at most `max_candidates` in the policy's order) instead of its best action in FOSS;
+    fetch_feasible: choose the policy's best action the Fetch can execute, its planned path clear
+    of the scene (FetchFeasibleSelector, checking at most `max_candidates` in the policy's order)
+    instead of its best action in FOSS;
     min_move / nil_move / revisit [m] (Bluction-DAR, NIL_RULE_POLICIES): the policy drops the candidates
     that FOSS moves their object less than min_move and, with ground-truth perception, those like an
     executed action that moved its object less than nil_move while the object is unchanged (ShelfPolicyParams;
@@ -216,9 +219,10 @@ def _search_inputs(selector: ShelfPolicySelector, context) -> tuple:
 
 class FetchFeasibleSelector(ShelfPolicySelector):
     """The ShelfPolicySelector (per action) whose action is the policy's best one that the Fetch can
-    execute: the reference's "first kinematically feasible action" (lines 1643-1672) checked with
-    the robot's planner (ShelfBackend.feasible: IK + Cartesian lines from the park pose, cached per
-    scene) instead of FOSS alone. The policy ranks as it does in FOSS; its choice is planned; an
+    execute: the reference's "first kinematically feasible action" (Ch. 9.4.3) checked with the
+    robot's planner instead of FOSS alone (ShelfBackend.feasible: the executor's plan from the park
+    pose, IK + Cartesian lines within the joint limits, and that plan's path sampled every 20 ms
+    clear of the other occluders, the shelf and the robot itself; cached per scene to 1 mm). The policy ranks as it does in FOSS; its choice is planned; an
     infeasible choice is added to the history as refused (so the policy's own rule drops it) and
     the policy chooses again, at most `max_candidates` times (then "stop"). The action's reason
     ends with the number of candidates skipped; a shelf action carries `scene` (Action.scene), in
