@@ -131,7 +131,8 @@ def test_labeler_declines_what_it_cannot_do_exactly():
     poses = _poses(sg, labeler)
     capsule = next(g for g in labeler.geometry_ids if sg.model_inspector().GetName(g) == f"g{CAPSULE}")
     poses[capsule] = RigidTransform([5.0, 0.0, 0.0])  # far outside the view: no need to render
-    assert labeler.label(depth, X_WC, poses, 0.1, 3.0) is not None
+    labels = labeler.label(depth, X_WC, poses, 0.1, 3.0)
+    assert labels.shape == depth.shape and len(np.unique(labels)) >= 2  # a label image, objects in it
     depth[0, 0] = 0.0  # kTooClose: the rendered label would show what is there
     assert labeler.label(depth, X_WC, poses, 0.1, 3.0) is None
     with pytest.raises(ValueError, match="160x120"):

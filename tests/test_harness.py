@@ -133,7 +133,7 @@ def test_bad_bench_input(tmp_path):
                              ("heap.layout=pile", "heap layout 'pile' unknown; choose one of compact"),
                              ("ablation.grasp_outcome=coin", "ablation.grasp_outcome 'coin' unknown; choose one of"),
                              ("heap.colour=red", "The fields ['colour'] were unknown"),
-                             ("horizon", "write key=value")]:
+                             ("horizon", "write KEY=VALUE")]:
         p = run("bench", "search", "--policy", "largest", "--set", setting, "--out", tmp_path / "x.jsonl", check=False)
         assert p.returncode == 2 and message in p.stderr and "Traceback" not in p.stderr, (setting, p.stderr)
     p = run("bench", "search", "--policy", "largest", "--config", "table_9_9", "--out", tmp_path / "x.jsonl",

@@ -14,7 +14,7 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parent.parent / "ms_drake"
 LAYERS = [  # lowest first
-    ("types", "geometry", "shelf_geometry", "errors", "paths", "parallel", "jit"),
+    ("types", "geometry", "shelf_geometry", "errors", "paths", "parallel", "jit", "config_files"),
     ("objects", "robots"),
     ("scenario",),
     ("station",),

@@ -43,9 +43,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pydrake.common.yaml import yaml_dump, yaml_load_typed
 from pydrake.systems.framework import Diagram, DiagramBuilder
 
+from ms_drake.config_files import load_config
 from ms_drake.errors import MsDrakeError
 from ms_drake.execution import (
     FIDELITIES,
@@ -250,39 +250,8 @@ def load_bin_search_config(path=None, overrides=(), **fields) -> BinSearchConfig
     """A BinSearchConfig: the defaults, then `path` (a Drake YAML file of any subset of the fields,
     or the name of a setting of named_search_configs(), e.g. "ch7"), then `fields`, then `overrides`,
     each "dotted.key=value" with a YAML value (e.g. "ablation.grasp_outcome=draw",
-    "heap.objects=15"). Bad keys or values raise ControllerError naming them."""
-    base = BinSearchConfig(**fields) if path is None else None
-    if path is not None:
-        named = named_search_configs()
-        if str(path) in named:
-            path = named[str(path)]
-        elif not Path(path).is_file():
-            raise ControllerError(f"config {str(path)!r}: no such file or named setting; give a YAML file of "
-                                  f"BinSearchConfig's fields or one of {', '.join(named)}")
-        try:
-            base = yaml_load_typed(schema=BinSearchConfig, filename=str(path), defaults=BinSearchConfig())
-        except (RuntimeError, ValueError, TypeError, AssertionError) as e:
-            raise ControllerError(f"{path}: {str(e).splitlines()[0]}") from None
-        base = BinSearchConfig(**{**base.to_dict(), **fields})
-    for item in overrides:
-        key, sep, value = str(item).partition("=")
-        if not sep or not key:
-            raise ControllerError(f"--set {item!r}: write key=value, e.g. ablation.grasp_outcome=draw")
-        tree = value_tree = {}
-        *parents, leaf = key.strip().split(".")
-        for p in parents:
-            value_tree[p] = {}
-            value_tree = value_tree[p]
-        value_tree[leaf] = "__VALUE__"
-        text = yaml_dump(tree).replace("__VALUE__", value.strip() or "''")
-        try:
-            base = yaml_load_typed(schema=BinSearchConfig, data=text, defaults=base)
-        except (RuntimeError, ValueError, TypeError, AssertionError) as e:
-            raise ControllerError(f"--set {item!r}: {str(e).splitlines()[0]}; the keys are the fields of "
-                                  f"BinSearchConfig ({', '.join(f.name for f in dataclasses.fields(BinSearchConfig))}) "
-                                  "and of its heap and ablation parts") from None
-        base = BinSearchConfig(**base.to_dict())  # validated
-    return base
+    "heap.objects=15"). Bad keys or values raise config_files.ConfigError naming them."""
+    return load_config(BinSearchConfig, path, overrides, named_search_configs(), **fields)
 
 
 
