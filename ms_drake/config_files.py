@@ -10,6 +10,8 @@ their dataclasses, so `Schema(**dataclasses.asdict(config))` reads a record's co
 """
 
 import dataclasses
+import functools
+import typing
 from pathlib import Path
 
 from pydrake.common.yaml import yaml_dump, yaml_load_typed
@@ -24,6 +26,18 @@ class ConfigError(MsDrakeError, ValueError):
 _YAML_ERRORS = (RuntimeError, ValueError, TypeError, AssertionError)
 
 
+@functools.cache
+def _resolve_annotations(schema) -> None:
+    """Drake's YAML reads a dataclass's field types: resolve the string annotations of a module with
+    `from __future__ import annotations` to the types themselves (nested dataclasses too)."""
+    hints = typing.get_type_hints(schema)
+    for f in dataclasses.fields(schema):
+        f.type = hints[f.name]
+        for arg in (f.type, *typing.get_args(f.type)):
+            if dataclasses.is_dataclass(arg):
+                _resolve_annotations(arg)
+
+
 def _rebuild(schema, config):
     """The config re-made through the schema's constructor (its checks run)."""
     return schema(**dataclasses.asdict(config))
@@ -32,6 +46,7 @@ def _rebuild(schema, config):
 def load_config(schema, path=None, overrides=(), named: dict | None = None, **fields):
     named = named or {}
     name = schema.__name__
+    _resolve_annotations(schema)
     try:
         if path is None:
             base = schema(**fields)
