@@ -159,6 +159,14 @@ def test_reach_check_rejects_a_push_whose_tool_sweeps_a_neighbour(scenario):
         motion = backend.plan_scene(push, backend.q_park, scene)
         assert not isinstance(motion, str)  # the IK + Cartesian plan exists either way
         assert backend.feasible(push, scene) == status
+    # a box in the tool's way in: standing at the shelf's front edge it blocks the push; fallen off
+    # the shelf (its centre in front of it, at a height the footprint does not tell) it is no obstacle
+    for y, status in ((-0.29, "collision:"), (-0.4, "ok")):
+        other = ShelfObject("occ03", "box", 0.0, y, 0.14, 0.13, 0.07)
+        scene = ShelfScene((neighbour, pushed, other), target, 0)
+        backend = ShelfBackend(scenario, {o.id: ShelfBody(k, o) for k, o in enumerate((neighbour, pushed, other,
+                                                                                       target))}, "target")
+        assert backend.feasible(push, scene).startswith(status)
     # a suction whose pull-out the Fetch cannot reach is rejected before any path is checked
     deep = ShelfObject("occ00", "box", 0.27, 0.25, 0.05, 0.09, 0.2)
     scene = ShelfScene((deep,), target, 0)

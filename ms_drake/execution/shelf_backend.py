@@ -34,8 +34,9 @@ it): the plan above from the park pose in the scene, as the executor would make 
 joint limits and >= 5 mm from the shelf and the robot itself at every pose and every 2 cm of the
 straight lines), and then that plan's whole path checked every `check_step` seconds
 (`path_clear`): the Fetch's links and the tool (blade up or down as the action holds it) at least
-`clearance` from every other occluder of the scene (the object acted on is the tool's to touch;
-the target is unknown to the robot), the object held by the cup (from contact to release) clear of
+`clearance` from every other occluder on the shelf (the object acted on is the tool's to touch;
+the target is unknown to the robot; an object whose centre is off the shelf's floor has fallen off
+it), the object held by the cup (from contact to release) clear of
 the other occluders, and the joint motions from park and back clear of the shelf and of the robot
 itself. The straight lines' IK knows only the shelf, so a shaft that sweeps over a neighbour
 beside or in front of a pushed object, or a blade lowered into a narrow gap, is found here.
@@ -315,7 +316,9 @@ class ShelfBackend:
         tl = motion.info["timeline"]
         links = self._arm_links(a.kind)
         ik = links.ik
-        obstacles = _Obstacles([b for b in scene.objects if b.id != a.object_id], self.origin)
+        # an object whose centre is off the shelf's floor has fallen off it (its height is unknown)
+        obstacles = _Obstacles([b for b in scene.objects if b.id != a.object_id and abs(b.x) <= self.half[0]
+                                and abs(b.y) <= self.half[1]], self.origin)
         names = links.names(tool=True)
         if a.kind == "suction":
             # Carried as FOSS carries it: translated with the cup, upright (the tilt the cup's lip
@@ -325,7 +328,13 @@ class ShelfBackend:
             grip, release = tl.marks["contact"], tl.marks["placed"]
             held_shape = _object_shape(o, shrink=ik.pos_tol)
             held_radius = 0.5 * float(np.linalg.norm([o.width, o.depth, o.height]))
-            held_offset = _object_pose(o, self.origin)[:3, 3] - ik_pose(ik, tl.value(grip)).translation()
+            start = _object_pose(o, self.origin)[:3, 3]
+            held_offset = start - ik_pose(ik, tl.value(grip)).translation()
+            # what it touches where it stands is FOSS's to judge (the observed footprints of objects
+            # standing turned about z can overlap)
+            held_obstacles = _Obstacles([b for b in obstacles.objects
+                                         if _Obstacles([b], self.origin).hit([(held_shape, np.eye(3), start,
+                                                                                held_radius)]) is None], self.origin)
         transits = ((0.0, tl.marks["staged"]), (tl.marks["leave"], tl.duration))
         q_full = ik.plant.GetPositions(ik.context).copy()
         for t in np.append(np.arange(0.0, tl.duration, self.check_step), tl.duration):
@@ -336,7 +345,7 @@ class ShelfBackend:
                 return f"collision:{'transit' if in_transit else 'path'}:{names[hit[0]]}-{hit[1]}"
             if a.kind == "suction" and grip <= t <= release:
                 centre = ik_pose(ik, q).translation() + held_offset
-                hit = obstacles.hit([(held_shape, np.eye(3), centre, held_radius)], 0.0)
+                hit = held_obstacles.hit([(held_shape, np.eye(3), centre, held_radius)], 0.0)
                 if hit is not None:
                     return f"collision:held:{a.object_id}-{hit[1]}"
             if in_transit:
@@ -593,8 +602,9 @@ class _Obstacles(Scene):
     `hit(parts, margin)`: (index of the first part that comes within `margin` of one, its id), or None."""
 
     def __init__(self, objects, origin):
-        objects = list(objects)
-        self.ids = [o.id for o in objects]
+        self.objects = list(objects)
+        self.ids = [o.id for o in self.objects]
+        objects = self.objects
         super().__init__([(_object_shape(o), _object_pose(o, origin), _object_pose(o, origin)[:3, 3],
                            0.5 * float(np.linalg.norm([o.width, o.depth, o.height]))) for o in objects])
         self._margin_request = {}
