@@ -151,7 +151,8 @@ def test_driver_entries_load_from_yaml_and_configure_the_station(tmp_path):
     assert s.robot.drivers["panda"].kp[0] == 800 and s.robot.drivers["panda_jaw"].default_force_limit == 20.0
     station = MakeStation(s)
     ctx = station.CreateDefaultContext()
-    assert np.allclose(station.GetOutputPort("panda_jaw.force_measured").Eval(ctx), 0.0)  # nothing held at rest
+    # the jaw squeezes at the force limit the YAML entry set (20 N)
+    assert np.allclose(station.GetOutputPort("panda_jaw.force_measured").Eval(ctx), 20.0)
     guard = station.GetSubsystemByName("panda_jaw_guard")
     assert guard.GetOutputPort("force_limit").Eval(guard.GetMyContextFromRoot(ctx))[0] == 20.0
     plant = get_plant(station)
