@@ -209,7 +209,7 @@ ROBOTS: dict[str, RobotSpec] = {
     ),
     "yumi": RobotSpec(
         "yumi", "robots/yumi/yumi.sdf", "yumi_body",
-        # Homes (the park at a bin station, by IK; sims/yumi_reach_probe.py): tools pointing down,
+        # Homes (the park at a bin station, by IK): tools pointing down,
         # tcps 0.25 m in front of the base, 0.30 m to either side, 0.30 m up -- out of the
         # overhead camera's view of a bin whose centre is 0.45 m in front (YuMiBin); every
         # joint at least 0.3 rad from its limits.

@@ -127,7 +127,7 @@ class SuctionDriver:
 
 @dataclass
 class RobotConfig:
-    """The robot and its grippers (filled in by the robots issue). name '' means no robot.
+    """The robot and its grippers. name '' means no robot.
     grippers: one per arm in arm order ([] for the defaults). drivers: keyed by port prefix
     (arm or gripper name, e.g. yumi_right, yumi_right_jaw); missing entries use the defaults."""
 

@@ -7,8 +7,8 @@ account of what the planner found (quality, the candidates' outcome reasons).
     inputs = heap_grasp_inputs(s, generate_heap(s, 6, seed=3))
     rows = heap_grasp_report(inputs, GraspPlanner(inputs.camera_info, inputs.X_WC, model="soft_point"))
 
-`sims/grasp_heap_quality.py` runs this on many heaps (the fraction of heap objects with a jaw
-grasp above t = 0.15) and tests/test_grasp_heap.py on a small one.
+tests/test_grasp_heap.py runs this on a small heap; over many heaps it gives the fraction of heap
+objects with a jaw grasp above t = 0.15 (docs/BENCHMARKS.md).
 """
 
 from __future__ import annotations

@@ -31,7 +31,7 @@ One diagnostic side, run only where the YuMi executed the push:
   coarse  the primitive side at a 10 ms plant step (COARSE_STEP, the search's non-pushing
           selectors'): at 10 ms the compliant contact launches a pushed object (a box pushed 7.5 cm
           along x ends 3.3 cm to the side, turned 98 degrees; at 5 ms and on the YuMi it slides
-          6.6 cm straight: sims/push_fidelity_box.py), the reason the pushes run at 5 ms.
+          6.6 cm straight; docs/BENCHMARKS.md), the reason the pushes run at 5 ms.
 Gain sign: sign(Q*_o after - Q*_o before) in {-1, 0, +1} (|gain| <= 1e-9 counts as 0), Q*_o by the
 study's GraspSets (StudyParams(), seeded by the heap's seed, so both sides score the same grasp
 samples of an object in a given tilt); `gain_sign_agree` when the two signs are equal.

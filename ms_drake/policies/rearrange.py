@@ -39,7 +39,7 @@ waypoints); the FSM's state is the Context's abstract state, updated every `para
 
 `params.method`: a SceneChecker method (`net`, `pointnet_grid`, `coal_reconstruction`, `sdf`) or
 `ik_line`: plain IK + a straight joint-space line to each goal, no collision checking (the
-issue's comparison).
+baseline without a collision checker).
 
 Exported ports (the station's names): inputs <cam>.depth_image, panda.state_estimated,
 panda_jaw.state_measured, and in simulation <cam>.label_image; outputs panda.position,

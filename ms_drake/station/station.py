@@ -3,7 +3,7 @@
 Build order follows Drake's hardware_sim example: plant + scene graph from the scenario's
 configs, environment, objects, robot and grippers, Finalize, cameras, visualization.
 
-Exported ports (names identical in sim and hardware, DESIGN.md):
+Exported ports (names identical in sim and hardware; docs/concepts.md):
 - ``<cam>.rgb_image``, ``<cam>.depth_image`` (32F metres), ``<cam>.label_image`` for each camera;
 - sim-only: ``body_poses``, ``body_spatial_velocities``, ``query_object``, ``contact_results``, ``state``
   (plant state); input ``applied_spatial_force`` (external forces on bodies; stations without suction cups).
