@@ -1,8 +1,8 @@
 """PickReach: can a station's robot execute a grasp? The full backend's own pick plan (IK of the
 pre-grasp from the park configuration, the straight approach, the straight lift; the jaw also
 turned by pi about its axis) without simulating it, so a grasp planner can keep only the grasps
-the robot reaches -- the primitive mode then executes the grasps the robot would (issue #15, "The
-two fidelities agree").
+the robot reaches -- the primitive mode then executes the grasps the robot would (so that the two
+fidelities agree).
 
 Given the scene (the IndexedGraspPlanner's coal Scene of the objects and the bin), a reached
 grasp must also keep the arm clear of it:

@@ -1,4 +1,4 @@
-"""The two fidelities on the same grasps (issue #15, "The two fidelities agree"): a primitive-mode
+"""The two fidelities on the same grasps (do they agree?): a primitive-mode
 search of a heap records, before each grasp attempt, the scene (every object's pose, which
 objects were already lifted out) and the grasp it executes; each attempt is then replayed in full
 fidelity (YuMiBin + FullBackend: IK + ruckig through the station's drivers, compliant pads /

@@ -1,4 +1,4 @@
-"""Full fidelity of the push study (issue #14): each policy's push of an improvable heap executed on
+"""Full fidelity of the push study: each policy's push of an improvable heap executed on
 the YuMi station and in the primitive mode from the same state, and whether the objects end up in
 the same places.
 
