@@ -1,4 +1,4 @@
-"""The package's layers: imports point down only (DESIGN.md, "Layers").
+"""The package's layers: imports point down only (docs/concepts.md, "Layers").
 
 Lowest first; modules of one layer may import their own capability (the same folder) and
 anything in a lower layer, never a peer of their layer or anything above. Function-level imports
@@ -68,7 +68,7 @@ def _imports(rel: Path, tree: ast.Module):
 
 def test_every_capability_has_a_layer():
     unknown = {_capability(rel) for rel, _ in _modules()} - set(LEVEL) - {"__init__"}
-    assert not unknown, f"add {sorted(unknown)} to LAYERS in tests/test_layers.py (and DESIGN.md)"
+    assert not unknown, f"add {sorted(unknown)} to LAYERS in tests/test_layers.py (and docs/concepts.md)"
 
 
 @pytest.mark.parametrize("rel, tree", list(_modules()), ids=lambda x: str(x) if isinstance(x, Path) else "")

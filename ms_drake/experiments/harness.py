@@ -14,7 +14,7 @@ torn last line is dropped on resume.
 Statistics (our choices where the reference is silent): success rate with a percentile bootstrap
 95 % interval; mean actions +/- SEM and quartiles over *all* rollouts (the reference's Table C.1
 counts actions of every rollout), with a bootstrap interval of the mean; 2000 resamples, seeded.
-Also the quartiles over *successful* rollouts (`success_quartiles`: Table 8.2 and SPEC's
+Also the quartiles over *successful* rollouts (`success_quartiles`: Table 8.2 and the search's
 efficiency metric report those).
 """
 

@@ -7,7 +7,7 @@
 In simulation, start the robot where the controller expects it (parked out of the camera's view):
 `station.robots.set_arm_positions(plant, plant_context, robot, controller.initial_commands())`.
 
-Inside (DESIGN.md "Data flow"; every planner is a system of the diagram):
+Inside (docs/concepts.md, "Data flow"; every planner is a system of the diagram):
   <cam>.label_image -> Segmenter("ground_truth")   (simulation)  |  <cam>.depth_image -> Segmenter(params.segmenter)
     (simulation with a depth segmenter: -> MaskAssociation(<cam>.label_image), the masks named
     after the objects behind them so the simulated executor knows what a grasp lifted)
