@@ -47,7 +47,7 @@ def test_unknown_name_size_or_count_names_the_choices(tmp_path):
         reproduce("table_9_9", out=tmp_path)
     with pytest.raises(ReproduceError, match=r"unknown size 'medium' .*choose one of small, full"):
         reproduce("table_9_1", size="medium", out=tmp_path)
-    with pytest.raises(ReproduceError, match=r"sizes heaps unknown for recipe table_9_1; give some of scenes, occluders"):
+    with pytest.raises(ReproduceError, match=r"sizes heaps unknown for recipe table_9_1; give some of scenes, occl"):
         reproduce("table_9_1", sizes={"heaps": 3}, out=tmp_path)
 
 
