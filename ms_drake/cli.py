@@ -78,6 +78,8 @@ from ms_drake.experiments.push_fidelity import (
     summarize_fidelity,
 )
 from ms_drake.experiments.records import RECORD_FIELDS, read_record_file
+from ms_drake.experiments.reproduce import list_recipes
+from ms_drake.experiments.reproduce import reproduce as run_reproduce
 from ms_drake.experiments.push_study import (
     SAMPLINGS,
     StudyParams,
@@ -412,6 +414,51 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
 
 
 @app.command()
+def reproduce(name: Optional[str] = typer.Argument(None, help="The table or figure, e.g. table_8_2 (--list names "
+                                                   "them all)"),
+              size: str = typer.Option("small", "--size", help="small (<= 15 minutes on 2 cores) | full (the "
+                                       "reference's counts)"),
+              seed_start: Optional[int] = typer.Option(None, "--seed-start", min=0, help="First seed (default: the "
+                                                       "table's)"),
+              workers: int = _workers("Parallel workers (W), for the benches that run jobs in parallel"),
+              ray: bool = Ray,
+              out: Path = typer.Option(Path("out/reproduce"), "--out", help="Folder; the table's records, markdown "
+                                       "and figures go to OUT/NAME/ (a run resumes from them)"),
+              list_: bool = typer.Option(False, "--list", help="List the tables and figures and exit")):
+    """Reproduce one of the reference's tables or figures: runs what it needs (resuming from the
+    records in OUT/NAME/), then writes OUT/NAME/NAME.md (ours with 95 % intervals beside the
+    reference's, the command, machine and date), its figures and records."""
+    if list_ or name is None:
+        for r in list_recipes():
+            typer.echo(f"{r.name:10s} {r.title}")
+        if name is None and not list_:
+            _fail("give a table or figure name (listed above), e.g. ms-drake reproduce table_8_2")
+        return
+    _choose("table or figure", name, [r.name for r in list_recipes()])
+    _choose("--size", size, ("small", "full"))
+    _need_writable("--out", out)
+    bar = tqdm(total=0, desc=name, unit="item")
+
+    def progress(done: int, total: int):
+        if bar.total != total:
+            bar.reset(total=total)
+        bar.n = done
+        bar.refresh()
+
+    try:
+        path = run_reproduce(name, size=size, seed_start=seed_start, workers=workers, use_ray=ray, out=out,
+                             progress=progress, log=tqdm.write)
+    except KeyboardInterrupt:
+        bar.close()
+        typer.echo(f"stopped after {bar.n} of {bar.total} items; run the same command to resume", err=True)
+        raise typer.Exit(130)
+    finally:
+        bar.close()
+    typer.echo(path.read_text())
+    typer.echo(f"wrote {path}")
+
+
+@app.command()
 def perceive(depth: Path = typer.Argument(..., help="Depth image of a bin from above: .npy (float metres) or "
                                           "16-bit .png (millimetres, 0 = no return)"),
              intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", help="YAML/JSON camera file: width, "
@@ -723,8 +770,7 @@ def data_push_heaps(count: int = typer.Option(..., "--count", min=1, help="Heaps
                     transfer_speed: Optional[float] = typer.Option(
                         None, "--transfer-speed", min=0.01,
                         help="m/s of the primitive jaw's two transfers between park and above the push (free space "
-                             "above the walls; default: the push's 0.5 m/s travel). 2.0 halves the push's CPU "
-                             "(sims/push_transfer_speed.py measures what it changes)"),
+                             "above the walls; default: the push's 0.5 m/s travel). 2.0 halves the push's CPU"),
                     sampling: str = typer.Option(
                         "tilt_bin", "--sampling",
                         help=f"What seeds an object's grasp draw and robust trials: {' | '.join(SAMPLINGS)} "

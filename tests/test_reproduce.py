@@ -1,6 +1,6 @@
 """`ms-drake reproduce NAME` (ms_drake.experiments.reproduce): the registry of the twelve recipes, its
-errors, and each non-bin-search recipe end to end at a tiny size, run twice: the second run finds
-every record in place and does no new work."""
+errors, and each recipe end to end at a tiny size, run twice: the second run finds every record in
+place and does no new work."""
 
 from __future__ import annotations
 
@@ -14,7 +14,6 @@ from ms_drake.experiments.reproduce import RECIPES, ReproduceError, list_recipes
 
 NAMES = ("table_2_1", "table_3_1", "fig_4_2", "table_b_1", "table_6_1", "table_6_3", "table_8_1", "table_9_1",
          "table_9_2", "table_c_1", "fig_7_4", "table_8_2")
-BIN_SEARCH = ("table_c_1", "fig_7_4", "table_8_2")
 
 # name -> (tiny counts, other reproduce() arguments): each test takes seconds to half a minute.
 TINY = {
@@ -29,6 +28,10 @@ TINY = {
     "table_9_1": ({"scenes": 1, "occluders": [4]}, {}),
     # one scene per policy (seed 2, the first of the 8 / 10 / 12 cycle: 8 occluders), one action each
     "table_9_2": ({"scenes": 1, "horizon": 1}, {"seed_start": 2}),
+    # the bin searches: one heap per selector (and per N), through one pool, heaps shared
+    "table_c_1": ({"heaps": 1}, {}),
+    "fig_7_4": ({"heaps": 1}, {}),
+    "table_8_2": ({"heaps": 1}, {}),
 }
 
 
@@ -49,12 +52,6 @@ def test_unknown_name_size_or_count_names_the_choices(tmp_path):
         reproduce("table_9_1", size="medium", out=tmp_path)
     with pytest.raises(ReproduceError, match=r"sizes heaps unknown for recipe table_9_1; give some of scenes, occl"):
         reproduce("table_9_1", sizes={"heaps": 3}, out=tmp_path)
-
-
-@pytest.mark.parametrize("name", BIN_SEARCH)
-def test_bin_search_recipes_are_registered_for_the_lead(name, tmp_path):
-    with pytest.raises(NotImplementedError, match="bin-search recipes are wired by the lead"):
-        reproduce(name, out=tmp_path)
 
 
 def _records(folder: Path, name: str) -> dict:

@@ -49,6 +49,7 @@ from datetime import UTC, datetime
 from functools import partial
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import numpy as np
 
 from ms_drake.errors import MsDrakeError
@@ -73,6 +74,8 @@ from ms_drake.experiments.push_study import (
     write_push_heaps,
 )
 from ms_drake.experiments.rearrange import rearrange_records, rearrange_table, run_rearrange_bench
+from ms_drake.experiments.figures import save_png
+from ms_drake.experiments.harness import paired_comparison, plot, read_search_records, run_suite
 from ms_drake.experiments.records import read_record_file
 from ms_drake.experiments.segmentation_learning import bench_job as segmentation_job
 from ms_drake.experiments.shelf import plot_shelf, run_shelf_bench, shelf_records, shelf_table
@@ -83,8 +86,10 @@ from ms_drake.paths import code_version
 from ms_drake.perception.occupancy_net import TARGET_RATIOS
 from ms_drake.perception.occupancy_net import load_model as load_occupancy_model
 from ms_drake.perception.segmentation import coco_metrics
+from ms_drake.policies.bin_search import load_bin_search_config
 from ms_drake.pushing import POLICIES as PUSH_POLICIES
 from ms_drake.robots import PadConfig
+from ms_drake.scenes.layouts import HeapConfig
 
 SIZES = ("small", "full")
 BOOTSTRAP = 2000  # resamples of a mean or a ratio (as harness.summarize)
@@ -777,10 +782,73 @@ TABLE_9_2_REF = (
 
 
 # ----------------------------------------------------------------------------------- bin searches
-def _bin_search_recipe(run: Run, **protocol) -> Result:
-    """The bin-search recipes (Table C.1, Fig. 7.4, Table 8.2): `bench search` per selector on
-    shared heaps."""
-    raise NotImplementedError("bin-search recipes are wired by the lead")
+class _SuiteProgress:
+    """run_suite's progress (start(done, todo), then one call per record) as the recipe's."""
+
+    def __init__(self, progress: Progress):
+        self.progress = progress
+
+    def start(self, done: int, todo: int) -> None:
+        self.progress.set(done)
+
+    def __call__(self, rec: dict) -> None:
+        self.progress.add(1)
+
+
+def _bin_search_recipe(run: Run, setting: str, rows: tuple[tuple[str, str], ...], objects: tuple[int, ...],
+                       margin: tuple[str, str] | None = None) -> Result:
+    """`bench search` with the named setting (policies.bin_search.named_search_configs) for each
+    selector of `rows` and each N of `objects` on heaps S..S+K-1 shared through OUT/NAME/heaps (one
+    JSON-lines file per selector and N); the Ch. 7 setting's budget is 2N. margin: (row A, row B)
+    whose paired success difference is reported (the heaps resampled)."""
+    heaps = run.size["heaps"]
+    runs, labels = [], []
+    for n in objects:
+        for row, policy in rows:
+            cfg = load_bin_search_config(setting, policy=policy)
+            cfg.heap = HeapConfig(cfg.heap.layout, n)
+            if setting == "ch7":
+                cfg.horizon = 2 * n
+            runs.append((cfg, run.dir / f"{policy}_N{n}.jsonl"))
+            labels.append(f"N = {n}, {row}" if len(objects) > 1 else row)
+    summaries = run_suite(runs, heaps, run.seed_start, workers=run.workers, use_ray=run.use_ray,
+                          progress=_SuiteProgress(run.progress), heap_dir=str(run.dir / "heaps"))
+    measures = []
+    for label, s in zip(labels, summaries):
+        measures += [Measure(label, "success", 100 * s["success_rate"], _scaled(s["success_ci"], 100), "{:.1f}"),
+                     Measure(label, "mean actions", s["mean_actions"], tuple(s["actions_ci"]), "{:.2f}"),
+                     Measure(label, "actions quartiles (successes)",
+                             " / ".join(f"{q:g}" for q in s["success_quartiles"]) if s["success_rate"] > 0 else "-")]
+    files = [path for _, path in runs]
+    notes = [f"{heaps} heaps per selector (seeds {run.seed_start}-{run.seed_start + heaps - 1}); the setting "
+             f"`{setting}` (`ms-drake bench config --config {setting}` prints it)."]
+    if margin is not None:
+        a, b = (files[labels.index(r)] for r in margin)
+        c = paired_comparison(read_search_records(a), read_search_records(b), (str(a), str(b)))
+        measures.append(Measure(f"{margin[0]} - {margin[1]}", "success margin (points)", c["diff"],
+                                tuple(c["diff_ci"]), "{:.1f}"))
+        notes.append(f"{margin[0]} vs {margin[1]} on the same heaps: {len(c['only_a'])} heaps only {margin[0]} "
+                     f"solves, {len(c['only_b'])} only {margin[1]}; sign test p = {c['p']:.2g}.")
+    figures = plot(files, run.dir)
+    if len(objects) > 1:
+        figures.append(_actions_by_objects(run.dir, rows, objects, summaries))
+    return Result(measures, figures=figures, records=files, notes=notes)
+
+
+def _actions_by_objects(folder: Path, rows, objects, summaries) -> Path:
+    """Fig. 7.4 A: mean actions (95 % interval) against N, one line per selector."""
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for k, (row, _) in enumerate(rows):
+        s = [summaries[j * len(rows) + k] for j in range(len(objects))]
+        mean = [x["mean_actions"] for x in s]
+        err = np.array([[m - x["actions_ci"][0], x["actions_ci"][1] - m] for m, x in zip(mean, s)]).T
+        ax.errorbar(objects, mean, yerr=err, marker="o", capsize=3, label=row)
+    ax.set_xlabel("objects in the heap (N)")
+    ax.set_ylabel("mean actions")
+    ax.set_xticks(list(objects))
+    ax.set_title("Actions to extract the target (cf. Fig. 7.4 A)")
+    ax.legend(fontsize=7)
+    return save_png(fig, folder / "actions_by_objects.png")
 
 
 # Table C.1 (lines 1941-1946): success rate and mean actions (+- SEM), 1,000 trials each, N = 15.
@@ -795,8 +863,10 @@ TABLE_C_1_REF = _refs([r for r, _ in C1_POLICIES], ("success", "mean actions"),
 FIG_7_4_REF = tuple(Ref(f"N = 15, {r.row}", r.metric, r.value) for r in TABLE_C_1_REF)
 # Table 8.2 (lines 1501-1504): success rate and the quartiles of actions over successful rollouts,
 # 1,000 rollouts each, N = 14 + target, H = 10. The reference's Random first tries the target.
+TABLE_8_2_ROWS = (("Random", "preempted_random"), ("Largest", "largest"), ("X-Ray", "xray"))
 TABLE_8_2_REF = _refs(("Random", "Largest", "X-Ray"), ("success", "actions quartiles (successes)"),
-                      [(42, "4 / 7 / 9"), (67, "4 / 5 / 7"), (82, "3 / 5 / 6")])
+                      [(42, "4 / 7 / 9"), (67, "4 / 5 / 7"), (82, "3 / 5 / 6")]) + (
+    Ref("X-Ray - Largest", "success margin (points)", 15),)
 
 
 # ----------------------------------------------------------------------------------- the registry
@@ -849,16 +919,18 @@ RECIPES: dict[str, Recipe] = {r.name: r for r in (
            minutes_small=3.2, options=("horizon",)),
     Recipe("table_c_1", "Table C.1: bin search selectors (Random, Preempted Random, Largest-First, +/- pushing), "
            "success and actions", TABLE_C_1_REF, small=dict(heaps=50), full=dict(heaps=1000),
-           run=partial(_bin_search_recipe, policies=tuple(p for _, p in C1_POLICIES), objects=(15,)),
-           total=lambda size: len(C1_POLICIES) * size["heaps"]),
+           run=partial(_bin_search_recipe, setting="ch7", rows=C1_POLICIES, objects=(15,)),
+           total=lambda size: len(C1_POLICIES) * size["heaps"], interval="heaps resampled (2,000 resamples)"),
     Recipe("fig_7_4", "Fig. 7.4: bin search selectors on heaps of 10, 15 and 20 objects, success and actions",
            FIG_7_4_REF, small=dict(heaps=20), full=dict(heaps=1000),
-           run=partial(_bin_search_recipe, policies=tuple(p for _, p in C1_POLICIES), objects=(10, 15, 20)),
-           total=lambda size: 3 * len(C1_POLICIES) * size["heaps"]),
+           run=partial(_bin_search_recipe, setting="ch7", rows=C1_POLICIES, objects=(10, 15, 20)),
+           total=lambda size: 3 * len(C1_POLICIES) * size["heaps"], interval="heaps resampled (2,000 resamples)"),
     Recipe("table_8_2", "Table 8.2: X-Ray vs Largest vs Random, bin search success", TABLE_8_2_REF,
-           small=dict(heaps=100), full=dict(heaps=1000),
-           run=partial(_bin_search_recipe, policies=("preempted_random", "largest", "xray"), objects=(14,)),
-           total=lambda size: 3 * size["heaps"]),
+           small=dict(heaps=60), full=dict(heaps=1000), seed_start=20000,
+           run=partial(_bin_search_recipe, setting="table_8_2", rows=TABLE_8_2_ROWS, objects=(14,),
+                       margin=("X-Ray", "Largest")),
+           total=lambda size: len(TABLE_8_2_ROWS) * size["heaps"],
+           interval="heaps resampled (2,000 resamples); the margin paired on the same heaps"),
 )}
 
 
