@@ -1757,13 +1757,15 @@ def _need_writable(option: str, path) -> None:
 
 
 def _guard_outputs(command) -> None:
-    """Make every command (recursively) check its OUTPUT_OPTIONS before it starts any work."""
+    """Make every command (recursively) check its OUTPUT_OPTIONS before it starts any work, and end on
+    Ctrl-C with one line and status 130 (a long command's records are written as they finish, so the
+    same command resumes; bench search and reproduce also say how far they got)."""
     for sub in getattr(command, "commands", {}).values():
         _guard_outputs(sub)
+    if command.callback is None:
+        return
     outs = [(p.name, p.opts[0]) for p in command.params
             if p.param_type_name == "option" and set(p.opts) & set(OUTPUT_OPTIONS)]
-    if not outs or command.callback is None:
-        return
     callback = command.callback
 
     @functools.wraps(callback)
@@ -1771,7 +1773,11 @@ def _guard_outputs(command) -> None:
         for name, option in outs:
             if kwargs.get(name) is not None:
                 _need_writable(option, kwargs[name])
-        return callback(*args, **kwargs)
+        try:
+            return callback(*args, **kwargs)
+        except KeyboardInterrupt:
+            typer.echo("stopped; the finished results are in their files: run the same command to resume", err=True)
+            raise typer.Exit(130) from None
 
     command.callback = guarded
 

@@ -309,3 +309,25 @@ def test_an_os_error_on_a_path_is_one_line(capsys, tmp_path):
     folder.mkdir()
     code, _, err = run_cli(capsys, "heaps", "--count", "1", "--objects", "1", "--out", folder)
     assert_one_error(code, err, str(folder), "Is a directory")
+
+
+def test_ctrl_c_ends_any_long_command_with_one_line_and_status_130(tmp_path):
+    """A long command interrupted: no traceback, one line saying how to resume, exit 130; what
+    finished is in its file."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "s.jsonl"
+    cmd = [str(Path(sys.executable).parent / "ms-drake"), "bench", "shelf", "--policy", "dar", "--occluders", "4",
+           "--scenes", "500", "--out", str(out)]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 300 and not (out.exists() and out.read_text().count("\n") >= 1):
+        time.sleep(0.2)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 130, err[-2000:]
+    assert "Traceback" not in err and "run the same command to resume" in err
+    assert out.read_text().count("\n") >= 1
