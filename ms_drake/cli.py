@@ -39,6 +39,7 @@ from ms_drake.collision.checker import NETWORKS as COLLISION_NETWORKS
 from ms_drake.collision.checker import default_weights as default_collision_weights
 from ms_drake.collision.checker import load_collision_net
 from ms_drake.collision.scene_net import NetConfig as CollisionNetConfig
+from ms_drake.config_files import load_config
 from ms_drake.errors import MsDrakeError
 from ms_drake.execution import FIDELITIES
 from ms_drake.experiments.collision_data import (
@@ -95,6 +96,7 @@ from ms_drake.experiments.rearrange import METHODS as REARRANGE_METHODS
 from ms_drake.experiments.perceive import PERCEIVE_SEGMENTERS, PerceiveError, load_camera, load_depth
 from ms_drake.experiments.perceive import perceive as run_perceive
 from ms_drake.experiments.perceive import write_perception
+from ms_drake.experiments.rearrange import bench_params
 from ms_drake.experiments.rearrange import (
     RearrangeError,
     check_rearrange_scenario,
@@ -152,6 +154,7 @@ from ms_drake.policies.bin_search import (
     load_bin_search_config,
 )
 from ms_drake.policies.bin_selectors import POLICIES as BIN_POLICIES
+from ms_drake.policies.rearrange import RearrangeParams
 from ms_drake.policies.bin_selectors import OCCUPANCY_POLICIES
 from ms_drake.pushing import POLICIES as PUSH_POLICIES
 from ms_drake.policies.shelf import SHELF_POLICIES, check_shelf_policy
@@ -1043,8 +1046,11 @@ def bench_rearrange(method: Optional[str] = typer.Option(None, "--method",
                     seed_start: int = _seed_start("First scene seed (S)"),
                     out: Path = JsonlOut,
                     workers: int = _workers("Local worker processes", max=None),
-                    trajectories: int = typer.Option(300, "--trajectories", min=1, help="MPPI samples T"),
-                    horizon: int = typer.Option(40, "--horizon", min=1, help="MPPI horizon H"),
+                    config: Optional[Path] = typer.Option(None, "--config", help="A YAML file of RearrangeParams' "
+                                                          "fields (the controller: MPPI, placements, grasping)"),
+                    set_: Optional[list[str]] = typer.Option(None, "--set", help="Override one controller field, "
+                                                             "repeatable: KEY=VALUE, e.g. trajectories=100, "
+                                                             "horizon=20 (MPPI's T and H)"),
                     table: bool = typer.Option(False, "--table", help="Only print the table of --out"),
                     scenario: str = typer.Option("PandaTable", "--scenario", help="The station: a table scenario "
                                                  "with the Panda and a front camera"),
@@ -1062,8 +1068,10 @@ def bench_rearrange(method: Optional[str] = typer.Option(None, "--method",
         _need_rearrange_scenario(scenario_file, scenario)
         station = {} if scenario == "PandaTable" and scenario_file is None else {
             "scenario_name": scenario, "scenario_file": str(scenario_file) if scenario_file is not None else None}
+        params = load_config(RearrangeParams, config, set_ or (), **bench_params(method, 0).__dict__)
+        overrides = {k: v for k, v in dataclasses.asdict(params).items() if k not in ("method", "seed")}
         run_rearrange_bench(method, scenes, seed_start, out, objects=objects, workers=workers, log=typer.echo,
-                            trajectories=trajectories, horizon=horizon, **station)
+                            **overrides, **station)
     typer.echo(rearrange_table(rearrange_records([out])))
     typer.echo(f"results in {out}")
 

@@ -38,6 +38,22 @@ def _resolve_annotations(schema) -> None:
                 _resolve_annotations(arg)
 
 
+@functools.cache
+def _settable(schema):
+    """The schema itself, or for a frozen dataclass a subclass whose fields Drake's YAML may set."""
+    if not schema.__dataclass_params__.frozen:
+        return schema
+    return type(schema.__name__, (schema,), {"__setattr__": object.__setattr__, "__delattr__": object.__delattr__})
+
+
+def _typed_load(schema, base, **where):
+    """yaml_load_typed of `where` (filename= or data=) over `base`, as a `schema`."""
+    work = _settable(schema)
+    loaded = yaml_load_typed(schema=work, defaults=work(**dataclasses.asdict(base)) if work is not schema else base,
+                             **where)
+    return loaded if work is schema else schema(**dataclasses.asdict(loaded))
+
+
 def _rebuild(schema, config):
     """The config re-made through the schema's constructor (its checks run)."""
     return schema(**dataclasses.asdict(config))
@@ -58,7 +74,7 @@ def load_config(schema, path=None, overrides=(), named: dict | None = None, **fi
                                   + f"; give a YAML file of {name}'s fields"
                                   + (f" or one of {', '.join(named)}" if named else ""))
             try:
-                base = yaml_load_typed(schema=schema, filename=str(path), defaults=schema())
+                base = _typed_load(schema, schema(), filename=str(path))
             except _YAML_ERRORS as e:
                 raise ConfigError(f"{path}: {str(e).splitlines()[0]}") from None
             base = schema(**{**dataclasses.asdict(base), **fields})
@@ -74,7 +90,7 @@ def load_config(schema, path=None, overrides=(), named: dict | None = None, **fi
             leaf_parent[leaf] = "__VALUE__"
             text = yaml_dump(tree).replace("__VALUE__", value.strip() or "''")
             try:
-                base = yaml_load_typed(schema=schema, data=text, defaults=base)
+                base = _typed_load(schema, base, data=text)
             except _YAML_ERRORS as e:
                 raise ConfigError(f"--set {item!r}: {str(e).splitlines()[0]}; the keys are the fields of {name} "
                                   f"({', '.join(f.name for f in dataclasses.fields(schema))}) and of its parts") \

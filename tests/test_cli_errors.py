@@ -331,3 +331,10 @@ def test_ctrl_c_ends_any_long_command_with_one_line_and_status_130(tmp_path):
     assert p.returncode == 130, err[-2000:]
     assert "Traceback" not in err and "run the same command to resume" in err
     assert out.read_text().count("\n") >= 1
+
+
+def test_a_bad_controller_override_of_the_rearrangement_is_one_error(capsys, tmp_path):
+    code, _, err = run_cli(capsys, "bench", "rearrange", "--method", "sdf", "--set", "trajectories=many",
+                           "--out", tmp_path / "r.jsonl")
+    assert_one_error(code, err, "trajectories=many", "RearrangeParams")
+    assert not (tmp_path / "r.jsonl").exists()

@@ -4,12 +4,16 @@
 import dataclasses
 import json
 
+from ms_drake.config_files import config_dict
+
 import numpy as np
 import pytest
 from pydrake.lcm import DrakeLcm
 from pydrake.systems.framework import DiagramBuilder
 
 from ms_drake.experiments.rearrange import (
+    bench_params,
+    rearrange_records,
     DEMO_ZONE,
     SCENARIO,
     barrier_scene,
@@ -227,9 +231,13 @@ def test_table_scene_and_bench_records(scenario, tmp_path):
         assert -0.46 <= x <= 0.16 and -0.33 <= y <= 0.33
     f = tmp_path / "r.jsonl"
     rec = {"seed": 0, "method": "sdf", "objects": 10, "grasps_attempted": 12, "grasps": 8, "placements": 6,
-           "minutes": 3.0, "plan_cpu_seconds": 20.0, "cpu_seconds": 90.0}
+           "minutes": 3.0, "plan_cpu_seconds": 20.0, "cpu_seconds": 90.0,
+           "config": config_dict(bench_params("sdf", 0))}  # the whole controller config, as a run records it
     f.write_text(json.dumps(rec) + "\n")
     assert run_rearrange_bench("sdf", 1, 0, f, objects=10, log=lambda *a: None) == []  # already there
+    # another controller config is another run: the table keeps them apart
+    other = dict(rec, config=config_dict(bench_params("sdf", 0, trajectories=100)))
+    assert "| sdf (T=100, H=40) | 1 |" in rearrange_table(rearrange_records([f]) + [other])
     table = rearrange_table([rec, dict(rec, seed=1)])
     assert "| sdf (T=300, H=40) | 2 | 20 | 16 / 24 | 12 | 6.0 |" in table
     with pytest.raises(ValueError, match="method 'fcl' unknown"):

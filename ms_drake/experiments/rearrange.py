@@ -41,6 +41,7 @@ from pydrake.systems.framework import DiagramBuilder, EventStatus
 
 from ms_drake.errors import MsDrakeError
 from ms_drake.execution.termination import StopWhenDone
+from ms_drake.config_files import config_dict
 from ms_drake.experiments.harness import read_records
 from ms_drake.objects import get_object
 from ms_drake.objects.registry import get_object_set
@@ -262,7 +263,7 @@ def run_rearrange(system: RearrangeSystem, params: RearrangeParams, seed: int = 
 # --------------------------------------------------------------------------------- bench
 def bench_params(method: str, seed: int, **overrides) -> RearrangeParams:
     """The Table 6.3 setting: the reachable table as the zone, the reference's T and H."""
-    return RearrangeParams(method=method, zone=BENCH_ZONE, seed=seed, **overrides)
+    return RearrangeParams(**{"method": method, "zone": list(BENCH_ZONE), "seed": seed, **overrides})
 
 
 def check_rearrange_scenario(scenario, name: str = "") -> None:
@@ -287,12 +288,13 @@ def rearrange_rollout(method: str, seed: int, objects: int = 10, max_sim: float 
     res = run_rearrange(system, params, seed, max_sim=max_sim)
     station = {} if scenario_name == SCENARIO and scenario_file is None else {"scenario": scenario_name,
                                                                              "scenario_file": scenario_file or ""}
-    return {"seed": int(seed), **res.record, "trajectories": params.trajectories, "horizon": params.horizon,
-            "order": list(system.targets), **station}
+    return {"seed": int(seed), **res.record, "order": list(system.targets), **station,
+            "config": config_dict(params)}
 
 
 def _key(r: dict) -> tuple:
-    return r["method"], int(r["seed"]), r.get("objects"), r.get("trajectories", 300), r.get("horizon", 40)
+    """A scene's record is done for (seed, objects, the controller's whole config)."""
+    return int(r["seed"]), r.get("objects"), json.dumps(r["config"], sort_keys=True)
 
 
 def _bench_job(job: tuple) -> dict:
@@ -310,9 +312,8 @@ def run_rearrange_bench(method: str, scenes: int, seed_start: int, out, objects:
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     done = {_key(r) for r in read_records(out)}
-    T, H = overrides.get("trajectories", 300), overrides.get("horizon", 40)
     jobs = [(method, s, objects, overrides) for s in range(seed_start, seed_start + scenes)
-            if (method, s, objects, T, H) not in done]
+            if (s, objects, json.dumps(config_dict(bench_params(method, s, **overrides)), sort_keys=True)) not in done]
     recs = []
     for res in run_jobs(_bench_job, jobs, workers=workers):
         if res.error:
@@ -330,7 +331,7 @@ def run_rearrange_bench(method: str, scenes: int, seed_start: int, out, objects:
 
 
 def rearrange_records(files) -> list[dict]:
-    """The records of result files, one per (method, seed, objects, T, H): the first."""
+    """The records of result files, one per (seed, objects, config): the first."""
     out, seen = [], set()
     for f in files:
         for r in read_records(Path(f)):
@@ -347,7 +348,7 @@ def rearrange_table(records: list[dict]) -> str:
              "planning cpu s | total cpu s |"), "|---|---|---|---|---|---|---|---|"]
     by = {}
     for r in records:
-        by.setdefault((r["method"], r.get("trajectories", 300), r.get("horizon", 40)), []).append(r)
+        by.setdefault((r["method"], r["config"]["trajectories"], r["config"]["horizon"]), []).append(r)
     for (m, T, H), rs in by.items():
         name = m if m == "ik_line" else f"{m} (T={T}, H={H})"
         rows.append(f"| {name} | {len(rs)} | {sum(r['objects'] for r in rs)} | {sum(r['grasps'] for r in rs)} / "

@@ -102,7 +102,7 @@ class RearrangeParams:
     the waypoints' spacing and the scene's unseen backs); seed: every random choice."""
 
     method: str = "coal_reconstruction"
-    zone: tuple = (-0.35, 0.05, 0.05, 0.30)
+    zone: list[float] = field(default_factory=lambda: [-0.35, 0.05, 0.05, 0.30])
     trajectories: int = 300
     horizon: int = 40
     sigma: float = float(np.sqrt(0.3))
