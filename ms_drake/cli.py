@@ -641,7 +641,7 @@ app.add_typer(bench_app, name="bench")
 
 
 ConfigFile = typer.Option(None, "--config", help="A named setting (table_8_2: the defaults; ch7: Fig. 7.4 and "
-                          "Table C.1) or a YAML file of any of BinSearchConfig's fields (`ms-drake bench config` "
+                          "Table C.1; camera: learned perception on a noisy depth sensor) or a YAML file of any of BinSearchConfig's fields (`ms-drake bench config` "
                           "prints them all)")
 SetOption = typer.Option(None, "--set", help="Override one config field, repeatable: KEY=VALUE, e.g. "
                          "heap.objects=15, heap.layout=bin_set, horizon=30, segmenter=learned, "

@@ -241,7 +241,8 @@ class BinSearchConfig:
 
 def named_search_configs() -> dict[str, Path]:
     """The named bin-search settings: diagrams/search_<name>.yaml beside the scenario file
-    (table_8_2: the defaults; ch7: Fig. 7.4 and Table C.1's setting)."""
+    (table_8_2: the defaults; ch7: Fig. 7.4 and Table C.1's setting; camera: the search from the
+    camera alone, learned perception on the PhoXi-like depth sensor model)."""
     folder = default_scenarios_file().parent
     return {p.stem.removeprefix("search_"): p for p in sorted(folder.glob("search_*.yaml"))}
 
