@@ -45,6 +45,7 @@ LEAVES = [path for path, c in _walk(typer.main.get_command(cli.app)) if not geta
 # command -> its tiny run; DOCS/<name> is a copy of docs/data/<name>, OUT a fresh folder
 TINY = {
     ("grasp",): ["--object", "procedural/box_000", "--samples", "5", "--robust", "0", "--out", "OUT/grasp"],
+    ("reproduce",): ["--list"],
     ("bench", "plot"): ["DOCS/demo_xray_50.jsonl", "--out", "OUT/plots"],
     ("bench", "paired"): ["DOCS/demo_xray_50.jsonl", "DOCS/demo_xray_50.jsonl"],
     ("bench", "push-table"): ["DOCS/push_bench.jsonl", "--json", "OUT/push.json"],
