@@ -15,7 +15,8 @@ REQUIRED = {"EmptyBin", "FloatingGripperBin", "YuMiBin", "PandaTable", "FetchShe
 def test_all_shipped_scenarios_load():
     names = set(scenario_names())
     assert REQUIRED <= names
-    environments = {"BinHeap15": "bin", "EmptyBin": "bin", "FloatingGripperBin": "bin", "YuMiBin": "bin", "PandaBin": "bin",
+    environments = {"BinHeap15": "bin", "EmptyBin": "bin", "FloatingGripperBin": "bin", "FloatingGripperBinPhoXi": "bin",
+                    "YuMiBin": "bin", "PandaBin": "bin",
                     "FetchShelf": "shelf", "PandaTable": "table"}
     assert names == set(environments)
     for n in names:
