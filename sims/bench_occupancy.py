@@ -1,6 +1,6 @@
 """Speed and fidelity of the occupancy ground-truth generator (Ch. 8.3.1; the reference: 1.5 s / image).
 
-    .venv/bin/python sims/bench_occupancy.py --heaps 10 --render-images 2 [--write-docs]
+    .venv/bin/python sims/bench_occupancy.py --heaps 10 --render-images 2
 
 For each of `--heaps` 15-object heaps (BinHeap15, seeds from --seed-start, cached in --cache)
 and each reference target box (1:1 = 3 x 3 x 0.5 cm and 10:1 = 9.5 x 0.95 x 0.5 cm, Ch. 8.3.1),
@@ -22,9 +22,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from ms_drake.experiments.docs import write_benchmark_section
 
-ROOT = Path(__file__).resolve().parent.parent
 SECTION = "## Occupancy"
 TARGETS = {"1:1": (0.03, 0.03, 0.005), "10:1": (0.095, 0.0095, 0.005)}
 
@@ -191,25 +189,18 @@ def table(res: dict, cmd: str) -> str:
     return "\n".join(lines)
 
 
-def write_docs(text: str) -> None:
-    write_benchmark_section(ROOT / "docs" / "BENCHMARKS.md", SECTION, text)
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--heaps", type=int, default=10)
     ap.add_argument("--seed-start", type=int, default=2000)
     ap.add_argument("--render-images", type=int, default=2)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/ms_drake_bench_occupancy"))
-    ap.add_argument("--write-docs", action="store_true")
     a = ap.parse_args()
     res = run(a.heaps, a.seed_start, a.render_images, a.cache)
     cmd = (f".venv/bin/python sims/bench_occupancy.py --heaps {a.heaps} --seed-start {a.seed_start} "
-           f"--render-images {a.render_images} --write-docs")
+           f"--render-images {a.render_images}")
     text = table(res, cmd)
     print(text)
-    if a.write_docs:
-        write_docs(text)
 
 
 if __name__ == "__main__":

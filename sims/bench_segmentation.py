@@ -1,6 +1,6 @@
 """COCO mask AP / AR@100 of the depth-only segmentation baselines (Table B.1 analogue).
 
-    .venv/bin/python sims/bench_segmentation.py --heaps 50 --seed-start 1000 [--cache DIR] [--write-docs]
+    .venv/bin/python sims/bench_segmentation.py --heaps 50 --seed-start 1000 [--cache DIR]
 
 Images: one overhead 640 x 480 depth image per heap of the BinHeap15 scenario's bin, with
 N ~ Poisson(7.5) objects truncated to [1, 10] (rejection sampling; the WISDOM-Sim recipe of
@@ -19,9 +19,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from ms_drake.experiments.docs import write_benchmark_section
 
-ROOT = Path(__file__).resolve().parent.parent
 SECTION = "## Segmentation baselines"
 
 
@@ -116,23 +114,16 @@ def table(res: dict, cmd: str) -> str:
     return "\n".join(lines)
 
 
-def write_docs(text: str) -> None:
-    write_benchmark_section(ROOT / "docs" / "BENCHMARKS.md", SECTION, text)
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--heaps", type=int, default=50)
     ap.add_argument("--seed-start", type=int, default=1000)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/ms_drake_bench_segmentation"))
-    ap.add_argument("--write-docs", action="store_true")
     a = ap.parse_args()
     res = run(a.heaps, a.seed_start, a.cache)
-    cmd = f".venv/bin/python sims/bench_segmentation.py --heaps {a.heaps} --seed-start {a.seed_start} --write-docs"
+    cmd = f".venv/bin/python sims/bench_segmentation.py --heaps {a.heaps} --seed-start {a.seed_start}"
     text = table(res, cmd)
     print(text)
-    if a.write_docs:
-        write_docs(text)
 
 
 if __name__ == "__main__":

@@ -34,7 +34,6 @@ def main():
     ap.add_argument("--robust", type=int, default=10)
     ap.add_argument("--models", nargs="*", default=list(L.MODELS))
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--write-docs", action="store_true", help="put the table into docs/BENCHMARKS.md")
     args = ap.parse_args()
     if args.stage in ("labels", "all"):
         names = args.object_names or L.default_label_objects(args.objects)
@@ -52,13 +51,6 @@ def main():
         text += f" Positives (physics success rate >= 0.5): {pos} / {len(rows)}."
         print(text)
         print(json.dumps(table, indent=1))
-        if args.write_docs:
-            doc = ROOT / "docs" / "BENCHMARKS.md"
-            start, end = "<!-- grasp-apar:start -->", "<!-- grasp-apar:end -->"
-            d = doc.read_text()
-            if start not in d or end not in d:
-                raise SystemExit(f"{doc} has no {start} ... {end} block")
-            doc.write_text(d[: d.index(start)] + f"{start}\n{text}\n{end}" + d[d.index(end) + len(end):])
 
 
 if __name__ == "__main__":

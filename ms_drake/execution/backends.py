@@ -58,7 +58,7 @@ LIFT_THRESHOLD = 0.5
 # along x ends 3.3 cm to the side, turned 98 degrees, pushed along the diagonal it flies 23 cm
 # (slower pushes at 10 ms do no better, nor did the "similar" and "sap" contact approximations in
 # a trial); at 6, 5 and 2 ms it moves as on the YuMi (6.6 cm straight; 7.2 cm along the
-# diagonal, turned 13-20 degrees; docs/BENCHMARKS.md). The push study and the search's
+# diagonal, turned 13-20 degrees; docs/results/ch4_pushing.md). The push study and the search's
 # pushing selectors simulate at this step; the other selectors keep 10 ms (they never push).
 PRIMITIVE_PUSH_TIME_STEP = 0.005
 

@@ -91,8 +91,8 @@ TOPPLE_DEGREES = 20.0
 #: about the loaded lip point until the moment is carried). Boxes with up to ~0.15 N m about the
 #: cup tilt 1-8 degrees and hang clear; heavier ones, near the cup's limit (0.44-0.6 N m: 18-23
 #: degrees hanging free, where the far lip leaks), rest their back edge on the floor while pulled
-#: and placed, the floor carrying part of the weight (docs/BENCHMARKS.md, "Shelf search on the
-#: Fetch (physics)"): a 16 x 19 x 14 cm box of 0.66 kg is placed with 12 degrees and falls with 20.
+#: and placed, the floor carrying part of the weight (single suction actions on the Fetch,
+#: 2026-12-02, commit 51e2fb0): a 16 x 19 x 14 cm box of 0.66 kg is placed with 12 degrees and falls with 20.
 SAG_DEG = 12.0
 
 

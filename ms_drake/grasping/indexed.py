@@ -10,7 +10,7 @@ moved to the object's current pose; candidates out of reach dropped (approach ti
 `max_tilt` from world -z, grasp point outside the bin's inner box or below its floor);
 the rest taken best quality first (ties: jaw grasps the less tilted; suction grasps the nearer the
 object's centre of mass across the floor, the weight's lever arm about the cup, which decides the
-stations' lifts more often the farther it is: docs/BENCHMARKS.md, then the less tilted), and the
+stations' lifts more often the farther it is: docs/results/ch7_bin_search.md, then the less tilted), and the
 first whose gripper is free
 of the scene is the object's grasp of that kind. Free: the gripper's geometry -- the jaw's palm
 and two fingers (with their pads) opened to the grasp's width, or the suction cup and its shaft

@@ -97,7 +97,7 @@ PSI = 1.3
 
 #: Oracle-P's exhaustive push search after its staged one [CPU s]: the reference's Oracle-P is
 #: exhaustive (capped at H); 60 s decide all but 6 of the 29 scenes of Table 9.1 the staged search
-#: leaves, and keep the 400-scene run at 14 CPU-min (docs/BENCHMARKS.md).
+#: leaves, and keep the 400-scene run at 14 CPU-min (docs/results/ch9_shelf.md).
 ORACLE_EXHAUSTIVE_SECONDS = 60.0
 #: Oracle-P+S's wide search after its staged one [CPU s] (wide_plan): the one scene of Table 9.1
 #: the staged search leaves (8 occluders, seed 22) needs ~70 s.

@@ -20,7 +20,8 @@ that wait are not in the Bullet world at all. The interface is the one `_drop_in
 (pose, set_pose, park, velocities, max_speeds, advance_to, take_out, put_back, left), so both engines run
 the same drop plan, waves and settle tests.
 
-Choices where the reference is silent (measured in docs/BENCHMARKS.md, "Heaps with Bullet"):
+Choices where the reference is silent (measured on 2026-11-22, commit d4dc7e0; the heaps' figures:
+docs/results/foundation.md):
 time step 1/240 s (Bullet's default), 50 solver iterations, restitution 0, a small rolling and
 spinning friction (`rolling_friction` m) in place of the Drake world's angular damping so that
 cylinders stop rolling, and Bullet's sleeping disabled (the settle test decides rest).

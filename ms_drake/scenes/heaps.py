@@ -38,8 +38,8 @@ Generation of heap `seed` with N objects:
 Drop physics: `HeapParams.engine`. The default, "bullet", simulates the drop in the Bullet
 Physics Engine as the reference did (ms_drake.scenes.bullet mirrors this module's Drake drop
 world: same shapes, masses, frictions, drop plan, waves and settle tests; Drake then renders
-and stores the heap): ~0.5 CPU-s per 15-object heap instead of ~3 (docs/BENCHMARKS.md, "Heaps
-with Bullet"). Bullet heaps are rigid-contact heaps: reloaded into a bin station (compliant
+and stores the heap): ~0.5 CPU-s per 15-object heap instead of ~3 (docs/results/foundation.md,
+"Heaps"). Bullet heaps are rigid-contact heaps: reloaded into a bin station (compliant
 objects) they overlap less at load than Drake-dropped ones (median 1.0 vs 3.1 mm) but relax by
 1-2 mm (median object) in its first 0.5 s. Cylinders get a rolling friction of 1 mm (with
 0.1 mm, 3 of 200 heaps keep a cylinder rolling for 5 s); the Bullet solver stops its (at most
@@ -49,8 +49,8 @@ station better than Drake-dropped ones (largest displacement in 0.5 s, median of
 vs 7 mm). engine="drake" is the Drake drop world below (~3 CPU-s), kept because the
 search benchmarks' tables were run on its heaps (SEARCH_HEAPS).
 
-Drake drop physics (documented choices, tuned for speed without losing validity; measured in
-docs/BENCHMARKS.md, "Heaps with the Drake drop world"): objects are compliant-hydroelastic here (E =
+Drake drop physics (documented choices, tuned for speed without losing validity; measured on
+2026-11-22, commits bfc0d31 and 190443a): objects are compliant-hydroelastic here (E =
 5 MPa, see ms_drake.objects.sdf) so that resting contacts are pressure patches and the heap
 really comes to rest; discrete step `time_step` = 10 ms with Drake's "similar" convex contact
 approximation (less CPU than "lagged" at equal validity). The free joints carry a small
@@ -59,7 +59,7 @@ across the bin for seconds (Drake has no rolling friction). The objects are the 
 objects (the scenario's friction, E and Hunt-Crossley dissipation, 5 s/m): a higher dissipation
 (50-100 s/m) costs 25-35 % less CPU but makes contacts viscous, so an object not yet supported
 sinks or tips at a few mm/s, under the settle thresholds, and the "settled" heap moves in the
-station (docs/BENCHMARKS.md, "Drop-world variants that do not help"). Loaded into a bin station
+station (paired runs of 2026-11-22, commits bfc0d31 and 190443a). Loaded into a bin station
 (compliant objects, the same E) a heap keeps its poses bit for bit.
 """
 
@@ -161,8 +161,9 @@ class HeapParams:
 
 
 #: Heaps of the search benchmarks (ms_drake.experiments): the Drake drop world, whose heaps are
-#: at rest in the bin stations' own contact model and with which the tables of docs/BENCHMARKS.md
-#: were run (a Bullet heap relaxes by mm to cm in the station before the first action).
+#: at rest in the bin stations' own contact model and on which the Drake-heap rows of
+#: docs/results/ch7_bin_search.md were run (a Bullet heap relaxes by mm to cm in the station
+#: before the first action).
 SEARCH_HEAPS = HeapParams(engine="drake")
 
 

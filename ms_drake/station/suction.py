@@ -26,7 +26,7 @@ Model (choices recorded here; the reference gives none beyond "seal feasibility"
     presses on the face; about that point the pull at the centre gives a restoring moment up to
     f * r (0.6 N m at 40 N and r = 15 mm). Below that the face tilts on the compliant lip and
     stays sealed (on the bluction tool's cup, hydroelastic modulus 2e5 Pa: about 8 degrees at
-    0.12 N m, 18-20 degrees at 0.44-0.6 N m, docs/BENCHMARKS.md); beyond it the face turns until
+    0.12 N m, 18-20 degrees at 0.44-0.6 N m; measured 2026-12-02, commit 51e2fb0); beyond it the face turns until
     the far lip leaks (s > max_gap + seal_tolerance, a tilt of about 25 degrees) and the object
     falls.
     There is no stiffness of its own in this model: the lip's resistance is the contact's, which
