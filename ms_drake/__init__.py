@@ -42,7 +42,7 @@ _EXPORTS = {
     "SimulationInfo": "ms_drake.policies.bin_search",
     "connect_controller": "ms_drake.policies.bin_search",
     "MakeShelfSearchController": "ms_drake.policies.shelf_search",
-    "ShelfSearchParams": "ms_drake.policies.shelf_search",
+    "ShelfSearchConfig": "ms_drake.policies.shelf_search",
     "MakeRearrangementController": "ms_drake.policies.rearrange",
     "RearrangeParams": "ms_drake.policies.rearrange",
     "RearrangeSimInfo": "ms_drake.policies.rearrange",

@@ -82,8 +82,7 @@ from ms_drake.experiments.records import RECORD_FIELDS, read_record_file
 from ms_drake.experiments.reproduce import list_recipes
 from ms_drake.experiments.reproduce import reproduce as run_reproduce
 from ms_drake.experiments.push_study import (
-    SAMPLINGS,
-    StudyParams,
+    PushStudyConfig,
     format_push_table,
     plot_push,
     read_jsonl,
@@ -111,10 +110,8 @@ from ms_drake.experiments.segmentation_learning import (
     bench_segmentation,
     train_segmentation,
 )
-from ms_drake.experiments.shelf import PERCEPTIONS as SHELF_PERCEPTIONS
 from ms_drake.experiments.shelf import (
     bench_shelf_scenes,
-    oracle_exhaustive_budget,
     plot_shelf,
     run_shelf_bench,
     shelf_records,
@@ -137,7 +134,6 @@ from ms_drake.experiments.shelf_physics import (
     run_shelf_physics_bench,
 )
 from ms_drake.experiments.shelf_segmentation import bench_shelf_segmentation
-from ms_drake.foss import SUCTION_LIFTS
 from ms_drake.grasping.evaluator import MODELS
 from ms_drake.objects import available_sets, get_object_set
 from ms_drake.parallel import run_jobs
@@ -158,7 +154,8 @@ from ms_drake.policies.rearrange import RearrangeParams
 from ms_drake.policies.bin_selectors import OCCUPANCY_POLICIES
 from ms_drake.pushing import POLICIES as PUSH_POLICIES
 from ms_drake.policies.shelf import SHELF_POLICIES, check_shelf_policy
-from ms_drake.policies.shelf_search import PERCEPTIONS as SHELF_CONTROLLER_PERCEPTIONS
+from ms_drake.policies.shelf_search import CONTROLLER_PERCEPTIONS as SHELF_CONTROLLER_PERCEPTIONS
+from ms_drake.policies.shelf_search import SHELF_PERCEPTIONS, ShelfSearchConfig
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import HeapParams, generate_heap, heap_to_dict
 from ms_drake.scenes.layouts import HEAP_LAYOUTS as SEARCH_HEAP_LAYOUTS
@@ -539,7 +536,7 @@ def _peak_rss_mb() -> float:
 
 #: Heap workers are not recycled every 20 jobs like rollout workers: a heap's diagram is all C++
 #: and is freed (peak RSS 412 MB after 10 and after 80 heaps in one worker), while a fresh worker
-#: costs ~3 s of start-up, 5 heaps' worth (docs/BENCHMARKS.md, "Heaps with Bullet").
+#: costs ~3 s of start-up, 5 heaps' worth (docs/results/foundation.md).
 HEAP_TASKS_PER_CHILD = 1000
 
 
@@ -763,43 +760,40 @@ app.add_typer(data_app, name="data")
 # -- Linear push policies (Ch. 4): ms-drake data push-heaps, bench push / push-table ---------------------
 
 
+PushConfigFile = typer.Option(None, "--config", help="A YAML file of PushStudyConfig's fields (grasp sets, "
+                              "Algorithm 1, the heaps' object set, the ablation switches)")
+PushSetOption = typer.Option(None, "--set", help="Override one config field, repeatable: KEY=VALUE, e.g. "
+                             "object_set=procedural, grasps=50, ablation.transfer_speed=2.0, ablation.sampling=object, "
+                             "ablation.quasi_random_checked=true (the fields: PushStudyConfig in the API reference)")
+
+
+def _push_config(config: Optional[Path], sets: Optional[list[str]]) -> PushStudyConfig:
+    try:
+        return load_config(PushStudyConfig, config, sets or ())
+    except MsDrakeError as e:
+        _fail(str(e))
+
+
 @data_app.command("push-heaps")
 def data_push_heaps(count: int = typer.Option(..., "--count", min=1, help="Heaps to drop (seeds S..S+N-1)"),
                     out: Path = typer.Option(..., "--out", help="Output folder (heaps.jsonl; resumes)"),
                     seed_start: int = _seed_start("First heap seed (S)"),
+                    config: Optional[Path] = PushConfigFile,
+                    set_: Optional[list[str]] = PushSetOption,
                     workers: int = _workers(),
-                    object_set: str = typer.Option("", "--object-set",
-                                                   help="Object set of the heaps (default: BinHeap15's, procedural)"),
-                    transfer_speed: Optional[float] = typer.Option(
-                        None, "--transfer-speed", min=0.01,
-                        help="m/s of the primitive jaw's two transfers between park and above the push (free space "
-                             "above the walls; default: the push's 0.5 m/s travel). 2.0 halves the push's CPU"),
-                    sampling: str = typer.Option(
-                        "tilt_bin", "--sampling",
-                        help=f"What seeds an object's grasp draw and robust trials: {' | '.join(SAMPLINGS)} "
-                             "(object: the same draw in every tilt bin, common random numbers)"),
-                    compare_sampling: str = typer.Option(
-                        "", "--compare-sampling",
-                        help="Also score the same states and pushes with this sampling (the record's `compare`)"),
                     ray: bool = Ray,
                     ray_address: Optional[str] = RayAddress):
     """Improvable heaps (Ch. 4, Algorithm 1): drop, grasp until stuck, run the five push policies;
-    one record per heap, `improvable` when some policy raises the overall grasp quality."""
-    if object_set:
-        get_object_set(object_set)  # an unknown name fails here, listing the sets
-    for flag, value, allowed in (("--sampling", sampling, SAMPLINGS), ("--compare-sampling", compare_sampling,
-                                                                       ("",) + SAMPLINGS)):
-        if value not in allowed:
-            _fail(f"{flag} {value!r} unknown; choose one of {', '.join(a for a in allowed if a)}")
+    one record per heap (with its config), `improvable` when some policy raises the overall grasp
+    quality. Defaults: household-object heaps, the reference's 100 grasps per object."""
+    cfg = _push_config(config, set_)
     with tqdm(total=count, desc="push heaps", unit="heap") as bar:
         def tick(r):
             if not r.ok:
                 tqdm.write(f"seed {r.job[0]}: {r.error.splitlines()[-1] if r.error else 'failed'}")
             bar.update(1)
         s = write_push_heaps(count, out, seed_start, workers=workers, use_ray=ray or ray_address is not None,
-                             ray_address=ray_address,
-                             params=StudyParams(object_set=object_set, transfer_speed=transfer_speed,
-                                                sampling=sampling, compare_sampling=compare_sampling), bar=tick)
+                             ray_address=ray_address, params=cfg, bar=tick)
     if s["resumed"]:
         typer.echo(f"resumed: {s['resumed']} of {count} heaps already in {s['path']}")
     typer.echo(f"{s['dropped']} heaps dropped, {s['recorded']} stuck (recorded), {s['improvable']} improvable "
@@ -820,18 +814,22 @@ def bench_push(policy: str = typer.Option(..., "--policy", help=f"Push policy: {
                                           "the data step's execution of the policy on the heap"),
                from_state: bool = typer.Option(False, "--from-state", help="With --rerun: from the record's stored "
                                                "state (no drop, no grasping) instead of Algorithm 1 from the seed"),
-               transfer_speed: Optional[float] = typer.Option(
-                   None, "--transfer-speed", min=0.01, help="With --rerun: m/s of the primitive jaw's transfers "
-                   "between park and above the push (default: the 0.5 m/s travel)")):
-    """One JSON line per improvable heap: seed, policy, separation / jaw / suction / overall gain."""
+               set_: Optional[list[str]] = typer.Option(
+                   None, "--set", help="With --rerun: the heaps' config but these ablation switches, KEY=VALUE, "
+                   "e.g. ablation.transfer_speed=2.0, ablation.quasi_random_checked=true")):
+    """One JSON line per improvable heap: seed, policy, separation / jaw / suction / overall gain, and
+    the config the push ran under."""
     _choose("--policy", policy, PUSH_POLICIES)
     _need_jsonl(out)
     if not (heap_dir / "heaps.jsonl").exists():
         _fail(f"--heap-dir {heap_dir}: no heaps.jsonl; run `ms-drake data push-heaps --out {heap_dir}` first")
-    if (from_state or transfer_speed is not None) and not rerun:
-        _fail("--from-state and --transfer-speed re-execute the pushes: add --rerun")
+    if (from_state or set_) and not rerun:
+        _fail("--from-state and --set re-execute the pushes: add --rerun")
+    bad = [item for item in set_ or () if not str(item).startswith("ablation.")]
+    if bad:
+        _fail(f"--set {bad[0]}: a re-run keeps the heaps' config but its ablation switches (ablation.KEY=VALUE)")
     s = run_push_bench(policy, heaps_, seed_start, out, heap_dir, workers=workers, rerun=rerun,
-                       params=StudyParams(transfer_speed=transfer_speed), from_state=from_state)
+                       params=_push_config(None, set_), from_state=from_state)
     typer.echo(f"{policy}: {s['rows']} heaps in {out} ({s['new']} added; {s['available']} improvable heaps "
                f"available from seed {seed_start})")
     if s["available"] < heaps_:
@@ -939,6 +937,27 @@ def _occluder_counts(first: list[int], extra: list[str]) -> list[int]:
     return sorted(set(out))
 
 
+ShelfSetOption = typer.Option(None, "--set", help="Override one config field, repeatable: KEY=VALUE, e.g. "
+                              "horizon=20, psi=1.5, oracle_seconds=0, ablation.suction_lift=floor, "
+                              "ablation.foss_choice=true (the fields: ShelfSearchConfig in the API reference)")
+ShelfConfigFile = typer.Option(None, "--config", help="A YAML file of ShelfSearchConfig's fields (the policy's, "
+                               "the robot's and the ablation switches)")
+
+
+def _shelf_config(policy: str, perception: Optional[str], config: Optional[Path], sets: Optional[list[str]],
+                  perceptions) -> ShelfSearchConfig:
+    """The ShelfSearchConfig of a command's options: defaults < --config file < --policy, --perception < --set."""
+    fields = {k: v for k, v in dict(policy=policy, perception=perception).items() if v is not None}
+    try:
+        cfg = load_config(ShelfSearchConfig, config, sets or (), **fields)
+    except MsDrakeError as e:
+        _fail(str(e))
+    _choose("--perception", cfg.perception, perceptions, quote=False)
+    if cfg.perception != "ground_truth":
+        _need_weights(f"--perception {cfg.perception}", None, load_shelf_occupancy_net, "shelf-occupancy")
+    return cfg
+
+
 @bench_app.command("shelf", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
 def bench_shelf(ctx: typer.Context,
                 policy: str = typer.Option(..., "--policy", help=f"Shelf policy: {', '.join(SHELF_POLICIES)}"),
@@ -947,35 +966,17 @@ def bench_shelf(ctx: typer.Context,
                 scenes: int = typer.Option(100, "--scenes", min=1, help="Scenes per occluder count (K)"),
                 seed_start: int = _seed_start("First scene seed (S)"),
                 out: Path = JsonlOut,
+                perception: Optional[str] = typer.Option(
+                    None, "--perception", help="ground_truth (default: FOSS's scene, analytic occupancy), learned "
+                    "(learned occupancy of depth renders) or depth (also the objects segmented from the render)"),
+                config: Optional[Path] = ShelfConfigFile,
+                set_: Optional[list[str]] = ShelfSetOption,
                 workers: int = _workers("Parallel workers (W)"),
-                horizon: Optional[int] = typer.Option(None, "--horizon", min=1, help="Action budget (default 2n)"),
                 ray: bool = Ray,
-                ray_address: Optional[str] = RayAddress,
-                perception: str = typer.Option("ground_truth", "--perception",
-                                               help="ground_truth (FOSS's scene, analytic occupancy), learned "
-                                                    "(learned occupancy of depth renders) or depth (also the "
-                                                    "objects segmented from the render); own --out file each"),
-                oracle_exhaustive: Optional[float] = typer.Option(
-                    None, "--oracle-exhaustive", min=0.0,
-                    help="oracle_p / oracle_ps: CPU seconds of the last stage after the staged search finds "
-                         "nothing, Oracle-P's exhaustive push search (default 60) or Oracle-P+S's wide search "
-                         "(default 120); 0: off"),
-                suction_lift: str = typer.Option("over", "--suction-lift",
-                                                 help="FOSS's suction lift: over (the object is lifted over what "
-                                                      "its sweeps to and from the front cross) or floor (2 cm "
-                                                      "only: those sweeps must be clear, FOSS as a 2D overhead "
-                                                      "simulator)"),
-                oracle_push_target: bool = typer.Option(False, "--oracle-push-target",
-                                                        help="oracle_p / oracle_ps: also push the target itself "
-                                                             "(the oracles know where it is)")):
-    """Shelf search in FOSS (Table 9.1): scenes S..S+K-1 for each occluder count, ground-truth (or
-    learned) occupancy; one JSON line per search (resumable), then success rates and median steps."""
-    check_shelf_policy(policy)
-    _choose("--perception", perception, SHELF_PERCEPTIONS, quote=False)
-    _choose("--suction-lift", suction_lift, SUCTION_LIFTS, quote=False)
-    if perception in ("learned", "depth"):
-        _need_weights(f"--perception {perception}", None, load_shelf_occupancy_net, "shelf-occupancy")
-    oracle_exhaustive_budget(policy, oracle_exhaustive)
+                ray_address: Optional[str] = RayAddress):
+    """Shelf search in FOSS (Table 9.1): scenes S..S+K-1 for each occluder count; one JSON line per
+    search (resumable; each keeps its config), then success rates and median steps."""
+    cfg = _shelf_config(policy, perception, config, set_, SHELF_PERCEPTIONS)
     counts = _occluder_counts(occluders, ctx.args)
     _need_jsonl(out)
     bar = tqdm(total=len(counts) * scenes, desc=policy, unit="scene")
@@ -985,10 +986,8 @@ def bench_shelf(ctx: typer.Context,
         if rec.get("failure") == "worker_died":
             tqdm.write(f"occluders {rec['occluders']} seed {rec['seed']}: {rec.get('error', '')} (rerun to retry)")
 
-    s = run_shelf_bench(policy, counts, scenes, seed_start, out, workers=workers, use_ray=ray or ray_address is not None,
-                        ray_address=ray_address, horizon=horizon, progress=progress, perception=perception,
-                        oracle_exhaustive=oracle_exhaustive, suction_lift=suction_lift,
-                        oracle_push_target=oracle_push_target)
+    s = run_shelf_bench(cfg, counts, scenes, seed_start, out, workers=workers, use_ray=ray or ray_address is not None,
+                        ray_address=ray_address, progress=progress)
     bar.close()
     if s["resumed"]:
         typer.echo(f"resuming: {s['resumed']} of {len(counts) * scenes} searches were already in {out}")
@@ -1008,32 +1007,27 @@ def bench_shelf_physics(policy: str = typer.Option(..., "--policy", help=f"Shelf
                         occluders: Optional[list[int]] = typer.Option(None, "--occluders",
                                                                       help="Occluder counts cycled over the seeds "
                                                                            "(default: drawn from the seed)"),
+                        perception: Optional[str] = typer.Option(
+                            None, "--perception", help="The controller's perception: ground_truth (default: the "
+                            "simulation's body poses) or depth (the camera images only, as on hardware)"),
+                        config: Optional[Path] = ShelfConfigFile,
+                        set_: Optional[list[str]] = ShelfSetOption,
                         workers: int = _workers("Local worker processes", max=None),
-                        foss_choice: bool = typer.Option(False, "--foss-choice",
-                                                         help="Choose by FOSS alone (no check on the Fetch's "
-                                                              "planner before acting)"),
-                        perception: str = typer.Option("ground_truth", "--perception",
-                                                       help="The controller's perception: ground_truth (the "
-                                                            "simulation's body poses) or depth (the camera "
-                                                            "images only, as on hardware)"),
                         scenario: str = typer.Option("FetchShelf", "--scenario",
                                                      help="The station: a shelf scenario with the Fetch"),
                         scenario_file: Optional[Path] = ScenarioFile):
     """Shelf search on the Fetch in Drake physics (Table 9.2 analogue): scenes S..S+N-1; one JSON
-    line per scene (seed, occluders, policy, perception, success, steps, physics-FOSS agreement); resumable."""
-    check_shelf_policy(policy)
-    _choose("--perception", perception, SHELF_CONTROLLER_PERCEPTIONS, quote=False)
+    line per scene (seed, occluders, policy, perception, success, steps, physics-FOSS agreement,
+    the config); resumable."""
+    cfg = _shelf_config(policy, perception, config, set_, SHELF_CONTROLLER_PERCEPTIONS)
     _need_jsonl(out)
-    if perception == "depth":
-        _need_weights("--perception depth", None, load_shelf_occupancy_net, "shelf-occupancy")
     if occluders and any(not 2 <= n <= 12 for n in occluders):
         _fail(f"--occluders {occluders}: shelf scenes have 2 to 12 occluders")
     _need_shelf_scenario(scenario_file, scenario)
     station = {} if scenario == "FetchShelf" and scenario_file is None else {
         "scenario_name": scenario, "scenario_file": str(scenario_file) if scenario_file is not None else None}
-    run_shelf_physics_bench(policy, scenes, seed_start, out, occluders, workers=workers, log=typer.echo,
-                            fetch_feasible=not foss_choice, perception=perception, **station)
-    recs = physics_records([out], perception)
+    run_shelf_physics_bench(cfg, scenes, seed_start, out, occluders, workers=workers, log=typer.echo, **station)
+    recs = physics_records([out], cfg.perception)
     typer.echo(physics_table(recs, tuple(dict.fromkeys(r["policy"] for r in recs))))
     typer.echo(f"results in {out}")
 

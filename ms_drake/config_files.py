@@ -38,20 +38,54 @@ def _resolve_annotations(schema) -> None:
                 _resolve_annotations(arg)
 
 
+def _dataclass_arg(tp):
+    """The dataclass a field's type names (itself, or inside Optional / a union), else None."""
+    for arg in (tp, *typing.get_args(tp)):
+        if dataclasses.is_dataclass(arg):
+            return arg
+    return None
+
+
+def _frozen_inside(schema) -> bool:
+    return schema.__dataclass_params__.frozen or any(
+        _frozen_inside(_dataclass_arg(f.type)) for f in dataclasses.fields(schema) if _dataclass_arg(f.type))
+
+
 @functools.cache
 def _settable(schema):
-    """The schema itself, or for a frozen dataclass a subclass whose fields Drake's YAML may set."""
-    if not schema.__dataclass_params__.frozen:
+    """The schema itself, or, when it or one of its parts is a frozen dataclass, a plain dataclass of
+    the same fields (parts likewise) that Drake's YAML may set."""
+    if not _frozen_inside(schema):
         return schema
-    return type(schema.__name__, (schema,), {"__setattr__": object.__setattr__, "__delattr__": object.__delattr__})
+    fields = []
+    for f in dataclasses.fields(schema):
+        part = _dataclass_arg(f.type)
+        tp = f.type if part is None else (_settable(part) if part is f.type else typing.Optional[_settable(part)])
+        default = ({"default": f.default} if f.default is not dataclasses.MISSING else
+                   {"default_factory": f.default_factory} if f.default_factory is not dataclasses.MISSING else {})
+        if part is not None and "default_factory" in default:
+            default = {"default_factory": _settable(part)}
+        fields.append((f.name, tp, dataclasses.field(**default)))
+    return dataclasses.make_dataclass(schema.__name__, fields)
+
+
+def _as(schema, value):
+    """`value` (a dataclass of the same fields, or their dict) as an instance of `schema`, parts too."""
+    d = value if isinstance(value, dict) else dataclasses.asdict(value)
+    kwargs = {}
+    for f in dataclasses.fields(schema):
+        v, part = d[f.name], _dataclass_arg(f.type)
+        kwargs[f.name] = _as(part, v) if part is not None and isinstance(v, dict) else v
+    return schema(**kwargs)
 
 
 def _typed_load(schema, base, **where):
     """yaml_load_typed of `where` (filename= or data=) over `base`, as a `schema`."""
     work = _settable(schema)
-    loaded = yaml_load_typed(schema=work, defaults=work(**dataclasses.asdict(base)) if work is not schema else base,
-                             **where)
-    return loaded if work is schema else schema(**dataclasses.asdict(loaded))
+    if work is schema:
+        return yaml_load_typed(schema=schema, defaults=base, **where)
+    loaded = yaml_load_typed(schema=work, defaults=_as(work, base), **where)
+    return schema(**dataclasses.asdict(loaded))
 
 
 def _rebuild(schema, config):

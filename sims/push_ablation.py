@@ -1,11 +1,11 @@
 """Does quasi-random lead the push study because its push is not collision-checked? An ablation.
 
-Quasi-random (lines 654-660) pushes a random object a fixed 8 cm in a random direction through its
+Quasi-random pushes a random object a fixed 8 cm in a random direction through its
 centre, clipped to the bin only; the other four policies push only where the object is free to
-move. `PolicyParams(quasi_random_checked=True)` keeps quasi-random's random draw but pushes only as
+move. The study's ablation switch `ablation.quasi_random_checked` (PushStudyConfig) keeps quasi-random's random draw but pushes only as
 far as the object is free (its clearance, at most 8 cm) with the jaw's start free, drawing again
 (up to 16 times) while no such push exists. Both run from the stored states of a data step's
-improvable heaps (as `policies_from_state`, the heaps' sampling and transfer speed), so each pair
+improvable heaps (as `policies_from_state`, each heap's own config), so each pair
 is the same state, the same grasp samples and, on the first draw, the same object and direction;
 the other four policies run on the same states in the same job, so every row is one code and one
 physics:
@@ -32,11 +32,11 @@ from scipy.stats import binomtest
 from ms_drake.experiments.push_study import (
     GraspSets,
     PushWorld,
-    StudyParams,
+    PushStudyConfig,
     _append,
     improvable_records,
     read_jsonl,
-    recorded_params,
+    heap_config,
     run_policy,
     state_metrics,
 )
@@ -53,10 +53,10 @@ TURNED = 20.0  # degrees: the pushed object tipped over or rolled
 
 
 def ablation_job(job: tuple) -> dict:
-    """(heap record, StudyParams dict) -> every row's (VARIANTS) run_policy record on its stored state."""
+    """(heap record, PushStudyConfig dict) -> every row's (VARIANTS) run_policy record on its stored state."""
     rec, params = job
     c = time.process_time()
-    params = StudyParams(**params)
+    params = PushStudyConfig(**params)
     world = PushWorld(heap_from_dict(rec["heap"]), params)
     world.set_state(rec["state"])
     sets = GraspSets(params, int(rec["seed"]))
@@ -107,7 +107,7 @@ def main(argv=None):
     a = ap.parse_args(argv)
     done = {int(r["seed"]) for r in read_jsonl(a.out) if set(VARIANTS) <= set(r["variants"])}
     todo = [h for h in improvable_records(a.dir, a.heaps, a.seed_start) if int(h["seed"]) not in done]
-    jobs = [(h, asdict(recorded_params(h))) for h in todo]
+    jobs = [(h, asdict(heap_config(h))) for h in todo]
     a.out.parent.mkdir(parents=True, exist_ok=True)
     for r in run_jobs(ablation_job, jobs, workers=a.workers):
         if r.ok:

@@ -25,7 +25,7 @@ from ms_drake.experiments.shelf_physics import (
     shelf_simulation_info,
 )
 from ms_drake.geometry import PinholeCamera
-from ms_drake.policies.shelf_search import MakeShelfSearchController, ShelfSearchParams, connect_controller
+from ms_drake.policies.shelf_search import MakeShelfSearchController, ShelfSearchConfig, connect_controller
 from ms_drake.policies.shelf_termination import ShelfSearchTermination, connect_termination
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.shelf import DEFAULT_TARGET, generate_shelf_scene
@@ -46,16 +46,15 @@ def main(argv=None) -> dict:
 
     scenario = shelf_physics_scenario(load_scenario(None, args.scenario))
     scene = generate_shelf_scene(ShelfGeometry.from_scenario(scenario), args.seed, args.occluders, DEFAULT_TARGET).scene
-    params = ShelfSearchParams(policy=args.policy, horizon=args.horizon, seed=args.seed)
+    params = ShelfSearchConfig(policy=args.policy, horizon=args.horizon, seed=args.seed, perception=args.perception)
     horizon = search_horizon(params, scene)
 
     builder = DiagramBuilder()
     station = builder.AddSystem(MakeStation(scenario, extra_objects=shelf_scene_objects(scene)))
     sim = shelf_simulation_info(get_plant(station), scene)
-    if args.perception == "depth":
-        controller = builder.AddSystem(MakeShelfSearchController(scenario, params, perception="depth"))
-    else:
-        controller = builder.AddSystem(MakeShelfSearchController(scenario, params, sim=sim))
+    # with depth perception the controller reads only the camera ports (as on the hardware station)
+    controller = builder.AddSystem(MakeShelfSearchController(scenario, params,
+                                                             sim=None if args.perception == "depth" else sim))
     connect_controller(builder, controller, station)
     camera = PinholeCamera.from_config(scenario.cameras[params.camera])
     end = builder.AddSystem(ShelfSearchTermination(camera, sim.bodies[sim.target_id], horizon, params.period))

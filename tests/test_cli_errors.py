@@ -9,7 +9,6 @@ main() would fail the test, which is what "no traceback" means here."""
 import json
 import os
 import runpy
-import shutil
 import sys
 from pathlib import Path
 
@@ -21,7 +20,7 @@ from ms_drake.experiments.records import read_record_file
 from ms_drake.paths import model_path
 
 ROOT = Path(__file__).resolve().parent.parent
-DOCS = ROOT / "docs" / "data"
+DOCS = ROOT / "tests" / "data"
 
 
 def run_cli(capsys, *args):

@@ -1,5 +1,5 @@
 """Every ms-drake command, listed from the command's own parser: `--help` exits 0, and a tiny real run
-where one is cheap (the table commands on copies of the records in docs/data). Commands run in this
+where one is cheap (the table commands on copies of the sample records in tests/data). Commands run in this
 process (ms_drake.cli.main with sys.argv set), so the package is imported once.
 
 A command added to the CLI fails test_every_command_is_smoke_tested until it is given a tiny run here,
@@ -15,7 +15,7 @@ import typer
 from ms_drake import cli
 
 ROOT = Path(__file__).resolve().parent.parent
-DOCS = ROOT / "docs" / "data"
+DOCS = ROOT / "tests" / "data"
 
 
 def run_cli(capsys, *args):
@@ -42,7 +42,7 @@ def _walk(command, path=()):
 COMMANDS = [path for path, _ in _walk(typer.main.get_command(cli.app))]
 LEAVES = [path for path, c in _walk(typer.main.get_command(cli.app)) if not getattr(c, "commands", None)]
 
-# command -> its tiny run; DOCS/<name> is a copy of docs/data/<name>, OUT a fresh folder
+# command -> its tiny run; DOCS/<name> is a copy of tests/data/<name>, OUT a fresh folder
 TINY = {
     ("grasp",): ["--object", "procedural/box_000", "--samples", "5", "--robust", "0", "--out", "OUT/grasp"],
     ("reproduce",): ["--list"],

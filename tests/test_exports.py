@@ -9,7 +9,7 @@ import ms_drake
 
 NAMES = ["load_scenario", "MakeStation", "generate_heap", "scenario_with_heap", "set_heap_poses",
          "MakeBinSearchController", "BinSearchConfig", "load_bin_search_config", "HeapConfig", "layout_heap", "SimulationInfo", "connect_controller",
-         "MakeShelfSearchController", "ShelfSearchParams", "MakeRearrangementController", "RearrangeParams",
+         "MakeShelfSearchController", "ShelfSearchConfig", "MakeRearrangementController", "RearrangeParams",
          "rollout"]
 
 

@@ -17,7 +17,7 @@ from pydrake.trajectories import PiecewisePolynomial
 from ms_drake.errors import ScenarioError
 from ms_drake.paths import make_parser, models_dir
 from ms_drake.robots import BluctionConfig, PadConfig, ParallelJawConfig, gripper_spec
-from ms_drake.station.grippers import bluction_sdf, parallel_jaw_sdf
+from ms_drake.station.grippers import parallel_jaw_sdf
 from tools.write_models import write_environment_models, write_gripper_models
 from ms_drake.robots import FLOATING_JOINTS, ROBOTS
 from ms_drake.station.robots import add_arm_gripper, add_floating_gripper, add_robot, floating_gripper_positions

@@ -17,7 +17,7 @@ from ms_drake.scenario import ArmDriver
 from ms_drake.robots import ROBOTS
 from ms_drake.station.drivers import station_arms, station_grippers
 from ms_drake.station.emulator import MakeEmulatedRobot
-from ms_drake.station.hardware import GatedLcmPublisher, MakeHardwareStation, RobotStateReceiver, RobotStateSender, SignalReceiver, SignalSender, camera_channel, command_channel, status_channel
+from ms_drake.station.hardware import GatedLcmPublisher, MakeHardwareStation, RobotStateReceiver, RobotStateSender, SignalReceiver, SignalSender, command_channel, status_channel
 from test_drivers import add_joint_move_controller, bare, gripper_commands
 
 

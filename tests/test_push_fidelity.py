@@ -13,7 +13,7 @@ from ms_drake.experiments.push_fidelity import (
     wilson,
     yaw_change,
 )
-from ms_drake.experiments.push_study import PushWorld, StudyParams, _mesh
+from ms_drake.experiments.push_study import PushWorld, PushStudyConfig, _mesh
 from ms_drake.scenes.heaps import heap_to_dict
 from ms_drake.types import Heap, ObjectPose
 
@@ -51,7 +51,7 @@ def _box_record():
     lo, hi = v.min(axis=0), v.max(axis=0)
     q = (1.0, 0.0, 0.0, 0.0, X0 - 0.5 * (hi[0] + lo[0]), Y0 - 0.5 * (hi[1] + lo[1]), -lo[2] + 0.001)
     heap = Heap(seed=0, environment="bin", objects=(ObjectPose(BOX, q),))
-    w = PushWorld(heap, StudyParams())
+    w = PushWorld(heap, PushStudyConfig())
     w.advance(0.3)
     return {"seed": 0, "heap": heap_to_dict(heap), "state": w.poses_record(), "improvable": True}
 
@@ -100,7 +100,7 @@ def test_the_study_and_the_pushing_selectors_push_at_the_same_plant_step():
     from ms_drake.scenario import load_scenario
     from ms_drake.types import Heap
 
-    assert StudyParams().time_step == PRIMITIVE_PUSH_TIME_STEP == 0.005
+    assert PushStudyConfig().time_step == PRIMITIVE_PUSH_TIME_STEP == 0.005
     station, heap = load_scenario(None, "FloatingGripperBin"), Heap(seed=0, environment="bin", objects=())
     for p in SELECTORS:
         step = search_scenario(station, heap, BinSearchConfig(policy=p)).plant_config.time_step

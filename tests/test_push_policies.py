@@ -211,7 +211,7 @@ def test_no_collision_free_push_when_boxed_in():
 
 @pytest.mark.parametrize("pol", POLICIES)
 def test_planning_on_a_row_of_boxes(pol):
-    # Six boxes in a zigzag row (their speed: docs/BENCHMARKS.md, "Push policies study"): every plan
+    # Six boxes in a zigzag row (their speed: docs/results/ch4_pushing.md): every plan
     # is None or a push of one of them, inside the bin, the same for the same seed.
     # Cluster diffusion finds no free push of a cluster in this touching row; the others always plan.
     objs = tuple(box(f"o{k}", -0.15 + 0.06 * k, 0.03 * (k % 2)) for k in range(6))

@@ -1,5 +1,7 @@
 """The Ch. 4 push study: metrics, the physics push, determinism, the summary."""
 
+import json
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -9,8 +11,9 @@ from pydrake.common.eigen_geometry import Quaternion  # noqa: F401
 from ms_drake.experiments.push_study import (
     METRICS,
     GraspSets,
+    PushStudyAblation,
+    PushStudyConfig,
     PushWorld,
-    StudyParams,
     _mesh,
     format_push_table,
     mean_separation,
@@ -21,6 +24,7 @@ from ms_drake.experiments.push_study import (
     summarize_push,
     write_push_heaps,
 )
+from ms_drake.errors import MsDrakeError
 from ms_drake.geometry import Workspace
 from ms_drake.pushing import POLICIES
 from ms_drake.types import Heap, ObjectPose
@@ -52,7 +56,7 @@ def _pair_heap():
 
 @pytest.fixture(scope="module")
 def pair_world():
-    w = PushWorld(_pair_heap(), StudyParams())
+    w = PushWorld(_pair_heap(), PushStudyConfig())
     w.advance(0.3)
     return w
 
@@ -60,7 +64,7 @@ def pair_world():
 def test_boundary_shear_separates_two_touching_boxes(pair_world):
     w = pair_world
     snap = w.snapshot()
-    sets = GraspSets(StudyParams(), seed=0)
+    sets = GraspSets(PushStudyConfig(), seed=0)
     before = state_metrics(w, sets)
     assert before["objects"] == 2
     rec = run_policy(w, snap, before, sets, "boundary_shear", seed=0)
@@ -81,7 +85,7 @@ def test_metrics_are_deterministic_under_a_seed(pair_world):
     out = []
     for _ in range(2):
         w.restore(snap)
-        sets = GraspSets(StudyParams(), seed=7)
+        sets = GraspSets(PushStudyConfig(), seed=7)
         before = state_metrics(w, sets)
         out.append([run_policy(w, snap, before, sets, p, seed=7) for p in ("quasi_random", "free_space")])
     for a, b in zip(*out):
@@ -95,7 +99,7 @@ def test_grasp_sets_see_the_neighbour(pair_world):
     # quality with the neighbour is at most its best alone.
     w = pair_world
     w.restore(w.snapshot())
-    sets = GraspSets(StudyParams(), seed=0)
+    sets = GraspSets(PushStudyConfig(), seed=0)
     both = sets.qualities(w)
     alone = sets.qualities(w, ids=[w.ids[0]])
     assert both["per_object"][w.ids[0]][0] <= alone["per_object"][w.ids[0]][0] + 1e-12
@@ -128,8 +132,8 @@ def test_metrics_do_not_depend_on_the_states_measured_before(pair_world):
     # state gives the start state's metrics of a fresh measurement.
     w = pair_world
     snap = w.snapshot()
-    fresh = state_metrics(w, GraspSets(StudyParams(), seed=3))
-    used = GraspSets(StudyParams(), seed=3)
+    fresh = state_metrics(w, GraspSets(PushStudyConfig(), seed=3))
+    used = GraspSets(PushStudyConfig(), seed=3)
     before = state_metrics(w, used)
     run_policy(w, snap, before, used, "quasi_random", seed=11)
     w.restore(snap)
@@ -139,10 +143,10 @@ def test_metrics_do_not_depend_on_the_states_measured_before(pair_world):
 
 
 def test_mesh_object_heaps_score_and_collide_with_convex_parts():
-    """StudyParams.object_set: a household-mesh heap (YCB, convex collision parts) is drawn from
+    """PushStudyConfig.object_set: a household-mesh heap (YCB, convex collision parts) is drawn from
     that set, its grasps are scored on the closed meshes, and the collision check sees the convex
     parts (a neighbour pressed against an object prunes grasps there)."""
-    params = StudyParams(object_set="ycb", grasps=20, robust_samples=0)
+    params = PushStudyConfig(object_set="ycb", grasps=20, robust_samples=0)
     heap, n = study_heap(3, params)
     assert len(heap.objects) == n and all(o.name.startswith("ycb/") for o in heap.objects)
     cube = "ycb/077_rubiks_cube"
@@ -161,12 +165,18 @@ def test_mesh_object_heaps_score_and_collide_with_convex_parts():
     assert both["per_object"][w.ids[0]][0] <= alone["per_object"][w.ids[0]][0] + 1e-12
 
 
-def test_push_heaps_folder_keeps_one_object_set(tmp_path):
+def test_push_heaps_folder_keeps_one_config(tmp_path):
+    procedural = asdict(PushStudyConfig(object_set="procedural"))
+    (tmp_path / "heaps.jsonl").write_text(json.dumps({"seed": 0, "config": procedural, "stop": "cleared",
+                                                      "improvable": False}) + "\n")
+    with pytest.raises(MsDrakeError, match=r"heaps.jsonl, line 1: a heap of another config \(object_set='procedural'\)"):
+        write_push_heaps(1, tmp_path, seed_start=0, params=PushStudyConfig())
+    fast = PushStudyConfig(object_set="procedural", ablation=PushStudyAblation(transfer_speed=2.0))
+    with pytest.raises(MsDrakeError, match="ablation="):
+        write_push_heaps(1, tmp_path, seed_start=0, params=fast)
     (tmp_path / "heaps.jsonl").write_text('{"seed": 0, "object_set": "", "stop": "cleared", "improvable": false}\n')
-    with pytest.raises(ValueError, match="object set"):
-        write_push_heaps(1, tmp_path, seed_start=0, params=StudyParams(object_set="ycb"))
-    with pytest.raises(ValueError, match="transfer speed"):
-        write_push_heaps(1, tmp_path, seed_start=0, params=StudyParams(transfer_speed=2.0))
+    with pytest.raises(MsDrakeError, match="no config"):
+        write_push_heaps(1, tmp_path, seed_start=0, params=PushStudyConfig())
 
 
 def test_bench_rerun_from_the_stored_state(tmp_path):
@@ -174,19 +184,19 @@ def test_bench_rerun_from_the_stored_state(tmp_path):
     # stored poses (no drop, no grasping), with the fast transfers.
     from ms_drake.experiments.push_study import improvable_records, read_jsonl, run_push_bench
 
-    src = Path(__file__).resolve().parents[1] / "docs" / "data" / "push_heaps_ycb"
+    src = Path(__file__).resolve().parent / "data" / "push_heaps_ycb"
     rec = improvable_records(src, 1)[0]
     out = tmp_path / "rows.jsonl"
-    s = run_push_bench("quasi_random", 1, 0, out, src, rerun=True, from_state=True,
-                       params=StudyParams(transfer_speed=2.0))
+    fast = PushStudyConfig(ablation=PushStudyAblation(transfer_speed=2.0))
+    s = run_push_bench("quasi_random", 1, 0, out, src, rerun=True, from_state=True, params=fast)
     assert s["rows"] == 1 and s["new"] == 1
     row = read_jsonl(out)[0]
     assert row["source"] == "state" and row["seed"] == rec["seed"] and row["cpu_s"] > 0
-    assert row["transfer_speed"] == 2.0
+    assert row["config"]["ablation"]["transfer_speed"] == 2.0 and row["config"]["object_set"] == "ycb"
     # the state at rest scores as the data step scored it (same grasp samples, poses to 1 um)
     assert row["before"]["overall"] == pytest.approx(rec["before"]["overall"])
     assert row["pushed"] and row["push"]["object"] == rec["policies"]["quasi_random"]["push"]["object"]
-    again = dict(rerun=True, from_state=True, params=StudyParams(transfer_speed=2.0))
+    again = dict(rerun=True, from_state=True, params=fast)
     assert run_push_bench("quasi_random", 1, 0, out, src, **again)["new"] == 0  # resumes
 
 
@@ -203,7 +213,7 @@ def _tilted(deg: float) -> np.ndarray:
 def test_sampling_object_draws_the_same_grasps_in_every_tilt_bin(sampling):
     # "object": one draw per (seed, object) -- the same surface points and trial seed in two tilt
     # bins (common random numbers); "tilt_bin": a fresh draw per bin.
-    sets = GraspSets(StudyParams(sampling=sampling), seed=5)
+    sets = GraspSets(PushStudyConfig(ablation=PushStudyAblation(sampling=sampling)), seed=5)
     a, b = sets._sets("obj00", BOX, _tilted(0.0)), sets._sets("obj00", BOX, _tilted(8.0))
     assert a[3] != b[3]  # two tilt bins
     same_seed = a[4] == b[4]
@@ -218,9 +228,11 @@ def test_sampling_object_draws_the_same_grasps_in_every_tilt_bin(sampling):
 
 def test_sampling_names_are_checked():
     with pytest.raises(ValueError, match="sampling 'bins' unknown; choose one of 'tilt_bin', 'object'"):
-        StudyParams(sampling="bins")
+        PushStudyAblation(sampling="bins")
     with pytest.raises(ValueError, match="compare_sampling"):
-        StudyParams(compare_sampling="x")
+        PushStudyAblation(compare_sampling="x")
+    with pytest.raises(ValueError, match="object_set 'toys' unknown"):
+        PushStudyConfig(object_set="toys")
 
 
 def test_compare_sampling_scores_the_same_push(pair_world):
@@ -228,8 +240,8 @@ def test_compare_sampling_scores_the_same_push(pair_world):
     # second metric's view gives equal separation gains in both.
     w = pair_world
     snap = w.snapshot()
-    p = StudyParams(sampling="object")
-    sets, alt = GraspSets(p, seed=2), GraspSets(StudyParams(), seed=2)
+    p = PushStudyConfig(ablation=PushStudyAblation(sampling="object"))
+    sets, alt = GraspSets(p, seed=2), GraspSets(PushStudyConfig(), seed=2)
     before, alt_before = state_metrics(w, sets), state_metrics(w, alt)
     rec = run_policy(w, snap, before, sets, "boundary_shear", seed=0, compare=(alt, alt_before))
     assert rec["pushed"] and set(METRICS) <= set(rec["compare"])
@@ -256,6 +268,16 @@ def test_cli_push_heaps_names_a_bad_sampling(tmp_path):
 
     from ms_drake.cli import app
 
-    r = CliRunner().invoke(app, ["data", "push-heaps", "--count", "1", "--out", str(tmp_path), "--sampling", "bins"])
-    assert r.exit_code != 0 and "--sampling 'bins' unknown; choose one of tilt_bin, object" in r.output
+    r = CliRunner().invoke(app, ["data", "push-heaps", "--count", "1", "--out", str(tmp_path), "--set",
+                                 "ablation.sampling=bins"])
+    assert r.exit_code != 0 and "ablation.sampling 'bins' unknown; choose one of 'tilt_bin', 'object'" in r.output
     assert not (tmp_path / "heaps.jsonl").exists()
+    r = CliRunner().invoke(app, ["bench", "push", "--policy", "quasi_random", "--out", str(tmp_path / "r.jsonl"),
+                                 "--heap-dir", str(Path(__file__).resolve().parent / "data" / "push_heaps_ycb"),
+                                 "--rerun", "--set", "grasps=3"])
+    assert r.exit_code != 0 and "ablation switches" in r.output
+
+
+def test_quasi_random_checked_reaches_the_planner():
+    assert not PushStudyConfig().policy_params().quasi_random_checked
+    assert PushStudyConfig(ablation=PushStudyAblation(quasi_random_checked=True)).policy_params().quasi_random_checked

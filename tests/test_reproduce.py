@@ -19,7 +19,7 @@ NAMES = ("table_2_1", "table_3_1", "fig_4_2", "table_b_1", "table_6_1", "table_6
 TINY = {
     "table_2_1": ({"objects": 3, "grasps": 2, "trials": 1}, {}),
     "table_3_1": ({"objects": 3, "grasps": 2, "trials": 1}, {}),
-    # seed 4 of the household-object heaps is improvable (docs/data/push_heaps_ycb): one heap to drop
+    # seed 4 of the household-object heaps is improvable (tests/data/push_heaps_ycb): one heap to drop
     "fig_4_2": ({"heaps": 1}, {"seed_start": 4}),
     "table_b_1": ({"images": 3}, {}),
     "table_6_1": ({"scenes": 2}, {}),

@@ -142,7 +142,6 @@ def test_robot_converter_is_importable_and_checks_its_arguments(capsys):
 def test_self_contained_model_parses_from_text_as_from_file(name):
     """station.robots._add_file parses self-contained SDFs from their text (sdformat rebuilds its
     schema per file read): the same bodies, joints, masses, geometries and frames as the file."""
-    from pydrake.geometry import SceneGraph
     from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlantConfig
     from pydrake.systems.framework import DiagramBuilder
 

@@ -35,7 +35,8 @@ from ms_drake.policies.shelf import ShelfPolicyParams
 from ms_drake.policies.shelf_search import (
     FetchFeasibleSelector,
     MakeShelfSearchController,
-    ShelfSearchParams,
+    ShelfSearchAblation,
+    ShelfSearchConfig,
     ShelfSearchSelector,
     ShelfSimulationInfo,
     _unchanged_key,
@@ -110,7 +111,7 @@ def test_backend_plans_in_the_actions_scene(backend):
 
 def test_depth_controller_alone_fixed_inputs(scenario, images):
     depth, rgb = images
-    c = MakeShelfSearchController(scenario, ShelfSearchParams(policy="bluction_dar"), perception="depth")
+    c = MakeShelfSearchController(scenario, ShelfSearchConfig(policy="bluction_dar", perception="depth"))
     names = {c.get_input_port(i).get_name() for i in range(c.num_input_ports())}
     assert names == {"front.rgb_image", "front.depth_image"}  # no body_poses: the hardware station's ports
     assert isinstance(c.GetSubsystemByName("policy_selector"), FetchFeasibleSelector)
@@ -132,7 +133,8 @@ def test_depth_controller_alone_fixed_inputs(scenario, images):
     assert a.kind == "shelf" and a.shelf.object_id in ("seg_0", "seg_1") and a.scene == scene
     assert c.backend.feasible(a.shelf, scene) == "ok"
     # FOSS's choice alone: the action carries its scene too
-    c2 = MakeShelfSearchController(scenario, ShelfSearchParams(policy="dar", fetch_feasible=False), perception="depth")
+    c2 = MakeShelfSearchController(scenario, ShelfSearchConfig(policy="dar", perception="depth",
+                                                                ablation=ShelfSearchAblation(foss_choice=True)))
     assert isinstance(c2.GetSubsystemByName("policy_selector"), ShelfSearchSelector)
     ctx2 = c2.CreateDefaultContext()
     c2.GetInputPort("front.depth_image").FixValue(ctx2, depth)
@@ -203,19 +205,21 @@ def test_shelf_search_selector_alone_returns_the_policys_action_with_its_scene(s
 def test_depth_controller_bad_inputs(scenario):
     bodies = {o.id: ShelfBody(k, o) for k, o in enumerate((OCC, TARGET))}
     with pytest.raises(ControllerError, match="without sim="):
-        MakeShelfSearchController(scenario, ShelfSearchParams(), sim=ShelfSimulationInfo(bodies, "target"),
-                                  perception="depth")
+        MakeShelfSearchController(scenario, ShelfSearchConfig(perception="depth"),
+                                  sim=ShelfSimulationInfo(bodies, "target"))
     with pytest.raises(ControllerError, match="perception='depth'"):
-        MakeShelfSearchController(scenario, ShelfSearchParams())
-    with pytest.raises(ControllerError, match="choose one of ground_truth, depth"):
-        MakeShelfSearchController(scenario, ShelfSearchParams(), perception="lidar")
+        MakeShelfSearchController(scenario, ShelfSearchConfig())
+    with pytest.raises(ControllerError, match="choose one of ground_truth, learned, depth"):
+        ShelfSearchConfig(perception="lidar")
+    with pytest.raises(ControllerError, match="observes ground_truth or depth"):
+        MakeShelfSearchController(scenario, ShelfSearchConfig(perception="learned"))
 
 
 def test_depth_controller_connects_to_the_hardware_station(scenario):
     builder = DiagramBuilder()
     hardware = builder.AddSystem(MakeStation(scenario, hardware=True, lcm=DrakeLcm("memq://shelf_depth_controller")))
     assert not hardware.HasOutputPort("body_poses")
-    controller = builder.AddSystem(MakeShelfSearchController(scenario, ShelfSearchParams(), perception="depth"))
+    controller = builder.AddSystem(MakeShelfSearchController(scenario, ShelfSearchConfig(perception="depth")))
     connect_controller(builder, controller, hardware)
     diagram = builder.Build()
     for name in ("fetch.position", "fetch_bluction.position", "fetch_bluction.suction"):
@@ -226,8 +230,8 @@ def test_depth_controller_connects_to_the_hardware_station(scenario):
 
 def test_wired_depth_controller_moves_the_object_it_chose(scenario):
     # ~13 s simulated: ~45 s on the shared 2 cores under load, so not marked slow
-    params = ShelfSearchParams(policy="bluction_dar", horizon=1)
-    system = build_shelf_physics(scenario, SCENE, params, perception="depth")
+    params = ShelfSearchConfig(policy="bluction_dar", horizon=1, perception="depth")
+    system = build_shelf_physics(scenario, SCENE, params)
     assert system.controller.perception == "depth" and not system.controller.backend.bodies
     sim = Simulator(system.diagram)
     ApplySimulatorConfig(system.scenario.simulator_config, sim)
@@ -293,8 +297,9 @@ def test_depth_action_outcome_judges_the_action_with_the_truth(scenario):
 
 def test_physics_records_by_perception(tmp_path):
     f = tmp_path / "r.jsonl"
-    lines = [{"seed": 1, "policy": "der3", "fidelity": "physics", "steps": 2},
-             {"seed": 1, "policy": "der3", "fidelity": "physics", "perception": "depth", "steps": 4}]
+    lines = [{"seed": 1, "policy": "der3", "fidelity": "physics", "perception": p, "steps": k,
+              "config": ShelfSearchConfig(policy="der3", perception=p).record()}
+             for p, k in (("ground_truth", 2), ("depth", 4))]
     f.write_text("".join(json.dumps(r) + "\n" for r in lines))
     assert [r["steps"] for r in physics_records([f])] == [2, 4]
     assert [r["steps"] for r in physics_records([f], "ground_truth")] == [2]

@@ -10,7 +10,8 @@ import pytest
 from ms_drake.errors import MsDrakeError
 from ms_drake.experiments.harness import read_records
 from ms_drake.experiments.shelf import plot_shelf, run_shelf_bench, shelf_records, shelf_rollout, shelf_table
-from ms_drake.policies.shelf import ORACLE_EXHAUSTIVE_SECONDS, ORACLE_WIDE_SECONDS, ShelfPolicyParams
+from ms_drake.policies.shelf import ORACLE_EXHAUSTIVE_SECONDS, ORACLE_WIDE_SECONDS
+from ms_drake.policies.shelf_search import ShelfSearchAblation, ShelfSearchConfig
 from ms_drake.scenes.shelf import scene_from_dict
 
 CLI = [sys.executable, "-m", "ms_drake.cli"]
@@ -24,83 +25,102 @@ def run(*args, check=True):
     return p
 
 
+def cfg(policy, **kw):
+    return ShelfSearchConfig(policy=policy, **kw)
+
+
+def budget(r):
+    return r["config"]["oracle_seconds"]
+
+
 def test_rollout_record_is_reproducible():
-    a = shelf_rollout("bluction_dar", 6, 3)
-    b = shelf_rollout("bluction_dar", 6, 3)
+    a = shelf_rollout(cfg("bluction_dar"), 6, 3)
+    b = shelf_rollout(cfg("bluction_dar"), 6, 3)
     assert {k: v for k, v in a.items() if k not in TIMINGS} == {k: v for k, v in b.items() if k not in TIMINGS}
-    assert {"seed", "occluders", "policy", "success", "steps"} <= set(a)
+    assert {"seed", "occluders", "policy", "success", "steps", "config"} <= set(a)
+    assert a["config"] == cfg("bluction_dar").record() and "seed" not in a["config"]
     assert a["success"] and a["visible_fraction"] >= 0.8 and a["failure"] == ""
     assert a["steps"] == a["pushes"] + a["suctions"] + a["refused"] <= 12
     assert a["cost"] == a["pushes"] + 1.3 * a["suctions"]
 
 
 def test_horizon_ends_a_search():
-    full = shelf_rollout("bluction_dar", 6, 3)
+    full = shelf_rollout(cfg("bluction_dar"), 6, 3)
     assert full["steps"] >= 2
-    cut = shelf_rollout("bluction_dar", 6, 3, params=ShelfPolicyParams(horizon=1))
+    cut = shelf_rollout(cfg("bluction_dar", horizon=1), 6, 3)
     assert (cut["success"], cut["steps"], cut["failure"]) == (False, 1, "horizon")
 
 
 def test_bench_resumes_and_summarizes(tmp_path):
     out = tmp_path / "dar.jsonl"
-    s = run_shelf_bench("dar", [4, 6], 2, 10, out)
+    s = run_shelf_bench(cfg("dar"), [4, 6], 2, 10, out)
     recs = read_records(out)
     assert sorted((r["occluders"], r["seed"]) for r in recs) == [(4, 10), (4, 11), (6, 10), (6, 11)]
     assert s["all"]["rollouts"] == 4 and s["resumed"] == 0
-    s = run_shelf_bench("dar", [4, 6], 3, 10, out)
+    s = run_shelf_bench(cfg("dar"), [4, 6], 3, 10, out)
     assert len(read_records(out)) == 6 and s["resumed"] == 4 and s[4]["rollouts"] == 3
     table = shelf_table(shelf_records([out]))
     assert "| DAR |" in table and "| 4 (3) | success |" in table and "All (6)" in table
     assert plot_shelf(shelf_records([out]), tmp_path).exists()
 
 
-def test_oracle_p_exhaustive_search_budgets_keep_their_records_and_columns(tmp_path):
+def test_records_without_a_config_are_refused_naming_the_line(tmp_path):
+    out = tmp_path / "old.jsonl"
+    out.write_text(json.dumps({"seed": 0, "objects": 4, "policy": "dar", "fidelity": "foss"}) + "\n")
+    with pytest.raises(MsDrakeError, match=r"old.jsonl.*line 1.*config"):
+        run_shelf_bench(cfg("dar"), [4], 1, 0, out)
+
+
+def test_oracle_budgets_keep_their_records_and_columns(tmp_path):
     out = tmp_path / "oracle.jsonl"
-    run_shelf_bench("oracle_p", [4], 2, 0, out)  # the default budget
-    s = run_shelf_bench("oracle_p", [4], 2, 0, out, oracle_exhaustive=0.0)
+    run_shelf_bench(cfg("oracle_p"), [4], 2, 0, out)  # the default budget
+    s = run_shelf_bench(cfg("oracle_p", oracle_seconds=0.0), [4], 2, 0, out)
     assert s["resumed"] == 0  # the default run's records are not this run's
     recs = read_records(out)
-    assert sorted(r["oracle_exhaustive_seconds"] for r in recs) == [0.0, 0.0, ORACLE_EXHAUSTIVE_SECONDS,
-                                                                   ORACLE_EXHAUSTIVE_SECONDS]
-    assert run_shelf_bench("oracle_p", [4], 2, 0, out, oracle_exhaustive=0.0)["resumed"] == 2
+    assert sorted(budget(r) for r in recs) == [0.0, 0.0, ORACLE_EXHAUSTIVE_SECONDS, ORACLE_EXHAUSTIVE_SECONDS]
+    assert run_shelf_bench(cfg("oracle_p", oracle_seconds=0.0), [4], 2, 0, out)["resumed"] == 2
     table = shelf_table(shelf_records([out]))
     assert "| Oracle-P | Oracle-P (staged search only) |" in table
-    assert run_shelf_bench("dar", [4], 1, 0, out)["all"]["rollouts"] == 1
-    assert {r["oracle_exhaustive_seconds"] for r in read_records(out) if r["policy"] == "dar"} == {0.0}
-    with pytest.raises(MsDrakeError, match="only for --policy oracle_p or oracle_ps"):
-        run_shelf_bench("dar", [4], 1, 0, out, oracle_exhaustive=30.0)
+    assert run_shelf_bench(cfg("dar"), [4], 1, 0, out)["all"]["rollouts"] == 1
+    assert {budget(r) for r in read_records(out) if r["policy"] == "dar"} == {0.0}
+    with pytest.raises(MsDrakeError, match="only for the oracles"):
+        cfg("dar", oracle_seconds=30.0)
     # Oracle-P+S: its wide search's default budget, its own column without it
-    run_shelf_bench("oracle_ps", [4], 1, 0, out)
-    run_shelf_bench("oracle_ps", [4], 1, 0, out, oracle_exhaustive=0.0)
-    assert sorted(r["oracle_exhaustive_seconds"] for r in read_records(out) if r["policy"] == "oracle_ps") == [
-        0.0, ORACLE_WIDE_SECONDS]
+    run_shelf_bench(cfg("oracle_ps"), [4], 1, 0, out)
+    run_shelf_bench(cfg("oracle_ps", oracle_seconds=0.0), [4], 1, 0, out)
+    assert sorted(budget(r) for r in read_records(out) if r["policy"] == "oracle_ps") == [0.0, ORACLE_WIDE_SECONDS]
     assert "| Oracle-P+S | Oracle-P+S (staged search only) |" in shelf_table(shelf_records([out]))
 
 
 def test_oracle_target_pushes_keep_their_records_and_columns(tmp_path):
     out = tmp_path / "oracle.jsonl"
-    run_shelf_bench("oracle_p", [6], 1, 43, out, oracle_exhaustive=0.0)  # 6 / 43: push-locked
-    s = run_shelf_bench("oracle_p", [6], 1, 43, out, oracle_exhaustive=0.0, oracle_push_target=True)
+    plain = cfg("oracle_p", oracle_seconds=0.0)
+    pushing = cfg("oracle_p", oracle_seconds=0.0, ablation=ShelfSearchAblation(oracle_push_target=True))
+    run_shelf_bench(plain, [6], 1, 43, out)  # 6 / 43: push-locked
+    s = run_shelf_bench(pushing, [6], 1, 43, out)
     assert s["resumed"] == 0 and s["all"]["success_rate"] == 1.0
     recs = read_records(out)
-    assert [(r["oracle_push_target"], r["success"]) for r in recs] == [(False, False), (True, True)]
-    assert run_shelf_bench("oracle_p", [6], 1, 43, out, oracle_exhaustive=0.0, oracle_push_target=True)["resumed"] == 1
+    assert [(r["config"]["ablation"]["oracle_push_target"], r["success"]) for r in recs] == [(False, False),
+                                                                                             (True, True)]
+    assert run_shelf_bench(pushing, [6], 1, 43, out)["resumed"] == 1
     assert ("| Oracle-P (staged search only) | Oracle-P (staged search only), target pushed |"
             in shelf_table(shelf_records([out])))
-    with pytest.raises(MsDrakeError, match="--oracle-push-target: only for --policy oracle_p or oracle_ps"):
-        run_shelf_bench("bluction_dar", [4], 1, 0, out, oracle_push_target=True)
+    with pytest.raises(MsDrakeError, match="ablation.oracle_push_target: only for the oracles"):
+        cfg("bluction_dar", ablation=ShelfSearchAblation(oracle_push_target=True))
 
 
 def test_suction_lift_rules_keep_their_records_and_columns(tmp_path):
     out = tmp_path / "bdar.jsonl"
-    run_shelf_bench("bluction_dar", [8], 2, 0, out)
-    s = run_shelf_bench("bluction_dar", [8], 2, 0, out, suction_lift="floor")
+    floor = cfg("bluction_dar", ablation=ShelfSearchAblation(suction_lift="floor"))
+    run_shelf_bench(cfg("bluction_dar"), [8], 2, 0, out)
+    s = run_shelf_bench(floor, [8], 2, 0, out)
     assert s["resumed"] == 0
-    assert sorted(r["suction_lift"] for r in read_records(out)) == ["floor", "floor", "over", "over"]
-    assert run_shelf_bench("bluction_dar", [8], 2, 0, out, suction_lift="floor")["resumed"] == 2
+    assert sorted(r["config"]["ablation"]["suction_lift"] for r in read_records(out)) == ["floor", "floor", "over",
+                                                                                         "over"]
+    assert run_shelf_bench(floor, [8], 2, 0, out)["resumed"] == 2
     assert "| Bluction-DAR | Bluction-DAR, suction lift floor |" in shelf_table(shelf_records([out]))
     with pytest.raises(MsDrakeError, match="over, floor"):
-        run_shelf_bench("bluction_dar", [8], 1, 0, out, suction_lift="top")
+        ShelfSearchAblation(suction_lift="top")
 
 
 def test_cli_bench_shelf_and_table(tmp_path):
@@ -113,10 +133,18 @@ def test_cli_bench_shelf_and_table(tmp_path):
     assert p.returncode == 2 and "unexpected argument 'x'" in p.stderr
     p = run("bench", "shelf", "--policy", "xray", "--out", out, check=False)
     assert p.returncode == 2 and "bluction_dar" in p.stderr
-    p = run("bench", "shelf", "--policy", "dar", "--oracle-exhaustive", 10, "--out", out, check=False)
-    assert p.returncode != 0 and "only for --policy oracle_p" in p.stderr and "scene/s" not in p.stderr
+    p = run("bench", "shelf", "--policy", "dar", "--set", "oracle_seconds=10", "--out", out, check=False)
+    assert p.returncode != 0 and "only for the oracles" in p.stderr and "scene/s" not in p.stderr
+    p = run("bench", "shelf", "--policy", "dar", "--set", "ablation.lift=floor", "--out", out, check=False)
+    assert p.returncode == 2 and "ablation.lift" in p.stderr and "Traceback" not in p.stderr
+    # a config file and --set: the floor lift's records beside the default ones
+    (tmp_path / "floor.yaml").write_text("ablation:\n  suction_lift: floor\n")
+    run("bench", "shelf", "--policy", "oracle_p", "--occluders", 4, "--scenes", 1, "--seed-start", 3, "--out", out,
+        "--config", tmp_path / "floor.yaml", "--set", "horizon=3")
+    last = read_records(out)[-1]["config"]
+    assert last["ablation"]["suction_lift"] == "floor" and last["horizon"] == 3 and last["policy"] == "oracle_p"
     p = run("bench", "shelf-table", out)
-    assert "Oracle-P" in p.stdout
+    assert "Oracle-P" in p.stdout and "suction lift floor" in p.stdout
 
 
 def test_cli_data_shelf_writes_resumable_shards(tmp_path):

@@ -31,7 +31,8 @@ from ms_drake.policies.shelf import ShelfPolicyParams
 from ms_drake.policies.shelf_search import (
     FetchFeasibleSelector,
     MakeShelfSearchController,
-    ShelfSearchParams,
+    ShelfSearchAblation,
+    ShelfSearchConfig,
     ShelfSimulationInfo,
 )
 from ms_drake.scenario import load_scenario
@@ -90,7 +91,7 @@ def test_controller_park_pose_leaves_the_shelf_in_view(scenario):
     occ = ShelfObject("occ00", "box", 0.1, -0.1, 0.1, 0.08, 0.12)
     target = ShelfObject("target", "box", 0.1, 0.1, 0.06, 0.06, 0.06)
     scene = ShelfScene((occ,), target, 0)
-    system = build_shelf_physics(scenario, scene, ShelfSearchParams(policy="dar"))
+    system = build_shelf_physics(scenario, scene, ShelfSearchConfig(policy="dar"))
     ctx = system.diagram.CreateDefaultContext()
     set_initial(system, ctx, scene)  # the controller's park pose, blade up
     label = np.asarray(system.station_output(ctx, "front.label_image").data)[:, :, 0]
@@ -210,8 +211,8 @@ def test_search_diagram_executes_the_reachable_choice(sweep_scene):
     sel = FetchFeasibleSelector("der3", Foss(geometry), backend, ShelfPolicyParams(seed=300))
     best = sel.rules.select(scene, occupancy.image_x, ()).shelf
     chosen = sel.choose(scene, occupancy.image_x, ()).shelf
-    rec = shelf_physics_rollout("der3", 300, 4, horizon=1).record
-    assert rec["fetch_feasible"] and rec["steps"] == 1 and rec["plan_failures"] == 0
+    rec = shelf_physics_rollout(ShelfSearchConfig(policy="der3", horizon=1), 300, 4).record
+    assert not rec["config"]["ablation"]["foss_choice"] and rec["steps"] == 1 and rec["plan_failures"] == 0
     assert rec["actions_taken"][0] == [chosen.kind, chosen.object_id, round(chosen.dx, 4), round(chosen.dy, 4)]
     assert rec["actions_taken"][0][:3] != [best.kind, best.object_id, round(best.dx, 4)]
     assert rec["skipped"] >= 1
@@ -234,19 +235,19 @@ def test_feasible_selector_alone_fixed_inputs(hard_scene):
 def test_controller_uses_the_feasible_selector(scenario, hard_scene):
     scene, backend, _, _ = hard_scene
     sim = ShelfSimulationInfo(backend.bodies, scene.target.id)
-    c = MakeShelfSearchController(scenario, ShelfSearchParams(policy="bluction_dar", seed=7), sim=sim)
+    c = MakeShelfSearchController(scenario, ShelfSearchConfig(policy="bluction_dar", seed=7), sim=sim)
     assert isinstance(c.GetSubsystemByName("policy_selector"), FetchFeasibleSelector)
     rules = c.GetSubsystemByName("policy_selector").rules.params
     assert (rules.min_move, rules.nil_move, rules.revisit) == (0.01, 0.01, 0.01)
-    der3 = MakeShelfSearchController(scenario, ShelfSearchParams(policy="der3", seed=7), sim=sim)
+    der3 = MakeShelfSearchController(scenario, ShelfSearchConfig(policy="der3", seed=7), sim=sim)
     rules = der3.GetSubsystemByName("policy_selector").rules.params
     assert (rules.min_move, rules.nil_move, rules.revisit) == (0.0, 0.0, 0.0)  # DER-3 keeps its rule
-    c2 = MakeShelfSearchController(scenario, ShelfSearchParams(policy="bluction_dar", fetch_feasible=False), sim=sim)
+    c2 = MakeShelfSearchController(scenario, ShelfSearchConfig(policy="bluction_dar", ablation=ShelfSearchAblation(foss_choice=True)), sim=sim)
     assert not isinstance(c2.GetSubsystemByName("policy_selector"), FetchFeasibleSelector)
     with pytest.raises(ControllerError, match="max_candidates"):
-        ShelfSearchParams(max_candidates=0)
+        ShelfSearchConfig(max_candidates=0)
     with pytest.raises(ControllerError, match="revisit=-0.01"):
-        ShelfSearchParams(revisit=-0.01)
+        ShelfSearchConfig(revisit=-0.01)
 
 
 def test_time_step_and_skipped_counts(scenario):
@@ -294,9 +295,11 @@ def test_physics_vs_foss_pairs_scenes_by_seed_and_occluders():
 
 def test_physics_records_one_per_policy_and_seed(tmp_path):
     f = tmp_path / "r.jsonl"
-    lines = [{"seed": 1, "policy": "der3", "fidelity": "physics", "steps": 2}, {"seed": 1, "policy": "der3", "fidelity": "physics",
-                                                                             "steps": 5},
-             {"seed": 1, "policy": "bluction_dar", "fidelity": "physics", "steps": 3}, {"seed": 2, "policy": "der3", "fidelity": "foss"}]
+    def rec(policy, fidelity="physics", **kw):
+        config = ShelfSearchConfig(policy=policy).record()
+        return dict(seed=kw.pop("seed", 1), policy=policy, fidelity=fidelity, perception="ground_truth", config=config,
+                    **kw)
+    lines = [rec("der3", steps=2), rec("der3", steps=5), rec("bluction_dar", steps=3), rec("der3", "foss", seed=2)]
     f.write_text("".join(json.dumps(r) + "\n" for r in lines))
     recs = physics_records([f])
     assert [(r["policy"], r["steps"]) for r in recs] == [("der3", 2), ("bluction_dar", 3)]

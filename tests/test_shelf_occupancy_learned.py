@@ -8,6 +8,7 @@ import pytest
 from pydrake.systems.sensors import ImageDepth32F
 
 from ms_drake.experiments.shelf import SCENARIO, shelf_geometry, shelf_rollout
+from ms_drake.policies.shelf_search import ShelfSearchConfig
 from ms_drake.experiments.shelf_learning import (
     batch_arrays,
     make_optimizer,
@@ -91,5 +92,5 @@ def test_estimator_learned_alone(geometry, held_out):
 
 
 def test_learned_perception_wired_to_foss():
-    r = shelf_rollout("dar", 4, 3, perception="learned")
+    r = shelf_rollout(ShelfSearchConfig(policy="dar", perception="learned"), 4, 3)
     assert r["perception"] == "learned" and r["steps"] >= 1 and np.isfinite(r["perception_ms"])

@@ -29,7 +29,7 @@ from ms_drake.policies.bin_search import ControllerError
 from ms_drake.policies.shelf_search import (
     MakeShelfSearchController,
     ShelfSceneObserver,
-    ShelfSearchParams,
+    ShelfSearchConfig,
     ShelfSimulationInfo,
 )
 from ms_drake.scenario import load_scenario
@@ -153,7 +153,7 @@ def test_scene_observer_alone_reads_the_body_poses():
 def test_scene_observer_wired_to_the_station(scenario):
     """In the simulated station's diagram the observer reads the plant's body poses: the objects
     where set_initial put them, and where an object is moved to."""
-    system = build_shelf_physics(scenario, SCENE, ShelfSearchParams(policy="dar"))
+    system = build_shelf_physics(scenario, SCENE, ShelfSearchConfig(policy="dar"))
     observer = system.controller.GetSubsystemByName("scene_observer")
     assert isinstance(observer, ShelfSceneObserver)
     ctx = system.diagram.CreateDefaultContext()
@@ -174,7 +174,7 @@ def test_scene_observer_wired_to_the_station(scenario):
 
 def test_controller_alone_fixed_inputs(scenario):
     bodies = {o.id: ShelfBody(k, o) for k, o in enumerate((OCC, SIDE, TARGET))}
-    c = MakeShelfSearchController(scenario, ShelfSearchParams(policy="dar"), sim=ShelfSimulationInfo(bodies, "target"))
+    c = MakeShelfSearchController(scenario, ShelfSearchConfig(policy="dar"), sim=ShelfSimulationInfo(bodies, "target"))
     names = {c.get_input_port(i).get_name() for i in range(c.num_input_ports())}
     assert names == {"front.rgb_image", "front.depth_image", "body_poses"}
     outs = {c.get_output_port(i).get_name() for i in range(c.num_output_ports())}
@@ -191,21 +191,21 @@ def test_controller_alone_fixed_inputs(scenario):
 
 def test_controller_bad_inputs(scenario):
     with pytest.raises(ControllerError, match="sim="):
-        MakeShelfSearchController(scenario, ShelfSearchParams())
+        MakeShelfSearchController(scenario, ShelfSearchConfig())
     bodies = {o.id: ShelfBody(k, o) for k, o in enumerate((OCC, TARGET))}
     with pytest.raises(ControllerError, match="camera"):
-        MakeShelfSearchController(scenario, ShelfSearchParams(camera="overhead"), sim=ShelfSimulationInfo(bodies))
+        MakeShelfSearchController(scenario, ShelfSearchConfig(camera="overhead"), sim=ShelfSimulationInfo(bodies))
     with pytest.raises(ControllerError, match="target_id"):
         ShelfSimulationInfo(bodies, "nope")
     with pytest.raises(ControllerError, match="horizon"):
-        ShelfSearchParams(horizon=0)
+        ShelfSearchConfig(horizon=0)
     with pytest.raises(Exception, match="unknown shelf policy"):
-        ShelfSearchParams(policy="xray")
+        ShelfSearchConfig(policy="xray")
 
 
 @pytest.mark.slow  # ~15 s of simulated time: 20-50 s on the shared 2 cores
 def test_wired_push_moves_the_object_along_x(scenario):
-    params = ShelfSearchParams(policy="dar", horizon=1)
+    params = ShelfSearchConfig(policy="dar", horizon=1)
     system = build_shelf_physics(scenario, ShelfScene((OCC,), TARGET, 0), params)
     sim = Simulator(system.diagram)
     ApplySimulatorConfig(system.scenario.simulator_config, sim)

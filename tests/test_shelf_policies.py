@@ -238,7 +238,7 @@ def test_oracle_estimate_counts_only_what_hides_the_target(foss):
 
 def test_oracle_solves_a_scene_the_triangle_search_lost(foss):
     # 10 occluders, seed 58: the search on the overhead triangle stopped at its 8 s bound without a
-    # plan (docs/BENCHMARKS.md); the view-ray estimates find a 2-action plan.
+    # plan (docs/results/ch9_shelf.md); the view-ray estimates find a 2-action plan.
     scene = generate_shelf_scene(foss.geometry, 58, num_objects=10).scene
     plan = oracle_plan(foss, scene, suction=True, budget=20)
     assert plan is not None and len(plan) <= 3

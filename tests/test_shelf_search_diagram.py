@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from ms_drake.experiments.shelf_physics import shelf_physics_rollout
+from ms_drake.policies.shelf_search import ShelfSearchConfig
 
 SCRIPT = Path(__file__).resolve().parent.parent / "sims" / "shelf_search_diagram.py"
 STOP = {"": "target_visible", "horizon": "horizon", "no_action": "no_action", "timeout": "timeout"}
@@ -35,7 +36,8 @@ def _script(**kw) -> dict:
 ])
 def test_script_agrees_with_the_benchmark(policy, seed, occluders, horizon, perception, stop):
     out = _script(seed=seed, policy=policy, occluders=occluders, horizon=horizon, perception=perception)
-    rec = shelf_physics_rollout(policy, seed, occluders, horizon=horizon, perception=perception).record
+    rec = shelf_physics_rollout(ShelfSearchConfig(policy=policy, horizon=horizon, perception=perception), seed,
+                                occluders).record
     assert out["seed"] == rec["seed"] == seed
     assert out["stop_reason"] == STOP[rec["failure"]] == stop
     assert out["success"] == rec["success"] == (stop == "target_visible")
@@ -49,8 +51,8 @@ def test_script_agrees_with_the_benchmark(policy, seed, occluders, horizon, perc
 def test_idle_step_monitor_keeps_frames_and_changes_nothing():
     """run_shelf_physics's read-only monitor (IdleStepRecorder): one frame per idle step judged, the
     chosen action on all but the last; the record is the same with and without it."""
-    plain = shelf_physics_rollout("bluction_dar", 0, 2).record
-    res = shelf_physics_rollout("bluction_dar", 0, 2, keep_frames=True)
+    plain = shelf_physics_rollout(ShelfSearchConfig(), 0, 2).record
+    res = shelf_physics_rollout(ShelfSearchConfig(), 0, 2, keep_frames=True)
     timing = {"seconds", "cpu_seconds", "pid"}
     assert {k: v for k, v in res.record.items() if k not in timing} == \
         {k: v for k, v in plain.items() if k not in timing}

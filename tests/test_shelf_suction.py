@@ -3,7 +3,6 @@ its front face, its weight acting behind the cup, is lifted, pulled out and plac
 moment about the cup's lip is within what the seal holds (about f r = 40 N x 15 mm = 0.6 N m), and
 falls when it is beyond (replay_shelf_action: one suction action played on the FetchShelf station)."""
 
-import numpy as np
 import pytest
 
 from ms_drake.execution.shelf_backend import agreement
@@ -27,7 +26,7 @@ def test_front_face_grip_of_a_box_like_occ05_lifts_pulls_and_places():
     """Sealed from contact to release, its front lifted, tilted ~20 degrees on the compliant lip.
     At 0.61 N m the box is at the cup's limit f r: with the lift of an empty shelf its back edge
     rests on the floor while it is pulled (lifted clear over taller objects it peels off at ~24
-    degrees: docs/BENCHMARKS.md)."""
+    degrees: docs/results/ch9_shelf.md)."""
     r = replay_shelf_action(SCENE, ACTION)
     f = _fields(r.outcome.message)
     assert r.outcome.success and agreement(r.outcome), r.outcome.message  # where FOSS puts it, nothing else moved

@@ -26,7 +26,7 @@ RUNS = {
     "grasp_labels": (["all", "--objects", "2", "--grasps", "2", "--trials", "1", "--param-sets", "1", "--robust", "1",
                       "--labels", "TMP/labels.jsonl", "--predictions", "TMP/predictions.jsonl"], "predictions.jsonl"),
     "push_policies": (["speed", "--heaps", "1", "--objects", "3", "--out", "TMP/speed.json"], "speed.json"),
-    "push_ablation": ([str(ROOT / "docs/data/push_heaps"), "--heaps", "1", "--out", "TMP/ablation.jsonl"],
+    "push_ablation": ([str(ROOT / "tests/data/push_heaps_ycb"), "--heaps", "1", "--out", "TMP/ablation.jsonl"],
                       "ablation.jsonl"),
     "bench_segmentation": (["--heaps", "1", "--cache", "TMP/cache"], None),
     "bench_occupancy": (["--heaps", "1", "--render-images", "0", "--cache", "TMP/cache"], None),

@@ -223,10 +223,9 @@ class PickReach:
         if any(r.success for r in pre):  # the straight approach or the lift fails
             r = next(r for r in pre if r.success)
             step = "approach_or_lift"
-            target = poses[pre.index(r)]
             status = plan.status
         else:
-            step, status, target = "pre_grasp", pre[0].status, approach_pose(poses[0], 0.10)
+            step, status = "pre_grasp", pre[0].status
             r = pre[0]
         if status == "collision":
             return {"reason": "collision", "step": step, "detail": self._closest_pair(ik, r.q)}

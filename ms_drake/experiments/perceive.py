@@ -41,7 +41,7 @@ from ms_drake.perception.segmentation import BACKENDS as SEGMENTERS
 from ms_drake.perception.segmentation import Segmenter
 from ms_drake.perception.target import TargetDetector, render_templates
 from ms_drake.scenario import load_scenario
-from ms_drake.types import InstanceMasks, TargetEstimate
+from ms_drake.types import InstanceMasks
 
 MODEL_SIZE = (640, 480)  # the learned models' image size (width, height)
 DEPTH_RANGE = (0.05, 10.0)  # m: plausible depths of a camera over a bin

@@ -7,7 +7,7 @@ Per (heap, policy) whose record holds a push (`ms-drake data push-heaps`):
              into both worlds: PushWorld(fidelity="primitive") and PushWorld(fidelity="full");
   push       the record's push (start, end, object): the policy's plan on that state;
   primitive  PushWorld.execute_push in FloatingGripperBin: the floating closed jaw at 0.15 m/s along
-             the segment, broad side leading, at the study's plant step (StudyParams.time_step,
+             the segment, broad side leading, at the study's plant step (PushStudyConfig.time_step,
              PRIMITIVE_PUSH_TIME_STEP = 5 ms), then the 0.5 s settle (the study's own execution,
              run again here so both sides come from this code);
   full       the same Push by FullBackend in YuMiBin at the scenario's 2 ms plant step: the right
@@ -31,9 +31,9 @@ One diagnostic side, run only where the YuMi executed the push:
   coarse  the primitive side at a 10 ms plant step (COARSE_STEP, the search's non-pushing
           selectors'): at 10 ms the compliant contact launches a pushed object (a box pushed 7.5 cm
           along x ends 3.3 cm to the side, turned 98 degrees; at 5 ms and on the YuMi it slides
-          6.6 cm straight; docs/BENCHMARKS.md), the reason the pushes run at 5 ms.
+          6.6 cm straight; docs/results/ch4_pushing.md), the reason the pushes run at 5 ms.
 Gain sign: sign(Q*_o after - Q*_o before) in {-1, 0, +1} (|gain| <= 1e-9 counts as 0), Q*_o by the
-study's GraspSets (StudyParams(), seeded by the heap's seed, so both sides score the same grasp
+study's GraspSets (PushStudyConfig(), seeded by the heap's seed, so both sides score the same grasp
 samples of an object in a given tilt); `gain_sign_agree` when the two signs are equal.
 """
 
@@ -51,7 +51,8 @@ from ms_drake.experiments.push_study import (
     HEAPS_FILE,
     GraspSets,
     PushWorld,
-    StudyParams,
+    PushStudyConfig,
+    heap_config,
     _append,
     _center,
     _rewrite_clean,
@@ -113,8 +114,8 @@ def agreement(prim: dict, full: dict, abs_tol: float = AGREE_ABS, rel_tol: float
 class FidelityPair:
     """The two worlds of one heap record, its state loaded in both, its before metrics."""
 
-    def __init__(self, rec: dict, params: StudyParams | None = None, scenario: str = "YuMiBin"):
-        params = params or StudyParams()
+    def __init__(self, rec: dict, params: PushStudyConfig | None = None, scenario: str = "YuMiBin"):
+        params = params or PushStudyConfig()
         if "state" not in rec:
             raise ValueError(f"heap {rec.get('seed')}: the record has no pushed state (stop {rec.get('stop')!r})")
         c = time.process_time()
@@ -185,10 +186,10 @@ class FidelityPair:
 
 
 def fidelity_job(job: tuple) -> list[dict]:
-    """(heap record, policies, StudyParams dict[, robot scenario]) -> one row per policy (module-level
+    """(heap record, policies, PushStudyConfig dict[, robot scenario]) -> one row per policy (module-level
     for pools)."""
     rec, policies, params, *rest = job
-    pair = FidelityPair(rec, StudyParams(**params), rest[0] if rest else "YuMiBin")
+    pair = FidelityPair(rec, PushStudyConfig(**params), rest[0] if rest else "YuMiBin")
     return [pair.compare(p, rec["policies"][p]["push"], rec["policies"][p].get("overall_gain")) for p in policies]
 
 
@@ -209,13 +210,12 @@ def pushed_records(heap_dirs, heaps: int, seed_start: int = 0, policies=POLICIES
 
 
 def run_push_fidelity(heap_dirs, heaps: int, seed_start: int, out: Path, workers: int = 1, policies=POLICIES,
-                      params: StudyParams | None = None, progress=None, scenario: str = "YuMiBin") -> dict:
+                      params: PushStudyConfig | None = None, progress=None, scenario: str = "YuMiBin") -> dict:
     """Rows of every (heap, policy) push of the first `heaps` improvable heaps into `out` (JSON lines,
     resumable: finished (seed, policy) rows are kept and skipped), the full side on `scenario`'s
     robot. progress(rows) after each heap."""
     for p in policies:
         check_push_policy(p)
-    params = params or StudyParams()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     rows = read_jsonl(out)
@@ -226,7 +226,7 @@ def run_push_fidelity(heap_dirs, heaps: int, seed_start: int, out: Path, workers
     for r, ps in recs:
         todo = [p for p in ps if (int(r["seed"]), p) not in done]
         if todo:
-            jobs.append((r, todo, asdict(params), scenario))
+            jobs.append((r, todo, asdict(params or heap_config(r)), scenario))
     failed = []
     for res in run_jobs(fidelity_job, jobs, workers=workers):
         if res.ok:

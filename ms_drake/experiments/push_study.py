@@ -48,7 +48,7 @@ import json
 import os
 import time
 import zlib
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import coal
@@ -60,6 +60,8 @@ from pydrake.multibody.math import SpatialVelocity
 from pydrake.systems.analysis import Simulator
 from scipy.stats import f_oneway
 
+from ms_drake.config_files import ConfigError
+from ms_drake.errors import MsDrakeError
 from ms_drake.execution import PRIMITIVE_PUSH_TIME_STEP, FullBackend, Motion, PrimitiveBackend, remove_objects
 from ms_drake.execution.backends import tcp_offset_of
 from ms_drake.experiments.figures import figure_dir, save_png
@@ -101,7 +103,8 @@ from ms_drake.station.robots import set_arm_positions
 from ms_drake.types import Action, Heap, ObjectGeometry
 
 METRICS = ("separation_gain", "jaw_gain", "suction_gain", "overall_gain")
-SAMPLINGS = ("tilt_bin", "object")  # StudyParams.sampling
+SAMPLINGS = ("tilt_bin", "object")  # PushStudyAblation.sampling
+OBJECT_SETS = ("ycb", "procedural")  # PushStudyConfig.object_set
 WORLD_SCENARIOS = {"primitive": "FloatingGripperBin", "full": "YuMiBin"}  # PushWorld's station per fidelity
 
 
@@ -118,7 +121,42 @@ def _scenario(name: str):
 
 
 @dataclass(frozen=True)
-class StudyParams:
+class PushStudyAblation:
+    """Switches that reproduce settings other than the study's; each default is the study's.
+
+    - sampling: what seeds an object's grasp draw and robust trials (module docstring): "tilt_bin"
+      or "object" (the same draw in every tilt bin: common random numbers across bins).
+    - compare_sampling: another sampling scored on the same states and pushes ("" = none): the heap
+      records then carry its before metrics and gains under "compare".
+    - transfer_speed: the primitive jaw's transfers between its park pose and above the push (free
+      space above the walls) [m/s]; None = the push's travel speed (0.5 m/s). 2.0 halves the CPU.
+    - quasi_random_checked: quasi-random's push only as far as the object is free to move, its
+      start free, like the other policies' pushes (PolicyParams.quasi_random_checked)."""
+
+    sampling: str = "tilt_bin"
+    compare_sampling: str = ""
+    transfer_speed: float | None = None
+    quasi_random_checked: bool = False
+
+    def __post_init__(self):
+        for key, value, allowed in (("sampling", self.sampling, SAMPLINGS),
+                                    ("compare_sampling", self.compare_sampling, ("",) + SAMPLINGS)):
+            if value not in allowed:
+                raise ConfigError(f"ablation.{key} {value!r} unknown; choose one of "
+                                 f"{', '.join(repr(a) for a in allowed)}")
+        if self.transfer_speed is not None and not self.transfer_speed > 0:
+            raise ConfigError(f"ablation.transfer_speed {self.transfer_speed!r}: a speed > 0 m/s, or None (the "
+                             "push's travel speed)")
+
+
+@dataclass(frozen=True)
+class PushStudyConfig:
+    """The push study's settings (Ch. 4: improvable heaps by Algorithm 1, the five policies' pushes
+    and their grasp-quality gains); a Drake YAML file (ms_drake.config_files.load_config). Every heap
+    record keeps it (`config`). object_set: the heaps' objects, household meshes ("ycb", as the
+    reference's: Algorithm 1 leaves several objects stuck) or "procedural" (BinHeap15's shapes,
+    which it leaves stuck mostly on one lying cylinder no push makes graspable)."""
+
     grasps: int = 100  # per object and gripper (the reference's)
     robust_samples: int = 4
     max_approach: float = np.radians(60.0)
@@ -131,26 +169,26 @@ class StudyParams:
     max_objects: int = 10
     settle: float = 0.5
     time_step: float = PRIMITIVE_PUSH_TIME_STEP  # where the primitive push agrees with the YuMi's
-    # The heaps' object set ("" = BinHeap15's, procedural). Algorithm 1 leaves procedural heaps
-    # stuck mostly on one lying cylinder that no push makes graspable; household meshes ("ycb")
-    # leave several objects, as the reference's (see docs/BENCHMARKS.md, push study).
-    object_set: str = ""
-    # The primitive jaw's transfers between its park pose and above the push (free space above the
-    # walls) [m/s]; None = the push's travel speed (0.5 m/s), the study's recorded setting.
-    transfer_speed: float | None = None
-    # What seeds an object's grasp draw and robust trials (module docstring): "tilt_bin" (the
-    # recorded studies) or "object" (common random numbers across bins).
-    sampling: str = "tilt_bin"
-    # Another sampling scored on the same states and pushes ("" = none): the data step's records then
-    # carry its before metrics and gains under "compare" (the two metrics paired on one physics).
-    compare_sampling: str = ""
+    object_set: str = "ycb"
+    ablation: PushStudyAblation = field(default_factory=PushStudyAblation)
 
     def __post_init__(self):
-        for key, value, allowed in (("sampling", self.sampling, SAMPLINGS),
-                                    ("compare_sampling", self.compare_sampling, ("",) + SAMPLINGS)):
-            if value not in allowed:
-                raise ValueError(f"StudyParams.{key} {value!r} unknown; choose one of "
-                                 f"{', '.join(repr(a) for a in allowed)}")
+        if isinstance(self.ablation, dict):
+            object.__setattr__(self, "ablation", PushStudyAblation(**self.ablation))
+        if self.object_set not in OBJECT_SETS:
+            raise ConfigError(f"object_set {self.object_set!r} unknown; choose one of "
+                             f"{', '.join(repr(a) for a in OBJECT_SETS)}")
+
+    def policy_params(self) -> PolicyParams:
+        """The push planners' parameters in this study."""
+        return PolicyParams(quasi_random_checked=self.ablation.quasi_random_checked)
+
+
+def heap_config(rec: dict) -> PushStudyConfig:
+    """The config a heap record was made with (its `config`)."""
+    if "config" not in rec:
+        raise MsDrakeError(f"heap record of seed {rec.get('seed')} has no config: re-run `ms-drake data push-heaps`")
+    return PushStudyConfig(**rec["config"])
 
 
 # --------------------------------------------------------------------------- physics
@@ -162,7 +200,7 @@ class PushWorld:
     scenario's own plant step + FullBackend (IK + ruckig from the arm's park configuration through
     the station's drivers). Commands are held over one plant step."""
 
-    def __init__(self, heap: Heap, params: StudyParams = StudyParams(), cameras: bool = False,
+    def __init__(self, heap: Heap, params: PushStudyConfig = PushStudyConfig(), cameras: bool = False,
                  fidelity: str = "primitive", scenario_name: str | None = None):
         if fidelity not in WORLD_SCENARIOS:
             raise ValueError(f"fidelity {fidelity!r} unknown; choose one of {', '.join(WORLD_SCENARIOS)}")
@@ -185,7 +223,7 @@ class PushWorld:
         bodies = {o.model_name: int(o.body_index) for o in self.objects}
         if fidelity == "primitive":
             self.backend = PrimitiveBackend(bodies, self.workspace, tcp_offset_of(self.plant),
-                                            transfer_speed=params.transfer_speed)
+                                            transfer_speed=params.ablation.transfer_speed)
         else:
             self.backend = FullBackend(s, bodies, self.workspace)
         self.removed: set = set()
@@ -397,7 +435,7 @@ def _jaw_boxes(g):
             for _, size, X in gripper_boxes(g)]
 
 
-def _cup_boxes(point, approach, params: StudyParams):
+def _cup_boxes(point, approach, params: PushStudyConfig):
     z = -np.asarray(approach, float)  # out of the surface
     z /= np.linalg.norm(z)
     x = np.cross(z, [1.0, 0.0, 0.0])
@@ -415,7 +453,7 @@ class GraspSets:
     collision-free and kept with it. Per state and object the grasps are checked in sampled order
     and the search stops at a quality of 1 (nothing beats it), so the maxima are exact."""
 
-    def __init__(self, params: StudyParams = StudyParams(), seed: int = 0):
+    def __init__(self, params: PushStudyConfig = PushStudyConfig(), seed: int = 0):
         self.params, self.seed = params, int(seed)
         self.jaw_eval = GraspEvaluator("soft_point")
         self.suction_eval = SuctionEvaluator()
@@ -438,7 +476,7 @@ class GraspSets:
         Xq = np.eye(4)
         Xq[:3, :3] = _rotation_between(gq, np.array([0.0, 0.0, -1.0]))
         draw = [self.seed, zlib.crc32(oid.encode())]
-        if p.sampling == "tilt_bin":
+        if p.ablation.sampling == "tilt_bin":
             draw.append(zlib.crc32(repr(key).encode()))
         rng_seed = int(np.random.default_rng(draw).integers(2**31))
         Xq_inv = np.linalg.inv(Xq)
@@ -579,11 +617,11 @@ def run_policy(world: PushWorld, snap, before: dict, sets: GraspSets, policy: st
 
 
 # --------------------------------------------------------------------------- Algorithm 1
-def _heap_size(seed: int, params: StudyParams) -> int:
+def _heap_size(seed: int, params: PushStudyConfig) -> int:
     return int(np.random.default_rng([seed, 17]).integers(params.min_objects, params.max_objects + 1))
 
 
-def grasp_until_stuck(world: PushWorld, sets: GraspSets, seed: int, params: StudyParams) -> tuple[str, dict, int]:
+def grasp_until_stuck(world: PushWorld, sets: GraspSets, seed: int, params: PushStudyConfig) -> tuple[str, dict, int]:
     """Algorithm 1's loop: ("low_quality" | "failures" | "cleared", metrics of the final state, grasps)."""
     failures, t = 0, 0
     while True:
@@ -605,15 +643,15 @@ def grasp_until_stuck(world: PushWorld, sets: GraspSets, seed: int, params: Stud
         world.advance(params.settle)
 
 
-def study_heap(seed: int, params: StudyParams) -> tuple[Heap, int]:
+def study_heap(seed: int, params: PushStudyConfig) -> tuple[Heap, int]:
     """(heap `seed` of the study, its object count): N drawn from the seed, objects of
     `params.object_set`; no target in this study."""
     n = _heap_size(seed, params)
-    heap = generate_heap(copy.deepcopy(_scenario("BinHeap15")), n, seed, object_set=params.object_set or None)
+    heap = generate_heap(copy.deepcopy(_scenario("BinHeap15")), n, seed, object_set=None if params.object_set == "procedural" else params.object_set)
     return Heap(heap.seed, heap.environment, heap.objects), n
 
 
-def improvable_heap(seed: int, params: StudyParams = StudyParams(), policies=POLICIES) -> dict:
+def improvable_heap(seed: int, params: PushStudyConfig = PushStudyConfig(), policies=POLICIES) -> dict:
     """One heap through Algorithm 1 and the five policies: a JSON-able record (module docstring)."""
     t_wall, t_cpu = time.perf_counter(), time.process_time()
     heap, n = study_heap(seed, params)
@@ -621,12 +659,8 @@ def improvable_heap(seed: int, params: StudyParams = StudyParams(), policies=POL
     world.advance(params.settle)  # the dropped heap at rest in the station's contact model
     sets = GraspSets(params, seed)
     reason, before, grasps = grasp_until_stuck(world, sets, seed, params)
-    rec = {"seed": int(seed), "object_set": params.object_set, "objects_dropped": n, "grasps": grasps, "stop": reason,
+    rec = {"seed": int(seed), "config": asdict(params), "objects_dropped": n, "grasps": grasps, "stop": reason,
            "objects": before["objects"], "heap": heap_to_dict(heap), "improvable": False}
-    if params.transfer_speed is not None:
-        rec["transfer_speed"] = params.transfer_speed
-    if params.sampling != "tilt_bin":  # a record without the key: the recorded studies' sampling
-        rec["sampling"] = params.sampling
     if reason == "cleared":
         rec.update(seconds=time.perf_counter() - t_wall, cpu_seconds=time.process_time() - t_cpu)
         return rec
@@ -635,14 +669,16 @@ def improvable_heap(seed: int, params: StudyParams = StudyParams(), policies=POL
     rec["before"] = {k: before[k] for k in ("D", "jaw", "suction", "overall")}
     rec["before_per_object"] = before["per_object"]
     compare = None
-    if params.compare_sampling:
-        alt_sets = GraspSets(replace(params, sampling=params.compare_sampling), seed)
+    if params.ablation.compare_sampling:
+        alt_sets = GraspSets(replace(params, ablation=replace(params.ablation, sampling=params.ablation.compare_sampling)),
+                             seed)
         compare = (alt_sets, state_metrics(world, alt_sets))
-        rec["compare"] = {"sampling": params.compare_sampling,
+        rec["compare"] = {"sampling": params.ablation.compare_sampling,
                           "before": {k: compare[1][k] for k in ("jaw", "suction", "overall")}}
     results = {}
     for p in policies:
-        results[p] = run_policy(world, snap, before, sets, p, seed, compare=compare)
+        results[p] = run_policy(world, snap, before, sets, p, seed, policy_params=params.policy_params(),
+                                compare=compare)
     rec["policies"] = results
     rec["improvable"] = any(r.get("overall_gain", 0.0) > 1e-9 for r in results.values())
     rec["grasp_evaluations"] = sets.evaluations
@@ -655,9 +691,9 @@ HEAPS_FILE = "heaps.jsonl"
 
 
 def push_heap_job(job: tuple) -> dict:
-    """(seed, StudyParams as a dict) -> improvable_heap's record (module-level for worker pools)."""
+    """(seed, PushStudyConfig as a dict) -> improvable_heap's record (module-level for worker pools)."""
     seed, params = job
-    return improvable_heap(int(seed), StudyParams(**params))
+    return improvable_heap(int(seed), PushStudyConfig(**params))
 
 
 def read_jsonl(path: Path) -> list[dict]:
@@ -682,21 +718,21 @@ def _rewrite_clean(path: Path, recs: list[dict]) -> None:
 
 
 def write_push_heaps(count: int, out_dir: Path, seed_start: int = 0, workers: int = 1, use_ray: bool = False,
-                     ray_address: str | None = None, params: StudyParams = StudyParams(), bar=None) -> dict:
+                     ray_address: str | None = None, params: PushStudyConfig = PushStudyConfig(), bar=None) -> dict:
     """Algorithm 1 on heaps seed_start .. seed_start + count - 1 into out_dir/heaps.jsonl (one record
     per heap, resumable: finished seeds are kept and skipped). Returns the counts."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / HEAPS_FILE
     recs = read_jsonl(path)
-    other = sorted({r.get("object_set", "") for r in recs} - {params.object_set})
-    if other:
-        raise ValueError(f"{path} holds heaps of object set(s) {', '.join(repr(o) for o in other)}, not "
-                         f"{params.object_set!r}: write to another folder or pass that object set")
-    speeds = sorted({str(r.get("transfer_speed")) for r in recs} - {str(params.transfer_speed)})
-    if speeds:
-        raise ValueError(f"{path} holds heaps pushed with transfer speed(s) {', '.join(speeds)} (None = the travel "
-                         f"speed), not {params.transfer_speed}: write to another folder or pass that speed")
+    mine = asdict(params)
+    for n, r in enumerate(recs, start=1):
+        if r.get("config") != mine:
+            theirs = r.get("config")
+            diff = ("no config" if theirs is None else ", ".join(
+                f"{k}={theirs.get(k)!r}" for k in mine if theirs.get(k) != mine[k]))
+            raise MsDrakeError(f"{path}, line {n}: a heap of another config ({diff}); write to another folder, or "
+                             "run with that config (--config / --set)")
     _rewrite_clean(path, recs)
     done = {int(r["seed"]) for r in recs}
     seeds = [k for k in range(seed_start, seed_start + count) if k not in done]
@@ -722,58 +758,52 @@ def improvable_records(heap_dir: Path, heaps: int, seed_start: int = 0) -> list[
     return recs[:heaps]
 
 
-def bench_row(heap_rec: dict, policy: str, result: dict, source: str) -> dict:
-    row = {"seed": int(heap_rec["seed"]), "policy": policy, "objects": heap_rec["objects"], "source": source}
+def bench_row(heap_rec: dict, policy: str, result: dict, source: str, config: PushStudyConfig) -> dict:
+    """One `bench push` row: the policy's gains on a heap, with the config its push ran under."""
+    row = {"seed": int(heap_rec["seed"]), "policy": policy, "objects": heap_rec["objects"], "source": source,
+           "config": asdict(config)}
     row.update({k: float(result.get(k, 0.0)) for k in METRICS})
     row.update(pushed=bool(result.get("pushed")), plan_ms=float(result.get("plan_ms", 0.0)),
                push=result.get("push"), before=heap_rec.get("before"), after=result.get("after"),
                left_bin=int(result.get("left_bin", 0)))
     if result.get("error"):
         row["error"] = result["error"]
-    if heap_rec.get("sampling"):  # without the key: "tilt_bin"
-        row["sampling"] = heap_rec["sampling"]
     return row
 
 
 def rerun_job(job: tuple) -> dict:
-    """(seed, policy, StudyParams dict) -> the heap's record with only `policy` run (Algorithm 1
+    """(seed, policy, PushStudyConfig dict) -> the heap's record with only `policy` run (Algorithm 1
     again from the seed: deterministic, so it reproduces the data step's state)."""
     seed, policy, params = job
-    return improvable_heap(int(seed), StudyParams(**params), policies=(policy,))
+    return improvable_heap(int(seed), PushStudyConfig(**params), policies=(policy,))
 
 
-def policies_from_state(rec: dict, params: StudyParams, policies=POLICIES) -> dict:
+def policies_from_state(rec: dict, params: PushStudyConfig, policies=POLICIES) -> dict:
     """`policies` on a heap record's stored state (its poses at rest): the study without Algorithm
     1's drop and grasping. Returns {"before": metrics, "policies": {policy: run_policy's record},
     "cpu_s": all of it (world, before, pushes, after)}. The stored poses are rounded to 1 um and
     at rest, so a push from them is the data step's push up to that rounding."""
     c = time.process_time()
-    params = replace(params, object_set=rec.get("object_set", params.object_set))
+    params = replace(params, object_set=heap_config(rec).object_set)
     world = PushWorld(heap_from_dict(rec["heap"]), params)
     world.set_state(rec["state"])
     sets = GraspSets(params, int(rec["seed"]))
     before = state_metrics(world, sets)
     snap = world.snapshot()
-    results = {p: run_policy(world, snap, before, sets, p, int(rec["seed"])) for p in policies}
+    results = {p: run_policy(world, snap, before, sets, p, int(rec["seed"]), policy_params=params.policy_params())
+               for p in policies}
     return {"before": {k: before[k] for k in ("D", "jaw", "suction", "overall")}, "policies": results,
             "cpu_s": time.process_time() - c}
 
 
-def recorded_params(heap_rec: dict, params: StudyParams = StudyParams()) -> StudyParams:
-    """`params` with the settings a heap record was made with: its object set, grasp sampling
-    ("tilt_bin" when the record has none) and transfer speed."""
-    return replace(params, object_set=heap_rec.get("object_set", ""), sampling=heap_rec.get("sampling", "tilt_bin"),
-                   transfer_speed=heap_rec.get("transfer_speed"))
-
-
 def state_job(job: tuple) -> dict:
-    """(heap record, policies, StudyParams dict) -> policies_from_state (module-level for pools)."""
+    """(heap record, policies, PushStudyConfig dict) -> policies_from_state (module-level for pools)."""
     rec, policies, params = job
-    return policies_from_state(rec, StudyParams(**params), tuple(policies))
+    return policies_from_state(rec, PushStudyConfig(**params), tuple(policies))
 
 
 def run_push_bench(policy: str, heaps: int, seed_start: int, out: Path, heap_dir: Path, workers: int = 1,
-                   rerun: bool = False, params: StudyParams = StudyParams(), progress=None,
+                   rerun: bool = False, params: PushStudyConfig = PushStudyConfig(), progress=None,
                    from_state: bool = False) -> dict:
     """Rows of `policy` on the first `heaps` improvable heaps (seed >= seed_start) of heap_dir into
     `out` (resumable). By default a row is the data step's own execution of the policy on that heap
@@ -785,40 +815,45 @@ def run_push_bench(policy: str, heaps: int, seed_start: int, out: Path, heap_dir
     out.parent.mkdir(parents=True, exist_ok=True)
     rows = read_jsonl(out)
     _rewrite_clean(out, rows)
-    speed = params.transfer_speed if rerun else None  # the data step's rows are at the recorded setting
-    done = {(int(r["seed"]), r["policy"]) for r in rows if r.get("transfer_speed") == speed}
-    todo = [h for h in improvable_records(heap_dir, heaps, seed_start) if (int(h["seed"]), policy) not in done]
+    def params_of(h):  # a heap is re-run with its own config, but the transfer speed and the planners' switch
+        c = heap_config(h)
+        if not rerun:
+            return c
+        return replace(c, ablation=replace(c.ablation, compare_sampling="", transfer_speed=params.ablation.transfer_speed,
+                                           quasi_random_checked=params.ablation.quasi_random_checked))
+
+    def key(config):
+        return json.dumps(config, sort_keys=True)
+
+    improvable = improvable_records(heap_dir, heaps, seed_start)
+    wanted = {key(asdict(params_of(h))) for h in improvable}
+    done = {(int(r["seed"]), r["policy"], key(r["config"])) for r in rows if "config" in r}
+    todo = [h for h in improvable if (int(h["seed"]), policy, key(asdict(params_of(h)))) not in done]
 
     def add(row):
-        if speed is not None:
-            row["transfer_speed"] = speed
         _append(out, row)
         if progress:
             progress(row)
 
-    def params_of(h):  # a heap is re-run with the grasp sampling it was recorded with
-        return asdict(replace(params, object_set=h.get("object_set", ""), sampling=h.get("sampling", "tilt_bin"),
-                              compare_sampling=""))
-
     if rerun and from_state:
-        jobs = [(h, (policy,), params_of(h)) for h in todo]
+        jobs = [(h, (policy,), asdict(params_of(h))) for h in todo]
         for r in run_jobs(state_job, jobs, workers=workers):
             if r.ok:
                 h = dict(r.job[0], before=r.value["before"])
-                row = bench_row(h, policy, r.value["policies"][policy], "state")
+                row = bench_row(h, policy, r.value["policies"][policy], "state", params_of(r.job[0]))
                 row["cpu_s"] = r.value["cpu_s"]
                 add(row)
     elif rerun:
-        jobs = [(int(h["seed"]), policy, params_of(h)) for h in todo]
+        jobs = [(int(h["seed"]), policy, asdict(params_of(h))) for h in todo]
         for r in run_jobs(rerun_job, jobs, workers=workers):
             if r.ok:
-                row = bench_row(r.value, policy, r.value["policies"][policy], "rerun")
+                row = bench_row(r.value, policy, r.value["policies"][policy], "rerun", heap_config(r.value))
                 add(row)
     else:
         for h in todo:
-            row = bench_row(h, policy, h["policies"][policy], "push-heaps")
+            row = bench_row(h, policy, h["policies"][policy], "push-heaps", heap_config(h))
             add(row)
-    got = [r for r in read_jsonl(out) if r["policy"] == policy and r.get("transfer_speed") == speed]
+    got = [r for r in read_jsonl(out) if r["policy"] == policy and key(r.get("config", {})) in wanted]
     return {"rows": len(got), "new": len(todo), "available": len(improvable_records(heap_dir, 10**9, seed_start))}
 
 
@@ -944,7 +979,7 @@ def planning_speed(heaps: int = 20, seed_start: int = 0, objects: int = 8, repea
                                      "found": found[(s, p)]} for (s, p), v in times.items()}}
 
 
-def push_example_figure(seed: int, out: Path, params: StudyParams = StudyParams(), policies=POLICIES) -> dict:
+def push_example_figure(seed: int, out: Path, params: PushStudyConfig = PushStudyConfig(), policies=POLICIES) -> dict:
     """Fig. 4.4 / 4.5 style picture of heap `seed`: Algorithm 1 replayed (deterministic), then per
     policy the overhead image before (its push drawn as an arrow, tail = the jaw's start) and after
     the push, with the overall / jaw / suction gains. An entry of `policies` is a policy name or
@@ -1000,7 +1035,7 @@ def push_example_figure(seed: int, out: Path, params: StudyParams = StudyParams(
     return out_gains
 
 
-def quality_noise(heap_recs: list[dict], seeds=(0, 1, 2, 3, 4), params: StudyParams = StudyParams()) -> dict:
+def quality_noise(heap_recs: list[dict], seeds=(0, 1, 2, 3, 4), params: PushStudyConfig = PushStudyConfig()) -> dict:
     """How much Q*_o of a fixed state moves with the grasp sample alone: each record's before-push
     state (its stored poses) scored with GraspSets of several seeds. Returns per heap the values and
     overall the mean standard deviation and the share of heaps whose Q*_o differs between seeds."""

@@ -44,7 +44,7 @@ import tempfile
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from functools import partial
 from pathlib import Path
@@ -64,7 +64,7 @@ from ms_drake.experiments.occupancy_learning import (
 )
 from ms_drake.experiments.push_study import METRICS as PUSH_METRICS
 from ms_drake.experiments.push_study import (
-    StudyParams,
+    PushStudyConfig,
     format_push_table,
     improvable_records,
     plot_push,
@@ -87,6 +87,7 @@ from ms_drake.perception.occupancy_net import TARGET_RATIOS
 from ms_drake.perception.occupancy_net import load_model as load_occupancy_model
 from ms_drake.perception.segmentation import coco_metrics
 from ms_drake.policies.bin_search import load_bin_search_config
+from ms_drake.policies.shelf_search import ShelfSearchConfig
 from ms_drake.pushing import POLICIES as PUSH_POLICIES
 from ms_drake.robots import PadConfig
 from ms_drake.scenes.layouts import HeapConfig
@@ -240,7 +241,7 @@ def _seeds(run: Run, count: int) -> range:
 
 
 # ----------------------------------------------------------------------------------- Tables 2.1 / 3.1
-# The physics labels and the AP / AR table as docs/BENCHMARKS.md "Physics labels and AP / AR" made
+# The physics labels and the AP / AR table as docs/results/ch2_3_grasping.md reports
 # them (sims/grasp_labels.py): the 20 x 20 mm pad, 4 parameter sets, robust models with N = 5.
 LABEL_PAD = PadConfig(width=0.02, length=0.02, hydroelastic_modulus=1e5, relaxation_time=0.05, mu_static=0.8,
                       mu_dynamic=0.8, resolution_hint=0.003)
@@ -352,20 +353,19 @@ PUSH_NAMES = {"quasi_random": "Quasi-random (baseline)", "boundary_shear": "Boun
               "max_clearance": "Max clearance", "cluster_diffusion": "Cluster diffusion"}
 PUSH_METRIC_NAMES = {"separation_gain": "separation gain", "jaw_gain": "jaw quality gain",
                      "suction_gain": "suction quality gain", "overall_gain": "overall quality gain"}
-PUSH_OBJECT_SET = "ycb"  # household meshes, as the reference's (docs/BENCHMARKS.md: the study with the current push)
 
 
 def _fig_4_2(run: Run) -> Result:
-    """Improvable heaps (`data push-heaps --object-set ycb`, Algorithm 1) until `heaps` of them are
+    """Improvable heaps (`data push-heaps`: household objects, Algorithm 1) until `heaps` of them are
     found, then `bench push` for the five policies, `bench push-table`'s summary and figures."""
     wanted = run.size["heaps"]
     heap_dir, rows_file = run.dir / "push_heaps", run.dir / "push_bench.jsonl"
-    params = StudyParams(object_set=PUSH_OBJECT_SET)
+    params = PushStudyConfig()
     found = len(improvable_records(heap_dir, wanted, run.seed_start))
     run.progress.set(found)
     dropped = [int(r["seed"]) for r in read_jsonl(heap_dir / "heaps.jsonl") if int(r["seed"]) >= run.seed_start]
     count = max(dropped) - run.seed_start + 1 if dropped else 0
-    limit = 40 * wanted + 100  # 25 % of the dropped heaps are improvable (docs/BENCHMARKS.md: 400 of 1,600)
+    limit = 40 * wanted + 100  # about 25 % of the dropped heaps are improvable
     while found < wanted:
         if count >= limit:
             raise ReproduceError(f"fig_4_2: only {found} improvable heaps in {count} dropped (seeds {run.seed_start}-"
@@ -379,7 +379,9 @@ def _fig_4_2(run: Run) -> Result:
     for policy in PUSH_POLICIES:
         run_push_bench(policy, wanted, run.seed_start, rows_file, heap_dir)
     seeds = {int(h["seed"]) for h in heaps}
-    rows = [r for r in read_jsonl(rows_file) if int(r["seed"]) in seeds and r.get("transfer_speed") is None]
+    study = json.dumps(asdict(params), sort_keys=True)  # the data step's own pushes, not a re-run's
+    rows = [r for r in read_jsonl(rows_file) if int(r["seed"]) in seeds
+            and json.dumps(r.get("config"), sort_keys=True) == study]
     s = summarize_push(rows)
     by = {(r["policy"], int(r["seed"])): r for r in rows}
     common = sorted(seeds)
@@ -396,7 +398,7 @@ def _fig_4_2(run: Run) -> Result:
     dropped_n = len([r for r in read_jsonl(heap_dir / "heaps.jsonl") if int(r["seed"]) >= run.seed_start])
     return Result(measures, figures=figures, records=[heap_dir / "heaps.jsonl", rows_file],
                   bench_table="```\n" + format_push_table(s) + "\n```",
-                  notes=[f"{len(heaps)} improvable heaps of household objects ({PUSH_OBJECT_SET}), found among "
+                  notes=[f"{len(heaps)} improvable heaps of household objects ({params.object_set}), found among "
                          f"{dropped_n} dropped heaps from seed {run.seed_start} (the reference: 481 of over 1,000); "
                          "mean gain per heap, every policy on the same heaps. The reference gives its gains as "
                          "text around its figure (lines 700, 730, 739); its ANOVA compares four policies."])
@@ -586,7 +588,7 @@ TABLE_6_3_REF = _refs([r for r, _ in REARRANGE_ROWS],
 # ----------------------------------------------------------------------------------- Table 8.1
 # The held-out sets: test-only shards (occluders from the test splits) from dataset seeds the shipped
 # occupancy.pt never saw (it was trained on seed 0; models/weights/occupancy.md). Out-of-set targets
-# as docs/BENCHMARKS.md "Table 8.1 analogue": the lid, the domino, the flute (a cylinder lying flat).
+# as docs/results/ch8_xray.md: the lid, the domino, the flute (a cylinder lying flat).
 OCCUPANCY_SETS = (("test", 0, None), ("lid", 1, (0.06, 0.06, 0.005)), ("domino", 2, (0.05, 0.025, 0.01)),
                   ("flute", 3, ("cylinder", 0.15, 0.015)))
 OCCUPANCY_SHARD = 32  # images per shard: 8 views x 4 heaps (the data command's defaults)
@@ -679,16 +681,16 @@ def _table_9_1(run: Run) -> Result:
     seeds = _seeds(run, scenes)
     measures, files = [], []
 
-    def mine(path):
-        return [r for r in shelf_records([path]) if path.exists() and int(r["seed"]) in seeds
-                and int(r["objects"]) in counts and r.get("perception", "ground_truth") == "ground_truth"
-                and r.get("suction_lift", "over") == "over" and not r.get("oracle_push_target")]
+    def mine(path, config):
+        key = config.record()
+        return [r for r in (shelf_records([path]) if path.exists() else []) if int(r["seed"]) in seeds
+                and int(r["objects"]) in counts and r["config"] == key]
 
     for row, policy in SHELF_POLICIES_91:
-        path = run.dir / f"{policy}.jsonl"
+        path, config = run.dir / f"{policy}.jsonl", ShelfSearchConfig(policy=policy)
         files.append(path)
-        run.progress.add(sum(1 for r in mine(path) if r.get("failure") != "worker_died"))
-        s = run_shelf_bench(policy, counts, scenes, seeds.start, path, workers=run.workers, use_ray=run.use_ray,
+        run.progress.add(sum(1 for r in mine(path, config) if r.get("failure") != "worker_died"))
+        s = run_shelf_bench(config, counts, scenes, seeds.start, path, workers=run.workers, use_ray=run.use_ray,
                             progress=lambda rec: run.progress.add(1))
         for n in counts + ["all"]:
             label = "All" if n == "all" else str(n)
@@ -696,7 +698,7 @@ def _table_9_1(run: Run) -> Result:
                                  _scaled(s[n]["success_ci"], 100), "{:.0f} %"),
                          Measure(f"{label} occluders, {row}", "median steps (IQR)",
                                  _median_iqr(s[n]["success_quartiles"]))]
-    recs = [r for f in files for r in mine(f)]
+    recs = [r for (_, p), f in zip(SHELF_POLICIES_91, files) for r in mine(f, ShelfSearchConfig(policy=p))]
     return Result(measures, figures=[plot_shelf(recs, run.dir)], records=files,
                   bench_table=shelf_table(recs, tuple(p for _, p in SHELF_POLICIES_91)),
                   notes=[f"{scenes} scenes per occluder count (seeds {seeds.start}-{seeds.stop - 1}), the same scenes "
@@ -734,20 +736,20 @@ def _table_9_2(run: Run) -> Result:
     JSON line per scene in OUT/table_9_2/<policy>.jsonl."""
     scenes = run.size["scenes"]
     seeds = _seeds(run, scenes)
-    extra = {"horizon": run.size["horizon"]} if run.size.get("horizon") else {}
+    horizon = run.size.get("horizon")
     measures, files, recs = [], [], []
 
     def mine(path):
-        return [r for r in physics_records([path], "ground_truth") if path.exists() and int(r["seed"]) in seeds]
+        return [r for r in (physics_records([path], "ground_truth") if path.exists() else []) if int(r["seed"]) in seeds]
 
     for k, (row, policy) in enumerate(SHELF_POLICIES_92):
         path = run.dir / f"{policy}.jsonl"
         files.append(path)
         run.progress.set(k * scenes + len(mine(path)))
-        run_shelf_physics_bench(policy, scenes, seeds.start, path, list(PHYSICS_OCCLUDERS), workers=run.workers,
+        run_shelf_physics_bench(ShelfSearchConfig(policy=policy, horizon=horizon), scenes, seeds.start, path,
+                                list(PHYSICS_OCCLUDERS), workers=run.workers,
                                 log=lambda msg, k=k, path=path: (run.log(msg),
-                                                                 run.progress.set(k * scenes + len(mine(path)))),
-                                **extra)
+                                                                 run.progress.set(k * scenes + len(mine(path)))))
         rs = mine(path)
         recs += rs
         for n in PHYSICS_OCCLUDERS:
@@ -764,7 +766,7 @@ def _table_9_2(run: Run) -> Result:
     return Result(measures, records=files, bench_table=physics_table(recs, tuple(p for _, p in SHELF_POLICIES_92)),
                   notes=[f"{scenes} simulated scenes per policy (seeds {seeds.start}-{seeds.stop - 1}, occluders "
                          "cycling 8, 10, 12) on the FetchShelf station in Drake physics, target 6 x 6 x 6 cm, "
-                         "ground-truth perception" + (f", horizon {extra['horizon']}" if extra else ", H = 2n")
+                         "ground-truth perception" + (f", horizon {horizon}" if horizon else ", H = 2n")
                          + "; the reference: 9 physical scenes (3 per density), 6 x 6 x 3 cm target, its camera."])
 
 

@@ -26,6 +26,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import os
@@ -39,9 +40,10 @@ from pydrake.systems.framework import DiagramBuilder
 
 from ms_drake.errors import MsDrakeError
 from ms_drake.experiments.figures import figure_dir, save_png
-from ms_drake.experiments.harness import read_records, summarize
+from ms_drake.experiments.harness import summarize
+from ms_drake.experiments.records import read_record_file
 from ms_drake.experiments.shelf_segmentation import AssociateShelfObjects
-from ms_drake.foss import SUCTION_LIFTS, Foss, FossParams, FossSystem
+from ms_drake.foss import Foss, FossParams, FossSystem
 from ms_drake.parallel import run_jobs, run_shard_jobs
 from ms_drake.paths import code_version
 from ms_drake.perception.shelf_occupancy import ShelfOccupancyEstimator
@@ -51,9 +53,9 @@ from ms_drake.policies.shelf import (
     SHELF_POLICIES,
     ShelfPolicyParams,
     ShelfPolicySelector,
-    check_shelf_policy,
     oracle_last_stage_seconds,
 )
+from ms_drake.policies.shelf_search import SHELF_PERCEPTIONS, ShelfSearchConfig
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.shelf import (
     DEFAULT_TARGET,
@@ -70,7 +72,7 @@ SCENARIO = "FetchShelf"
 FIDELITY = "foss"
 #: What the policies observe: FOSS's scene and the analytic occupancy; the learned occupancy of a
 #: depth render; the learned occupancy and the ShelfSegmenter's objects of that render.
-PERCEPTIONS = ("ground_truth", "learned", "depth")
+PERCEPTIONS = SHELF_PERCEPTIONS
 REFERENCE = {  # the reference's Table 9.1, "All" row: success rate (%)
     "oracle_p": 98, "oracle_ps": 100, "dar": 54, "der3": 60, "bluction_dar": 86}
 POLICY_NAMES = {"oracle_p": "Oracle-P", "oracle_ps": "Oracle-P+S", "dar": "DAR", "der3": "DER-3",
@@ -120,13 +122,16 @@ def build_shelf_search(foss: Foss, scene: ShelfScene, policy: str, params: Shelf
     return diagram
 
 
-def shelf_rollout(policy: str, occluders: int, seed: int, params: ShelfPolicyParams | None = None,
-                  target_size=DEFAULT_TARGET, scenario_name: str = SCENARIO, perception: str = "ground_truth",
-                  suction_lift: str = "over") -> dict:
-    """One search in FOSS (module docstring); the record of it. suction_lift: FOSS's lift rule
-    (ms_drake.foss.SUCTION_LIFTS)."""
-    check_shelf_policy(policy)
-    params = params or ShelfPolicyParams(seed=seed)
+def shelf_rollout(config: ShelfSearchConfig, occluders: int, seed: int, target_size=DEFAULT_TARGET,
+                  scenario_name: str = SCENARIO) -> dict:
+    """One search in FOSS (module docstring) with `config`'s policy, perception, horizon, cost ratio,
+    oracle budget and ablation switches (its seed set to `seed`; FOSS places exactly, so the robot's
+    min_move / nil_move / revisit rules are off); the record of it."""
+    policy = config.policy
+    params = ShelfPolicyParams(seed=seed, horizon=config.horizon, psi=config.psi,
+                               oracle_exhaustive_seconds=config.oracle_seconds,
+                               oracle_push_target=config.ablation.oracle_push_target)
+    perception, suction_lift = config.perception, config.ablation.suction_lift
     t_start, cpu_start = time.perf_counter(), time.process_time()
     geometry = shelf_geometry(scenario_name)
     foss = Foss(geometry, FossParams.for_suction_lift(suction_lift))
@@ -174,9 +179,7 @@ def shelf_rollout(policy: str, occluders: int, seed: int, params: ShelfPolicyPar
         return float(1e3 * f(x)) if x else float("nan")
 
     return dict(seed=int(seed), occluders=int(occluders), objects=int(occluders), policy=policy, fidelity=FIDELITY,
-                perception=perception, suction_lift=suction_lift, oracle_push_target=bool(params.oracle_push_target),
-                oracle_exhaustive_seconds=oracle_exhaustive_budget(policy, params.oracle_exhaustive_seconds)
-                if policy in ("oracle_p", "oracle_ps") else 0.0,
+                perception=perception, config=config.record(),
                 success=not failure, steps=steps, actions=steps, pushes=kinds.count("push"),
                 suctions=kinds.count("suction"), refused=len(history) - len(done),
                 cost=kinds.count("push") + params.psi * kinds.count("suction"), failure=failure, stop_reason=reason,
@@ -189,102 +192,62 @@ def shelf_rollout(policy: str, occluders: int, seed: int, params: ShelfPolicyPar
 
 
 def shelf_rollout_job(job: tuple) -> dict:
-    """(policy, occluders, seed[, horizon[, perception[, oracle_exhaustive_seconds[, suction_lift[,
-    oracle_push_target]]]]]) -> record; module-level for the worker pool."""
-    policy, occluders, seed, *rest = job
-    horizon = rest[0] if rest else None
-    perception = rest[1] if len(rest) > 1 else "ground_truth"
-    exhaustive = rest[2] if len(rest) > 2 else oracle_last_stage_seconds(policy)
-    lift = rest[3] if len(rest) > 3 else "over"
-    push_target = bool(rest[4]) if len(rest) > 4 else False
-    return shelf_rollout(policy, occluders, seed,
-                         ShelfPolicyParams(seed=seed, horizon=horizon, oracle_exhaustive_seconds=exhaustive,
-                                           oracle_push_target=push_target),
-                         perception=perception, suction_lift=lift)
+    """(ShelfSearchConfig as a dict, occluders, seed) -> record; module-level for the worker pool."""
+    config, occluders, seed = job
+    return shelf_rollout(ShelfSearchConfig(**config), occluders, seed)
+
+
+def _config_key(config: dict) -> str:
+    return json.dumps(config, sort_keys=True)
+
+
+def read_shelf_records(path) -> list[dict]:
+    """The records of a `bench shelf` file a run appends to (a missing file has none); each keeps its
+    config, else one error names the file and line."""
+    return read_record_file(path, ("seed", "config"), writer="bench shelf", resume=True)
 
 
 def final_shelf_records(recs: list[dict]) -> list[dict]:
-    """The last record per (policy, occluders, seed, perception, Oracle-P's exhaustive budget, suction
-    lift rule, whether the oracle pushes the target): a retried search replaces its failure; other
-    settings in the same file stay apart. A record without `suction_lift` is an "over" one, one
-    without `oracle_push_target` does not push the target."""
+    """The last record per (config, occluders, seed): a retried search replaces its failure; other
+    settings in the same file stay apart."""
     out = {}
     for r in recs:
-        out[(r.get("policy"), r.get("objects"), int(r["seed"]), r.get("perception", "ground_truth"),
-             float(r.get("oracle_exhaustive_seconds", 0.0)), r.get("suction_lift", "over"),
-             bool(r.get("oracle_push_target", False)))] = r
+        out[(_config_key(r["config"]), r.get("objects"), int(r["seed"]))] = r
     return list(out.values())
 
 
-def _matches(r: dict, policy: str, perception: str = "ground_truth", oracle_exhaustive: float = 0.0,
-             suction_lift: str = "over", oracle_push_target: bool = False) -> bool:
-    return (r.get("policy") == policy and r.get("fidelity") == FIDELITY
-            and r.get("perception", "ground_truth") == perception
-            and float(r.get("oracle_exhaustive_seconds", 0.0)) == float(oracle_exhaustive)
-            and r.get("suction_lift", "over") == suction_lift
-            and bool(r.get("oracle_push_target", False)) == bool(oracle_push_target))
-
-
-def oracle_exhaustive_budget(policy: str, seconds: float | None) -> float:
-    """The budget of an oracle's last stage for a run (Oracle-P's exhaustive push search, Oracle-P+S's
-    wide search): None -> the policy's default (oracle_last_stage_seconds; 0 for the non-oracles);
-    an error for a negative one or one given to another policy."""
-    if seconds is None:
-        return oracle_last_stage_seconds(policy)
-    if seconds < 0 or (seconds > 0 and policy not in ("oracle_p", "oracle_ps")):
-        raise MsDrakeError(f"--oracle-exhaustive {seconds:g}: a CPU budget >= 0 s, and only for "
-                           f"--policy oracle_p or oracle_ps (got --policy {policy})")
-    return float(seconds)
-
-
-def run_shelf_bench(policy: str, occluders: list[int], scenes: int, seed_start: int, out, workers: int = 1,
-                    use_ray: bool = False, ray_address: str | None = None, horizon: int | None = None,
-                    progress=None, perception: str = "ground_truth", oracle_exhaustive: float | None = None,
-                    suction_lift: str = "over", oracle_push_target: bool = False) -> dict:
-    """Run the missing rollouts of seeds S..S+K-1 for every occluder count, append them to `out`
-    (JSON lines); returns {occluders or "all": summary} over the requested seeds. Records without
-    a `perception` field are ground-truth ones. oracle_exhaustive: the CPU budget [s] of the oracle's
-    last stage after its staged search, Oracle-P's exhaustive push search or Oracle-P+S's wide
-    search (ShelfPolicyParams.oracle_exhaustive_seconds; None: the policy's default, 0 = off;
-    records keep it, 0 for the other policies and for records without it, and a resumed
-    run matches on it); suction_lift: FOSS's suction lift rule (ms_drake.foss.SUCTION_LIFTS; kept
-    in the records; a record without it is an "over" one); oracle_push_target: the oracles also push
-    the target (ShelfPolicyParams.oracle_push_target; kept in the records)."""
-    check_shelf_policy(policy)
-    oracle_exhaustive = oracle_exhaustive_budget(policy, oracle_exhaustive)
-    if oracle_push_target and policy not in ("oracle_p", "oracle_ps"):
-        raise MsDrakeError(f"--oracle-push-target: only for --policy oracle_p or oracle_ps (got --policy {policy}): "
-                           "the other policies do not know where the target is")
-    if suction_lift not in SUCTION_LIFTS:
-        raise MsDrakeError(f"--suction-lift {suction_lift}: choose one of {', '.join(SUCTION_LIFTS)}")
+def run_shelf_bench(config: ShelfSearchConfig, occluders: list[int], scenes: int, seed_start: int, out,
+                    workers: int = 1, use_ray: bool = False, ray_address: str | None = None, progress=None) -> dict:
+    """Run the missing rollouts of `config` on seeds S..S+K-1 for every occluder count, append them
+    to `out` (JSON lines; a record of another config is not one of them); returns {occluders or
+    "all": summary} over the requested seeds."""
     bad = [n for n in occluders if not 2 <= n <= 12]
     if bad:
         raise MsDrakeError(f"--occluders {' '.join(map(str, bad))}: shelf scenes have 2 to 12 occluders")
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    done = {(int(r["objects"]), int(r["seed"])) for r in final_shelf_records(read_records(out))
-            if _matches(r, policy, perception, oracle_exhaustive, suction_lift, oracle_push_target)
-            and r.get("failure") != "worker_died"}
+    key = _config_key(config.record())
+    mine = [r for r in final_shelf_records(read_shelf_records(out))
+            if r.get("fidelity") == FIDELITY and _config_key(r["config"]) == key]
+    done = {(int(r["objects"]), int(r["seed"])) for r in mine if r.get("failure") != "worker_died"}
     seeds = range(seed_start, seed_start + scenes)
-    jobs = [(policy, n, s, horizon, perception, oracle_exhaustive, suction_lift, oracle_push_target)
-            for n in occluders for s in seeds if (n, s) not in done]
+    jobs = [(dataclasses.asdict(config), n, s) for n in occluders for s in seeds if (n, s) not in done]
     with open(out, "a") as f:
         for r in run_jobs(shelf_rollout_job, jobs, workers=workers, use_ray=use_ray, ray_address=ray_address):
             if r.ok:
                 rec = r.value
             else:
                 err = (r.error or "").strip().splitlines()
-                rec = dict(seed=r.job[2], occluders=r.job[1], objects=r.job[1], policy=policy, fidelity=FIDELITY,
-                           perception=perception, oracle_exhaustive_seconds=float(oracle_exhaustive),
-                           suction_lift=suction_lift, oracle_push_target=bool(oracle_push_target), success=False, steps=0, actions=0, failure="worker_died", error=err[-1] if err else "")
+                rec = dict(seed=r.job[2], occluders=r.job[1], objects=r.job[1], policy=config.policy,
+                           fidelity=FIDELITY, perception=config.perception, config=config.record(), success=False,
+                           steps=0, actions=0, failure="worker_died", error=err[-1] if err else "")
             f.write(json.dumps(rec) + "\n")
             f.flush()
             os.fsync(f.fileno())
             if progress is not None:
                 progress(rec)
-    recs = [r for r in final_shelf_records(read_records(out))
-            if _matches(r, policy, perception, oracle_exhaustive, suction_lift, oracle_push_target)
-            and int(r["seed"]) in seeds
+    recs = [r for r in final_shelf_records(read_shelf_records(out))
+            if r.get("fidelity") == FIDELITY and _config_key(r["config"]) == key and int(r["seed"]) in seeds
             and int(r["objects"]) in occluders]
     summary = {n: summarize([r for r in recs if int(r["objects"]) == n]) for n in occluders}
     summary["all"] = summarize(recs)
@@ -295,7 +258,8 @@ def run_shelf_bench(policy: str, occluders: list[int], scenes: int, seed_start: 
 def shelf_records(files) -> list[dict]:
     out = []
     for f in files:
-        out += [r for r in final_shelf_records(read_records(Path(f))) if r.get("fidelity") == FIDELITY]
+        out += [r for r in final_shelf_records(read_record_file(Path(f), ("seed", "config"), writer="bench shelf"))
+                if r.get("fidelity") == FIDELITY]
     return out
 
 
@@ -310,8 +274,9 @@ def _cell(recs: list[dict]) -> tuple[str, str]:
 
 
 def _column_key(r: dict) -> tuple[str, float, str, bool]:
-    return (r["policy"], float(r.get("oracle_exhaustive_seconds", 0.0)), r.get("suction_lift", "over"),
-            bool(r.get("oracle_push_target", False)))
+    c = r["config"]
+    return (c["policy"], float(c["oracle_seconds"]), c["ablation"]["suction_lift"],
+            bool(c["ablation"]["oracle_push_target"]))
 
 
 def _columns(recs: list[dict], policies) -> list[tuple[str, float, str, bool]]:

@@ -76,7 +76,7 @@ from scipy.stats import binomtest
 
 from ms_drake.errors import MsDrakeError
 from ms_drake.execution.shelf_backend import BLADE_UP, ShelfBackend, ShelfBody, agreement, observe
-from ms_drake.experiments.harness import read_records
+from ms_drake.experiments.records import read_record_file
 from ms_drake.experiments.scene_images import write_search_pictures
 from ms_drake.experiments.shelf_segmentation import associate
 from ms_drake.foss import Foss
@@ -87,7 +87,7 @@ from ms_drake.parallel import run_jobs
 from ms_drake.policies.shelf_search import (
     MakeShelfSearchController,
     ShelfSearchController,
-    ShelfSearchParams,
+    ShelfSearchConfig,
     ShelfSimulationInfo,
     connect_controller,
 )
@@ -110,7 +110,7 @@ FIDELITY = "physics"
 DENSITY = 150.0  # kg/m^3: household packaging (a 20 cm cube weighs 1.2 kg; the cup holds ~2 kg in shear)
 #: The plant's time step in these runs [s] (the scenario's is 2 ms): the discrete SAP-family solver is
 #: stable at 10 ms here, and the same actions end alike at 2, 5 and 10 ms (to 1-3 mm for pushes and
-#: suction placements; docs/BENCHMARKS.md, "Shelf search on the Fetch (physics)") at a third of
+#: suction placements; docs/results/ch9_shelf.md) at a third of
 #: the 2 ms cost.
 TIME_STEP = 0.01
 REFERENCE_PHYSICAL = {"der3": 33, "bluction_dar": 100}  # Table 9.2, "All" row (%)
@@ -213,16 +213,16 @@ def shelf_simulation_info(plant, scene: ShelfScene) -> ShelfSimulationInfo:
     return ShelfSimulationInfo(bodies, scene.target.id if scene.target is not None else "")
 
 
-def search_horizon(params: ShelfSearchParams, scene: ShelfScene) -> int:
+def search_horizon(params: ShelfSearchConfig, scene: ShelfScene) -> int:
     """The action budget H: params.horizon, or 2n for n occluders."""
     return int(params.horizon) if params.horizon is not None else 2 * len(scene.objects)
 
 
-def build_shelf_physics(scenario, scene: ShelfScene, params: ShelfSearchParams, meshcat=None,
-                        time_step: float | None = TIME_STEP, perception: str = "ground_truth") -> ShelfPhysicsSystem:
-    """The station with the scene's objects, the shelf controller and the search's end, wired
-    (module docstring); time_step: the plant's (None: the scenario's); perception: the controller's
-    ("ground_truth" or "depth")."""
+def build_shelf_physics(scenario, scene: ShelfScene, params: ShelfSearchConfig, meshcat=None,
+                        time_step: float | None = TIME_STEP) -> ShelfPhysicsSystem:
+    """The station with the scene's objects, the shelf controller (params.perception: "ground_truth"
+    or "depth") and the search's end, wired (module docstring); time_step: the plant's (None: the
+    scenario's)."""
     if scene.target is None:
         raise ShelfPhysicsError("build_shelf_physics: the scene needs its target (generate_shelf_scene)")
     scenario = shelf_physics_scenario(scenario, time_step)
@@ -230,10 +230,9 @@ def build_shelf_physics(scenario, scene: ShelfScene, params: ShelfSearchParams, 
     station = builder.AddSystem(MakeStation(scenario, meshcat=meshcat, extra_objects=shelf_scene_objects(scene)))
     plant = get_plant(station)
     sim = shelf_simulation_info(plant, scene)
-    if perception == "depth":  # the controller sees the cameras only; `sim` stays with the termination system
-        controller = builder.AddSystem(MakeShelfSearchController(scenario, params, perception="depth"))
-    else:
-        controller = builder.AddSystem(MakeShelfSearchController(scenario, params, sim=sim, perception=perception))
+    perception = params.perception
+    # with "depth" the controller sees the cameras only; `sim` stays with the termination system
+    controller = builder.AddSystem(MakeShelfSearchController(scenario, params, sim=None if perception == "depth" else sim))
     connect_controller(builder, controller, station)
     camera = PinholeCamera.from_config(scenario.cameras[params.camera])
     termination = builder.AddNamedSystem("termination", ShelfSearchTermination(
@@ -359,7 +358,7 @@ def end_time(max_sim_time: float, period: float) -> float:
     return k * period
 
 
-def run_shelf_physics(system: ShelfPhysicsSystem, scene: ShelfScene, params: ShelfSearchParams,
+def run_shelf_physics(system: ShelfPhysicsSystem, scene: ShelfScene, params: ShelfSearchConfig,
                       keep_frames: bool = False, meshcat=None, max_sim_time: float | None = None) -> ShelfPhysicsResult:
     """Simulate build_shelf_physics's Diagram until its termination system stops it, the simulation
     fails, or max_sim_time (default 60 s + 45 s per action of the horizon); the record (module
@@ -414,7 +413,7 @@ def run_shelf_physics(system: ShelfPhysicsSystem, scene: ShelfScene, params: She
                                round(o.action.shelf.dy, 4)] for o in history],
                skipped=sum(_skipped(o.action.reason) for o in history),
                refused=_refused(o.action.reason for o in history),
-               fetch_feasible=bool(params.fetch_feasible), time_step=float(system.plant.time_step()),
+               time_step=float(system.plant.time_step()), config=params.record(),
                visible_fraction=float(visible), failure=failure, stop_reason=reason, error=error,
                sim_seconds=float(context.get_time()), seconds=time.perf_counter() - t_wall,
                cpu_seconds=time.process_time() - t_cpu, pid=os.getpid())
@@ -485,20 +484,18 @@ def check_shelf_scenario(scenario, name: str = "") -> None:
                                 "Fetch with the bluction tool (FetchShelf)")
 
 
-def shelf_physics_rollout(policy: str, seed: int, occluders: int | None = None, horizon: int | None = None,
+def shelf_physics_rollout(config: ShelfSearchConfig, seed: int, occluders: int | None = None,
                           scenario_name: str = SCENARIO, meshcat=None, keep_frames: bool = False,
-                          time_step: float | None = TIME_STEP, perception: str = "ground_truth",
-                          scenario_file: str | None = None, **params) -> ShelfPhysicsResult:
+                          time_step: float | None = TIME_STEP, scenario_file: str | None = None) -> ShelfPhysicsResult:
     """Generate the scene of `seed` (occluders: None draws 2-12 from the seed) and search it with the
-    controller's `perception` on the station `scenario_name` of `scenario_file` (default FetchShelf
-    of diagrams/scenarios.yaml); params: further ShelfSearchParams (e.g. fetch_feasible=False, speed=0.2)."""
+    controller of `config` (its seed set to `seed`) on the station `scenario_name` of `scenario_file`
+    (default FetchShelf of diagrams/scenarios.yaml)."""
     scenario = load_scenario(scenario_file, scenario_name)
     check_shelf_scenario(scenario, scenario_name)
     geometry = ShelfGeometry.from_scenario(scenario)
     sample = generate_shelf_scene(geometry, seed, occluders, DEFAULT_TARGET)
-    params = ShelfSearchParams(policy=policy, horizon=horizon, seed=seed, **params)
-    system = build_shelf_physics(scenario, sample.scene, params, meshcat=meshcat, time_step=time_step,
-                                 perception=perception)
+    params = dataclasses.replace(config, seed=int(seed))
+    system = build_shelf_physics(scenario, sample.scene, params, meshcat=meshcat, time_step=time_step)
     return run_shelf_physics(system, sample.scene, params, keep_frames=keep_frames, meshcat=meshcat)
 
 
@@ -582,26 +579,35 @@ def replay_shelf_action(scene: ShelfScene, action, density: float = DENSITY, sce
 
 
 def _bench_job(job: tuple) -> dict:
-    policy, seed, n, kwargs = job
-    return shelf_physics_rollout(policy, seed, n, **kwargs).record
+    config, seed, n, kwargs = job
+    return shelf_physics_rollout(ShelfSearchConfig(**config), seed, n, **kwargs).record
 
 
-def run_shelf_physics_bench(policy: str, scenes: int, seed_start: int, out, occluders: list[int] | None = None,
-                            workers: int = 1, log=print, **kwargs) -> list[dict]:
-    """Missing (seed) rollouts of `policy`, one JSON line each (flushed and fsync'ed as each scene
-    ends: resumable); occluders cycles through the given counts by seed (None: drawn from the
-    seed); workers: local processes (ms_drake.parallel.run_jobs; fresh processes every few
-    scenes, as Drake diagrams are never freed); kwargs: shelf_physics_rollout's (e.g.
-    fetch_feasible=False, perception="depth"; a file's records of another perception are not
-    counted as done)."""
+def _config_key(config: dict) -> str:
+    return json.dumps(config, sort_keys=True)
+
+
+def read_physics_records(path) -> list[dict]:
+    """The records of a `bench shelf-physics` file (resuming: a missing file has none); each keeps
+    its config, else one error names the file and line."""
+    return read_record_file(path, ("seed", "config"), writer="bench shelf-physics", resume=True)
+
+
+def run_shelf_physics_bench(config: ShelfSearchConfig, scenes: int, seed_start: int, out,
+                            occluders: list[int] | None = None, workers: int = 1, log=print, **kwargs) -> list[dict]:
+    """Missing (seed) rollouts of `config`, one JSON line each (flushed and fsync'ed as each scene
+    ends: resumable; a record of another config is not one of them); occluders cycles through the
+    given counts by seed (None: drawn from the seed); workers: local processes
+    (ms_drake.parallel.run_jobs; fresh processes every few scenes, as Drake diagrams are never
+    freed); kwargs: shelf_physics_rollout's (scenario_name, scenario_file, time_step)."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    perception = kwargs.get("perception", "ground_truth")
-    done = {(r["seed"], r["policy"]) for r in read_records(out)
-            if r.get("perception", "ground_truth") == perception} if out.exists() else set()
-    jobs = [(policy, seed, occluders[i % len(occluders)] if occluders else None, dict(kwargs))
-            for i, seed in enumerate(range(seed_start, seed_start + scenes)) if (seed, policy) not in done]
+    key = _config_key(config.record())
+    done = {int(r["seed"]) for r in read_physics_records(out) if _config_key(r["config"]) == key}
+    jobs = [(dataclasses.asdict(config), seed, occluders[i % len(occluders)] if occluders else None, dict(kwargs))
+            for i, seed in enumerate(range(seed_start, seed_start + scenes)) if seed not in done]
     recs = []
+    policy, perception = config.policy, config.perception
     for res in run_jobs(_bench_job, jobs, workers=workers, max_tasks_per_child=PHYSICS_TASKS_PER_CHILD):
         if not res.ok:
             log(f"seed {res.job[1]} {policy}: failed ({res.error.splitlines()[0]}); run again to retry it")
@@ -785,9 +791,9 @@ def run_shelf_demo(out, seed: int = DEMO_SEED, occluders: int = DEMO_OCCLUDERS, 
     scenario = scenario if scenario is not None else load_scenario(None, SCENARIO)
     check_shelf_scenario(scenario)
     sample = generate_shelf_scene(ShelfGeometry.from_scenario(scenario), seed, occluders, DEFAULT_TARGET)
-    params = ShelfSearchParams(policy=policy, horizon=horizon, seed=seed)
+    params = ShelfSearchConfig(policy=policy, horizon=horizon, seed=seed, perception=perception)
     meshcat = Meshcat() if meshcat_html else None
-    system = build_shelf_physics(scenario, sample.scene, params, meshcat=meshcat, perception=perception)
+    system = build_shelf_physics(scenario, sample.scene, params, meshcat=meshcat)
     res = run_shelf_physics(system, sample.scene, params, keep_frames=True, meshcat=meshcat)
     pictures, scene = [], sample.scene
     for k, fr in enumerate(res.frames):
@@ -808,13 +814,13 @@ def _observed(res: ShelfPhysicsResult, k: int, scene: ShelfScene) -> ShelfScene:
 
 
 def physics_records(files, perception: str | None = None) -> list[dict]:
-    """The physics shelf records (fidelity "physics") of result files, one per (policy, perception,
-    seed): the first (two runs over overlapping seed ranges into one file may both write a seed);
-    perception: only that perception's (None: all; records without the field are "ground_truth")."""
+    """The physics shelf records (fidelity "physics") of result files, one per (config, seed): the
+    first (two runs over overlapping seed ranges into one file may both write a seed); perception:
+    only that perception's (None: all)."""
     out, seen = [], set()
     for f in files:
-        for r in read_records(Path(f)):
-            key = (r["policy"], r.get("perception", "ground_truth"), r["seed"])
+        for r in read_record_file(Path(f), ("seed", "config"), writer="bench shelf-physics"):
+            key = (_config_key(r["config"]), r["perception"], r["seed"])
             if r.get("fidelity") == FIDELITY and key not in seen and perception in (None, key[1]):
                 seen.add(key)
                 out.append(r)

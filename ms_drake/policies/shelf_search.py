@@ -2,13 +2,13 @@
 station in three lines:
 
     station = builder.AddSystem(MakeStation(scenario, extra_objects=...))   # a shelf scene's objects
-    controller = builder.AddSystem(MakeShelfSearchController(scenario, params, perception="depth"))
+    controller = builder.AddSystem(MakeShelfSearchController(scenario, ShelfSearchConfig(perception="depth")))
     connect_controller(builder, controller, station)
 
 In simulation, start the robot where the controller expects it (parked out of the camera's view):
 `set_arm_positions(plant, plant_context, "fetch", controller.initial_commands())`.
 
-Two perceptions (`perception=`):
+Two perceptions (`ShelfSearchConfig.perception`):
 
 "depth" (the hardware station's ports only: front.depth_image, front.rgb_image in):
   depth + rgb -> ShelfSegmenter -> scene (the estimated occluders, ids seg_<k>; the target's
@@ -21,7 +21,7 @@ Then, in both:
   scene + occupancy + history -> FetchFeasibleSelector(policy) -> action (the policy's best action
             the Fetch reaches in that scene: ShelfBackend.feasible, the plan the executor would
             make from park, IK within the joint limits, then its whole path clear of the other
-            occluders, the shelf and the robot itself; params.fetch_feasible=False: the policy's
+            occluders, the shelf and the robot itself; with params.ablation.foss_choice: the policy's
             best in FOSS, ShelfSearchSelector); the action carries the scene it was chosen in
             (Action.scene)
   action -> ActionExecutor(ShelfBackend) -> fetch.position, fetch_bluction.position (blade angle),
@@ -51,7 +51,7 @@ from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem
 
 from ms_drake.execution import ActionExecutor
 from ms_drake.execution.shelf_backend import ShelfBackend, ShelfBody, observe
-from ms_drake.foss import Foss
+from ms_drake.foss import SUCTION_LIFTS, Foss
 from ms_drake.perception.ready import ImagesReady
 from ms_drake.perception.shelf_occupancy import ShelfOccupancyEstimator
 from ms_drake.perception.shelf_segmentation import (
@@ -59,53 +59,95 @@ from ms_drake.perception.shelf_segmentation import (
     ShelfSegmenter,
 )
 from ms_drake.policies.bin_search import ControllerError, connect_controller  # noqa: F401 (re-exported)
+from ms_drake.config_files import config_dict
 from ms_drake.policies.shelf import (
     ShelfPolicyParams,
     ShelfPolicySelector,
     check_shelf_policy,
     footprint_change,
     like_key,
+    oracle_last_stage_seconds,
     segment,
 )
 from ms_drake.shelf_geometry import ShelfGeometry
 from ms_drake.types import Action, ActionOutcome, ShelfScene
 
 
+#: What the controller observes: "ground_truth" (simulation only: the bodies' poses), "learned" (in FOSS
+#: only: the learned occupancy of a depth render, FOSS's objects) or "depth" (the camera images only).
+SHELF_PERCEPTIONS = ("ground_truth", "learned", "depth")
+
+
 @dataclass
-class ShelfSearchParams:
-    """Settings of the shelf-search controller. policy: one of ms_drake.policies.shelf.SHELF_POLICIES;
-    horizon: the action budget H (None: 2n, n the occluders); seed: every random choice (the random
-    policy); psi: the suction / push cost ratio; camera: the shelf camera; period: the executor's
-    and selector's update period [s]; speed / push_speed / slow_speed: the tool's Cartesian speed limits [m/s]
-    (ShelfBackend);
-    fetch_feasible: choose the policy's best action the Fetch can execute, its planned path clear
-    of the scene (FetchFeasibleSelector, checking at most `max_candidates` in the policy's order)
-    instead of its best action in FOSS;
-    min_move / nil_move / revisit [m] (Bluction-DAR, NIL_RULE_POLICIES): the policy drops the candidates
-    that FOSS moves their object less than min_move and, with ground-truth perception, those like an
-    executed action that moved its object less than nil_move while the object is unchanged (ShelfPolicyParams;
-    ms_drake.policies.shelf.nil_effect; perception "depth" judges by the image instead,
-    `refuse_like_unchanged`) and, with ground-truth perception too, those FOSS predicts to lead back
-    to a scene observed in the search, every object's centre within `revisit`
-    (ms_drake.policies.shelf.returns)."""
+class ShelfSearchAblation:
+    """Switches that reproduce settings other than the search's; each default is the search's.
+
+    - foss_choice: the policy's best action in FOSS, with no check on the Fetch's planner
+      (ShelfSearchSelector instead of FetchFeasibleSelector); on the Fetch only.
+    - suction_lift: FOSS's suction lift, "over" (the object is lifted over what its sweeps to and
+      from the front cross) or "floor" (2 cm only: those sweeps must be clear, FOSS as a 2D overhead
+      simulator); in FOSS only.
+    - oracle_push_target: the oracles (oracle_p, oracle_ps) also push the target itself."""
+
+    foss_choice: bool = False
+    suction_lift: str = "over"
+    oracle_push_target: bool = False
+
+    def __post_init__(self):
+        if self.suction_lift not in SUCTION_LIFTS:
+            raise ControllerError(f"ablation.suction_lift {self.suction_lift!r}: choose one of "
+                                  f"{', '.join(SUCTION_LIFTS)}")
+
+
+@dataclass
+class ShelfSearchConfig:
+    """One shelf search's settings, in FOSS (`bench shelf`) and on the Fetch (`bench shelf-physics`,
+    MakeShelfSearchController); a Drake YAML file (ms_drake.config_files.load_config).
+
+    - policy: one of ms_drake.policies.shelf.SHELF_POLICIES.
+    - perception: one of SHELF_PERCEPTIONS ("learned" in FOSS only).
+    - horizon: the action budget H (None: 2n, n the occluders).
+    - seed: every random choice (the random policy); set per scene by the benches.
+    - psi: the suction / push cost ratio.
+    - oracle_seconds: the CPU budget [s] of the oracles' last stage after their staged search finds
+      nothing (Oracle-P's exhaustive push search, Oracle-P+S's wide search; None: the policy's
+      default, 0: off).
+    - camera: the shelf camera. period: the executor's and selector's update period [s].
+    - speed / push_speed / slow_speed: the tool's Cartesian speed limits [m/s] (ShelfBackend).
+    - max_candidates: FetchFeasibleSelector checks at most this many of the policy's actions, in
+      the policy's order, for the best one the Fetch can execute, its planned path clear of the scene.
+    - min_move / nil_move / revisit [m] (Bluction-DAR on the Fetch, NIL_RULE_POLICIES; FOSS places
+      exactly and runs without them): the policy drops the candidates that FOSS moves their object
+      less than min_move and, with ground-truth perception, those like an executed action that moved
+      its object less than nil_move while the object is unchanged (ms_drake.policies.shelf.nil_effect;
+      perception "depth" judges by the image instead, `refuse_like_unchanged`) and, with
+      ground-truth perception too, those FOSS predicts to lead back to a scene observed in the
+      search, every object's centre within `revisit` (ms_drake.policies.shelf.returns).
+    - ablation: ShelfSearchAblation."""
 
     policy: str = "bluction_dar"
+    perception: str = "ground_truth"
     horizon: int | None = None
     seed: int = 0
     psi: float = 1.3
+    oracle_seconds: float | None = None
     camera: str = "front"
     period: float = 0.05
     speed: float = 0.35
     push_speed: float = 0.12
     slow_speed: float = 0.15
-    fetch_feasible: bool = True
     max_candidates: int = 1000
     min_move: float = 0.01
     nil_move: float = 0.01
     revisit: float = 0.01
+    ablation: ShelfSearchAblation = dataclasses.field(default_factory=ShelfSearchAblation)
 
     def __post_init__(self):
+        if isinstance(self.ablation, dict):
+            self.ablation = ShelfSearchAblation(**self.ablation)
         check_shelf_policy(self.policy)
+        if self.perception not in SHELF_PERCEPTIONS:
+            raise ControllerError(f"perception {self.perception!r}: choose one of {', '.join(SHELF_PERCEPTIONS)}")
         if int(self.max_candidates) < 1:
             raise ControllerError(f"max_candidates must be >= 1, got {self.max_candidates!r}")
         if not (self.min_move >= 0 and self.nil_move >= 0 and self.revisit >= 0):
@@ -115,6 +157,22 @@ class ShelfSearchParams:
             raise ControllerError(f"horizon must be >= 1 action (or None for 2n), got {self.horizon!r}")
         if not self.period > 0:
             raise ControllerError(f"period must be > 0 s, got {self.period!r}")
+        oracle = self.policy in ("oracle_p", "oracle_ps")
+        if self.oracle_seconds is not None and (self.oracle_seconds < 0 or (self.oracle_seconds > 0 and not oracle)):
+            raise ControllerError(f"oracle_seconds {self.oracle_seconds:g}: a CPU budget >= 0 s, and only for the "
+                                  f"oracles oracle_p and oracle_ps (policy is {self.policy})")
+        if self.ablation.oracle_push_target and not oracle:
+            raise ControllerError(f"ablation.oracle_push_target: only for the oracles oracle_p and oracle_ps (policy "
+                                  f"is {self.policy}); the other policies do not know where the target is")
+
+    @property
+    def oracle_budget(self) -> float:
+        """oracle_seconds resolved: the policy's default when None, 0 for the non-oracles."""
+        return oracle_last_stage_seconds(self.policy) if self.oracle_seconds is None else float(self.oracle_seconds)
+
+    def record(self) -> dict:
+        """The config as a record keeps it: all but the seed, the oracle's budget resolved."""
+        return config_dict(dataclasses.replace(self, oracle_seconds=self.oracle_budget))
 
 
 @dataclass(frozen=True)
@@ -285,31 +343,33 @@ class ShelfSearchSelector(ShelfPolicySelector):
         output.set_value(dataclasses.replace(action, scene=scene) if action.kind == "shelf" else action)
 
 
-PERCEPTIONS = ("ground_truth", "depth")
-NIL_RULE_POLICIES = ("bluction_dar",)  # the policies ShelfSearchParams.min_move / nil_move / revisit apply to
+CONTROLLER_PERCEPTIONS = ("ground_truth", "depth")  # what the controller on a station observes
+NIL_RULE_POLICIES = ("bluction_dar",)  # the policies ShelfSearchConfig.min_move / nil_move / revisit apply to
 
 
-def MakeShelfSearchController(scenario, params: ShelfSearchParams | None = None,
+def MakeShelfSearchController(scenario, params: ShelfSearchConfig | None = None,
                               sim: ShelfSimulationInfo | None = None, target_size=None,
-                              name: str = "shelf_search_controller", perception: str = "ground_truth",
+                              name: str = "shelf_search_controller",
                               segmentation: ShelfSegmentationParams | None = None,
                               weights=None) -> ShelfSearchController:
     """The controller Diagram of a shelf search on `scenario`'s station (FetchShelf; module docstring).
-    perception: "ground_truth" (needs `sim`) or "depth" (the station's camera ports only; `sim` must
-    be None); target_size: the target's (w, d, h) [m] for the occupancy (None: the observed
-    target's, or the learned estimator's default); segmentation: the ShelfSegmenter's parameters
-    and weights the learned occupancy's file (perception "depth"; None: the defaults)."""
-    params = params or ShelfSearchParams()
-    if perception not in PERCEPTIONS:
-        raise ControllerError(f"perception={perception!r}: choose one of {', '.join(PERCEPTIONS)}")
+    params.perception: "ground_truth" (needs `sim`) or "depth" (the station's camera ports only;
+    `sim` must be None); target_size: the target's (w, d, h) [m] for the occupancy (None: the
+    observed target's, or the learned estimator's default); segmentation: the ShelfSegmenter's
+    parameters and weights the learned occupancy's file (perception "depth"; None: the defaults)."""
+    params = params or ShelfSearchConfig()
+    perception = params.perception
+    if perception not in CONTROLLER_PERCEPTIONS:
+        raise ControllerError(f"perception {perception!r}: the controller on a station observes "
+                              f"{' or '.join(CONTROLLER_PERCEPTIONS)} (\"learned\" is FOSS's, `bench shelf`)")
     depth = perception == "depth"
     if depth and sim is not None:
-        raise ControllerError("perception='depth' reads only the station's camera ports (as on hardware): build it "
-                              "without sim= (ShelfSimulationInfo is for perception='ground_truth')")
+        raise ControllerError("perception 'depth' reads only the station's camera ports (as on hardware): build it "
+                              "without sim= (ShelfSimulationInfo is for perception 'ground_truth')")
     if not depth and sim is None:
-        raise ControllerError("perception='ground_truth' observes the scene through the simulation's ground truth: "
-                              "pass sim=ShelfSimulationInfo(bodies, target_id), or use perception='depth' (the "
-                              "camera images only, e.g. for the hardware station)")
+        raise ControllerError("perception 'ground_truth' observes the scene through the simulation's ground truth: "
+                              "pass sim=ShelfSimulationInfo(bodies, target_id), or set ShelfSearchConfig("
+                              "perception='depth') (the camera images only, e.g. for the hardware station)")
     if params.camera not in scenario.cameras:
         raise ControllerError(f"camera {params.camera!r} is not a camera of the scenario "
                               f"(cameras: {', '.join(scenario.cameras) or 'none'})")
@@ -342,8 +402,10 @@ def MakeShelfSearchController(scenario, params: ShelfSearchParams | None = None,
     policy_params = ShelfPolicyParams(psi=params.psi, seed=params.seed, horizon=params.horizon,
                                       min_move=params.min_move if nil_rules else 0.0,
                                       nil_move=params.nil_move if nil_rules and not depth else 0.0,
-                                      revisit=params.revisit if nil_rules and not depth else 0.0)
-    if params.fetch_feasible:
+                                      revisit=params.revisit if nil_rules and not depth else 0.0,
+                                      oracle_exhaustive_seconds=params.oracle_seconds,
+                                      oracle_push_target=params.ablation.oracle_push_target)
+    if not params.ablation.foss_choice:
         selector = FetchFeasibleSelector(params.policy, foss, backend, policy_params, period=params.period,
                                          max_candidates=params.max_candidates, judge_by_scene=depth)
     else:
@@ -379,7 +441,7 @@ class ShelfSearchController(Diagram):
     starts from (the Fetch parked out of the camera's view, blade up, vacuum off); `backend`: its
     ShelfBackend; `perception`: "ground_truth" or "depth"."""
 
-    def __init__(self, builder: DiagramBuilder, backend, params: ShelfSearchParams, target_id: str,
+    def __init__(self, builder: DiagramBuilder, backend, params: ShelfSearchConfig, target_id: str,
                  perception: str = "ground_truth"):
         super().__init__()
         builder.BuildInto(self)

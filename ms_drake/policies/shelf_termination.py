@@ -85,7 +85,7 @@ class _Judged:
 class ShelfSearchTermination(TerminationSystem):
     """Stops a simulated shelf search (module docstring). camera: the PinholeCamera of the label
     image; target: the target's ShelfBody (plant body index = its label, and its size); horizon:
-    the action budget H; period: the check period [s] (the controller's, ShelfSearchParams.period);
+    the action budget H; period: the check period [s] (the controller's, ShelfSearchConfig.period);
     threshold: the visible fraction that reveals the target."""
 
     def __init__(self, camera: PinholeCamera, target: ShelfBody, horizon: int, period: float,
