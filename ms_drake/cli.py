@@ -156,7 +156,7 @@ from ms_drake.pushing import POLICIES as PUSH_POLICIES
 from ms_drake.policies.shelf import SHELF_POLICIES, check_shelf_policy
 from ms_drake.policies.shelf_search import CONTROLLER_PERCEPTIONS as SHELF_CONTROLLER_PERCEPTIONS
 from ms_drake.policies.shelf_search import SHELF_PERCEPTIONS, ShelfSearchConfig
-from ms_drake.scenario import load_scenario
+from ms_drake.scenario import ScenarioRef, load_scenario
 from ms_drake.scenes.heaps import HeapParams, generate_heap, heap_to_dict
 from ms_drake.scenes.layouts import HEAP_LAYOUTS as SEARCH_HEAP_LAYOUTS
 from ms_drake.station import MakeStation
@@ -865,10 +865,12 @@ def bench_push_fidelity(heaps_: int = typer.Option(400, "--heaps", min=1, help="
                                                                      f"(repeat; default all): {' | '.join(PUSH_POLICIES)}"),
                         scenario: str = typer.Option("YuMiBin", "--scenario", help="The robot's station of the full "
                                                      "side (YuMiBin, PandaBin)"),
+                        scenario_file: Optional[Path] = ScenarioFile,
                         json_out: Optional[Path] = JsonSummary):
     """Each policy's recorded push on a robot (full fidelity, --scenario) and in the primitive mode from
     the same state: one JSON line per (heap, policy) with status, agree, gain_sign_agree, object motions, CPU s."""
-    _need_search_scenario(None, scenario, "full")
+    _need_search_scenario(scenario_file, scenario, "full")
+    ref = ScenarioRef(scenario, str(scenario_file) if scenario_file is not None else None)
     bad = [p for p in policies or [] if p not in PUSH_POLICIES]
     if bad:
         _fail(f"--policy {', '.join(bad)}: choose from {', '.join(PUSH_POLICIES)}")
@@ -883,7 +885,7 @@ def bench_push_fidelity(heaps_: int = typer.Option(400, "--heaps", min=1, help="
         bar.update(sum(len([p for p in ps if (int(r["seed"]), p) in done])
                        for r, ps in pushed_records(heap_dirs, heaps_, seed_start, pols)))
         s = run_push_fidelity(heap_dirs, heaps_, seed_start, out, workers=workers, policies=pols,
-                              progress=lambda rows: bar.update(len(rows)), scenario=scenario)
+                              progress=lambda rows: bar.update(len(rows)), scenario=ref)
     summary = summarize_fidelity(s["rows"])
     typer.echo(f"{len(s['rows'])} of {s['pushes']} pushes on {s['heaps']} heaps in {out}")
     typer.echo(format_fidelity(summary))
@@ -906,20 +908,22 @@ def bench_fidelity(heaps_: int = typer.Option(50, "--heaps", min=1, help="Heaps 
                    scenario: str = typer.Option("YuMiBin", "--scenario", help="The robot's station the attempts "
                                                 "are replayed on (YuMiBin, PandaBin)"),
                    reach: Optional[str] = typer.Option(None, "--reach", help="The primitive search keeps only grasps "
-                                                       "this scenario's robot reaches (default: --scenario's; '' for "
-                                                       "none)"),
+                                                       "this robot reaches, a scenario of diagrams/scenarios.yaml "
+                                                       "(default: --scenario's, none with --scenario-file; '' for none)"),
+                   scenario_file: Optional[Path] = ScenarioFile,
                    json_out: Optional[Path] = JsonSummary):
     """The primitive search's first grasp attempts per heap, each replayed on a robot (full
     fidelity, --scenario) from the same scene with the same grasp: one JSON line per attempt
     (primitive and full outcome, CPU s), per-attempt success in each fidelity and their agreement."""
-    _need_search_scenario(None, scenario, "full")
-    reach = scenario if reach is None else reach
+    _need_search_scenario(scenario_file, scenario, "full")
+    reach = scenario if reach is None and scenario_file is None else (reach or "")
     if reach:
         _need_search_scenario(None, reach, "full")
     _need_jsonl(out)
     with tqdm(total=heaps_, desc="fidelity", unit="heap") as bar:
         s = run_fidelity(heaps_, seed_start, out, objects=objects, heap_dir=str(heap_dir) if heap_dir else None,
-                         workers=workers, max_attempts=attempts, reach=reach, scenario=scenario,
+                         workers=workers, max_attempts=attempts, reach=reach,
+                         scenario=ScenarioRef(scenario, str(scenario_file) if scenario_file is not None else None),
                          progress=lambda rec: bar.update(1 if rec.get("kind") == "heap" else 0))
     typer.echo(format_fidelity_summary(s))
     if json_out is not None:

@@ -407,6 +407,26 @@ def load_scenario(filename: typing.Union[str, Path, None] = None, scenario_name:
     return copy.deepcopy(_LOADED[key])
 
 
+@dataclass(frozen=True)
+class ScenarioRef:
+    """A scenario named in a scenario file (file None: diagrams/scenarios.yaml), to hand to worker
+    processes (a Scenario holds Drake config objects that do not pickle). `ScenarioRef.of("YuMiBin")`
+    takes a name too."""
+
+    name: str
+    file: typing.Optional[str] = None
+
+    @staticmethod
+    def of(scenario: typing.Union[str, "ScenarioRef"]) -> "ScenarioRef":
+        return scenario if isinstance(scenario, ScenarioRef) else ScenarioRef(str(scenario))
+
+    def load(self) -> Scenario:
+        return load_scenario(self.file, self.name)
+
+    def __str__(self) -> str:
+        return self.name if self.file is None else f"{self.name} of {self.file}"
+
+
 def _load_scenario(filename: Path, scenario_name: str) -> Scenario:
     try:
         raw = yaml_load_data(filename.read_text())

@@ -4,6 +4,7 @@ import json
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -116,3 +117,14 @@ def test_bad_input_is_a_clear_error_without_traceback(tmp_path, args, needle):
     assert p.returncode == 2
     assert needle in p.stderr
     assert "Traceback" not in p.stderr
+
+
+HEAPS = Path(__file__).parent / "data" / "push_heaps_ycb"
+
+
+@pytest.mark.parametrize("command", [["bench", "fidelity"], ["bench", "push-fidelity", "--heap-dir", HEAPS]])
+def test_robot_benches_take_a_scenario_file(tmp_path, command):
+    p = run(*command, "--scenario-file", tmp_path / "none.yaml", "--out", tmp_path / "r.jsonl", check=False)
+    assert p.returncode == 2 and "none.yaml" in p.stderr and "Traceback" not in p.stderr
+    p = run(*command, "--scenario-file", _no_robot_file(tmp_path), "--out", tmp_path / "r.jsonl", check=False)
+    assert p.returncode == 2 and "YuMiBin" in p.stderr and "Traceback" not in p.stderr  # its YuMiBin has no robot

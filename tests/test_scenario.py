@@ -135,3 +135,18 @@ def test_wrong_types_for_numbers_are_errors(tmp_path, value):
 def test_bad_gripper_is_caught_at_load_time(tmp_path):
     msg = _error(tmp_path, "S:\n  robot: { name: panda, grippers: [tentacle] }\n")
     assert "'S'" in msg and "robot" in msg and "tentacle" in msg and "parallel_jaw" in msg
+
+
+def test_scenario_ref_loads_from_its_file_in_a_worker(tmp_path):
+    import pickle
+
+    from ms_drake.scenario import ScenarioRef, default_scenarios_file
+
+    f = tmp_path / "mine.yaml"
+    f.write_text(default_scenarios_file().read_text().replace("YuMiBin:", "MyYuMi:", 1))
+    ref = pickle.loads(pickle.dumps(ScenarioRef("MyYuMi", str(f))))  # as a worker process receives it
+    s = ref.load()
+    assert s.robot.name == load_scenario(None, "YuMiBin").robot.name and str(ref) == f"MyYuMi of {f}"
+    assert ScenarioRef.of("YuMiBin") == ScenarioRef("YuMiBin") and ScenarioRef.of(ref) is ref
+    with pytest.raises(ScenarioError, match="MyYuMi"):
+        ScenarioRef("MyYuMi").load()  # not in the shipped file

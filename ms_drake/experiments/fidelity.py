@@ -40,7 +40,7 @@ from ms_drake.policies.bin_search import BinSearchConfig, load_bin_search_config
 from ms_drake.scenes.layouts import HeapConfig, cached_heap
 from ms_drake.geometry import Workspace, as_rigid_transform
 from ms_drake.parallel import run_jobs
-from ms_drake.scenario import load_scenario
+from ms_drake.scenario import ScenarioRef, load_scenario
 from ms_drake.scenes.heaps import ObjectPose, scenario_with_heap, set_heap_poses
 from ms_drake.station import MakeStation, get_plant, get_scene_graph, station_objects
 from ms_drake.station.robots import set_arm_positions
@@ -138,10 +138,11 @@ def object_load(plant, inspector, plant_context, body_index: int) -> tuple[float
     return float(sum(forces.values())), int(sum(f < -0.1 for f in forces.values()))
 
 
-def build_replay(attempt: Attempt, scenario_name: str = "YuMiBin", seed: int = 0):
-    """(simulator, station, executor, backend) of the full-fidelity station holding the attempt's
-    scene, the robot parked, the attempt's grasp on the executor's action input."""
-    s = scenario_with_heap(load_scenario(None, scenario_name), attempt.state)
+def build_replay(attempt: Attempt, scenario: str | ScenarioRef = "YuMiBin", seed: int = 0):
+    """(simulator, station, executor, backend) of the full-fidelity station of `scenario` (a name or
+    ScenarioRef) holding the attempt's scene, the robot parked, the attempt's grasp on the executor's
+    action input."""
+    s = scenario_with_heap(ScenarioRef.of(scenario).load(), attempt.state)
     s.cameras = {}  # the executor needs body poses only
     builder = DiagramBuilder()
     station = builder.AddSystem(MakeStation(s))
@@ -164,13 +165,13 @@ def build_replay(attempt: Attempt, scenario_name: str = "YuMiBin", seed: int = 0
     return simulator, station, executor, backend
 
 
-def replay_full(attempt: Attempt, scenario_name: str = "YuMiBin", max_sim_time: float = 30.0,
+def replay_full(attempt: Attempt, scenario: str | ScenarioRef = "YuMiBin", max_sim_time: float = 30.0,
                 load_time: float = 0.15) -> Replay:
     """Execute the attempt's grasp in full fidelity from its scene, up to the outcome check. The
     load of the other objects on the grasped one (`object_load`) is read once the arm has held
     its park for `load_time` s (the pick plan rests 0.2 s at park before it moves)."""
     t_cpu = time.process_time()
-    simulator, station, executor, backend = build_replay(attempt, scenario_name, seed=attempt.seed)
+    simulator, station, executor, backend = build_replay(attempt, scenario, seed=attempt.seed)
     context = simulator.get_mutable_context()
     ex_ctx = executor.GetMyContextFromRoot(context)
     body = backend.objects.get(attempt.grasp.object_id)
@@ -201,17 +202,18 @@ def heap_job(job: tuple) -> list[dict]:
     """(objects, seed, heap_dir, max_attempts, policy, reach[, scenario]) -> records of one heap: one
     per attempt (kind "attempt") and one for the heap (kind "heap": the primitive search's result).
     reach: BinSearchConfig.reach of the primitive search ("" none, "YuMiBin": only the YuMi's
-    reachable grasps); scenario: the robot's station the attempts are replayed on (default
-    YuMiBin). Module level for pickling."""
+    reachable grasps); scenario: the robot's station the attempts are replayed on (a ScenarioRef;
+    default YuMiBin). Module level for pickling."""
     objects, seed, heap_dir, max_attempts, policy, reach, *rest = job
-    scenario = rest[0] if rest else "YuMiBin"
+    ref = ScenarioRef.of(rest[0] if rest else "YuMiBin")
+    scenario = str(ref)
     heap = cached_heap(HeapConfig("bin_set", objects), seed, heap_dir)
     t = time.process_time()
     attempts, res = primitive_attempts(heap, fidelity_config(objects, policy, reach), max_attempts=max_attempts)
     prim_cpu = time.process_time() - t
     recs = []
     for a in attempts:
-        r = replay_full(a, scenario)
+        r = replay_full(a, ref)
         g = a.grasp
         recs.append({"kind": "attempt", "seed": int(seed), "objects": int(objects), "reach": reach, "step": a.step,
                      "scenario": scenario,
@@ -238,18 +240,20 @@ def _read(path: Path) -> list[dict]:
 
 def run_fidelity(heaps: int, seed_start: int, out, objects: int = 10, heap_dir: str | None = None,
                  workers: int = 1, max_attempts: int | None = 3, policy: str = "largest", reach: str = "YuMiBin",
-                 progress=None, scenario: str = "YuMiBin") -> dict:
-    """The paired benchmark, the attempts replayed on `scenario`'s robot: heaps S..S+K-1 not yet in
+                 progress=None, scenario: str | ScenarioRef = "YuMiBin") -> dict:
+    """The paired benchmark, the attempts replayed on `scenario`'s robot (a name or ScenarioRef; the
+    records keep it as str(ScenarioRef)): heaps S..S+K-1 not yet in
     `out` (a heap is done once its "heap" record is there; its records are written together, so a killed run loses only the heaps in
     flight and the same command resumes). Returns `summarize` of the file."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    mine = lambda r: r.get("objects") == objects and r.get("scenario", "YuMiBin") == scenario  # noqa: E731
+    ref = ScenarioRef.of(scenario)
+    mine = lambda r: r.get("objects") == objects and r.get("scenario", "YuMiBin") == str(ref)  # noqa: E731
     done = {int(r["seed"]) for r in _read(out) if r.get("kind") == "heap" and mine(r)}
     # attempt records of heaps without their heap record (a torn run) are dropped before rerunning
     keep = [r for r in _read(out) if not mine(r) or int(r["seed"]) in done]
     out.write_text("".join(json.dumps(r) + "\n" for r in keep))
-    jobs = [(objects, k, heap_dir, max_attempts, policy, reach, scenario)
+    jobs = [(objects, k, heap_dir, max_attempts, policy, reach, ref)
             for k in range(seed_start, seed_start + heaps) if k not in done]
     with out.open("a") as f:
         for res in run_jobs(heap_job, jobs, workers=workers):

@@ -61,6 +61,7 @@ from ms_drake.experiments.push_study import (
 )
 from ms_drake.parallel import run_jobs
 from ms_drake.pushing.policies import POLICIES, check_push_policy
+from ms_drake.scenario import ScenarioRef
 from ms_drake.scenes.heaps import heap_from_dict
 from ms_drake.types import Action, Heap, Push
 
@@ -114,7 +115,7 @@ def agreement(prim: dict, full: dict, abs_tol: float = AGREE_ABS, rel_tol: float
 class FidelityPair:
     """The two worlds of one heap record, its state loaded in both, its before metrics."""
 
-    def __init__(self, rec: dict, params: PushStudyConfig | None = None, scenario: str = "YuMiBin"):
+    def __init__(self, rec: dict, params: PushStudyConfig | None = None, scenario: str | ScenarioRef = "YuMiBin"):
         params = params or PushStudyConfig()
         if "state" not in rec:
             raise ValueError(f"heap {rec.get('seed')}: the record has no pushed state (stop {rec.get('stop')!r})")
@@ -126,7 +127,7 @@ class FidelityPair:
         for side in SIDES:
             p = replace(params, time_step=COARSE_STEP) if side == "coarse" else params
             w = PushWorld(heap, p, fidelity="full" if side == "full" else "primitive",
-                          scenario_name=scenario if side == "full" else None)
+                          scenario=scenario if side == "full" else None)
             w.set_state(rec["state"])
             self.worlds[side] = (w, w.snapshot())
         self.build_cpu_s = time.process_time() - c
@@ -210,7 +211,8 @@ def pushed_records(heap_dirs, heaps: int, seed_start: int = 0, policies=POLICIES
 
 
 def run_push_fidelity(heap_dirs, heaps: int, seed_start: int, out: Path, workers: int = 1, policies=POLICIES,
-                      params: PushStudyConfig | None = None, progress=None, scenario: str = "YuMiBin") -> dict:
+                      params: PushStudyConfig | None = None, progress=None,
+                      scenario: str | ScenarioRef = "YuMiBin") -> dict:
     """Rows of every (heap, policy) push of the first `heaps` improvable heaps into `out` (JSON lines,
     resumable: finished (seed, policy) rows are kept and skipped), the full side on `scenario`'s
     robot. progress(rows) after each heap."""

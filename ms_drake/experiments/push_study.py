@@ -89,7 +89,7 @@ from ms_drake.pushing.policies import (
     plan_policy_push,
     state_scene,
 )
-from ms_drake.scenario import load_scenario
+from ms_drake.scenario import ScenarioRef, load_scenario
 from ms_drake.scenes.heaps import (
     generate_heap,
     heap_from_dict,
@@ -196,15 +196,15 @@ class PushWorld:
     """A bin station holding a heap (cameras off unless asked): states, grasps, pushes.
 
     fidelity "primitive" (the study's): FloatingGripperBin + PrimitiveBackend, plant step
-    `params.time_step`. fidelity "full": YuMiBin (or `scenario_name`, any robot scenario) at the
+    `params.time_step`. fidelity "full": YuMiBin (or `scenario`, any robot scenario) at the
     scenario's own plant step + FullBackend (IK + ruckig from the arm's park configuration through
     the station's drivers). Commands are held over one plant step."""
 
     def __init__(self, heap: Heap, params: PushStudyConfig = PushStudyConfig(), cameras: bool = False,
-                 fidelity: str = "primitive", scenario_name: str | None = None):
+                 fidelity: str = "primitive", scenario: str | ScenarioRef | None = None):
         if fidelity not in WORLD_SCENARIOS:
             raise ValueError(f"fidelity {fidelity!r} unknown; choose one of {', '.join(WORLD_SCENARIOS)}")
-        s = scenario_with_heap(_scenario(scenario_name or WORLD_SCENARIOS[fidelity]), heap)
+        s = scenario_with_heap(ScenarioRef.of(scenario or WORLD_SCENARIOS[fidelity]).load(), heap)
         if fidelity == "primitive":
             s.plant_config.time_step = params.time_step
         if not cameras:
