@@ -289,25 +289,32 @@ def _job_bar(total: int, desc: str, unit: str, name=None):
     return bar, progress
 
 
-class _RolloutProgress:
-    """`bench search`'s progress: the resume notice first, then a bar (i of N, rate, ETA) with one
-    line per finished rollout; Ctrl-C then says how far the run got and how to resume it."""
+class _RunProgress:
+    """A long run's progress: the resume notice first (`start(done, todo)`, called by the run before
+    any job), then a bar (i of N, rate, ETA) with a line per finished record (`line(rec)`, None: no
+    line); `write` prints above the bar; Ctrl-C (`interrupted`) says how far the run got and how to
+    resume it."""
 
-    def __init__(self, total: int, out: Path):
-        self.total, self.out, self.bar, self.done = int(total), out, None, 0
+    def __init__(self, total: int, out: Path, unit: str, line=None):
+        self.total, self.out, self.unit, self.line = int(total), out, unit, line
+        self.bar, self.done = None, 0
 
     def start(self, done: int, todo: int):
         self.done = done
         if done:
-            typer.echo(f"resuming: {done} of {self.total} rollouts already in {self.out}; running the other {todo}")
-        self.bar = tqdm(total=todo, desc="rollouts", unit="rollout")
+            typer.echo(f"resuming: {done} of {self.total} {self.unit}s already in {self.out}; running the other {todo}")
+        self.bar = tqdm(total=todo, desc=f"{self.unit}s", unit=self.unit)
 
     def __call__(self, rec):
         self.done += 1
+        text = self.line(rec) if self.line is not None else None
+        if text:
+            self.write(text)
         if self.bar is not None:
-            self.bar.write(f"seed {rec['seed']}: {'success' if rec['success'] else rec['failure']} after "
-                           f"{rec['actions']} actions ({rec.get('seconds', 0.0):.1f} s)")
             self.bar.update(1)
+
+    def write(self, text: str):
+        (self.bar.write if self.bar is not None else typer.echo)(text)
 
     def close(self):
         if self.bar is not None:
@@ -315,8 +322,13 @@ class _RolloutProgress:
 
     def interrupted(self):
         self.close()
-        typer.echo(f"stopped after {self.done} of {self.total} rollouts; run the same command to resume", err=True)
+        typer.echo(f"stopped after {self.done} of {self.total} {self.unit}s; run the same command to resume", err=True)
         raise typer.Exit(130)
+
+
+def _rollout_line(rec) -> str:
+    return (f"seed {rec['seed']}: {'success' if rec['success'] else rec['failure']} after {rec['actions']} actions "
+            f"({rec.get('seconds', 0.0):.1f} s)")
 
 
 def _epoch_bar(epochs: int):
@@ -694,7 +706,7 @@ def bench_search(policy: str = typer.Option(..., "--policy", help="Selector: " +
         _choose("--fidelity", fidelity, FIDELITIES)
     cfg = _bin_search_config(policy, fidelity, scenario, scenario_file, config, set_)
     _need_jsonl(out)
-    progress = _RolloutProgress(heaps_, out)
+    progress = _RunProgress(heaps_, out, "rollout", _rollout_line)
     try:
         s = run_bench(cfg, heaps_, seed_start, out, workers=workers, use_ray=ray or ray_address is not None,
                       ray_address=ray_address, progress=progress,
@@ -787,15 +799,14 @@ def data_push_heaps(count: int = typer.Option(..., "--count", min=1, help="Heaps
     one record per heap (with its config), `improvable` when some policy raises the overall grasp
     quality. Defaults: household-object heaps, the reference's 100 grasps per object."""
     cfg = _push_config(config, set_)
-    with tqdm(total=count, desc="push heaps", unit="heap") as bar:
-        def tick(r):
-            if not r.ok:
-                tqdm.write(f"seed {r.job[0]}: {r.error.splitlines()[-1] if r.error else 'failed'}")
-            bar.update(1)
+    progress = _RunProgress(count, out / "heaps.jsonl", "heap", lambda r: None if r.ok else (
+        f"seed {r.job[0]}: {r.error.splitlines()[-1] if r.error else 'failed'} (rerun to retry)"))
+    try:
         s = write_push_heaps(count, out, seed_start, workers=workers, use_ray=ray or ray_address is not None,
-                             ray_address=ray_address, params=cfg, bar=tick)
-    if s["resumed"]:
-        typer.echo(f"resumed: {s['resumed']} of {count} heaps already in {s['path']}")
+                             ray_address=ray_address, params=cfg, bar=progress)
+    except KeyboardInterrupt:
+        progress.interrupted()
+    progress.close()
     typer.echo(f"{s['dropped']} heaps dropped, {s['recorded']} stuck (recorded), {s['improvable']} improvable "
                f"-> {s['path']}" + (f"; {len(s['failed'])} failed (rerun to retry)" if s["failed"] else ""))
     if s["failed"]:
@@ -983,18 +994,15 @@ def bench_shelf(ctx: typer.Context,
     cfg = _shelf_config(policy, perception, config, set_, SHELF_PERCEPTIONS)
     counts = _occluder_counts(occluders, ctx.args)
     _need_jsonl(out)
-    bar = tqdm(total=len(counts) * scenes, desc=policy, unit="scene")
-
-    def progress(rec):
-        bar.update(1)
-        if rec.get("failure") == "worker_died":
-            tqdm.write(f"occluders {rec['occluders']} seed {rec['seed']}: {rec.get('error', '')} (rerun to retry)")
-
-    s = run_shelf_bench(cfg, counts, scenes, seed_start, out, workers=workers, use_ray=ray or ray_address is not None,
-                        ray_address=ray_address, progress=progress)
-    bar.close()
-    if s["resumed"]:
-        typer.echo(f"resuming: {s['resumed']} of {len(counts) * scenes} searches were already in {out}")
+    progress = _RunProgress(len(counts) * scenes, out, "scene", lambda rec: (
+        f"occluders {rec['occluders']} seed {rec['seed']}: {rec.get('error', '')} (rerun to retry)"
+        if rec.get("failure") == "worker_died" else None))
+    try:
+        s = run_shelf_bench(cfg, counts, scenes, seed_start, out, workers=workers,
+                            use_ray=ray or ray_address is not None, ray_address=ray_address, progress=progress)
+    except KeyboardInterrupt:
+        progress.interrupted()
+    progress.close()
     for n in counts + ["all"]:
         q = s[n]["success_quartiles"]
         typer.echo(f"{policy} occluders {n}: {s[n]['rollouts']} scenes, success {100 * s[n]['success_rate']:.1f} % "
@@ -1030,7 +1038,13 @@ def bench_shelf_physics(policy: str = typer.Option(..., "--policy", help=f"Shelf
     _need_shelf_scenario(scenario_file, scenario)
     station = {} if scenario == "FetchShelf" and scenario_file is None else {
         "scenario_name": scenario, "scenario_file": str(scenario_file) if scenario_file is not None else None}
-    run_shelf_physics_bench(cfg, scenes, seed_start, out, occluders, workers=workers, log=typer.echo, **station)
+    progress = _RunProgress(scenes, out, "scene")
+    try:
+        run_shelf_physics_bench(cfg, scenes, seed_start, out, occluders, workers=workers, log=progress.write,
+                                progress=progress, **station)
+    except KeyboardInterrupt:
+        progress.interrupted()
+    progress.close()
     recs = physics_records([out], cfg.perception)
     typer.echo(physics_table(recs, tuple(dict.fromkeys(r["policy"] for r in recs))))
     typer.echo(f"results in {out}")
@@ -1068,8 +1082,13 @@ def bench_rearrange(method: Optional[str] = typer.Option(None, "--method",
             "scenario_name": scenario, "scenario_file": str(scenario_file) if scenario_file is not None else None}
         params = load_config(RearrangeParams, config, set_ or (), **bench_params(method, 0).__dict__)
         overrides = {k: v for k, v in dataclasses.asdict(params).items() if k not in ("method", "seed")}
-        run_rearrange_bench(method, scenes, seed_start, out, objects=objects, workers=workers, log=typer.echo,
-                            **overrides, **station)
+        progress = _RunProgress(scenes, out, "scene")
+        try:
+            run_rearrange_bench(method, scenes, seed_start, out, objects=objects, workers=workers, log=progress.write,
+                                progress=progress, **overrides, **station)
+        except KeyboardInterrupt:
+            progress.interrupted()
+        progress.close()
     typer.echo(rearrange_table(rearrange_records([out])))
     typer.echo(f"results in {out}")
 
@@ -1157,7 +1176,7 @@ def data_shelf(count: int = typer.Option(..., "--count", min=1, help="Scenes (N)
 
 
 # ---------------------------------------------------------------------------------------------
-# Grasp sets (issue #15): ms-drake data grasps
+# Grasp sets: ms-drake data grasps
 
 
 @data_app.command("grasps")

@@ -129,6 +129,10 @@ def test_cli_bench_shelf_and_table(tmp_path):
             "--out", out)
     assert sorted(r["occluders"] for r in read_records(out)) == [4, 6]
     assert "oracle_p occluders all" in p.stdout
+    p = run("bench", "shelf", "--policy", "oracle_p", "--occluders", 4, 6, "--scenes", 2, "--seed-start", 3,
+            "--out", out)
+    assert p.stdout.startswith(f"resuming: 2 of 4 scenes already in {out}; running the other 2")
+    assert len(read_records(out)) == 4
     p = run("bench", "shelf", "--policy", "dar", "--occluders", 4, "x", "--out", out, check=False)
     assert p.returncode == 2 and "unexpected argument 'x'" in p.stderr
     p = run("bench", "shelf", "--policy", "xray", "--out", out, check=False)

@@ -737,6 +737,8 @@ def write_push_heaps(count: int, out_dir: Path, seed_start: int = 0, workers: in
     done = {int(r["seed"]) for r in recs}
     seeds = [k for k in range(seed_start, seed_start + count) if k not in done]
     jobs = [(k, asdict(params)) for k in seeds]
+    if bar is not None and hasattr(bar, "start"):  # before any heap: (already done, to run)
+        bar.start(count - len(seeds), len(seeds))
     failed = []
     for r in run_jobs(push_heap_job, jobs, workers=workers, use_ray=use_ray, ray_address=ray_address):
         if r.ok:

@@ -303,8 +303,9 @@ def _bench_job(job: tuple) -> dict:
 
 
 def run_rearrange_bench(method: str, scenes: int, seed_start: int, out, objects: int = 10, workers: int = 1,
-                        log=print, **overrides) -> list[dict]:
-    """`ms-drake bench rearrange`: one JSON line per scene in `out`; seeds already there are skipped."""
+                        log=print, progress=None, **overrides) -> list[dict]:
+    """`ms-drake bench rearrange`: one JSON line per scene in `out`; seeds already there are skipped.
+    progress(rec) after each scene, and its `start(done, todo)`, if it has one, before the first."""
     if method not in METHODS:
         raise RearrangeError(f"method {method!r} unknown; choose one of {', '.join(METHODS)}")
     if scenes < 1 or objects < 1:
@@ -315,6 +316,8 @@ def run_rearrange_bench(method: str, scenes: int, seed_start: int, out, objects:
     jobs = [(method, s, objects, overrides) for s in range(seed_start, seed_start + scenes)
             if (s, objects, json.dumps(config_dict(bench_params(method, s, **overrides)), sort_keys=True)) not in done]
     recs = []
+    if progress is not None and hasattr(progress, "start"):
+        progress.start(scenes - len(jobs), len(jobs))
     for res in run_jobs(_bench_job, jobs, workers=workers):
         if res.error:
             log(f"  seed {res.job[1]}: error {res.error.splitlines()[-1] if res.error else ''}")
@@ -327,6 +330,8 @@ def run_rearrange_bench(method: str, scenes: int, seed_start: int, out, objects:
         recs.append(r)
         log(f"  {method} seed {r['seed']}: grasps {r['grasps']}/{r['grasps_attempted']}, placements "
             f"{r['placements']}/{r['objects']}, {r['minutes']:.1f} sim min, cpu {r['cpu_seconds']:.0f} s")
+        if progress is not None:
+            progress(r)
     return recs
 
 

@@ -220,7 +220,8 @@ def run_shelf_bench(config: ShelfSearchConfig, occluders: list[int], scenes: int
                     workers: int = 1, use_ray: bool = False, ray_address: str | None = None, progress=None) -> dict:
     """Run the missing rollouts of `config` on seeds S..S+K-1 for every occluder count, append them
     to `out` (JSON lines; a record of another config is not one of them); returns {occluders or
-    "all": summary} over the requested seeds."""
+    "all": summary} over the requested seeds. progress(rec) after each search; an object with a
+    `start(done, todo)` method hears first how many are already done."""
     bad = [n for n in occluders if not 2 <= n <= 12]
     if bad:
         raise MsDrakeError(f"--occluders {' '.join(map(str, bad))}: shelf scenes have 2 to 12 occluders")
@@ -232,6 +233,8 @@ def run_shelf_bench(config: ShelfSearchConfig, occluders: list[int], scenes: int
     done = {(int(r["objects"]), int(r["seed"])) for r in mine if r.get("failure") != "worker_died"}
     seeds = range(seed_start, seed_start + scenes)
     jobs = [(dataclasses.asdict(config), n, s) for n in occluders for s in seeds if (n, s) not in done]
+    if progress is not None and hasattr(progress, "start"):  # before any search: (already done, to run)
+        progress.start(len(occluders) * len(seeds) - len(jobs), len(jobs))
     with open(out, "a") as f:
         for r in run_jobs(shelf_rollout_job, jobs, workers=workers, use_ray=use_ray, ray_address=ray_address):
             if r.ok:

@@ -594,12 +594,14 @@ def read_physics_records(path) -> list[dict]:
 
 
 def run_shelf_physics_bench(config: ShelfSearchConfig, scenes: int, seed_start: int, out,
-                            occluders: list[int] | None = None, workers: int = 1, log=print, **kwargs) -> list[dict]:
+                            occluders: list[int] | None = None, workers: int = 1, log=print, progress=None,
+                            **kwargs) -> list[dict]:
     """Missing (seed) rollouts of `config`, one JSON line each (flushed and fsync'ed as each scene
     ends: resumable; a record of another config is not one of them); occluders cycles through the
     given counts by seed (None: drawn from the seed); workers: local processes
     (ms_drake.parallel.run_jobs; fresh processes every few scenes, as Drake diagrams are never
-    freed); kwargs: shelf_physics_rollout's (scenario_name, scenario_file, time_step)."""
+    freed); progress(rec) after each scene, and its `start(done, todo)`, if it has one, before the
+    first; kwargs: shelf_physics_rollout's (scenario_name, scenario_file, time_step)."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     key = _config_key(config.record())
@@ -608,6 +610,8 @@ def run_shelf_physics_bench(config: ShelfSearchConfig, scenes: int, seed_start: 
             for i, seed in enumerate(range(seed_start, seed_start + scenes)) if seed not in done]
     recs = []
     policy, perception = config.policy, config.perception
+    if progress is not None and hasattr(progress, "start"):
+        progress.start(scenes - len(jobs), len(jobs))
     for res in run_jobs(_bench_job, jobs, workers=workers, max_tasks_per_child=PHYSICS_TASKS_PER_CHILD):
         if not res.ok:
             log(f"seed {res.job[1]} {policy}: failed ({res.error.splitlines()[0]}); run again to retry it")
@@ -623,6 +627,8 @@ def run_shelf_physics_bench(config: ShelfSearchConfig, scenes: int, seed_start: 
             f"({rec['plan_failures']} plan failures, {rec['skipped']} Fetch-infeasible skipped), FOSS agrees on "
             f"{rec['agree']}/{rec['compared']}, {rec['sim_seconds']:.0f} s simulated in {rec['cpu_seconds']:.0f} s CPU "
             f"({rec['seconds']:.0f} s wall)")
+        if progress is not None:
+            progress(rec)
     return recs
 
 
