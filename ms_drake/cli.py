@@ -47,7 +47,7 @@ from ms_drake.experiments.collision_data import (
 )
 from ms_drake.experiments.collision_data import write_collision_dataset
 from ms_drake.experiments.collision_learning import bench_collision, train_collision
-from ms_drake.experiments.demo import DEMO_CONFIG, DEMO_SEED, run_demo
+from ms_drake.experiments.demo import DEMO_CONFIG, DEMO_SEED, DEMO_SETTING, run_demo
 from ms_drake.experiments.grasp_figure import grasp_figure
 from ms_drake.experiments.grasp_set_data import write_grasp_sets
 from ms_drake.experiments.harness import (
@@ -375,7 +375,11 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
                                       "robot's, e.g. YuMiBin or PandaBin, searches with that robot in physics); "
                                       "shelf: a shelf scenario with the Fetch (default FetchShelf); rearrange: a "
                                       "table scenario with the Panda (default PandaTable)"),
-         scenario_file: Optional[Path] = ScenarioFile):
+         scenario_file: Optional[Path] = ScenarioFile,
+         config: Optional[str] = typer.Option(None, "--config", help="bin: the search's named setting or YAML file, "
+                                              "as `bench search --config` (default camera: learned masks, target "
+                                              "matcher and occupancy on a noisy depth sensor, the search from the "
+                                              "camera alone; table_8_2: ground-truth masks); the demo's heap stays")):
     """A full search with per-step PNGs, a GIF and a Meshcat recording: `bin` (heap, X-Ray on the
     floating gripper: masks, occupancy, action) or `shelf` (a shelf scene searched by the Fetch with
     the bluction tool in Drake physics: depth, distribution, action)."""
@@ -409,9 +413,14 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
         _echo_written(written)
         typer.echo(f"wrote {len(written)} files to {out} in {time.perf_counter() - t:.1f} s")
         return
-    station = _scenario(scenario_file, scenario or DEFAULT_SCENARIOS["primitive"])
+    config = config or DEMO_SETTING
+    try:
+        named = load_bin_search_config(config)
+    except MsDrakeError as e:
+        _fail(str(e))
+    station = _scenario(scenario_file, scenario or named.scenario or DEFAULT_SCENARIOS["primitive"])
     fidelity = "primitive" if station.robot.name == "floating" else "full"
-    cfg = _bin_search_config(policy or DEMO_CONFIG.policy, fidelity, scenario, scenario_file, None, None)
+    cfg = _bin_search_config(policy or named.policy, fidelity, scenario, scenario_file, config, None)
     cfg.heap = DEMO_CONFIG.heap if objects is None else dataclasses.replace(DEMO_CONFIG.heap, objects=objects - 1)
     if horizon is not None:
         cfg.horizon = horizon

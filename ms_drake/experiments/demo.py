@@ -1,10 +1,13 @@
 """`ms-drake demo`: one full X-Ray search, written out: on the floating gripper (primitive fidelity)
 by default, or with a robot's station (YuMiBin, PandaBin) in physics.
 
-The search is the default BinSearchConfig (Table 8.2's setting) on a heap of the ``lid`` layout
-(scenes.layouts: the 6 cm lid dropped first, 14 unseen mesh objects piled on it; X-Ray reads the
-learned occupancy), seed `DEMO_SEED` by default: its target starts hidden. `DEMO_CONFIG` is that
-config; pass another to search other heaps or with other settings.
+The search is the one a robot runs from its own camera, the named setting `camera` (DEMO_SETTING:
+Table 8.2's search with the learned segmenter, the learned target matcher and the learned
+occupancy, on the overhead depth through the PhoXi-like sensor model), on a heap of the ``lid``
+layout (scenes.layouts: the 6 cm lid dropped first, 14 unseen mesh objects piled on it), seed
+`DEMO_SEED` by default: its target starts hidden. `DEMO_CONFIG` is that config; pass another to
+search other heaps or with other settings (e.g. `load_bin_search_config("table_8_2")`: ground-truth
+masks and the colour detector).
 
 Outputs in the folder: the initial scene (overhead_{rgb,depth,masks,target}.png, heap.json, as
 `ms-drake scene`), then per step k: step_kk.png (three panels: RGB with the instance masks and
@@ -30,7 +33,7 @@ from ms_drake.experiments.scene_images import (
     write_search_pictures,
 )
 from ms_drake.geometry import PinholeCamera
-from ms_drake.policies.bin_search import BinSearchConfig, config_scenario
+from ms_drake.policies.bin_search import BinSearchConfig, config_scenario, load_bin_search_config
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.layouts import HEAP_SCENARIO, HeapConfig, layout_heap
 
@@ -92,7 +95,8 @@ def frame_image(frame, camera) -> np.ndarray:
 
 
 DEMO_SEED = 5000
-DEMO_CONFIG = BinSearchConfig(policy="xray", heap=HeapConfig(layout="lid", objects=14))
+DEMO_SETTING = "camera"
+DEMO_CONFIG = dataclasses.replace(load_bin_search_config(DEMO_SETTING), heap=HeapConfig(layout="lid", objects=14))
 
 
 def run_demo(out: Path, config: BinSearchConfig = DEMO_CONFIG, seed: int = DEMO_SEED, meshcat_html: bool = True,
