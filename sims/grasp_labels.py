@@ -5,7 +5,8 @@
   python sims/grasp_labels.py table
 
 Each stage appends to its file and resumes where it stopped (one process; run in the
-background with nohup). Files: docs/data/grasp_labels.jsonl, /tmp or --predictions path.
+background with nohup). Files: out/grasp_labels.jsonl and out/grasp_predictions.jsonl, or --labels and
+--predictions.
 """
 
 import argparse
@@ -21,8 +22,8 @@ ROOT = Path(__file__).resolve().parent.parent
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("stage", choices=["labels", "predict", "table", "all"])
-    ap.add_argument("--labels", type=Path, default=ROOT / "docs/data/grasp_labels.jsonl")
-    ap.add_argument("--predictions", type=Path, default=ROOT / "docs/data/grasp_predictions.jsonl")
+    ap.add_argument("--labels", type=Path, default=ROOT / "out/grasp_labels.jsonl")
+    ap.add_argument("--predictions", type=Path, default=ROOT / "out/grasp_predictions.jsonl")
     ap.add_argument("--objects", type=int, default=24)
     ap.add_argument("--object-names", nargs="*", default=None)
     ap.add_argument("--grasps", type=int, default=45)

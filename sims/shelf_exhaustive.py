@@ -8,7 +8,7 @@ where the camera sees --threshold of the target, or after --depth actions. Print
 number of new states and the best visibility reached.
 
     .venv/bin/python sims/shelf_exhaustive.py --occluders 8 --seed 22 --depth 6 --suction \
-        --out docs/data/shelf_exhaustive_8_22.json
+        --out out/shelf_exhaustive/p_8-22.json
 """
 
 import argparse
@@ -81,6 +81,7 @@ def main():
         out["exhausted"] = bool(levels) and levels[-1]["states"] == 0  # no reachable state left: no plan of any length
         out["stopped_by_budget"] = out_of_time
     if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(out, indent=1))
     print(json.dumps({k: v for k, v in out.items() if k != "levels"}))
 

@@ -24,12 +24,17 @@ from ms_drake.policies.bin_search import BinSearchConfig
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 # the site's own pages: the hand-written ones, the results pages by chapter and the per-table pages
-# `ms-drake reproduce` writes (not the records in docs/data/ nor the pre-registrations in docs/prereg/)
+# `ms-drake reproduce` writes (not the records in docs/results/ nor the pre-registrations in docs/prereg/)
 PAGES = sorted([*DOCS.glob("*.md"), *DOCS.glob("tutorials/*.md"), *DOCS.glob("reference/*.md"),
                 *DOCS.glob("results/*.md"), *DOCS.glob("results/*/*.md")])
 # every markdown document of the repository's documentation, for the length budget
 ALL_DOCS = sorted([ROOT / "README.md", *DOCS.rglob("*.md")])
 DOCS_LINE_BUDGET = 3000
+# the records of the figures shown: gzip'd in docs/results/records/<chapter>/, each named on its chapter page
+# (`records/...`, shell braces allowed, a folder ending in /), and beside the per-table pages
+RECORDS = DOCS / "results" / "records"
+RECORD_SUFFIXES = (".jsonl", ".json", ".gz", ".npz")
+RECORDS_BUDGET = 15_000_000  # bytes of records under docs/
 PYTHON_BLOCK = re.compile(r"```python\n(.*?)```", re.S)
 
 
@@ -76,6 +81,38 @@ def test_the_docs_are_short_and_name_no_internal_history():
         text = page.read_text()
         found = re.search(r"\bissues?\b|#\d{1,4}\b|\bsessions?\b|BENCHMARKS\.md", text, re.I)
         assert not found, f"{page.relative_to(ROOT)}: {found.group(0)!r} (internal issue numbers, work history)"
+
+
+def test_docs_keep_only_the_records_of_the_results_pages_within_budget():
+    assert not (DOCS / "data").exists(), "docs/data/ is gone: a figure's records go to docs/results/records/<chapter>/"
+    records = [p for p in DOCS.rglob("*") if p.is_file() and p.name.endswith(RECORD_SUFFIXES)]
+    total = sum(p.stat().st_size for p in records)
+    assert total <= RECORDS_BUDGET, (
+        f"records under docs/ take {total / 1e6:.1f} MB (budget {RECORDS_BUDGET / 1e6:.0f} MB); the largest: "
+        + ", ".join(f"{p.relative_to(ROOT)} {p.stat().st_size / 1e6:.1f} MB"
+                    for p in sorted(records, key=lambda p: -p.stat().st_size)[:5]))
+
+
+def _braces(pattern: str) -> list[str]:
+    """A shell brace pattern's names: "a_{x,y}{,_z}" -> a_x, a_x_z, a_y, a_y_z."""
+    m = re.search(r"\{([^{}]*)\}", pattern)
+    if not m:
+        return [pattern]
+    return [name for alt in m.group(1).split(",") for name in _braces(pattern[:m.start()] + alt + pattern[m.end():])]
+
+
+def test_every_kept_record_is_named_on_a_results_page_and_every_named_one_exists():
+    named = set()
+    for page in sorted((DOCS / "results").glob("*.md")):
+        for pattern in re.findall(r"`(records/[^`\s]+)`", page.read_text()):
+            for name in _braces(pattern):
+                path = DOCS / "results" / name
+                assert path.exists(), f"{page.relative_to(ROOT)} names {name}, which is not in docs/results/"
+                named |= {path} if path.is_file() else set(path.rglob("*"))
+    kept = {p for p in RECORDS.rglob("*") if p.is_file()}
+    assert all(p.name.endswith(".gz") for p in kept), "records are kept gzip'd"
+    unnamed = sorted(str(p.relative_to(DOCS / "results")) for p in kept - named)
+    assert not unnamed, f"records no results page names (a figure gone: remove them): {unnamed[:10]}"
 
 
 def _programs():
