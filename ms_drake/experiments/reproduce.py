@@ -30,7 +30,7 @@ EPYC, no GPU, shared with other jobs (load 1-5), 2026-12-07. Measured: table_2_1
 table_b_1 10.4, table_6_1 4.1, table_8_1 5.9, table_9_2 3.2. Extrapolated from a part: fig_4_2 5.3
 (4 of its 16 improvable heaps: 1.3), table_6_3 8.5 (1 of its 5 scenes per checker: 1.7), table_9_1
 11.5 (10 of its 50 scenes per occluder count: 2.2, scaled per policy by the recorded CPU of seeds
-0-49 over seeds 0-9 in docs/data/shelf_*.jsonl).
+0-49 over seeds 0-9 in docs/results/records/ch9_shelf/shelf_*.jsonl.gz).
 """
 
 from __future__ import annotations
