@@ -1755,16 +1755,20 @@ def bench_target_detection_cmd(
         workers: int = _workers(),
         weights: Optional[Path] = typer.Option(None, "--weights", help="Matcher weights (learned; default: shipped)"),
         scene_dir: Optional[Path] = typer.Option(None, "--scene-dir", help="Folder caching the rendered images "
-                                                 "(scene_<seed>.npz), shared by the runs of several backends")):
+                                                 "(scene_<seed>.npz), shared by the runs of several backends"),
+        sensor: str = typer.Option("none", "--sensor", help="Depth sensor model preset of the depth image the "
+                                   "detector gets: none | phoxi | l515 | primesense (ms_drake.station.sensor_model)")):
     """Target detection on held-out heaps with the target 20-80 % occluded (half of them with a second
     red object): precision, recall, F1, also on the shared-colour subset."""
     _choose("--backend", backend, DETECTOR_BACKENDS)
+    from ms_drake.scenario import DEPTH_SENSOR_PRESETS
+    _choose("--sensor", sensor, DEPTH_SENSOR_PRESETS)
     if out.suffix != ".json":
         _fail(f"--out {out}: give a .json file")
     if backend == "learned":
         _need_weights("--weights", weights, load_matcher, "matcher")
     bar, progress = _job_bar(images, backend, "image")
-    res = bench_target_detection(backend, images, seed_start, out, workers, weights, progress, scene_dir)
+    res = bench_target_detection(backend, images, seed_start, out, workers, weights, progress, scene_dir, sensor)
     bar.close()
     for name, m in (("all", res), ("shared colour", res["shared_colour"]), ("distinct colours", res["distinct_colour"])):
         typer.echo(f"{backend}, {name}: {m['images']} images, precision {m['precision']:.3f}, recall "

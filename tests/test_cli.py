@@ -28,8 +28,8 @@ def test_demo_writes_images_and_recording(tmp_path):
     assert 1 <= len(heap["objects"]) <= 4 and heap["target"]
     res = json.loads((tmp_path / "search.json").read_text())
     assert res["policy"] == "xray" and 1 <= res["actions"] <= 3 and res["success"] == (res["failure"] == "")
-    # from the camera alone: the learned parts on the noisy overhead depth
-    assert (res["config"]["segmenter"], res["config"]["detector"]) == ("learned", "learned")
+    # from the camera alone: learned masks, template matching checked on the noisy overhead depth
+    assert (res["config"]["segmenter"], res["config"]["detector"]) == ("learned", "template")
     assert res["config"]["scenario"] == "FloatingGripperBinPhoXi"
     steps = sorted(tmp_path.glob("step_*.png"))
     assert len(steps) in (res["actions"], res["actions"] + 1)  # one per chosen action (+ the final stop)

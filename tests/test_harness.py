@@ -353,19 +353,22 @@ def test_failed_grasps_counts_where_the_failed_grasps_went():
 
 
 def test_the_camera_setting_searches_from_the_camera_alone():
-    """The named setting "camera": learned masks, learned target matching and learned occupancy on
-    the overhead camera's depth through the PhoXi-like sensor model; one whole search runs."""
+    """The named setting "camera": learned masks, template target matching (its size check on the
+    depth) and learned occupancy on the overhead camera's depth through the PhoXi-like sensor model;
+    one whole search runs."""
     from ms_drake.experiments.rollout import build_search, run_search
     from ms_drake.policies.bin_search import config_scenario
     from ms_drake.scenes.layouts import layout_heap
 
     cfg = load_bin_search_config("camera", ["heap.objects=6"], seed=3)
-    assert (cfg.segmenter, cfg.detector, cfg.ablation.occupancy, cfg.policy) == ("learned", "learned", "learned", "xray")
+    assert (cfg.segmenter, cfg.detector, cfg.ablation.occupancy, cfg.policy) == ("learned", "template", "learned",
+                                                                                 "xray")
     heap = layout_heap(cfg.heap, 3)
     system = build_search(config_scenario(cfg), heap, cfg)
     parts = {name: system.controller.GetSubsystemByName(name) for name in ("segmenter", "target_detector",
                                                                           "occupancy_estimator")}
-    assert parts["segmenter"].backend == "learned" and parts["target_detector"].backend == "learned"
+    assert parts["segmenter"].backend == "learned" and parts["target_detector"].backend == "template"
+    assert parts["target_detector"].matcher.extent_max is not None  # the templates carry the target's size
     assert type(parts["occupancy_estimator"].backend).__name__ == "LearnedOccupancy"
     assert system.station.HasSubsystemNamed("depth_sensor_overhead")  # the sensor model is in the camera
     res = run_search(system, heap, cfg)

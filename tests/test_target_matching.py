@@ -6,16 +6,30 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
-from pydrake.systems.sensors import ImageLabel16I, ImageRgba8U
+from pydrake.systems.sensors import ImageDepth32F, ImageLabel16I, ImageRgba8U
 
 from ms_drake.errors import DatasetError, PerceptionError
-from ms_drake.experiments.matcher_data import bench_target_detection, detection_metrics, matcher_shard_job
+from ms_drake.experiments.matcher_data import (
+    bench_target_detection,
+    detection_metrics,
+    matcher_shard_job,
+)
 from ms_drake.experiments.matcher_learning import PairSampler
 from ms_drake.experiments.rollout import build_search
 from ms_drake.perception.association import MaskAssociation, associate
-from ms_drake.perception.matcher_net import SIZE, crop, default_weights, make_net, occlude
+from ms_drake.perception.matcher_net import (
+    SIZE,
+    crop,
+    default_weights,
+    make_net,
+    occlude,
+)
 from ms_drake.perception.target import TargetDetector, Template, render_templates
-from ms_drake.policies.bin_search import BinSearchConfig, ControllerError, load_bin_search_config
+from ms_drake.policies.bin_search import (
+    BinSearchConfig,
+    ControllerError,
+    load_bin_search_config,
+)
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import set_heap_poses
 from ms_drake.types import InstanceMasks
@@ -191,3 +205,102 @@ def test_detection_metrics_and_unknown_backend(tmp_path):
     assert (m["precision"], m["recall"]) == (0.5, pytest.approx(1 / 3)) and m["f1"] == pytest.approx(0.4)
     with pytest.raises(DatasetError, match="color, template, learned"):
         bench_target_detection("hsv", 1, 0, tmp_path / "x.json")
+
+
+# ---------------------------------------------------------------------------------------------
+# The template backend's geometric check (depth): a visible part of the target is no larger than
+# the target, and a mask that nothing hides shows a whole object, which must be the target's size.
+
+RED = (230, 26, 26)
+
+
+class _Cam:
+    fx = fy = 500.0
+    cx, cy = 60.0, 50.0
+
+
+def _plane_points(width: float, height: float, z: float = 0.7, n: int = 40) -> np.ndarray:
+    x, y = np.meshgrid(np.linspace(0, width, n), np.linspace(0, height, n))
+    return np.stack([x.ravel(), y.ravel(), np.full(x.size, z)], axis=1).astype(np.float32)
+
+
+def geometry_scene():
+    """A 100 x 120 px view of a floor 0.8 m away (_Cam: 1.52 mm per px at 0.76 m), three red flat
+    objects of one shade lying on it, their tops at 0.76 m: 0, 9.1 x 6.1 cm, nothing around it;
+    1, 4.6 x 6.1 cm beside a nearer grey object (at 0.74 m) that may hide the rest; 2, 7.6 x 13.7
+    cm. The target: a 9 x 6 cm plate (one template view with its points, from a nearer camera)."""
+    rgb = np.full((100, 120, 3), 30, np.uint8)
+    depth = np.full((100, 120), 0.8, np.float32)
+    m = np.zeros((3, 100, 120), bool)
+    m[0, 5:45, 5:65] = True
+    m[1, 55:95, 5:35] = True
+    m[2, 5:95, 68:118] = True
+    for k in range(3):
+        rgb[m[k]] = RED
+        depth[m[k]] = 0.76
+    rgb[55:95, 35:60] = (150, 150, 150)
+    depth[55:95, 35:60] = 0.74
+    masks = InstanceMasks(m, ("whole", "part", "big"), np.ones(3))
+    view = Template(np.full((50, 75, 3), RED, np.uint8), np.ones((50, 75), bool), _plane_points(0.09, 0.06))
+    return rgb, depth, masks, view
+
+
+def test_surface_extents_and_occluded_fraction_on_fixed_inputs():
+    from ms_drake.perception.target import (
+        mask_points,
+        occluded_fraction,
+        surface_extents,
+    )
+
+    e = surface_extents(_plane_points(0.09, 0.06))
+    assert e[0] == pytest.approx(0.09, abs=0.003) and e[1] == pytest.approx(0.06, abs=0.003) and e[2] < 1e-6
+    _, depth, masks, _ = geometry_scene()
+    e0 = surface_extents(mask_points(depth, masks.masks[0], _Cam()))
+    assert e0[0] == pytest.approx(0.0912, abs=0.003) and e0[1] == pytest.approx(0.0608, abs=0.003)
+    assert occluded_fraction(depth, masks.masks[0]) == 0.0  # lying on the floor, nothing nearer around it
+    assert 0.15 < occluded_fraction(depth, masks.masks[1]) < 0.4  # its right side: the nearer grey object
+    edge = np.zeros_like(masks.masks[0])
+    edge[0:3, 0:3] = True  # cut by the image's border: counted as hidden
+    assert occluded_fraction(depth, edge) > 0.3
+    holes = depth.copy()
+    holes[55:95, 35:60] = 0.0  # no return (0) is no evidence either way
+    assert occluded_fraction(holes, masks.masks[1]) == 0.0
+
+
+def test_template_backend_checks_the_target_size_on_depth():
+    from ms_drake.perception.target import TemplateMatcher
+
+    rgb, depth, masks, view = geometry_scene()
+    matcher = TemplateMatcher([view])
+    assert matcher.extent_max[:2] == pytest.approx([0.088, 0.059], abs=0.003)
+    # Colour alone: every red mask matches (the big one's area is within 1.5 x the template's).
+    assert (matcher.scores(rgb, masks) > 0.99).all()
+    # With depth: 0 (whole, the target's size) and 1 (4.6 cm wide, but possibly cut by the grey
+    # object) may be the target; 2 (13.7 cm long) cannot: no part of a 9 cm plate is that long.
+    s = matcher.scores(rgb, masks, depth, _Cam())
+    assert s[0] > 0.99 and s[1] > 0.99 and s[2] == 0.0
+    assert matcher.detect(rgb, masks, depth, _Cam()).instance_index in (0, 1)
+    # A 3 x 4.6 cm red object that nothing hides is whole, and too small to be the plate ...
+    small = masks.masks.copy()
+    small[0] = False
+    small[0, 10:30, 10:40] = True
+    depth_small = np.where(masks.masks[0] & ~small[0], np.float32(0.8), depth)
+    s = matcher.scores(rgb, InstanceMasks(small, masks.ids, np.ones(3)), depth_small, _Cam())
+    assert s[0] == 0.0 and s[1] > 0.99
+    # ... while the same mask beside a nearer object may be a part of it.
+    depth_small[10:30, 40:50] = 0.74
+    assert matcher.scores(rgb, InstanceMasks(small, masks.ids, np.ones(3)), depth_small, _Cam())[0] > 0.99
+    # Templates without points, or no depth: colour alone, as before.
+    plain = TemplateMatcher([Template(view.rgb, view.mask)])
+    assert plain.extent_max is None and (plain.scores(rgb, masks, depth, _Cam()) > 0.99).all()
+    # The detector system reads the depth from its optional input port and its camera's intrinsics.
+    det = TargetDetector("template", 120, 100, templates=[view], camera=_Cam())
+    ctx = det.CreateDefaultContext()
+    det.GetInputPort("rgb_image").FixValue(ctx, rgba_image(rgb))
+    only_big = InstanceMasks(masks.masks[[2]], ("big",), np.ones(1))
+    det.GetInputPort("masks").FixValue(ctx, only_big)
+    assert det.GetOutputPort("target").Eval(ctx).visible  # no depth connected: colour alone
+    img = ImageDepth32F(120, 100)
+    np.array(img.mutable_data, copy=False)[:, :, 0] = depth
+    det.GetInputPort("depth_image").FixValue(ctx, img)
+    assert not det.GetOutputPort("target").Eval(ctx).visible

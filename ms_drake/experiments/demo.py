@@ -2,8 +2,9 @@
 by default, or with a robot's station (YuMiBin, PandaBin) in physics.
 
 The search is the one a robot runs from its own camera, the named setting `camera` (DEMO_SETTING:
-Table 8.2's search with the learned segmenter, the learned target matcher and the learned
-occupancy, on the overhead depth through the PhoXi-like sensor model), on a heap of the ``lid``
+Table 8.2's search with the learned segmenter, the template target matcher (checked against the
+target's size on the depth) and the learned occupancy, on the overhead depth through the PhoXi-like
+sensor model), on a heap of the ``lid``
 layout (scenes.layouts: the 6 cm lid dropped first, 14 unseen mesh objects piled on it), seed
 `DEMO_SEED` by default: its target starts hidden. `DEMO_CONFIG` is that config; pass another to
 search other heaps or with other settings (e.g. `load_bin_search_config("table_8_2")`: ground-truth

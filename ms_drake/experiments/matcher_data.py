@@ -27,7 +27,9 @@ occluded), drawn at random among them (an image without such an object takes the
 its seed). The target is drawn red (objects.TARGET_RGBA) as the search does, the others in palette
 colours; on odd seeds a second object (the largest visible other) is drawn red too ("shared
 colour" subset). The detector gets the ground-truth modal masks (so the figure is the
-detector's alone) and five template views of the target rendered alone in red. A detection is
+detector's alone), the heap's depth image and camera (``sensor``: through a depth sensor preset
+of ms_drake.station.sensor_model, seeded by the image's seed; cached clean) and five template
+views of the target rendered alone in red, with their depth points. A detection is
 correct when its mask is the target's (IoU >= 0.5). Precision = correct / detections, recall =
 correct / images (every image holds the target), F1; the same on the shared-colour subset.
 """
@@ -40,8 +42,15 @@ import time
 from pathlib import Path
 
 import numpy as np
-from pydrake.geometry import ClippingRange, ColorRenderCamera, RenderCameraCore
-from pydrake.geometry import MakeRenderEngineVtk, RenderEngineVtkParams
+from pydrake.geometry import (
+    ClippingRange,
+    ColorRenderCamera,
+    DepthRange,
+    DepthRenderCamera,
+    MakeRenderEngineVtk,
+    RenderCameraCore,
+    RenderEngineVtkParams,
+)
 from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlantConfig
 from pydrake.systems.framework import DiagramBuilder
@@ -49,8 +58,17 @@ from pydrake.systems.sensors import CameraInfo
 from scipy.spatial.transform import Rotation
 
 from ms_drake.errors import DatasetError, HeapError
-from ms_drake.experiments.occupancy_data import random_camera, shard_split, truncated_poisson
-from ms_drake.experiments.segmentation_data import OBJECT_SETS, ground_truth, heap_for_image, instance_masks
+from ms_drake.experiments.occupancy_data import (
+    random_camera,
+    shard_split,
+    truncated_poisson,
+)
+from ms_drake.experiments.segmentation_data import (
+    OBJECT_SETS,
+    ground_truth,
+    heap_for_image,
+    instance_masks,
+)
 from ms_drake.geometry import PinholeCamera
 from ms_drake.objects import TARGET_RGBA
 from ms_drake.objects.registry import _PALETTE
@@ -59,7 +77,13 @@ from ms_drake.perception.matcher_net import crop
 from ms_drake.perception.target import TargetDetector, Template
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import HeapParams, generate_heap
-from ms_drake.station.station import add_environment, add_objects, make_parser, station_objects
+from ms_drake.station.sensor_model import PRESETS, apply_depth_sensor
+from ms_drake.station.station import (
+    add_environment,
+    add_objects,
+    make_parser,
+    station_objects,
+)
 
 COLOURS = [(*c, 1.0) for c in _PALETTE] + [TARGET_RGBA]
 RED = len(COLOURS) - 1
@@ -126,18 +150,25 @@ class ColourHeapRenderer:
         img = q.RenderLabelImage(ColorRenderCamera(self._core(cam), False), self.sg.world_frame_id(), cam.X_WC)
         return np.array(img.data)[:, :, 0]
 
-    def template(self, k: int, cam: PinholeCamera, rng: np.random.Generator) -> Template:
-        """Object k alone in a random orientation near the bin centre (as render_templates)."""
+    def depth(self, cam: PinholeCamera) -> np.ndarray:
+        """(H, W) float32 depth [m] (inf where nothing is seen)."""
+        q = self.sg.get_query_output_port().Eval(self.sg_context)
+        img = q.RenderDepthImage(DepthRenderCamera(self._core(cam), DepthRange(0.1, 3.0)), self.sg.world_frame_id(),
+                                 cam.X_WC)
+        return np.array(img.data)[:, :, 0].astype(np.float32)
+
+    def template(self, k: int, cam: PinholeCamera, rng: np.random.Generator, points: bool = False) -> Template:
+        """Object k alone in a random orientation near the bin centre (as render_templates);
+        points: with its seen surface points (from the depth image)."""
         R = RotationMatrix(Rotation.random(random_state=rng).as_matrix())
         p = self.center + np.array([rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05), 0.1])
         self.alone(k, RigidTransform(R, p))
         rgb, mask = self.rgb(cam), self.labels(cam) == self.labels_of[k]
+        depth = self.depth(cam) if points else None
         self.restore()
         if not mask.any():
             return None
-        ys, xs = np.nonzero(mask)
-        sl = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
-        return Template(rgb[sl].copy(), mask[sl].copy())
+        return Template.from_view(rgb, mask, depth, cam)
 
     def amodal_pixels(self, k: int, cam: PinholeCamera) -> int:
         self.alone(k)
@@ -279,8 +310,11 @@ def bench_scene(seed: int, scenario=None, attempts: int = 8) -> dict:
         r = ColourHeapRenderer(scenario, heap, [COLOURS[c] for c in cols])
         rgb = r.rgb(cam)
         masks = instance_masks(inst, [str(o) for o in seen])
-        templates = [t for t in (r.template(target, nominal, rng) for _ in range(BENCH_TEMPLATES)) if t is not None]
-        return dict(rgb=rgb, masks=masks, target=seen.index(target), visible=vis[target], shared=shared,
+        depth = r.depth(cam)
+        templates = [t for t in (r.template(target, nominal, rng, points=True) for _ in range(BENCH_TEMPLATES))
+                     if t is not None]
+        return dict(rgb=rgb, depth=depth, camera=cam, masks=masks, target=seen.index(target), visible=vis[target],
+                    shared=shared,
                     objects=n, target_name=heap.objects[target].name, set=oset, templates=templates,
                     other=heap.objects[other].name if other >= 0 else "")
     raise DatasetError(f"benchmark image {seed}: no heap with a target {OCCLUSION[0]:.0%}-{OCCLUSION[1]:.0%} "
@@ -298,44 +332,64 @@ def save_scene(sc: dict, path: Path) -> None:
     for k, m in enumerate(sc["masks"].masks):
         inst[m] = k + 1
     tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
-    np.savez_compressed(tmp, rgb=sc["rgb"], inst=inst, ids=np.array(sc["masks"].ids),
+    cam = sc["camera"]
+    np.savez_compressed(tmp, rgb=sc["rgb"], inst=inst, ids=np.array(sc["masks"].ids), depth=sc["depth"],
+                        K=np.array([cam.fx, cam.fy, cam.cx, cam.cy]), X_WC=cam.X_WC.GetAsMatrix4(),
                         t_rgb=np.array([t.rgb for t in sc["templates"]] + [None], dtype=object)[:-1],
                         t_mask=np.array([t.mask for t in sc["templates"]] + [None], dtype=object)[:-1],
+                        t_points=np.array([t.points for t in sc["templates"]] + [None], dtype=object)[:-1],
                         meta=json.dumps({k: sc[k] for k in ("target", "visible", "shared", "objects", "target_name",
                                                             "set", "other")}))
     os.replace(tmp, path)
 
 
 def load_scene(path: Path) -> dict:
+    """A save_scene file; one written before the depth was kept lacks depth and camera."""
     with np.load(path, allow_pickle=True) as z:
         meta = json.loads(str(z["meta"]))
         ids = [str(i) for i in z["ids"]]
+        points = z["t_points"] if "t_points" in z else [None] * len(z["t_rgb"])
         meta.update(rgb=z["rgb"], masks=instance_masks(z["inst"], ids),
-                    templates=[Template(r, m) for r, m in zip(z["t_rgb"], z["t_mask"])])
+                    templates=[Template(r, m, p) for r, m, p in zip(z["t_rgb"], z["t_mask"], points)])
+        if "depth" in z:
+            h, w = z["rgb"].shape[:2]
+            fx, fy, cx, cy = (float(v) for v in z["K"])
+            meta.update(depth=z["depth"], camera=PinholeCamera(w, h, fx, fy, cx, cy, RigidTransform(z["X_WC"])))
     return meta
 
 
 def bench_detection_job(job: tuple) -> dict:
-    """(backend, seed, weights[, scene_dir]) -> one benchmark record; module-level for pickling.
-    scene_dir: images are read from / saved to it (scene_<seed>.npz)."""
+    """(backend, seed, weights[, scene_dir[, sensor]]) -> one benchmark record; module-level for
+    pickling. scene_dir: images are read from / saved to it (scene_<seed>.npz); sensor: the depth
+    sensor preset the heap's depth image goes through (seeded by the image's seed)."""
     backend, seed, weights, *rest = job
     cache = Path(rest[0]) / f"scene_{seed}.npz" if rest and rest[0] else None
+    sensor = rest[1] if len(rest) > 1 and rest[1] else "none"
+    if sensor not in PRESETS:
+        raise DatasetError(f"sensor {sensor!r} unknown; choose one of {', '.join(PRESETS)}")
     if cache is not None and cache.exists():
         sc = load_scene(cache)
+        if "depth" not in sc:
+            sc = bench_scene(seed)
+            save_scene(sc, cache)
     else:
         sc = bench_scene(seed)
         if cache is not None:
             cache.parent.mkdir(parents=True, exist_ok=True)
             save_scene(sc, cache)
     h, w = sc["rgb"].shape[:2]
+    cam, depth = sc["camera"], sc["depth"]
+    if sensor != "none":
+        depth = apply_depth_sensor(depth, PRESETS[sensor], np.random.default_rng([seed, 31]), cam.fx, cam.fy, cam.cx,
+                                   cam.cy, sc["rgb"])
     det = TargetDetector(backend, width=w, height=h, templates=sc["templates"] if backend != "color" else None,
-                         weights=weights)
+                         weights=weights, camera=cam)
     t0, c0 = time.perf_counter(), time.process_time()
-    est = det.detect(sc["rgb"], sc["masks"])
+    est = det.detect(sc["rgb"], sc["masks"], depth)
     secs, cpu = time.perf_counter() - t0, time.process_time() - c0
     truth = sc["masks"].masks[sc["target"]]
     correct = bool(est.visible and _iou(est.mask, truth) >= 0.5)
-    return dict(seed=seed, backend=backend, detected=bool(est.visible), correct=correct,
+    return dict(seed=seed, backend=backend, sensor=sensor, detected=bool(est.visible), correct=correct,
                 confidence=float(est.confidence), visible=float(sc["visible"]), shared=bool(sc["shared"]),
                 objects=int(sc["objects"]), target=sc["target_name"], other=sc["other"], set=sc["set"],
                 seconds=secs, cpu_seconds=cpu)
@@ -352,12 +406,15 @@ def detection_metrics(recs: list[dict]) -> dict:
 
 
 def bench_target_detection(backend: str, images: int, seed_start: int, out, workers: int = 1, weights=None,
-                           progress=None, scene_dir=None) -> dict:
+                           progress=None, scene_dir=None, sensor: str = "none") -> dict:
     """Run the missing images of seeds S..S+N-1 (one JSON line each in OUT.jsonl next to `out`,
     resumable), then write `out` (JSON: metrics overall and on the shared-colour subset).
-    scene_dir: a folder caching the rendered images, shared by the backends' runs."""
+    scene_dir: a folder caching the rendered images, shared by the backends' runs. sensor: the
+    depth sensor preset (station.sensor_model.PRESETS) of the depth image the detector gets."""
     if backend not in DETECTORS:
         raise DatasetError(f"backend {backend!r} unknown; choose one of {', '.join(DETECTORS)}")
+    if sensor not in PRESETS:
+        raise DatasetError(f"sensor {sensor!r} unknown; choose one of {', '.join(PRESETS)}")
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     lines = out.with_suffix(".jsonl")
@@ -368,10 +425,13 @@ def bench_target_detection(backend: str, images: int, seed_start: int, out, work
                 recs.append(json.loads(line))
             except ValueError:
                 continue
-    done = {r["seed"] for r in recs if r.get("backend") == backend}
-    jobs = [(backend, s, None if weights is None else str(weights), None if scene_dir is None else str(scene_dir))
-            for s in range(seed_start, seed_start + images)
-            if s not in done]
+
+    def mine(r: dict) -> bool:
+        return r.get("backend") == backend and r.get("sensor", "none") == sensor
+
+    done = {r["seed"] for r in recs if mine(r)}
+    jobs = [(backend, s, None if weights is None else str(weights), None if scene_dir is None else str(scene_dir),
+             sensor) for s in range(seed_start, seed_start + images) if s not in done]
     with open(lines, "a") as f:
         for r in run_jobs(bench_detection_job, jobs, workers=workers):
             if r.ok:
@@ -380,13 +440,14 @@ def bench_target_detection(backend: str, images: int, seed_start: int, out, work
                 recs.append(r.value)
             if progress is not None:
                 progress(r)
-    recs = [r for r in recs if r.get("backend") == backend and seed_start <= r["seed"] < seed_start + images]
+    recs = [r for r in recs if mine(r) and seed_start <= r["seed"] < seed_start + images]
     vis = [r["visible"] for r in recs]
-    res = dict(backend=backend, seed_start=seed_start, **detection_metrics(recs),
+    res = dict(backend=backend, sensor=sensor, seed_start=seed_start, **detection_metrics(recs),
                shared_colour=detection_metrics([r for r in recs if r["shared"]]),
                distinct_colour=detection_metrics([r for r in recs if not r["shared"]]),
                occluded_fraction=[1.0 - max(vis), 1.0 - min(vis)] if vis else [],
-               occlusion_range=list(OCCLUSION), median_seconds=float(np.median([r["seconds"] for r in recs])) if recs else
+               occlusion_range=list(OCCLUSION), median_cpu_seconds=float(np.median([r["cpu_seconds"] for r in recs])) if recs else float("nan"),
+               median_seconds=float(np.median([r["seconds"] for r in recs])) if recs else
                float("nan"), failed=images - len(recs))
     tmp = out.with_suffix(f".{os.getpid()}.tmp")
     tmp.write_text(json.dumps(res, indent=1))

@@ -10,8 +10,8 @@ registry object name, or its box size). Output, in a folder:
 
 The depth goes through the stations' preprocessing (geometry.preprocess_depth: the sensor's
 holes filled), then the segmenter (default "learned"), the target detector (with a colour image:
-"template", views of the target object rendered here, or "color" for a red target without a
-name) and the learned occupancy (from the target's size). The camera: `--intrinsics FILE`, a
+"template", views of the target object rendered here, its masks' size checked on the depth, or
+"color" for a red target without a name) and the learned occupancy (from the target's size). The camera: `--intrinsics FILE`, a
 YAML or JSON mapping with width, height, fx, fy, cx, cy, and optionally `pose` ({xyz: [..],
 rpy_deg: [..]}, the camera in the bin's frame: floor centre, z up; default 0.8 m above the floor
 looking straight down) and `bin` ([x, y, z] inner size, default 0.50 x 0.40 x 0.12 m). Without
@@ -203,7 +203,7 @@ def perceive(depth: np.ndarray, camera: Camera | None = None, segmenter: str = "
         templates = render_templates(load_scenario(None, "BinHeap15"), target, 5) if target else None
         det = TargetDetector("template" if target else "color", width=w, height=h, templates=templates)
         t = time.process_time()
-        found = det.detect(rgb, masks)
+        found = det.detect(rgb, masks, depth, camera.camera)  # depth: the template's size check
         ms["target_detection"] = 1000 * (time.process_time() - t)
     occupancy = None
     if box is not None:

@@ -17,7 +17,20 @@ Backends:
   templates, and set to 0 for a mask larger than `max_area_ratio` x the largest template mask
   (an occluded target never looks larger than the whole target from the same camera). The mask
   with the best score is the target when the score is >= `threshold`.
-  `render_templates(...)` renders k views of an object alone in the scenario's camera.
+  Geometric check (our addition; when the templates carry the target's seen surface points and
+  the detector gets the depth image and the camera's intrinsics): colour cannot tell the target
+  from another object of its colour, its size can. A mask that reaches the threshold is set to 0
+  (a) when one of its 3D surface extents (`surface_extents`: along the principal axes of its
+  depth points, largest first) exceeds the largest the target's views show by more than 10 % +
+  1.5 cm (no visible part of the target is larger than the target), or (b) when nothing hides
+  it (`occluded_fraction` <= 2 %: no pixel around it nearer by > 5 mm, not cut by the image
+  border), so that it shows a whole object, and its largest or middle extent falls short of the
+  smallest the target's views show by more than 10 % + 5 mm (a whole object smaller than any view
+  of the target is another object). Limits: (b) wrongly rejects a target hidden by something
+  less than 5 mm above it (e.g. a thin object lying flat on it) and seen too small; it cannot tell
+  same-coloured objects of one size, or two copies of one object.
+  `render_templates(...)` renders k views of an object alone in the scenario's camera, with the
+  points of each view's depth.
 - ``learned``: the siamese network of ms_drake.perception.matcher_net (App. C.2's architecture
   on a small encoder trained from scratch on rendered heaps), scoring every mask against the k
   template views (maximum over the views); the best mask is the target when its score is >=
@@ -36,10 +49,11 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.framework import LeafSystem
-from pydrake.systems.sensors import ImageRgba8U
+from pydrake.systems.sensors import ImageDepth32F, ImageRgba8U
 from scipy.spatial.transform import Rotation
 
 from ms_drake.errors import PerceptionError
+from ms_drake.geometry import PinholeCamera
 from ms_drake.perception.masks import object_labels
 from ms_drake.perception.matcher_net import LearnedMatcher
 from ms_drake.station.station import MakeStation, get_plant, station_objects
@@ -60,10 +74,33 @@ class ColorParams:
 
 @dataclass(frozen=True)
 class Template:
-    """One target image: rgb (h, w, 3) uint8 and the target's mask (h, w) bool in it."""
+    """One target image: rgb (h, w, 3) uint8 and the target's mask (h, w) bool in it; points
+    (optional): the target's seen surface in that view, (n, 3) float32 camera-frame points [m]
+    (from the view's depth image), which tell the target's metric size."""
 
     rgb: np.ndarray
     mask: np.ndarray
+    points: np.ndarray | None = None
+
+    @staticmethod
+    def from_view(rgb: np.ndarray, mask: np.ndarray, depth: np.ndarray | None = None, camera=None) -> Template:
+        """The template of a full view: its rgb and mask cropped to the mask's bounding box, and
+        with depth (H, W) [m] and the camera's intrinsics (fx, fy, cx, cy attributes) its points."""
+        ys, xs = np.nonzero(mask)
+        sl = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
+        pts = None
+        if depth is not None and camera is not None:
+            pts = mask_points(depth, mask, camera)
+        return Template(_rgb_array(rgb)[sl].copy(), np.asarray(mask, bool)[sl].copy(), pts)
+
+
+def mask_points(depth: np.ndarray, mask: np.ndarray, camera) -> np.ndarray:
+    """(n, 3) float32 camera-frame points of the mask's pixels with a valid depth (finite, > 0)."""
+    d = np.asarray(depth.data if hasattr(depth, "data") else depth, np.float32)
+    d = d.reshape(d.shape[0], d.shape[1])
+    v, u = np.nonzero(np.asarray(mask, bool) & np.isfinite(d) & (d > 0))
+    z = d[v, u]
+    return np.stack([(u - camera.cx) * z / camera.fx, (v - camera.cy) * z / camera.fy, z], axis=1).astype(np.float32)
 
 
 def _rgb_array(rgb) -> np.ndarray:
@@ -101,11 +138,68 @@ def _hs_hist(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return cv2.normalize(hist, hist, 1.0, 0.0, cv2.NORM_L1)
 
 
+@dataclass(frozen=True)
+class GeometryParams:
+    """The template backend's geometric consistency check (module doc); lengths in metres.
+
+    extent_tolerance, extent_margin: a mask is rejected when one of its sorted 3D extents exceeds
+    the target's by more than this factor plus margin. whole_occluded: a mask whose boundary has
+    at most this fraction of occluded pixels (a nearer neighbour, or the image border) is seen
+    whole; whole_tolerance, whole_margin: such a mask is rejected when its largest or middle
+    extent falls short of the smallest of the target's views by more than this fraction plus
+    margin. occlusion_step: the depth step that makes a neighbour an occluder; ring: the width of
+    the ring of pixels around the mask that is examined; min_points: masks with fewer valid depth
+    pixels are not checked."""
+
+    extent_tolerance: float = 0.1
+    extent_margin: float = 0.015
+    whole_occluded: float = 0.02
+    whole_tolerance: float = 0.1
+    whole_margin: float = 0.005
+    occlusion_step: float = 0.005
+    ring: int = 3
+    min_points: int = 20
+
+
+_TRIM_PERCENT = 1.0  # percentile trimmed from each end of the extents (depth noise, stray pixels)
+
+
+def surface_extents(points: np.ndarray) -> np.ndarray:
+    """(3,) the extents [m] of a set of 3D points along its principal axes, largest first (the
+    1st-99th percentile spread along each axis)."""
+    p = np.asarray(points, np.float64)
+    if len(p) < 3:
+        return np.zeros(3)
+    c = p - p.mean(axis=0)
+    _, vecs = np.linalg.eigh(c.T @ c)
+    lo, hi = np.percentile(c @ vecs, [_TRIM_PERCENT, 100.0 - _TRIM_PERCENT], axis=0)
+    return np.sort(hi - lo)[::-1]
+
+
+def occluded_fraction(depth: np.ndarray, mask: np.ndarray, step: float = 0.005, ring: int = 3) -> float:
+    """The fraction of a mask's boundary that something hides: of the pixels in a `ring`-px ring
+    around the mask with a valid depth, those nearer than the mask's nearest pixel around them by
+    more than `step` [m]; the mask's pixels on the image border (cut by the frame) count as hidden
+    ring pixels, `ring` each."""
+    d = np.asarray(depth, np.float32)
+    mask = np.asarray(mask, bool)
+    valid = np.isfinite(d) & (d > 0)
+    k = 2 * ring + 1
+    around = cv2.dilate(mask.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool) & ~mask
+    far = np.float32(1e3)
+    near = cv2.erode(np.where(mask & valid, d, far).astype(np.float32), np.ones((2 * k - 1, 2 * k - 1), np.uint8))
+    seen = around & valid & (near < far)
+    hidden = seen & (d < near - step)
+    border = ring * int(mask[0].sum() + mask[-1].sum() + mask[1:-1, 0].sum() + mask[1:-1, -1].sum())
+    n = int(seen.sum()) + border
+    return float((int(hidden.sum()) + border) / n) if n else 0.0
+
+
 class TemplateMatcher:
     """Scores masks against k target templates (see the module doc)."""
 
     def __init__(self, templates: list[Template], threshold: float = 0.9, max_area_ratio: float = 1.5,
-                 min_pixels: int = 20):
+                 min_pixels: int = 20, geometry: GeometryParams = GeometryParams()):
         if not templates:
             raise PerceptionError("TargetDetector(backend='template') needs at least one template image "
                                   "(render_templates(scenario, object_name, k))")
@@ -117,8 +211,38 @@ class TemplateMatcher:
         self.hists = [_hs_hist(t.rgb, t.mask) for t in templates]
         self.max_area = max(int(t.mask.sum()) for t in templates)
         self.threshold, self.max_area_ratio, self.min_pixels = float(threshold), float(max_area_ratio), int(min_pixels)
+        self.geometry = geometry
+        # The target's size from the views with points: the largest extents any view shows (what
+        # no part of it can exceed) and the smallest a whole view shows.
+        ext = [surface_extents(t.points) for t in templates
+               if t.points is not None and len(t.points) >= geometry.min_points]
+        self.extent_max = np.max(ext, axis=0) if ext else None
+        self.extent_min = np.min(ext, axis=0) if ext else None
 
-    def scores(self, rgb, masks: InstanceMasks) -> np.ndarray:
+    def geometry_ok(self, mask: np.ndarray, depth: np.ndarray, camera) -> bool:
+        """Whether the mask's 3D surface (from depth and the camera's intrinsics) can be the
+        target's: no extent larger than the target's, and, if seen whole, not smaller than any
+        whole view of it. True when the templates carry no points or the mask too few."""
+        g = self.geometry
+        if self.extent_max is None:
+            return True
+        pts = mask_points(depth, mask, camera)
+        if len(pts) < g.min_points:
+            return True
+        e = surface_extents(pts)
+        if np.any(e > (1.0 + g.extent_tolerance) * self.extent_max + g.extent_margin):
+            return False
+        if occluded_fraction(depth, mask, g.occlusion_step, g.ring) <= g.whole_occluded:
+            return not np.any(e[:2] < (1.0 - g.whole_tolerance) * self.extent_min[:2] - g.whole_margin)
+        return True
+
+    def scores(self, rgb, masks: InstanceMasks, depth=None, camera=None) -> np.ndarray:
+        """Each mask's score; with a depth image (H, W) [m] of the same camera and its intrinsics
+        (fx, fy, cx, cy), a mask that fails the geometric check scores 0."""
+        d = None
+        if depth is not None and camera is not None:
+            d = np.asarray(depth.data if hasattr(depth, "data") else depth, np.float32)
+            d = d.reshape(d.shape[0], d.shape[1])
         out = np.zeros(len(masks))
         for k in range(len(masks)):
             area = masks.masks[k].sum()
@@ -126,12 +250,14 @@ class TemplateMatcher:
                 continue
             h = _hs_hist(rgb, masks.masks[k])
             out[k] = max(max(cv2.compareHist(h, t, cv2.HISTCMP_CORREL) for t in self.hists), 0.0)
+            if out[k] >= self.threshold and d is not None and not self.geometry_ok(masks.masks[k], d, camera):
+                out[k] = 0.0
         return np.clip(out, 0.0, 1.0)
 
-    def detect(self, rgb, masks: InstanceMasks) -> TargetEstimate:
+    def detect(self, rgb, masks: InstanceMasks, depth=None, camera=None) -> TargetEstimate:
         h, w = _rgb_array(rgb).shape[:2]
         if len(masks):
-            s = self.scores(rgb, masks)
+            s = self.scores(rgb, masks, depth, camera)
             k = int(np.argmax(s))
             if s[k] >= self.threshold:
                 return TargetEstimate(True, masks.masks[k].copy(), float(s[k]), k)
@@ -165,6 +291,7 @@ def render_templates(scenario, object_name: str, k: int = 5, seed: int = 0, red:
     cam = camera or next(iter(s.cameras), None)
     if cam is None or cam not in s.cameras:
         raise PerceptionError(f"render_templates: scenario has no camera {camera!r}")
+    intrinsics = PinholeCamera.from_config(s.cameras[cam])
     station = MakeStation(s, target_index=0 if red else -1)
     ctx = station.CreateDefaultContext()
     plant = get_plant(station)
@@ -181,44 +308,52 @@ def render_templates(scenario, object_name: str, k: int = 5, seed: int = 0, red:
         plant.SetFreeBodyPose(pc, body, RigidTransform(R, p))
         rgb = _rgb_array(station.GetOutputPort(f"{cam}.rgb_image").Eval(ctx))
         labels = np.array(station.GetOutputPort(f"{cam}.label_image").Eval(ctx).data)[:, :, 0]
+        depth = np.array(station.GetOutputPort(f"{cam}.depth_image").Eval(ctx).data)[:, :, 0]
         mask = labels == label
         if mask.any():
-            ys, xs = np.nonzero(mask)
-            sl = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
-            out.append(Template(rgb[sl].copy(), mask[sl].copy()))
+            out.append(Template.from_view(rgb, mask, depth, intrinsics))
     return out
 
 
 class TargetDetector(LeafSystem):
     """Finds the target among the instance masks (see the module doc for backends).
 
-    Inputs ``rgb_image`` (ImageRgba8U) and ``masks`` (InstanceMasks); output ``target``
-    (TargetEstimate). backend: color | template | learned; params: ColorParams (color); templates,
-    threshold (t_r): template and learned; max_area_ratio (template); weights (learned).
+    Inputs ``rgb_image`` (ImageRgba8U), ``masks`` (InstanceMasks) and, optional, ``depth_image``
+    (ImageDepth32F, metres, the same camera); output ``target`` (TargetEstimate). backend: color |
+    template | learned; params: ColorParams (color); templates, threshold (t_r): template and
+    learned; max_area_ratio, geometry (GeometryParams) and camera (the intrinsics, fx, fy, cx, cy
+    attributes, e.g. a PinholeCamera): template, whose geometric check runs when the depth input
+    is connected and camera is given; weights (learned).
     """
 
     def __init__(self, backend: str = "color", width: int = 640, height: int = 480,
                  params: ColorParams | None = None, templates: list[Template] | None = None,
-                 threshold: float = 0.9, max_area_ratio: float = 1.5, weights=None):
+                 threshold: float = 0.9, max_area_ratio: float = 1.5, weights=None, camera=None,
+                 geometry: GeometryParams | None = None):
         super().__init__()
         if backend not in BACKENDS:
             raise PerceptionError(f"TargetDetector backend {backend!r} unknown; choose one of {', '.join(BACKENDS)}")
         # Ports first.
         self.rgb_port = self.DeclareAbstractInputPort("rgb_image", AbstractValue.Make(ImageRgba8U(width, height)))
         self.masks_port = self.DeclareAbstractInputPort("masks", AbstractValue.Make(InstanceMasks.empty(height, width)))
+        self.depth_port = self.DeclareAbstractInputPort("depth_image", AbstractValue.Make(ImageDepth32F(width, height)))
         self.target_port = self.DeclareAbstractOutputPort(
             "target", lambda: AbstractValue.Make(TargetEstimate(False, np.zeros((height, width), bool))),
             self._calc, prerequisites_of_calc={self.all_input_ports_ticket()})
         self.backend = backend
+        self.camera = camera
         self.params = params or ColorParams()
-        self.matcher = TemplateMatcher(templates or [], threshold, max_area_ratio) if backend == "template" else None
+        self.matcher = TemplateMatcher(templates or [], threshold, max_area_ratio,
+                                       geometry=geometry or GeometryParams()) if backend == "template" else None
         self.learned = LearnedMatcher(templates or [], weights, threshold) if backend == "learned" else None
 
-    def detect(self, rgb, masks: InstanceMasks) -> TargetEstimate:
+    def detect(self, rgb, masks: InstanceMasks, depth=None, camera=None) -> TargetEstimate:
+        """depth (H, W) [m] and camera (default: the constructor's): the template backend's
+        geometric check; the other backends ignore them."""
         if self.backend == "color":
             return detect_color(rgb, masks, self.params)
         if self.backend == "template":
-            return self.matcher.detect(rgb, masks)
+            return self.matcher.detect(rgb, masks, depth, camera if camera is not None else self.camera)
         return detect_learned(self.learned, rgb, masks)
 
     def _calc(self, context, output):
@@ -227,4 +362,5 @@ class TargetDetector(LeafSystem):
         rgb = self.rgb_port.Eval(context)
         masks = self.masks_port.Eval(context) if self.masks_port.HasValue(context) else InstanceMasks.empty(
             rgb.height(), rgb.width())
-        output.set_value(self.detect(rgb, masks))
+        depth = self.depth_port.Eval(context) if self.depth_port.HasValue(context) else None
+        output.set_value(self.detect(rgb, masks, depth))

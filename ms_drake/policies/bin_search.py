@@ -11,7 +11,8 @@ Inside (docs/concepts.md, "Data flow"; every planner is a system of the diagram)
   <cam>.label_image -> Segmenter("ground_truth")   (simulation)  |  <cam>.depth_image -> Segmenter(params.segmenter)
     (simulation with a depth segmenter: -> MaskAssociation(<cam>.label_image), the masks named
     after the objects behind them so the simulated executor knows what a grasp lifted)
-  <cam>.rgb_image + masks -> TargetDetector(params.detector) -> target
+  <cam>.rgb_image + <cam>.depth_image + masks -> TargetDetector(params.detector) -> target (the depth: the
+    template detector's geometric check)
   <cam>.depth_image + target -> OccupancyEstimator(params.occupancy_estimator) -> occupancy (given target_shape; xray reads it)
   depth + masks (+ body_poses: exact meshes in simulation) -> LazyGraspPlanner -> grasps
     (simulation, params.grasp_planner "indexed": IndexedGraspPlanner on the objects' grasp sets,
@@ -152,7 +153,8 @@ class BinSearchConfig:
     random selectors, primitive grasp outcomes); a benchmark sets it to the heap's seed.
     segmenter: "ground_truth" (the simulated label image), "euclidean", "region_growing" or
     "learned" (depth only: what runs on a robot). detector: the target detector, "color" (HSV, red
-    target), "template" (hue-saturation histograms) or "learned" (the siamese matcher); the last two
+    target), "template" (hue-saturation histograms checked against the target's size from depth) or "learned"
+    (the siamese matcher); the last two
     compare every mask with `templates` views of the target rendered alone. occupancy_weights: the
     learned occupancy's weights file ("" = the shipped one).
     grasp_planner: "image" (the planners sample `grasp_samples` candidates per mask on the depth
@@ -389,9 +391,10 @@ def MakeBinSearchController(scenario, params: BinSearchConfig | None = None, sim
         det = add_user_part(target_detector, "target_detector")
     else:
         det = builder.AddSystem(TargetDetector(params.detector, width=camera.width, height=camera.height,
-                                               templates=templates))
+                                               templates=templates, camera=camera))
         det.set_name("target_detector")
         rgb_inputs.append(det.GetInputPort("rgb_image"))
+        depth_inputs.append(det.GetInputPort("depth_image"))
     builder.Connect(masks, det.GetInputPort("masks"))
 
     color_cam, _ = cfg.MakeCameras()
