@@ -27,7 +27,8 @@ queries of all scenes and the bench keeps no per-query scores, so it has no inte
 Minutes of the small sizes (`Recipe.minutes_small`): CPU minutes of `reproduce(NAME)` with one
 worker from empty records (the process and its workers: on a free core, its wall time), 2-core AMD
 EPYC, no GPU, shared with other jobs (load 1-5), 2026-12-07. Measured: table_2_1 4.1, table_3_1 4.7,
-table_b_1 10.4, table_6_1 4.1, table_8_1 5.9, table_9_2 3.2. Extrapolated from a part: fig_4_2 5.3
+table_b_1 10.4, table_6_1 4.1, table_8_1 5.9, table_9_2 3.2, table_c_1 19.1, fig_7_4 30.3 (two
+workers halve the wall time of these two). Extrapolated from a part: fig_4_2 5.3
 (4 of its 16 improvable heaps: 1.3), table_6_3 8.5 (1 of its 5 scenes per checker: 1.7), table_9_1
 11.5 (10 of its 50 scenes per occluder count: 2.2, scaled per policy by the recorded CPU of seeds
 0-49 over seeds 0-9 in docs/results/records/ch9_shelf/shelf_*.jsonl.gz).
@@ -931,11 +932,13 @@ RECIPES: dict[str, Recipe] = {r.name: r for r in (
     Recipe("table_c_1", "Table C.1: bin search selectors (Random, Preempted Random, Largest-First, +/- pushing), "
            "success and actions", TABLE_C_1_REF, small=dict(heaps=50), full=dict(heaps=1000),
            run=partial(_bin_search_recipe, setting="ch7", rows=C1_POLICIES, objects=(15,)),
-           total=lambda size: len(C1_POLICIES) * size["heaps"], interval="heaps resampled (2,000 resamples)"),
+           total=lambda size: len(C1_POLICIES) * size["heaps"], interval="heaps resampled (2,000 resamples)",
+           minutes_small=19.1),
     Recipe("fig_7_4", "Fig. 7.4: bin search selectors on heaps of 10, 15 and 20 objects, success and actions",
            FIG_7_4_REF, small=dict(heaps=20), full=dict(heaps=1000),
            run=partial(_bin_search_recipe, setting="ch7", rows=C1_POLICIES, objects=(10, 15, 20)),
-           total=lambda size: 3 * len(C1_POLICIES) * size["heaps"], interval="heaps resampled (2,000 resamples)"),
+           total=lambda size: 3 * len(C1_POLICIES) * size["heaps"], interval="heaps resampled (2,000 resamples)",
+           minutes_small=30.3),
     Recipe("table_8_2", "Table 8.2: X-Ray vs Largest vs Random, bin search success", TABLE_8_2_REF,
            small=dict(heaps=60), full=dict(heaps=1000), seed_start=20000,
            run=partial(_bin_search_recipe, setting="table_8_2", rows=TABLE_8_2_ROWS, objects=(14,),
