@@ -402,7 +402,7 @@ def _fig_4_2(run: Run) -> Result:
                   notes=[f"{len(heaps)} improvable heaps of household objects ({params.object_set}), found among "
                          f"{dropped_n} dropped heaps from seed {run.seed_start} (the reference: 481 of over 1,000); "
                          "mean gain per heap, every policy on the same heaps. The reference gives its gains as "
-                         "text around its figure (lines 700, 730, 739); its ANOVA compares four policies."])
+                         "text around its figure; its ANOVA compares four policies."])
 
 
 # Fig. 4.2 (line 700: free space 17 %, boundary shear 18 %, 7 and 8 points above the baseline;
