@@ -26,12 +26,9 @@ queries of all scenes and the bench keeps no per-query scores, so it has no inte
 
 Minutes of the small sizes (`Recipe.minutes_small`): CPU minutes of `reproduce(NAME)` with one
 worker from empty records (the process and its workers: on a free core, its wall time), 2-core AMD
-EPYC, no GPU, shared with other jobs (load 1-5), 2026-12-07. Measured: table_2_1 4.1, table_3_1 4.7,
-table_b_1 10.4, table_6_1 4.1, table_8_1 5.9, table_9_2 3.2, table_c_1 19.1, fig_7_4 30.3 (two
-workers halve the wall time of these two). Extrapolated from a part: fig_4_2 5.3
-(4 of its 16 improvable heaps: 1.3), table_6_3 8.5 (1 of its 5 scenes per checker: 1.7), table_9_1
-11.5 (10 of its 50 scenes per occluder count: 2.2, scaled per policy by the recorded CPU of seeds
-0-49 over seeds 0-9 in docs/results/records/ch9_shelf/shelf_*.jsonl.gz).
+EPYC, no GPU, shared with other jobs (load 1-5), 2026-12-07: table_2_1 4.1, table_3_1 4.7, fig_4_2
+6.3, table_b_1 10.4, table_6_1 4.1, table_6_3 9.3, table_c_1 19.1, fig_7_4 30.3, table_8_1 5.9,
+table_8_2 21.7, table_9_1 12.4, table_9_2 2.7 (two workers halve the wall time of the bin searches).
 """
 
 from __future__ import annotations
@@ -903,7 +900,7 @@ RECIPES: dict[str, Recipe] = {r.name: r for r in (
            minutes_small=4.7),
     Recipe("fig_4_2", "Fig. 4.2: linear push policies on improvable bin heaps, separation and grasp-quality gains",
            FIG_4_2_REF, small=dict(heaps=16), full=dict(heaps=481), run=_fig_4_2, total=_counts("heaps"),
-           interval="heaps resampled (2,000 resamples)", minutes_small=5.3),
+           interval="heaps resampled (2,000 resamples)", minutes_small=6.3),
     Recipe("table_b_1", "Table B.1: depth instance segmentation of bin images, learned vs point-cloud baselines, "
            "COCO AP / AR", TABLE_B_1_REF, small=dict(images=300), full=dict(images=2000), run=_table_b_1,
            total=lambda size: len(SEGMENTATION_BACKENDS) * size["images"], seed_start=100000,
@@ -915,7 +912,7 @@ RECIPES: dict[str, Recipe] = {r.name: r for r in (
     Recipe("table_6_3", "Table 6.3: Panda tabletop rearrangement with MPPI, learned vs mesh collision checking, "
            "grasps / placements / time", TABLE_6_3_REF, small=dict(scenes=5, objects=10),
            full=dict(scenes=10, objects=10), run=_table_6_3, total=lambda size: 2 * size["scenes"],
-           interval="scenes resampled (2,000 resamples)", minutes_small=8.5),
+           interval="scenes resampled (2,000 resamples)", minutes_small=9.3),
     Recipe("table_8_1", "Table 8.1: learned target occupancy from depth, balanced accuracy / IoU on held-out heaps "
            "and unseen targets", TABLE_8_1_REF, small=dict(test_images=960, ood_images=320),
            full=dict(test_images=2000, ood_images=1000), run=_table_8_1, total=_occupancy_total, seed_start=10,
@@ -923,12 +920,12 @@ RECIPES: dict[str, Recipe] = {r.name: r for r in (
     Recipe("table_9_1", "Table 9.1: shelf search in FOSS, Bluction-DAR vs DAR, DER-3 and oracles, success and steps",
            TABLE_9_1_REF, small=dict(scenes=50), full=dict(scenes=100), run=_table_9_1,
            total=lambda size: len(SHELF_POLICIES_91) * len(size.get("occluders", SHELF_OCCLUDERS)) * size["scenes"],
-           interval="scenes resampled, as `bench shelf` reports it (2,000 resamples)", minutes_small=11.5,
+           interval="scenes resampled, as `bench shelf` reports it (2,000 resamples)", minutes_small=12.4,
            options=("occluders",)),
     Recipe("table_9_2", "Table 9.2: shelf search on the Fetch with the bluction tool in physics, Bluction-DAR vs "
            "DER-3", TABLE_9_2_REF, small=dict(scenes=3), full=dict(scenes=9), run=_table_9_2,
            total=lambda size: len(SHELF_POLICIES_92) * size["scenes"], interval="scenes resampled (2,000 resamples)",
-           minutes_small=3.2, options=("horizon",)),
+           minutes_small=2.7, options=("horizon",)),
     Recipe("table_c_1", "Table C.1: bin search selectors (Random, Preempted Random, Largest-First, +/- pushing), "
            "success and actions", TABLE_C_1_REF, small=dict(heaps=50), full=dict(heaps=1000),
            run=partial(_bin_search_recipe, setting="ch7", rows=C1_POLICIES, objects=(15,)),
@@ -944,7 +941,8 @@ RECIPES: dict[str, Recipe] = {r.name: r for r in (
            run=partial(_bin_search_recipe, setting="table_8_2", rows=TABLE_8_2_ROWS, objects=(14,),
                        margin=("X-Ray", "Largest"), reading=TABLE_8_2_READING),
            total=lambda size: len(TABLE_8_2_ROWS) * size["heaps"],
-           interval="heaps resampled (2,000 resamples); the margin paired on the same heaps"),
+           interval="heaps resampled (2,000 resamples); the margin paired on the same heaps",
+           minutes_small=21.7),
 )}
 
 
