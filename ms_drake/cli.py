@@ -156,7 +156,7 @@ from ms_drake.pushing import POLICIES as PUSH_POLICIES
 from ms_drake.policies.shelf import SHELF_POLICIES, check_shelf_policy
 from ms_drake.policies.shelf_search import CONTROLLER_PERCEPTIONS as SHELF_CONTROLLER_PERCEPTIONS
 from ms_drake.policies.shelf_search import SHELF_PERCEPTIONS, ShelfSearchConfig
-from ms_drake.scenario import ScenarioRef, load_scenario
+from ms_drake.scenario import DEPTH_SENSOR_PRESETS, ScenarioRef, load_scenario
 from ms_drake.scenes.heaps import HeapParams, generate_heap, heap_to_dict
 from ms_drake.scenes.layouts import HEAP_LAYOUTS as SEARCH_HEAP_LAYOUTS
 from ms_drake.station import MakeStation
@@ -1761,7 +1761,6 @@ def bench_target_detection_cmd(
     """Target detection on held-out heaps with the target 20-80 % occluded (half of them with a second
     red object): precision, recall, F1, also on the shared-colour subset."""
     _choose("--backend", backend, DETECTOR_BACKENDS)
-    from ms_drake.scenario import DEPTH_SENSOR_PRESETS
     _choose("--sensor", sensor, DEPTH_SENSOR_PRESETS)
     if out.suffix != ".json":
         _fail(f"--out {out}: give a .json file")

@@ -321,7 +321,8 @@ def test_ctrl_c_ends_any_long_command_with_one_line_and_status_130(tmp_path):
     out = tmp_path / "s.jsonl"
     cmd = [str(Path(sys.executable).parent / "ms-drake"), "bench", "shelf", "--policy", "dar", "--occluders", "4",
            "--scenes", "500", "--out", str(out)]
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=_default_sigint)
     t0 = time.monotonic()
     while time.monotonic() - t0 < 300 and not (out.exists() and out.read_text().count("\n") >= 1):
         time.sleep(0.2)
@@ -337,3 +338,11 @@ def test_a_bad_controller_override_of_the_rearrangement_is_one_error(capsys, tmp
                            "--out", tmp_path / "r.jsonl")
     assert_one_error(code, err, "trajectories=many", "RearrangeParams")
     assert not (tmp_path / "r.jsonl").exists()
+
+
+def _default_sigint():
+    """In the child before exec: Ctrl-C's default action. A process that starts with SIGINT ignored
+    keeps it ignored (Python installs its KeyboardInterrupt handler only over the default), and a
+    test worker may have inherited or set that."""
+    import signal
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

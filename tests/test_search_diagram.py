@@ -248,7 +248,8 @@ def test_bench_search_shows_progress_and_ctrl_c_says_how_to_resume(tmp_path):
     out = tmp_path / "runs.jsonl"
     cmd = [str(Path(sys.executable).parent / "ms-drake"), "bench", "search", "--policy", "largest", "--config", "ch7",
            "--set", "heap.objects=6", "--heaps", "40", "--out", str(out)]
-    p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    p = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=_default_sigint)
     t0 = time.monotonic()
     while time.monotonic() - t0 < 600 and not (out.exists() and out.read_text().count("\n") >= 1):
         time.sleep(0.5)
@@ -261,3 +262,11 @@ def test_bench_search_shows_progress_and_ctrl_c_says_how_to_resume(tmp_path):
     cmd[cmd.index("40")] = str(done + 1)  # the same run, one more heap: the notice comes first
     rerun = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert rerun.returncode == 0 and rerun.stdout.startswith(f"resuming: {done} of {done + 1} rollouts already in")
+
+
+def _default_sigint():
+    """In the child before exec: Ctrl-C's default action. A process that starts with SIGINT ignored
+    keeps it ignored (Python installs its KeyboardInterrupt handler only over the default), and a
+    test worker may have inherited or set that."""
+    import signal
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

@@ -6,6 +6,7 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.sensors import ImageDepth32F, ImageRgba8U
 
 from ms_drake.errors import MsDrakeError, PerceptionError
+from ms_drake.policies.shelf_search import ShelfSearchConfig
 from ms_drake.experiments.shelf import shelf_rollout
 from ms_drake.experiments.shelf_segmentation import (
     AssociateShelfObjects,
@@ -216,7 +217,7 @@ def test_associate_wired_in_the_depth_search_diagram(shelf):
 
 def test_foss_search_with_depth_perception():
     """The policy sees only the segmenter's objects of each render, and still finds the target."""
-    record = shelf_rollout("bluction_dar", 8, 0, perception="depth")
+    record = shelf_rollout(ShelfSearchConfig(policy="bluction_dar", perception="depth"), 8, 0)
     assert record["perception"] == "depth" and record["success"] and record["steps"] >= 1
     with pytest.raises(MsDrakeError, match="perception"):
-        shelf_rollout("dar", 4, 0, perception="sonar")
+        ShelfSearchConfig(policy="dar", perception="sonar")
