@@ -163,6 +163,25 @@ def test_out_of_reach_and_buried_grasps_are_dropped(bin_scene):
         _planner(s, ws, sets, kinds=("magnet",))
 
 
+def test_a_grasp_whose_way_down_is_blocked_is_dropped(bin_scene):
+    s, ws, a, _ = bin_scene
+    sets = {"a": _jaw_set("a", [[1, 0, 0]], [0.0])}  # suction only: the cup on a's top, straight down
+    p = _planner(s, ws, sets)
+    top = a.X_WO[:3, 3] + [0, 0, 0.02]
+    assert len(p.plan_object("a", {"a": a}, p.scene((a,)))) == 1
+    # a plate 15 cm above a's top: clear of the cup and its 10 cm stem at the grasp, in the way
+    # of the stem on the approach (the pre-grasp is PICK_APPROACH.distance back along it)
+    plate = _box_geometry("plate", (0.1, 0.1, 0.01), top + [0, 0, 0.155])
+    assert not p.scene((a, plate)).hits(p.gripper.suction(top, [0, 0, -1]))
+    assert p.plan_object("a", {"a": a, "plate": plate}, p.scene((a, plate))) == ()
+    # higher up, 35 cm above: in the way of the straight descent to the pre-grasp
+    plate = _box_geometry("plate", (0.1, 0.1, 0.01), top + [0, 0, 0.35])
+    assert p.plan_object("a", {"a": a, "plate": plate}, p.scene((a, plate))) == ()
+    # beside the column, 3 cm clear of it: kept
+    plate = _box_geometry("plate", (0.1, 0.1, 0.01), top + [0.05 + 0.015 + 0.03, 0, 0.155])
+    assert len(p.plan_object("a", {"a": a, "plate": plate}, p.scene((a, plate)))) == 1
+
+
 def test_indexed_planner_alone_through_its_ports(bin_scene):
     s, ws, a, b = bin_scene
     sets = {"a": _jaw_set("a", [[0, 1, 0], [1, 0, 0]], [1.0, 0.8])}

@@ -11,10 +11,14 @@ import dataclasses
 import numpy as np
 import pytest
 
+from ms_drake.execution import FullBackend
 from ms_drake.experiments.picks import TASKS, plan_task, run_task
-from ms_drake.planning.sequences import Schedule, Timeline
-from ms_drake.types import JointLimits
-from ms_drake.planning import plan_joint_motion
+from ms_drake.geometry import Workspace
+from ms_drake.planning import ik_pose, plan_joint_motion
+from ms_drake.planning.sequences import Schedule, Timeline, jaw_opening
+from ms_drake.robots import PICK_APPROACH, ParallelJawConfig
+from ms_drake.scenario import load_scenario
+from ms_drake.types import Grasp, JointLimits
 
 
 def _check(out, task):
@@ -80,3 +84,44 @@ def test_schedule_is_a_zero_order_hold():
     for t, v in ((0.0, 0.1), (1.49, 0.1), (1.5, 0.0), (100.0, 0.0)):
         ctx.SetTime(t)
         assert src.get_output_port().Eval(ctx)[0] == pytest.approx(v)
+
+
+def test_a_pick_from_park_comes_straight_down_to_the_pregrasp_with_the_jaw_opened_for_the_grasp():
+    s = load_scenario(None, "PandaBin")
+    ws = Workspace.from_scenario(s)
+    backend = FullBackend(s, {}, ws)
+    cx, cy = ws.center_xy
+    g = Grasp(kind="parallel_jaw", center=(cx, cy, ws.floor_z + 0.05), approach=(0.0, 0.0, -1.0),
+              axis=(0.0, 1.0, 0.0), width=0.04, quality=1.0, object_id="probe")
+    plan = backend.plan_grasp(g)
+    assert plan.success, plan.status
+    # the jaw opens to the grasp's width and a gap on each side, from the start to contact
+    assert plan.opening == pytest.approx(g.width + 2 * ParallelJawConfig().approach_gap)
+    port = backend.jaw[1]
+    assert plan.commands[f"{port}.position"](0.0)[0] == pytest.approx(plan.opening)
+    assert plan.commands[f"{port}.position"](plan.timeline.marks["contact"])[0] == 0.0
+    # from above the walls straight down to the pre-grasp, PICK_APPROACH.distance above the grasp
+    ik = backend.ik[plan.arm][0]
+    tl = plan.timeline
+    P = np.array([ik_pose(ik, tl.value(t)).translation()
+                  for t in np.linspace(tl.marks["descent"], tl.marks["approach"], 25)])
+    assert np.abs(P[:, :2] - [cx, cy]).max() < 3e-3
+    assert P[0, 2] > ws.floor_z + ws.wall_height + 0.2
+    assert P[-1, 2] == pytest.approx(g.center[2] + PICK_APPROACH.distance, abs=2e-3)
+    assert np.all(np.diff(P[:, 2]) <= 1e-4)
+
+
+def test_jaw_opening_sets_the_ik_fingers_and_restores_them():
+    s = load_scenario(None, "FloatingGripperBin")
+    backend = FullBackend(s, {}, Workspace.from_scenario(s))
+    ik = backend.ik[backend.jaw[0]][0]
+    plant, ctx = ik.plant, ik.context
+    inst = ik.frame.model_instance()
+    left = plant.GetJointByName("left_finger_sliding_joint", inst)
+    right = plant.GetJointByName("right_finger_sliding_joint", inst)
+    before = plant.GetPositions(ctx).copy()
+    with jaw_opening(ik, 0.03):
+        assert left.get_translation(ctx) == pytest.approx(-0.015) and right.get_translation(ctx) == pytest.approx(0.015)
+    assert np.array_equal(plant.GetPositions(ctx), before)
+    with jaw_opening(ik, None):
+        assert np.array_equal(plant.GetPositions(ctx), before)

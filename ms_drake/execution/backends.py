@@ -42,7 +42,7 @@ from ms_drake.execution.executor import ExecutionError, Motion
 from ms_drake.geometry import as_rigid_transform
 from ms_drake.planning import ik_pose, plan_joint_motion
 from ms_drake.planning.sequences import Schedule, arm_ik, nearest_equivalent, plan_pick, plan_push
-from ms_drake.robots import CLOSING_FORCE, GRIPPERS
+from ms_drake.robots import CLOSING_FORCE, GRIPPERS, ParallelJawConfig
 from ms_drake.scenario import resolve_robot_config
 from ms_drake.station.environments import dropoff_points
 from ms_drake.types import Action, ActionOutcome
@@ -218,7 +218,8 @@ def grasp_tool_pose(grasp) -> RigidTransform:
     return RigidTransform(RotationMatrix(R), np.asarray(grasp.center, float))
 
 
-JAW_OPENING = 0.10  # m, the jaw's opening at park and after a release
+JAW = ParallelJawConfig()  # the stations' jaw (models/grippers/parallel_jaw.sdf)
+JAW_OPENING = JAW.max_opening  # m, the jaw's opening at park and after a release
 
 
 class FullBackend(_Base):
@@ -290,6 +291,20 @@ class FullBackend(_Base):
         """The grasp kinds this robot executes ("parallel_jaw", "suction")."""
         return tuple(k for k, g in (("parallel_jaw", self.jaw), ("suction", self.suction)) if g is not None)
 
+    def plan_grasp(self, g, q_now=None):
+        """The pick plan of grasp g (ms_drake.planning.sequences.plan_pick) by the arm carrying its
+        gripper kind, from arm configuration q_now (default: park): the jaw comes down opened to
+        JAW.approach_opening(g.width); the string "no_<kind>_gripper" when the robot has none."""
+        tool = self.jaw if g.kind == "parallel_jaw" else self.suction
+        if tool is None:
+            return f"no_{g.kind}_gripper"
+        arm, port = tool
+        ik, limits, q_home = self.ik[arm]
+        opening = JAW.approach_opening(g.width) if g.kind == "parallel_jaw" else JAW_OPENING
+        return plan_pick(ik, limits, q_home if q_now is None else q_now, grasp_tool_pose(g), arm, port, g.kind,
+                         lift=self.lift, speed=self.speed, close_time=self.close_time, hold_time=self.hold_time,
+                         force_limit=self.grip_force, max_opening=opening, via_z=self.via_z)
+
     def initial_commands(self) -> dict:
         out = {f"{arm}.position": q_home for arm, (_, _, q_home) in self.ik.items()}
         if self.jaw is not None:
@@ -324,11 +339,7 @@ class FullBackend(_Base):
             if tool is None:
                 return f"no_{g.kind}_gripper"
             arm, port = tool
-            ik, limits, _ = self.ik[arm]
-            q_now = np.asarray(hold[f"{arm}.position"], float)
-            plan = plan_pick(ik, limits, q_now, grasp_tool_pose(g), arm, port, g.kind, lift=self.lift,
-                             speed=self.speed, close_time=self.close_time, hold_time=self.hold_time,
-                             force_limit=self.grip_force, max_opening=JAW_OPENING, via_z=self.via_z)
+            plan = self.plan_grasp(g, np.asarray(hold[f"{arm}.position"], float))
             if not plan.success:
                 return plan.status
             b = self.objects.get(g.object_id)

@@ -10,14 +10,17 @@ grasp must also keep the arm clear of it:
   which the planner checks itself at the grasp) at `approach_samples` configurations may not
   intersect any object: the gripper alone being free is not enough, the wrist behind a tilted
   suction tool or a jaw runs into the neighbouring objects, and the approach then stops short;
-- along the transit from park to the pre-grasp (a joint-space move at the arm's full speed), the
-  links and the tool (the gripper on the last link: the cup and its stem, the jaw's palm and its
-  fingers wide open, as the jaw travels; an open finger swept a tall neighbour of fidelity heap
-  5092 and knocked the grasped packaged object 30 degrees over) at
-  configurations at most `transit_step` seconds apart must stay `transit_clearance` from
-  everything, the grasped object included: a tilted grasp's transit swept the cup through, or
-  within 2 mm of (and, tracking at ~0.8 m/s, into), the very box it was to grasp, knocking it
-  30-45 degrees over before the approach (YuMi fidelity heaps 5015, 5045, 5047).
+- along the transit from park to above the pre-grasp (a joint-space move at the arm's full
+  speed), the links and the tool (the gripper on the last link: the cup and its stem, the jaw's
+  palm and its fingers as opened for the pick) at configurations at most `transit_step` seconds
+  apart must stay `transit_clearance` from everything, the grasped object included: a joint
+  motion tracked at ~0.8 m/s swept a cup within 2 mm of (and into) the box it was to grasp,
+  knocking it 30-45 degrees over (YuMi fidelity heaps 5015, 5045, 5047), and an open finger
+  knocked a grasped object over on fidelity heap 5092;
+- along the straight descent from there to the pre-grasp (tracked at the approach speed), links
+  and tool at most `transit_step` seconds apart stay `descent_clearance` from everything;
+- along the approach, the tool too may not intersect the objects (but at contact, where the
+  planner checked it).
 """
 
 from __future__ import annotations
@@ -31,10 +34,11 @@ from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.multibody.inverse_kinematics import InverseKinematics
 from pydrake.solvers import Solve
 
-from ms_drake.execution.backends import FullBackend, grasp_tool_pose
+from ms_drake.execution.backends import JAW, FullBackend, grasp_tool_pose
 from ms_drake.geometry import Workspace, coal_convex
+from ms_drake.robots import PICK_APPROACH
 from ms_drake.planning.cartesian import approach_pose
-from ms_drake.planning.sequences import plan_pick
+from ms_drake.planning.sequences import jaw_opening
 from ms_drake.types import Grasp
 
 
@@ -137,65 +141,71 @@ class PickReach:
     checks_scene = True  # IndexedGraspPlanner passes its Scene
 
     def __init__(self, scenario, seed: int = 0, approach_samples: int = 5, transit_step: float = 0.02,
-                 transit_clearance: float = 0.02):
+                 transit_clearance: float = 0.02, descent_clearance: float = PICK_APPROACH.descent_clearance):
         self.backend = FullBackend(scenario, {}, Workspace.from_scenario(scenario), seed=seed)
         for ik, _, _ in self.backend.ik.values():
             ik.restarts = 0
         self.links = {arm: ArmLinks(ik, keep[0])
                       for (arm, (ik, _, _)), keep in zip(self.backend.ik.items(), self.backend._keep)}
         self.approach_samples = int(approach_samples)
-        if not transit_step > 0 or not transit_clearance >= 0:
-            raise ValueError(f"PickReach: transit_step={transit_step} s must be > 0 (e.g. 0.02) and "
-                             f"transit_clearance={transit_clearance} m >= 0 (e.g. 0.02)")
+        if not transit_step > 0 or not transit_clearance >= 0 or not descent_clearance >= 0:
+            raise ValueError(f"PickReach: transit_step={transit_step} s must be > 0 (e.g. 0.02), "
+                             f"transit_clearance={transit_clearance} m and descent_clearance={descent_clearance} m "
+                             f">= 0 (e.g. 0.02 and 0.005)")
         self.transit_step, self.transit_clearance = float(transit_step), float(transit_clearance)
+        self.descent_clearance = float(descent_clearance)
         self.checks = self.reached = self.arm_blocked = 0
 
     def plan(self, grasp: Grasp):
-        """The backend's pick plan of the grasp from park, or the string "no_<kind>_gripper"."""
-        b = self.backend
-        tool = b.jaw if grasp.kind == "parallel_jaw" else b.suction
-        if tool is None:
-            return f"no_{grasp.kind}_gripper"
-        arm, port = tool
-        ik, limits, q_home = b.ik[arm]
-        return plan_pick(ik, limits, q_home, grasp_tool_pose(grasp), arm, port, grasp.kind, lift=b.lift,
-                         speed=b.speed, close_time=b.close_time, hold_time=b.hold_time, via_z=b.via_z)
+        """The backend's pick plan of the grasp from park (FullBackend.plan_grasp), or the string
+        "no_<kind>_gripper"."""
+        return self.backend.plan_grasp(grasp)
 
     def status(self, grasp: Grasp) -> str:
         """"ok", the IK status of the failing step, or "no_<kind>_gripper"."""
         plan = self.plan(grasp)
         return plan if isinstance(plan, str) else plan.status
 
-    def arm_hits(self, plan, scene) -> bool:
-        """True when the plan's arm links intersect the scene somewhere along its approach, or its
-        links or tool along the transit from park to the pre-grasp (module docstring)."""
+    def _segments(self, plan):
+        """(where, times, with the tool, clearance) of the plan's checked stretches (module
+        docstring), the transit's low end first."""
         tl = plan.timeline
         t0, t1 = tl.marks["approach"], tl.marks["contact"]
-        links = self.links[plan.arm]
-        transit = np.linspace(0.0, t0, max(2, int(np.ceil(t0 / self.transit_step)) + 1))
-        if any(scene.hits(links.at(tl.value(t), tool=True), self.transit_clearance)
-               for t in transit[::-1]):  # the low end first
-            return True
-        return any(scene.hits(links.at(tl.value(t))) for t in np.linspace(t0, t1, self.approach_samples))
+        td = tl.marks.get("descent", t0)
+
+        def times(a, b):
+            return np.linspace(a, b, max(2, int(np.ceil((b - a) / self.transit_step)) + 1))
+        approach = np.linspace(t0, t1, self.approach_samples)
+        return (("descent", times(td, t0)[::-1], True, self.descent_clearance) if td < t0 else None,
+                ("transit", times(0.0, td)[::-1], True, self.transit_clearance),
+                ("approach", approach[:-1], True, 0.0),
+                ("approach", approach[-1:], False, 0.0))
 
     def arm_hit(self, plan, scene) -> str:
-        """What of the arm hits the scene along the plan (arm_hits): "transit:<body>><j>" or
-        "approach:<body>><j>" (the first found; j: the index of the scene part it hits), or ""
-        when nothing does."""
-        tl = plan.timeline
-        t0, t1 = tl.marks["approach"], tl.marks["contact"]
+        """What of the arm hits the scene along the plan (module docstring): "transit:<body>><j>",
+        "descent:<body>><j>" or "approach:<body>><j>" (the first found; j: the index of the scene
+        part it hits), or "" when nothing does."""
         links = self.links[plan.arm]
-        transit = np.linspace(0.0, t0, max(2, int(np.ceil(t0 / self.transit_step)) + 1))
-        for where, times, tool, clearance in (("transit", transit[::-1], True, self.transit_clearance),
-                                              ("approach", np.linspace(t0, t1, self.approach_samples), False, 0.0)):
-            names = links.names(tool)
-            for t in times:
-                for name, part in zip(names, links.at(tl.value(t), tool=tool)):
-                    if scene.hits([part], clearance):
-                        j = next(j for j in range(len(scene.shapes))
-                                 if _part_hits(part, scene.shapes[j], scene.transforms[j], clearance))
-                        return f"{where}:{name}>{j}"
+        ik = self.backend.ik[plan.arm][0]
+        with jaw_opening(ik, plan.opening):
+            for seg in self._segments(plan):
+                if seg is None:
+                    continue
+                where, times, tool, clearance = seg
+                for t in times:
+                    parts = links.at(plan.timeline.value(t), tool=tool)
+                    if not scene.hits(parts, clearance):
+                        continue
+                    for name, part in zip(links.names(tool), parts):
+                        if scene.hits([part], clearance):
+                            j = next(j for j in range(len(scene.shapes))
+                                     if _part_hits(part, scene.shapes[j], scene.transforms[j], clearance))
+                            return f"{where}:{name}>{j}"
         return ""
+
+    def arm_hits(self, plan, scene) -> bool:
+        """True when the plan's arm (links, tool) hits the scene somewhere along it (arm_hit)."""
+        return bool(self.arm_hit(plan, scene))
 
     def diagnose(self, grasp: Grasp, scene=None) -> dict:
         """Why the robot does or does not execute the grasp: {"reason", "step", "detail"}.
@@ -203,15 +213,15 @@ class PickReach:
         step's pose, joint limits ignored: out of the arm's workspace); "joint_limits" (one
         exists, but not within the joint limits); "collision" (the IK's configurations come closer
         than its min_distance to the bin or the robot itself; detail: the closest pair of bodies);
-        "arm_hits_scene" (a plan exists; the arm's links, or its tool in transit, hit the objects:
-        detail "transit:<body>" / "approach:<body>"). step: "pre_grasp", "approach" or "lift"
-        (the failing step), "" when ok."""
+        "arm_hits_scene" (a plan exists; the arm's links or its tool hit the objects: detail
+        "<stretch>:<body>"). step: "pre_grasp" or "approach_or_lift" (the failing IK step), or the
+        stretch of an arm_hits_scene ("transit", "descent", "approach"); "" when ok."""
         plan = self.plan(grasp)
         if isinstance(plan, str):
             return {"reason": "no_gripper", "step": "", "detail": plan}
         if plan.success:
             hit = self.arm_hit(plan, scene) if scene is not None else ""
-            return {"reason": "arm_hits_scene", "step": "transit" if hit.startswith("transit") else "approach",
+            return {"reason": "arm_hits_scene", "step": hit.split(":", 1)[0],
                     "detail": hit} if hit else {"reason": "ok", "step": "", "detail": ""}
         b = self.backend
         arm = (b.jaw if grasp.kind == "parallel_jaw" else b.suction)[0]
@@ -219,17 +229,18 @@ class PickReach:
         axis_only = grasp.kind != "parallel_jaw"
         X = grasp_tool_pose(grasp)
         poses = [X] if axis_only else [X, X @ RigidTransform(RotationMatrix.MakeZRotation(np.pi))]
-        pre = [ik.solve(approach_pose(P, 0.10), q_seed=q_home, axis_only=axis_only) for P in poses]
-        if any(r.success for r in pre):  # the straight approach or the lift fails
-            r = next(r for r in pre if r.success)
-            step = "approach_or_lift"
-            status = plan.status
-        else:
-            step, status = "pre_grasp", pre[0].status
-            r = pre[0]
-        if status == "collision":
-            return {"reason": "collision", "step": step, "detail": self._closest_pair(ik, r.q)}
-        free = any(self._solves_without_limits(ik, approach_pose(P, 0.10) if step == "pre_grasp" else P, q_home,
+        with jaw_opening(ik, JAW.approach_opening(grasp.width) if grasp.kind == "parallel_jaw" else None):
+            pre = [ik.solve(approach_pose(P, PICK_APPROACH.distance), q_seed=q_home, axis_only=axis_only) for P in poses]
+            if any(r.success for r in pre):  # the straight approach or the lift fails
+                r = next(r for r in pre if r.success)
+                step = "approach_or_lift"
+                status = plan.status
+            else:
+                step, status = "pre_grasp", pre[0].status
+                r = pre[0]
+            if status == "collision":
+                return {"reason": "collision", "step": step, "detail": self._closest_pair(ik, r.q)}
+        free = any(self._solves_without_limits(ik, approach_pose(P, PICK_APPROACH.distance) if step == "pre_grasp" else P, q_home,
                                                axis_only) for P in poses)
         return {"reason": "joint_limits" if free else "unreachable", "step": step, "detail": status}
 

@@ -13,9 +13,12 @@ object's centre of mass across the floor, the weight's lever arm about the cup, 
 stations' lifts more often the farther it is: docs/results/ch7_bin_search.md, then the less tilted), and the
 first whose gripper is free
 of the scene is the object's grasp of that kind. Free: the gripper's geometry -- the jaw's palm
-and two fingers (with their pads) opened to the grasp's width, or the suction cup and its shaft
-lifted `suction_clearance` off the surface -- does not intersect (coal, shrunk by `margin`) any
-object's collision shapes (the grasped object's included) or the bin. At most `max_checks`
+and two fingers (with their pads) opened to ParallelJawConfig.approach_opening of the grasp's
+width, or the suction cup and its shaft lifted `suction_clearance` off the surface -- does not
+intersect (coal, shrunk by `margin`) any object's collision shapes (the grasped object's
+included) or the bin, at the grasp and on the way a station's gripper comes to it (`approach`,
+robots.PickApproach: back along the approach to the pre-grasp, and straight up from there,
+descent_clearance clear, until above everything). At most `max_checks`
 candidates per kind and object are checked (candidates are sorted; the cap bounds a buried
 object's cost). Objects without a grasp set, or whose set has no free grasp at their pose, go to
 `fallback` (a LazyGraspPlanner: the image-based planners) when given, else get no grasp.
@@ -46,7 +49,7 @@ from ms_drake.grasping.grasp_sets import GraspSet
 from ms_drake.grasping.planner import LazyGraspPlanner, LazyGrasps, declare_lazy_grasp_ports
 from ms_drake.objects import get_object
 from ms_drake.paths import PACKAGE_NAME, models_dir
-from ms_drake.robots import ParallelJawConfig, SuctionCupConfig
+from ms_drake.robots import PICK_APPROACH, ParallelJawConfig, PickApproach, SuctionCupConfig
 from ms_drake.station.environments import _boxes
 from ms_drake.types import Grasp
 
@@ -177,6 +180,18 @@ class Scene:
         self.radii = np.array([p[3] for p in parts], float)
         self.request = coal.CollisionRequest()
 
+    def top_over(self, gripper: list, margin: float = 0.0) -> float:
+        """The highest bounding-sphere top [m, world z] of the parts that a vertical line through
+        the gripper's parts (coal shape, 3x3 rotation, centre, radius) could come within `margin`
+        of (-inf when none): above it, a gripper rising straight up touches nothing."""
+        top = -np.inf
+        for _, _, c, r in gripper:
+            d = self.centers[:, :2] - np.asarray(c, float)[:2]
+            near = np.einsum("ij,ij->i", d, d) < (self.radii + r + margin) ** 2
+            if near.any():
+                top = max(top, float(np.max(self.centers[near, 2] + self.radii[near])))
+        return top
+
     def hits(self, gripper: list, margin: float = 0.0) -> bool:
         """True when any gripper part (coal shape, 3x3 rotation, centre, radius) intersects any
         scene part, or (margin > 0) comes closer to one than `margin` [m]."""
@@ -214,7 +229,7 @@ class IndexedGraspPlanner(LeafSystem):
                  max_tilt: float = np.radians(45.0), min_quality: float = 0.05, max_checks: int = 48,
                  margin: float = 0.001, suction_clearance: float = 0.003,
                  jaw: ParallelJawConfig | None = None, cup: SuctionCupConfig | None = None, jaw_model: str = "",
-                 reach=None, max_reach_checks: int = 8):
+                 reach=None, max_reach_checks: int = 8, approach: PickApproach | None = None):
         super().__init__()
         self.depth_port, self.masks_port, self.objects_port, self.grasps_port = declare_lazy_grasp_ports(
             self, width, height, self._calc)
@@ -234,6 +249,7 @@ class IndexedGraspPlanner(LeafSystem):
         self.cos_tilt, self.min_quality, self.max_checks = float(np.cos(max_tilt)), float(min_quality), int(max_checks)
         self.margin, self.suction_clearance = float(margin), float(suction_clearance)
         self.jaw, self.cup = jaw or ParallelJawConfig(), cup or SuctionCupConfig()
+        self.approach = approach or PICK_APPROACH
         self.gripper = GripperGeometry(self.jaw, self.cup, self.margin, self.suction_clearance)
         self.jaw_model = jaw_model or next((gs.model for gs in self.sets.values()), "soft_point")
         self._hull_cache: dict = {}
@@ -283,11 +299,13 @@ class IndexedGraspPlanner(LeafSystem):
             i, k = np.nonzero(ok)
             order = np.lexsort((-down[i, k], -q[i, k]))[: self.max_checks]
             across = np.cross(ap[i[order], k[order]], a[i[order]])
+            def jaw_at(j, y):  # the jaw opened for the approach, moved by an offset
+                opening = self.jaw.approach_opening(gs.jaw_width[i[j]])
+                return lambda o: self.gripper.jaw(c[i[j]] + o, a[i[j]], ap[i[j], k[j]], opening, y)
             g = self._first_reached(scene, (
                 ParallelJawGrasp(c[i[j]], a[i[j]], ap[i[j], k[j]], gs.jaw_width[i[j]]).to_grasp(
                     float(q[i[j], k[j]]), self.jaw_model, oid)
-                for j, y in zip(order, across)
-                if not scene.hits(self.gripper.jaw(c[i[j]], a[i[j]], ap[i[j], k[j]], gs.jaw_width[i[j]], y))))
+                for j, y in zip(order, across) if self._free(scene, jaw_at(j, y), ap[i[j], k[j]])))
             if g is not None:
                 out.append(g)
         if "suction" in self.kinds and len(gs.suction_point):
@@ -300,11 +318,33 @@ class IndexedGraspPlanner(LeafSystem):
             com = R @ (np.asarray(geom.com, float) if geom.com is not None else geom.vertices.mean(axis=0)) + t
             arm = np.hypot(*(p[idx, :2] - com[:2]).T)  # the weight's lever arm about the cup, held upright
             order = idx[np.lexsort((-down[idx], arm, -q[idx]))][: self.max_checks]
-            g = self._first_reached(scene, (SuctionGrasp(p[n], ap[n]).to_grasp(float(q[n]), "suction", oid)
-                                            for n in order if not scene.hits(self.gripper.suction(p[n], ap[n]))))
+            g = self._first_reached(scene, (
+                SuctionGrasp(p[n], ap[n]).to_grasp(float(q[n]), "suction", oid) for n in order
+                if self._free(scene, lambda o, n=n: self.gripper.suction(p[n] + o, ap[n]), ap[n])))
             if g is not None:
                 out.append(g)
         return tuple(out)
+
+    def _free(self, scene: Scene, parts_at, approach) -> bool:
+        """Whether the gripper (parts_at(offset): its parts moved by `offset`, world [m]) is free of
+        the scene at the grasp and on its way there (robots.PickApproach): at `steps` poses back
+        along the approach to the pre-grasp, and, `descent_clearance` clear, on the straight line
+        up from the pre-grasp in 2 cm steps until it is above everything under it."""
+        if scene.hits(parts_at(np.zeros(3))):
+            return False
+        A, ap = self.approach, np.asarray(approach, float)
+        if any(scene.hits(parts_at(-d * ap)) for d in np.linspace(A.distance, 0.0, A.steps + 1)[:-1]):
+            return False
+        pre = -A.distance * ap
+        parts = parts_at(pre)
+        top = scene.top_over(parts, A.descent_clearance)
+        rise = 0.0
+        while min(c[2] - r for _, _, c, r in parts) <= top:
+            if scene.hits(parts, A.descent_clearance):
+                return False
+            rise += 0.02
+            parts = parts_at(pre + np.array([0.0, 0.0, rise]))
+        return True
 
     def _reaches(self, grasp, scene: Scene) -> bool:
         """`reach` of the grasp (True without one); a reach with `checks_scene` (PickReach) is

@@ -3,8 +3,10 @@
 
 A pick is planned open-loop before it is executed (the reference's simulation experiments
 execute a planned grasp; re-planning belongs to the action executor):
-  jaw:     home -> pre-grasp (`approach` above along the tool axis, ruckig joint motion) ->
-           straight approach -> close with a force limit -> straight lift -> hold
+  jaw:     home -> above the pre-grasp (ruckig joint motion; with `via_z`) -> straight down to
+           the pre-grasp (`approach` back along the tool axis) -> straight approach -> close with
+           a force limit -> straight lift -> hold; the jaw opened to `max_opening` on the way
+           (and in the IK's collision checks)
   suction: the same with vacuum on at contact instead of closing
   push:    home -> pre-push above the start -> straight down -> straight push -> straight up
 Planning failures return a PickPlan with success False and the IK status ("unreachable" /
@@ -14,6 +16,7 @@ Planning failures return a PickPlan with success False and the IK status ("unrea
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,7 +36,7 @@ from ms_drake.planning import (
 from ms_drake.planning.cartesian import CartesianPlan
 from ms_drake.planning.trajectories import plan_path_motion
 from ms_drake.planning.trajectories import JointTrajectory
-from ms_drake.robots import CLOSING_FORCE, station_robot_spec
+from ms_drake.robots import CLOSING_FORCE, PICK_APPROACH, station_robot_spec
 from ms_drake.scenario import resolve_robot_config
 from ms_drake.station.robots import base_transform
 from ms_drake.station.station import add_environment
@@ -130,6 +133,7 @@ class PickPlan:
     timeline: Timeline | None = None
     commands: dict = field(default_factory=dict)
     X_target: RigidTransform | None = None
+    opening: float | None = None  # a jaw pick's opening on the way down [m] (plan_pick's max_opening)
 
 
 # --------------------------------------------------------------------------------- planning
@@ -178,26 +182,75 @@ def _line(ik, q_start, displacement, limits, speed):
     return plan_cartesian_line(ik, ik_pose(ik, q_start), displacement, q_start, limits, max_speed=speed)
 
 
-def _start(q_home, q_first, from_home: bool, limits, q_via=None) -> Timeline:
+def _start(q_home, q_first, from_home: bool, limits, q_via=None, descent: CartesianPlan | None = None) -> Timeline:
     """A timeline that rests 0.2 s, then (from_home) moves from q_home to q_first (through q_via
-    when given), where the sequence's first straight line begins (without from_home it starts there)."""
+    when given; with `descent`, the straight line from q_via to q_first, joint motion to q_via
+    first), where the sequence's first straight line begins (without from_home it starts there).
+    Mark "descent": where the motion above the pre-grasp begins to come down (at q_via)."""
     tl = Timeline(q_home if from_home else q_first)
     tl.hold(0.2)
     if from_home:
-        tl.play(plan_joint_motion([q_home, q_first] if q_via is None else [q_home, q_via, q_first], limits))
+        if descent is not None:
+            tl.play(plan_joint_motion([q_home, q_via], limits))
+            tl.mark("descent")
+            tl.play(descent.trajectory)
+        elif q_via is not None:
+            tl.play(plan_joint_motion([q_home, q_via], limits))
+            tl.mark("descent")
+            tl.play(plan_joint_motion([q_via, q_first], limits))
+        else:
+            tl.play(plan_joint_motion([q_home, q_first], limits))
     return tl
 
 
-def _via(ik, q_pre, X_pre: RigidTransform, via_z: float | None, axis_only: bool):
-    """The configuration with the tool as at the pre-grasp pose but raised to the world height via_z
-    (None when no raise is needed or it does not solve): the transit from park comes down to the
-    pre-grasp from above instead of sweeping through the heap."""
+def _via(ik, q_pre, X_pre: RigidTransform, via_z: float | None, axis_only: bool, limits, speed: float):
+    """(q_via, descent): the configuration with the tool as at the pre-grasp pose but raised to the
+    world height via_z, and the straight line from it down to q_pre (a CartesianPlan, planned
+    upwards from q_pre and reversed, so it ends exactly at q_pre; None when it does not plan: then
+    the transit's joint motion comes down from q_via). (None, None) when no raise is needed or the
+    raised pose does not solve: the transit from park comes down to the pre-grasp from above
+    instead of sweeping through the heap."""
     if via_z is None or X_pre.translation()[2] >= via_z:
-        return None
+        return None, None
+    rise = via_z - X_pre.translation()[2]
+    up = plan_cartesian_line(ik, X_pre, [0.0, 0.0, rise], q_pre, limits, step=0.02, axis_only=axis_only,
+                             max_speed=speed)
+    if up.success:
+        down_qs = up.qs[::-1]
+        return down_qs[0], CartesianPlan(True, "ok", down_qs,
+                                         plan_path_motion(down_qs, limits, rise, max_speed=speed), 1.0)
     p = X_pre.translation().copy()
     p[2] = via_z
     res = ik.solve(RigidTransform(X_pre.rotation(), p), q_seed=q_pre, axis_only=axis_only)
-    return nearest_equivalent(ik, res.q, q_pre) if res.success else None
+    return (nearest_equivalent(ik, res.q, q_pre), None) if res.success else (None, None)
+
+
+@contextmanager
+def jaw_opening(ik, opening: float | None):
+    """Inside, the jaw on ik's tool frame (its finger joints `left_finger_sliding_joint` /
+    `right_finger_sliding_joint`, if it has them) stands opened to `opening` [m between the pads]
+    in ik's plant context, so the IK's collision checks (and ms_drake.execution.reach's tool
+    parts) see the fingers as the pick moves them; restored on exit. None, or a tool without
+    fingers: nothing changes."""
+    plant, ctx = ik.plant, ik.context
+    inst = ik.frame.model_instance()
+    joints = [(plant.GetJointByName(n, inst), sign) for n, sign in
+              (("left_finger_sliding_joint", -1), ("right_finger_sliding_joint", 1)) if plant.HasJointNamed(n, inst)]
+    if opening is None or not joints:
+        yield
+        return
+    starts = [j.position_start() for j, _ in joints]
+    q = plant.GetPositions(ctx).copy()
+    old = q[starts].copy()
+    for (j, sign), i in zip(joints, starts):
+        q[i] = np.clip(sign * 0.5 * float(opening), j.position_lower_limits()[0], j.position_upper_limits()[0])
+    plant.SetPositions(ctx, q)
+    try:
+        yield
+    finally:
+        q = plant.GetPositions(ctx).copy()
+        q[starts] = old
+        plant.SetPositions(ctx, q)
 
 
 def _pick_lines(ik, limits, q_home, X_grasp, approach, lift, speed, axis_only):
@@ -219,32 +272,37 @@ def _pick_lines(ik, limits, q_home, X_grasp, approach, lift, speed, axis_only):
 
 
 def plan_pick(ik, limits, q_home, X_grasp: RigidTransform, arm: str, gripper_port: str, kind: str,
-              approach: float = 0.10, lift: float = 0.20, force_limit: float = CLOSING_FORCE, max_opening: float = 0.10,
+              approach: float = PICK_APPROACH.distance, lift: float = 0.20, force_limit: float = CLOSING_FORCE,
+              max_opening: float = 0.10,
               close_time: float = 0.8, hold_time: float = 0.5, speed: float = 0.15,
               blade: float | None = None, from_home: bool = True, via_z: float | None = None) -> PickPlan:
     """Plan a pick at the tool pose X_grasp (kind: parallel_jaw | suction | bluction).
     from_home False: the timeline starts at the pre-grasp configuration (build_run puts the arm
     there), skipping the joint motion from home. via_z: the move from home passes above the
-    pre-grasp pose at this world height (e.g. above a bin's walls and heap; None: straight there).
-    X_grasp: RigidTransform or 4x4 array."""
+    pre-grasp pose at this world height (e.g. above a bin's walls and heap; None: straight there)
+    and comes straight down to it (timeline mark "descent"). max_opening: the jaw's opening [m]
+    from the start to contact, also held by the IK's fingers while the pick is planned (e.g.
+    ParallelJawConfig.approach_opening of the grasp's width). X_grasp: RigidTransform or 4x4 array."""
     X_grasp = as_rigid_transform(X_grasp, "X_grasp")
     axis_only = kind != "parallel_jaw"
     # A parallel jaw is symmetric: the tool turned by pi about its axis is the same grasp (the
     # fingers swap), and often the only one of the two the wrist reaches.
     poses = [X_grasp] if axis_only else [X_grasp, X_grasp @ RigidTransform(RotationMatrix.MakeZRotation(np.pi))]
     failure = None
-    for X in poses:
-        lines = _pick_lines(ik, limits, q_home, X, approach, lift, speed, axis_only)
-        if isinstance(lines, str):
-            failure = failure or lines
-            continue
-        break
-    else:
-        return PickPlan(False, failure, arm, X_target=X_grasp)
-    q_pre, approach_plan, lift_plan = lines
-    X_grasp = X
-    q_via = _via(ik, q_pre, ik_pose(ik, q_pre), via_z, axis_only) if from_home else None
-    tl = _start(q_home, q_pre, from_home, limits, q_via)
+    with jaw_opening(ik, max_opening if kind == "parallel_jaw" else None):
+        for X in poses:
+            lines = _pick_lines(ik, limits, q_home, X, approach, lift, speed, axis_only)
+            if isinstance(lines, str):
+                failure = failure or lines
+                continue
+            break
+        else:
+            return PickPlan(False, failure, arm, X_target=X_grasp)
+        q_pre, approach_plan, lift_plan = lines
+        X_grasp = X
+        q_via, descent = _via(ik, q_pre, ik_pose(ik, q_pre), via_z, axis_only, limits, speed) if from_home \
+            else (None, None)
+    tl = _start(q_home, q_pre, from_home, limits, q_via, descent)
     tl.mark("approach")
     tl.play(approach_plan.trajectory)
     tl.mark("contact")
@@ -269,7 +327,7 @@ def plan_pick(ik, limits, q_home, X_grasp: RigidTransform, arm: str, gripper_por
             b = Schedule()
             b.set(0.0, np.pi if blade is None else blade)
             commands[f"{gripper_port}.position"] = b
-    return PickPlan(True, "ok", arm, tl, commands, X_grasp)
+    return PickPlan(True, "ok", arm, tl, commands, X_grasp, max_opening if kind == "parallel_jaw" else None)
 
 
 def _push_lines_from_above(ik, limits, q_home, X_start, u, distance, approach, retreat, speed):
