@@ -76,21 +76,12 @@ class ParallelJawConfig:
     finger_depth: float = 0.02  # along y
     palm_mass: float = 0.25
     finger_mass: float = 0.03
-    approach_gap: float = 0.01  # [m] between each pad and the object while the jaw comes down to a grasp
 
     def __post_init__(self):
         if self.max_opening <= 0 or self.max_force <= 0:
             raise ScenarioError("ParallelJawConfig: max_opening and max_force must be > 0")
-        if self.approach_gap < 0:
-            raise ScenarioError(f"ParallelJawConfig: approach_gap must be >= 0 m, got {self.approach_gap}")
         if self.pads.length > self.finger_length:
             raise ScenarioError("ParallelJawConfig: pad length exceeds finger_length")
-
-    def approach_opening(self, width: float) -> float:
-        """The opening [m between the pads] the jaw comes down to a grasp of `width` with: the
-        width and `approach_gap` on each side, at most max_opening. The grasp planner checks the
-        fingers at this opening and the station executes with it."""
-        return float(min(self.max_opening, float(width) + 2.0 * self.approach_gap))
 
 
 @dataclass(frozen=True)

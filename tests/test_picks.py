@@ -16,7 +16,7 @@ from ms_drake.experiments.picks import TASKS, plan_task, run_task
 from ms_drake.geometry import Workspace
 from ms_drake.planning import ik_pose, plan_joint_motion
 from ms_drake.planning.sequences import Schedule, Timeline, jaw_opening
-from ms_drake.robots import PICK_APPROACH, ParallelJawConfig
+from ms_drake.robots import PICK_APPROACH
 from ms_drake.scenario import load_scenario
 from ms_drake.types import Grasp, JointLimits
 
@@ -95,8 +95,8 @@ def test_a_pick_from_park_comes_straight_down_to_the_pregrasp_with_the_jaw_opene
               axis=(0.0, 1.0, 0.0), width=0.04, quality=1.0, object_id="probe")
     plan = backend.plan_grasp(g)
     assert plan.success, plan.status
-    # the jaw opens to the grasp's width and a gap on each side, from the start to contact
-    assert plan.opening == pytest.approx(g.width + 2 * ParallelJawConfig().approach_gap)
+    # the jaw opens to the grasp's width (the planners' opening), from the start to contact
+    assert plan.opening == pytest.approx(g.width)
     port = backend.jaw[1]
     assert plan.commands[f"{port}.position"](0.0)[0] == pytest.approx(plan.opening)
     assert plan.commands[f"{port}.position"](plan.timeline.marks["contact"])[0] == 0.0

@@ -222,6 +222,14 @@ JAW = ParallelJawConfig()  # the stations' jaw (models/grippers/parallel_jaw.sdf
 JAW_OPENING = JAW.max_opening  # m, the jaw's opening at park and after a release
 
 
+def pick_opening(grasp) -> float:
+    """The opening [m between the pads] the jaw comes down to a grasp with: the grasp's width (the
+    planners' jaw opening: the contacts' distance and a margin each side, the opening the grasp
+    planner checked the fingers at), at most JAW_OPENING; JAW_OPENING when the width is unknown (0)."""
+    w = float(grasp.width)
+    return min(JAW_OPENING, w) if w > 0 else JAW_OPENING
+
+
 class FullBackend(_Base):
     """Any arm-and-gripper station (YuMiBin, PandaBin, FloatingGripperBin in full fidelity): IK +
     ruckig plans (ms_drake.planning.sequences) from the arm's current configuration, executed
@@ -294,13 +302,13 @@ class FullBackend(_Base):
     def plan_grasp(self, g, q_now=None):
         """The pick plan of grasp g (ms_drake.planning.sequences.plan_pick) by the arm carrying its
         gripper kind, from arm configuration q_now (default: park): the jaw comes down opened to
-        JAW.approach_opening(g.width); the string "no_<kind>_gripper" when the robot has none."""
+        pick_opening(g); the string "no_<kind>_gripper" when the robot has none."""
         tool = self.jaw if g.kind == "parallel_jaw" else self.suction
         if tool is None:
             return f"no_{g.kind}_gripper"
         arm, port = tool
         ik, limits, q_home = self.ik[arm]
-        opening = JAW.approach_opening(g.width) if g.kind == "parallel_jaw" else JAW_OPENING
+        opening = pick_opening(g) if g.kind == "parallel_jaw" else JAW_OPENING
         return plan_pick(ik, limits, q_home if q_now is None else q_now, grasp_tool_pose(g), arm, port, g.kind,
                          lift=self.lift, speed=self.speed, close_time=self.close_time, hold_time=self.hold_time,
                          force_limit=self.grip_force, max_opening=opening, via_z=self.via_z)

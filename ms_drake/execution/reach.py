@@ -34,7 +34,7 @@ from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.multibody.inverse_kinematics import InverseKinematics
 from pydrake.solvers import Solve
 
-from ms_drake.execution.backends import JAW, FullBackend, grasp_tool_pose
+from ms_drake.execution.backends import FullBackend, grasp_tool_pose, pick_opening
 from ms_drake.geometry import Workspace, coal_convex
 from ms_drake.robots import PICK_APPROACH
 from ms_drake.planning.cartesian import approach_pose
@@ -229,7 +229,7 @@ class PickReach:
         axis_only = grasp.kind != "parallel_jaw"
         X = grasp_tool_pose(grasp)
         poses = [X] if axis_only else [X, X @ RigidTransform(RotationMatrix.MakeZRotation(np.pi))]
-        with jaw_opening(ik, JAW.approach_opening(grasp.width) if grasp.kind == "parallel_jaw" else None):
+        with jaw_opening(ik, pick_opening(grasp) if grasp.kind == "parallel_jaw" else None):
             pre = [ik.solve(approach_pose(P, PICK_APPROACH.distance), q_seed=q_home, axis_only=axis_only) for P in poses]
             if any(r.success for r in pre):  # the straight approach or the lift fails
                 r = next(r for r in pre if r.success)

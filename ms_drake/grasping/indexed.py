@@ -13,8 +13,8 @@ object's centre of mass across the floor, the weight's lever arm about the cup, 
 stations' lifts more often the farther it is: docs/results/ch7_bin_search.md, then the less tilted), and the
 first whose gripper is free
 of the scene is the object's grasp of that kind. Free: the gripper's geometry -- the jaw's palm
-and two fingers (with their pads) opened to ParallelJawConfig.approach_opening of the grasp's
-width, or the suction cup and its shaft lifted `suction_clearance` off the surface -- does not
+and two fingers (with their pads) opened to the grasp's width (the contacts' distance and a
+margin each side: the opening the station's jaw comes down with), or the suction cup and its shaft lifted `suction_clearance` off the surface -- does not
 intersect (coal, shrunk by `margin`) any object's collision shapes (the grasped object's
 included) or the bin, at the grasp and on the way a station's gripper comes to it (`approach`,
 robots.PickApproach: back along the approach to the pre-grasp, and straight up from there,
@@ -299,9 +299,8 @@ class IndexedGraspPlanner(LeafSystem):
             i, k = np.nonzero(ok)
             order = np.lexsort((-down[i, k], -q[i, k]))[: self.max_checks]
             across = np.cross(ap[i[order], k[order]], a[i[order]])
-            def jaw_at(j, y):  # the jaw opened for the approach, moved by an offset
-                opening = self.jaw.approach_opening(gs.jaw_width[i[j]])
-                return lambda o: self.gripper.jaw(c[i[j]] + o, a[i[j]], ap[i[j], k[j]], opening, y)
+            def jaw_at(j, y):  # the jaw opened to the grasp's width, moved by an offset
+                return lambda o: self.gripper.jaw(c[i[j]] + o, a[i[j]], ap[i[j], k[j]], gs.jaw_width[i[j]], y)
             g = self._first_reached(scene, (
                 ParallelJawGrasp(c[i[j]], a[i[j]], ap[i[j], k[j]], gs.jaw_width[i[j]]).to_grasp(
                     float(q[i[j], k[j]]), self.jaw_model, oid)

@@ -282,7 +282,7 @@ def plan_pick(ik, limits, q_home, X_grasp: RigidTransform, arm: str, gripper_por
     pre-grasp pose at this world height (e.g. above a bin's walls and heap; None: straight there)
     and comes straight down to it (timeline mark "descent"). max_opening: the jaw's opening [m]
     from the start to contact, also held by the IK's fingers while the pick is planned (e.g.
-    ParallelJawConfig.approach_opening of the grasp's width). X_grasp: RigidTransform or 4x4 array."""
+    ms_drake.execution.backends.pick_opening of the grasp). X_grasp: RigidTransform or 4x4 array."""
     X_grasp = as_rigid_transform(X_grasp, "X_grasp")
     axis_only = kind != "parallel_jaw"
     # A parallel jaw is symmetric: the tool turned by pi about its axis is the same grasp (the
