@@ -72,10 +72,16 @@ def test_template_backend_scores_masks_against_target_images():
     assert matcher.scores(rgb, InstanceMasks(occl, masks.ids, np.ones(3)))[2] > 0.9
     big = Template(rgb[20:30, 70:80].copy(), np.ones((10, 10), bool))
     assert TemplateMatcher([big]).scores(rgb, masks)[2] == 0.0
-    # Templates of another object: no mask reaches t_r = 0.9.
+    # Templates of another object: no mask reaches t_r = 0.9 ...
     blue_view = Template(rgb[50:90, 10:60].copy(), np.ones((40, 50), bool))
-    est = TemplateMatcher([blue_view]).detect(rgb, InstanceMasks(masks.masks[[0, 2]], ("grey", "red"), np.ones(2)))
-    assert not est.visible
+    others = InstanceMasks(masks.masks[[0, 2]], ("grey", "red"), np.ones(2))
+    assert (TemplateMatcher([blue_view]).scores(rgb, others) < 0.9).all()
+    assert not TemplateMatcher([blue_view], parts=False).detect(rgb, others).visible
+    # ... but the blue object's pixels, which no mask holds, are the target seen without an instance.
+    est = TemplateMatcher([blue_view]).detect(rgb, others)
+    assert est.visible and est.instance_index == -1 and np.array_equal(est.mask, masks.masks[1])
+    rgb[masks.masks[1]] = (150, 150, 150)
+    assert not TemplateMatcher([blue_view]).detect(rgb, others).visible
 
 
 def test_detector_alone_fixes_inputs_and_evaluates():

@@ -298,9 +298,72 @@ def test_template_backend_checks_the_target_size_on_depth():
     ctx = det.CreateDefaultContext()
     det.GetInputPort("rgb_image").FixValue(ctx, rgba_image(rgb))
     only_big = InstanceMasks(masks.masks[[2]], ("big",), np.ones(1))
+    rgb[masks.masks[0] | masks.masks[1]] = 30  # (red pixels that no mask holds would be the target)
+    det.GetInputPort("rgb_image").FixValue(ctx, rgba_image(rgb))
     det.GetInputPort("masks").FixValue(ctx, only_big)
     assert det.GetOutputPort("target").Eval(ctx).visible  # no depth connected: colour alone
     img = ImageDepth32F(120, 100)
     np.array(img.mutable_data, copy=False)[:, :, 0] = depth
     det.GetInputPort("depth_image").FixValue(ctx, img)
     assert not det.GetOutputPort("target").Eval(ctx).visible
+
+
+def test_template_backend_scores_the_target_coloured_part_of_a_merged_mask():
+    from ms_drake.perception.target import TemplateMatcher
+
+    rgb, depth, masks, view = geometry_scene()
+    grey = np.zeros_like(masks.masks[0])
+    grey[55:95, 35:60] = True  # the nearer grey object beside mask 1
+    # The segmenter merged the red 4.6 x 6.1 cm piece (1,200 px) with the grey object (1,000 px).
+    merged = InstanceMasks(np.stack([masks.masks[1] | grey, masks.masks[2]]), ("merged", "big"), np.ones(2))
+    whole_only = TemplateMatcher([view], parts=False)
+    assert whole_only.scores(rgb, merged, depth, _Cam())[0] < 0.9  # grey in its histogram
+    assert not whole_only.detect(rgb, merged, depth, _Cam()).visible
+    matcher = TemplateMatcher([view])
+    assert matcher.scores(rgb, merged, depth, _Cam())[0] > 0.99
+    est = matcher.detect(rgb, merged, depth, _Cam())
+    # The estimate is the red part; the instance is the merged mask, which is mostly the target.
+    assert est.visible and est.instance_index == 0 and np.array_equal(est.mask, masks.masks[1])
+    # A red strip (1.5 cm wide, 400 px) merged with the larger grey object: seen, but no instance.
+    strip = np.zeros_like(grey)
+    strip[55:95, 25:35] = True
+    est = matcher.detect(rgb, InstanceMasks((strip | grey)[None], ("merged",), np.ones(1)), depth, _Cam())
+    assert est.visible and est.instance_index == -1 and np.array_equal(est.mask, strip)
+    # The part passes the size check like a mask: the 13.7 cm red object merged with grey is not the plate.
+    big_grey = masks.masks[2] | grey
+    assert matcher.scores(rgb, InstanceMasks(big_grey[None], ("merged",), np.ones(1)), depth, _Cam())[0] == 0.0
+    # A mask of the target's colours is judged whole: a red object too large stays 0, however it is cut.
+    assert matcher.scores(rgb, masks, depth, _Cam())[2] == 0.0
+
+
+def test_template_backend_joins_the_pieces_of_a_split_target():
+    from ms_drake.perception.target import TemplateMatcher
+
+    rgb = np.full((100, 120, 3), 30, np.uint8)
+    depth = np.full((100, 120), 0.8, np.float32)
+    plate, below = np.zeros((2, 100, 120), bool)
+    plate[5:45, 5:65] = True  # 9.1 x 6.1 cm: the plate
+    below[45:85, 5:65] = True  # a second red plate right below it
+    for m in (plate, below):
+        rgb[m] = RED
+        depth[m] = 0.76
+    rgb[5:85, 65:75] = (150, 150, 150)
+    depth[5:85, 65:75] = 0.74  # a nearer grey object on their right: they may be hidden
+    view = Template(np.full((50, 75, 3), RED, np.uint8), np.ones((50, 75), bool), _plane_points(0.09, 0.06))
+    # The segmenter cut the plate in a 30 px high piece and a 10 px high sliver: both match.
+    top, sliver = plate.copy(), plate.copy()
+    top[35:] = False
+    sliver[:35] = False
+    split = InstanceMasks(np.stack([sliver, top]), ("sliver", "top"), np.ones(2))
+    assert (TemplateMatcher([view]).scores(rgb, split, depth, _Cam()) > 0.99).all()
+    alone = TemplateMatcher([view], fragments=False).detect(rgb, split, depth, _Cam())
+    assert alone.instance_index == 0 and alone.mask.sum() == sliver.sum()  # the best score: the first piece
+    est = TargetDetector("template", 120, 100, templates=[view], camera=_Cam()).detect(rgb, split, depth)
+    assert est.visible and np.array_equal(est.mask, plate) and est.instance_index == 1  # the larger piece
+    # Two plates one below the other are 12.2 cm long together: not joined.
+    two = InstanceMasks(np.stack([plate, below]), ("a", "b"), np.ones(2))
+    assert (TemplateMatcher([view]).scores(rgb, two, depth, _Cam()) > 0.99).all()
+    est = TemplateMatcher([view]).detect(rgb, two, depth, _Cam())
+    assert est.visible and est.mask.sum() == plate.sum()
+    # Without depth there is no size to bound the union: the pieces stay apart.
+    assert TemplateMatcher([view]).detect(rgb, split).mask.sum() in (sliver.sum(), top.sum())

@@ -16,7 +16,7 @@ Backends:
   histograms (cv2.compareHist, HISTCMP_CORREL, clipped to [0, 1]), maximised over the k
   templates, and set to 0 for a mask larger than `max_area_ratio` x the largest template mask
   (an occluded target never looks larger than the whole target from the same camera). The mask
-  with the best score is the target when the score is >= `threshold`.
+  with the best score is the target when the score is >= `threshold` (refined by (1)-(4) below).
   Geometric check (our addition; when the templates carry the target's seen surface points and
   the detector gets the depth image and the camera's intrinsics): colour cannot tell the target
   from another object of its colour, its size can. A mask that reaches the threshold is set to 0
@@ -29,6 +29,27 @@ Backends:
   of the target is another object). Limits: (b) wrongly rejects a target hidden by something
   less than 5 mm above it (e.g. a thin object lying flat on it) and seen too small; it cannot tell
   same-coloured objects of one size, or two copies of one object.
+  Merged, spilt and split masks (our addition, `parts=True` and `fragments=True`): a learned
+  segmenter working on depth rarely gives the thin target a mask of its own when it lies on or
+  against another object. The target's colours are the hue-saturation bins that hold `part_mass`
+  = 99 % of the templates' pixels; a mask's target-coloured part is its pixels of those colours
+  after a 3x3 opening, the largest connected piece. (1) A mask whose histogram falls below t_r
+  (it shows other colours too: the target merged with a neighbour) is scored again by its part,
+  which takes the mask's place in every check (area, histogram, size) except (b): its border
+  with the rest of its mask is one the depth did not tell apart, so it is never taken as seen
+  whole. A target found so has the part as its mask, and the mask's instance only when the part
+  is at least half of it (else -1: seen, inside a mask that is mostly another object). (2) A
+  mask of the target's colours is judged whole (an object of its colour is not cut down to the
+  target's size), but (a) measures its part: a mask spilling over the target's edge onto a
+  neighbour takes the neighbour's depth into its extents. (3) With the geometric check, the best
+  region (whole masks before parts, then by score) is joined by the other matching regions that
+  touch it (within 2 px) while the union passes the check, and the estimate's mask is the union:
+  the histogram of any pure piece of a split target correlates near 1, so the best score does
+  not tell the main piece from a sliver; the instance is the piece showing most of the target
+  (same half-of-its-mask rule). (4) When no mask matches, the target-coloured pixels that no
+  mask holds (their largest piece, scored like a part, (b) included) are a target the segmenter
+  left out: visible, instance -1. Limits: two touching objects of the target's colour that
+  together fit its size are taken for one target.
   `render_templates(...)` renders k views of an object alone in the scenario's camera, with the
   points of each view's depth.
 - ``learned``: the siamese network of ms_drake.perception.matcher_net (App. C.2's architecture
@@ -132,9 +153,12 @@ def detect_color(rgb, masks: InstanceMasks, params: ColorParams = ColorParams())
     return TargetEstimate(False, np.zeros(red.shape, bool), 0.0, -1)
 
 
+_H_BINS, _S_BINS = 30, 32  # the hue-saturation histogram's bins
+
+
 def _hs_hist(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
     hsv = cv2.cvtColor(_rgb_array(rgb), cv2.COLOR_RGB2HSV)
-    hist = cv2.calcHist([hsv], [0, 1], mask.astype(np.uint8), [30, 32], [0, 180, 0, 256])
+    hist = cv2.calcHist([hsv], [0, 1], mask.astype(np.uint8), [_H_BINS, _S_BINS], [0, 180, 0, 256])
     return cv2.normalize(hist, hist, 1.0, 0.0, cv2.NORM_L1)
 
 
@@ -199,7 +223,8 @@ class TemplateMatcher:
     """Scores masks against k target templates (see the module doc)."""
 
     def __init__(self, templates: list[Template], threshold: float = 0.9, max_area_ratio: float = 1.5,
-                 min_pixels: int = 20, geometry: GeometryParams = GeometryParams()):
+                 min_pixels: int = 20, geometry: GeometryParams = GeometryParams(), parts: bool = True,
+                 part_mass: float = 0.99, fragments: bool = True):
         if not templates:
             raise PerceptionError("TargetDetector(backend='template') needs at least one template image "
                                   "(render_templates(scenario, object_name, k))")
@@ -212,6 +237,13 @@ class TemplateMatcher:
         self.max_area = max(int(t.mask.sum()) for t in templates)
         self.threshold, self.max_area_ratio, self.min_pixels = float(threshold), float(max_area_ratio), int(min_pixels)
         self.geometry = geometry
+        # The target's colours: the hue-saturation bins holding `part_mass` of the templates' pixels.
+        total = np.sum(self.hists, axis=0)
+        order = np.argsort(total, axis=None)[::-1]
+        n = int(np.searchsorted(np.cumsum(total.ravel()[order]), part_mass * total.sum())) + 1
+        self.colour_bins = np.zeros(total.shape, bool)
+        self.colour_bins.flat[order[:n]] = True
+        self.parts, self.fragments = bool(parts), bool(fragments)
         # The target's size from the views with points: the largest extents any view shows (what
         # no part of it can exceed) and the smallest a whole view shows.
         ext = [surface_extents(t.points) for t in templates
@@ -219,48 +251,150 @@ class TemplateMatcher:
         self.extent_max = np.max(ext, axis=0) if ext else None
         self.extent_min = np.min(ext, axis=0) if ext else None
 
-    def geometry_ok(self, mask: np.ndarray, depth: np.ndarray, camera) -> bool:
+    def geometry_ok(self, mask: np.ndarray, depth: np.ndarray, camera, surface: np.ndarray | None = None,
+                    may_be_whole: bool = True) -> bool:
         """Whether the mask's 3D surface (from depth and the camera's intrinsics) can be the
         target's: no extent larger than the target's, and, if seen whole, not smaller than any
-        whole view of it. True when the templates carry no points or the mask too few."""
+        whole view of it. surface (optional, within the mask): the pixels whose extents are held
+        against the target's largest (the mask's target-coloured part); the mask itself is what
+        is seen whole or not, and held against the smallest (not when may_be_whole is False). True
+        when the templates carry no points or the mask too few."""
         g = self.geometry
         if self.extent_max is None:
             return True
         pts = mask_points(depth, mask, camera)
         if len(pts) < g.min_points:
             return True
-        e = surface_extents(pts)
-        if np.any(e > (1.0 + g.extent_tolerance) * self.extent_max + g.extent_margin):
+        e = e_large = surface_extents(pts)
+        if surface is not None:
+            sp = mask_points(depth, surface, camera)
+            if len(sp) >= g.min_points:
+                e_large = surface_extents(sp)
+        if np.any(e_large > (1.0 + g.extent_tolerance) * self.extent_max + g.extent_margin):
             return False
-        if occluded_fraction(depth, mask, g.occlusion_step, g.ring) <= g.whole_occluded:
+        if may_be_whole and occluded_fraction(depth, mask, g.occlusion_step, g.ring) <= g.whole_occluded:
             return not np.any(e[:2] < (1.0 - g.whole_tolerance) * self.extent_min[:2] - g.whole_margin)
         return True
 
-    def scores(self, rgb, masks: InstanceMasks, depth=None, camera=None) -> np.ndarray:
-        """Each mask's score; with a depth image (H, W) [m] of the same camera and its intrinsics
-        (fx, fy, cx, cy), a mask that fails the geometric check scores 0."""
-        d = None
-        if depth is not None and camera is not None:
-            d = np.asarray(depth.data if hasattr(depth, "data") else depth, np.float32)
-            d = d.reshape(d.shape[0], d.shape[1])
-        out = np.zeros(len(masks))
+    def target_colours(self, rgb) -> np.ndarray:
+        """(H, W) bool: pixels whose hue-saturation bin is one of the target's colours."""
+        hsv = cv2.cvtColor(_rgb_array(rgb), cv2.COLOR_RGB2HSV)
+        h = np.minimum(hsv[..., 0].astype(np.int32) * _H_BINS // 180, _H_BINS - 1)
+        s = hsv[..., 1].astype(np.int32) * _S_BINS // 256
+        return self.colour_bins[h, s]
+
+    def target_part(self, mask: np.ndarray, colours: np.ndarray) -> np.ndarray:
+        """The mask's target-coloured part: its pixels of the target's colours (`colours`, from
+        target_colours), after a 3x3 opening, the largest 4-connected piece (all False if none)."""
+        mask = np.asarray(mask, bool)
+        out = np.zeros(mask.shape, bool)
+        ys, xs = np.nonzero(mask)
+        if not len(ys):
+            return out
+        # (within the mask's bounding box and 2 px around it: the same result, at a box's cost)
+        box = (slice(max(ys.min() - 2, 0), ys.max() + 3), slice(max(xs.min() - 2, 0), xs.max() + 3))
+        part = cv2.morphologyEx((mask[box] & colours[box]).astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+        n, lab, stats, _ = cv2.connectedComponentsWithStats(part, connectivity=4)
+        if n > 1:
+            out[box] = lab == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+        return out
+
+    def colour_score(self, rgb, mask: np.ndarray) -> float:
+        """The region's hue-saturation histogram correlation, best over the templates, in [0, 1]."""
+        h = _hs_hist(rgb, mask)
+        return min(max(max(cv2.compareHist(h, t, cv2.HISTCMP_CORREL) for t in self.hists), 0.0), 1.0)
+
+    def _score(self, rgb, mask: np.ndarray, d, camera, colour: float | None = None, surface=None,
+               may_be_whole: bool = True) -> float:
+        """One region's score: 0 outside the area limits or when it (or `surface`, its pixels of
+        the target's surface) fails the geometric check."""
+        area = int(mask.sum())
+        if area < self.min_pixels or area > self.max_area_ratio * self.max_area:
+            return 0.0
+        s = self.colour_score(rgb, mask) if colour is None else colour
+        if s >= self.threshold and d is not None and not self.geometry_ok(mask, d, camera, surface, may_be_whole):
+            return 0.0
+        return s
+
+    def regions(self, rgb, masks: InstanceMasks, depth=None, camera=None) -> tuple[np.ndarray, list, np.ndarray]:
+        """Each mask's score, the region it was scored on and whether that is a part: the mask
+        itself, or, for a mask whose colours are not the target's (histogram below t_r) when `parts`
+        is on, its target-coloured part (module doc). With a depth image (H, W) [m] of the same
+        camera and its intrinsics (fx, fy, cx, cy), a region that fails the geometric check scores
+        0; with `parts` on, a whole mask's check measures its target-coloured part (the pixels of
+        a neighbour that the mask spills onto are not the target's surface)."""
+        d = self._depth(depth) if camera is not None else None
+        out, regions, is_part = np.zeros(len(masks)), [None] * len(masks), np.zeros(len(masks), bool)
+        colours = None
         for k in range(len(masks)):
-            area = masks.masks[k].sum()
-            if area < self.min_pixels or area > self.max_area_ratio * self.max_area:
+            m = masks.masks[k]
+            regions[k] = m
+            if m.sum() < self.min_pixels:
                 continue
-            h = _hs_hist(rgb, masks.masks[k])
-            out[k] = max(max(cv2.compareHist(h, t, cv2.HISTCMP_CORREL) for t in self.hists), 0.0)
-            if out[k] >= self.threshold and d is not None and not self.geometry_ok(masks.masks[k], d, camera):
-                out[k] = 0.0
-        return np.clip(out, 0.0, 1.0)
+            c = self.colour_score(rgb, m)
+            if not self.parts:
+                out[k] = self._score(rgb, m, d, camera, c)
+                continue
+            if colours is None:
+                colours = self.target_colours(rgb)
+            part = self.target_part(m, colours)
+            if c >= self.threshold:
+                # The target's colours: judged whole (another object of its colour is not cut down),
+                # its size measured on its target-coloured part.
+                out[k] = self._score(rgb, m, d, camera, c, part if part.sum() >= self.min_pixels else None)
+                continue
+            if part.sum() >= self.min_pixels:
+                # Never seen whole: the depth did not separate it from the rest of its mask.
+                s = self._score(rgb, part, d, camera, may_be_whole=False)
+                if s >= self.threshold:
+                    out[k], regions[k], is_part[k] = s, part, True
+        return out, regions, is_part
+
+    def scores(self, rgb, masks: InstanceMasks, depth=None, camera=None) -> np.ndarray:
+        """Each mask's score (see `regions`)."""
+        return self.regions(rgb, masks, depth, camera)[0]
+
+    def _depth(self, depth):
+        if depth is None:
+            return None
+        d = np.asarray(depth.data if hasattr(depth, "data") else depth, np.float32)
+        return d.reshape(d.shape[0], d.shape[1])
 
     def detect(self, rgb, masks: InstanceMasks, depth=None, camera=None) -> TargetEstimate:
         h, w = _rgb_array(rgb).shape[:2]
         if len(masks):
-            s = self.scores(rgb, masks, depth, camera)
-            k = int(np.argmax(s))
-            if s[k] >= self.threshold:
-                return TargetEstimate(True, masks.masks[k].copy(), float(s[k]), k)
+            s, regions, is_part = self.regions(rgb, masks, depth, camera)
+            # Whole masks first (the segmenter agrees that they are one object), by score.
+            ok = sorted((int(i) for i in np.flatnonzero(s >= self.threshold)),
+                        key=lambda i: (bool(is_part[i]), -s[i], i))
+            if ok:
+                k = ok[0]
+                target, pieces = regions[k].copy(), [k]
+                d = self._depth(depth) if camera is not None else None
+                if self.fragments and d is not None and self.extent_max is not None:
+                    # Other matching masks touching it that keep the whole within the target's size
+                    # are pieces of the same target (a segmenter that split it).
+                    near = cv2.dilate(target.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+                    for j in ok[1:]:
+                        if not (regions[j] & near).any():
+                            continue
+                        union = target | regions[j]
+                        if union.sum() <= self.max_area_ratio * self.max_area and self.geometry_ok(union, d, camera):
+                            target, pieces = union, pieces + [j]
+                            near = cv2.dilate(target.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+                # The instance: the piece showing most of the target, if the target is most of its mask.
+                i = max(pieces, key=lambda j: int(regions[j].sum()))
+                index = i if not is_part[i] or 2 * int(regions[i].sum()) >= int(masks.masks[i].sum()) else -1
+                return TargetEstimate(True, target, float(s[k]), index)
+        if self.parts:
+            # The target's colours where no mask is: a target the segmenter left out.
+            free = self.target_part(~masks.masks.any(axis=0) if len(masks) else np.ones((h, w), bool),
+                                    self.target_colours(rgb))
+            if free.sum() >= self.min_pixels:
+                d = self._depth(depth) if camera is not None else None
+                s = self._score(rgb, free, d, camera)
+                if s >= self.threshold:
+                    return TargetEstimate(True, free, float(s), -1)
         return TargetEstimate(False, np.zeros((h, w), bool), 0.0, -1)
 
 
