@@ -220,6 +220,7 @@ def grasp_tool_pose(grasp) -> RigidTransform:
 
 JAW = ParallelJawConfig()  # the stations' jaw (models/grippers/parallel_jaw.sdf)
 JAW_OPENING = JAW.max_opening  # m, the jaw's opening at park and after a release
+VIA_CLEARANCE = 0.25  # m over the bin's walls: the move from park to a grasp passes this high above it
 
 
 def pick_opening(grasp) -> float:
@@ -250,7 +251,7 @@ class FullBackend(_Base):
     def __init__(self, scenario, objects: dict, workspace, target_id: str = "", seed: int = 0, settle: float = 0.5,
                  lift: float = 0.15, speed: float = 0.25, close_time: float = 0.5, hold_time: float = 0.3,
                  park_distance: float = 0.35, park_height: float = 0.10, grip_force: float = CLOSING_FORCE,
-                 drop_height: float = 0.25, via_clearance: float = 0.25):
+                 drop_height: float = 0.25, via_clearance: float = VIA_CLEARANCE):
         super().__init__(objects, workspace, target_id, seed, settle)
         if not scenario.robot.name:
             raise ExecutionError("full fidelity needs a robot: the scenario has none (robot.name is empty); "

@@ -18,7 +18,8 @@ from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
 from pydrake.systems.framework import DiagramBuilder
 
 from ms_drake.errors import MsDrakeError
-from ms_drake.geometry import as_rigid_transform
+from ms_drake.execution.backends import VIA_CLEARANCE
+from ms_drake.geometry import Workspace, as_rigid_transform
 from ms_drake.objects import get_object
 from ms_drake.planning import TimedTrajectory, TrajectoryStreamer
 from ms_drake.planning.sequences import PickPlan, arm_ik, plan_pick, plan_push
@@ -178,8 +179,13 @@ def plan_task(task: PickTask, from_home: bool = True, speed: float = 0.15, scena
     else:
         opening = 0.10
         pauses = dict(close_time=0.5, hold_time=0.25) if quick else {}
+        via_z = None  # in a bin, from home above the walls and straight down, as the bin search's picks
+        if scn.environment.type == "bin":
+            ws = Workspace.from_scenario(scn)
+            via_z = ws.floor_z + ws.wall_height + VIA_CLEARANCE
         plan = plan_pick(ik, limits, q_home, X_tool, task.arm, task.gripper, task.kind, lift=task.lift,
-                         speed=speed, blade=task.blade, from_home=from_home, max_opening=opening, **pauses)
+                         speed=speed, blade=task.blade, from_home=from_home, max_opening=opening, via_z=via_z,
+                         **pauses)
     del keep
     return scn, plan, X_object
 
