@@ -37,6 +37,7 @@ def test_batched_poses_match_drake(robot, arm):
     qs = rng.uniform(np.maximum(lower, -3), np.minimum(upper, 3), (6, len(arm_positions)))
     X = fk(qs)
     assert X.shape == (6, len(bodies), 4, 4)
+    np.testing.assert_allclose(fk.torch(qs).numpy(), X, rtol=0, atol=1e-12)  # the torch graph: the same poses
     for i, qa in enumerate(qs):
         q = q_full.copy()
         q[arm_positions] = qa
@@ -55,3 +56,5 @@ def test_wrong_batch_width_is_a_clear_error():
     fk = BatchFK(plant, ctx, [0, 1], ["panda_link3"], inst)
     with pytest.raises(BatchFKError, match="takes 2 positions"):
         fk(np.zeros((3, 7)))
+    with pytest.raises(BatchFKError, match=r"must be \(N, 2\)"):
+        fk.torch(np.zeros((3, 7)))

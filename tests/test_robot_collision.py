@@ -58,3 +58,39 @@ def test_table_and_object_in_hand(model):
     assert robot.collides(home[None]).tolist() == [False]
     with pytest.raises(CollisionNetError, match="not a body of the arm model"):
         robot.attach("bar", _cube_cloud(np.zeros(3)), "world", np.eye(4))
+
+
+def test_network_path_answers_as_the_per_link_path(tmp_path):
+    """The network's one-graph path (torch FK, table test first, all links in one pass) gives the
+    per-link path's probabilities on MPPI's waypoints in a real scene with the shipped weights, so
+    MPPI chooses the same waypoint; with an object in hand too."""
+    from ms_drake.collision.checker import default_weights, load_collision_net  # noqa: PLC0415
+    from ms_drake.experiments.mppi_bench import mppi_problem  # noqa: PLC0415
+    from ms_drake.planning.mppi import MppiParams, mppi_step, rollouts  # noqa: PLC0415
+
+    net = load_collision_net(default_weights("net"), "net")[0]
+    robot, q0, goal, lo, hi, keep = mppi_problem(100000, "net", tmp_path, net)
+    _, way = rollouts(q0, goal, lo, hi, MppiParams(), np.random.default_rng(0))
+    Q = way.reshape(-1, 7)
+    fast, slow = robot.probabilities(Q), robot.per_link_probabilities(Q)
+    np.testing.assert_allclose(fast, slow, rtol=0, atol=1e-6)
+    assert ((fast > 0.5) == (slow > 0.5)).all() and 0.05 < (fast > 0.5).mean() < 0.95
+    net_only = RobotSceneCollision(robot.model, robot.checker, table_top=None)  # every query to the network
+    p_net = net_only.probabilities(Q)
+    np.testing.assert_allclose(p_net, net_only.per_link_probabilities(Q), rtol=0, atol=1e-6)
+    assert 0 < (p_net > 0.5).sum() < len(Q)
+    params = MppiParams(seed=5)
+    a = mppi_step(q0, goal, robot.collides, lo, hi, params, np.random.default_rng(5))
+    b = mppi_step(q0, goal, lambda qs: robot.per_link_probabilities(qs) > 0.5, lo, hi, params,
+                  np.random.default_rng(5))
+    np.testing.assert_array_equal(a[0], b[0])
+    np.testing.assert_array_equal(a[1]["path"], b[1]["path"])
+    block = (trimesh.sample.sample_surface(trimesh.creation.box([0.05, 0.05, 0.12]), 400, seed=1)[0]).astype(np.float32)
+    X_HO = np.eye(4)
+    X_HO[2, 3] = 0.15
+    robot.attach("block", block, "body", X_HO)
+    held_fast, held_slow = robot.probabilities(Q), robot.per_link_probabilities(Q)
+    np.testing.assert_allclose(held_fast, held_slow, rtol=0, atol=1e-6)
+    assert (held_fast >= fast - 1e-12).all() and (held_fast > fast + 1e-3).any()  # the block adds collisions
+    robot.detach("block")
+    np.testing.assert_array_equal(robot.probabilities(Q), fast)

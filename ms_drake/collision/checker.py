@@ -106,6 +106,16 @@ class SceneChecker:
         else:
             self._sets[name] = make_baseline(self.method, self.scene_points, points)
 
+    def codes(self, names) -> object:
+        """(len(names), V, hidden) torch tensor: the network's per-set codes, stacked, for
+        `SceneCollisionNet.query_stacked` (networks only)."""
+        if self.net is None:
+            raise CollisionNetError(f"codes: the {self.method!r} checker has no network codes")
+        missing = [n for n in names if n not in self._sets]
+        if missing:
+            raise CollisionNetError(f"point sets {missing} not added; added: {', '.join(self._sets) or 'none'}")
+        return self.torch.stack([self._sets[n] for n in names])
+
     def query(self, name: str, poses: np.ndarray) -> np.ndarray:
         """(n,) P(collision) of point set `name` at poses (n, 4, 4) world-from-object."""
         if name not in self._sets:

@@ -18,7 +18,8 @@ Scene and object features are computed once per observation (`SceneCollisionNet.
 batch of queries then costs only the classifier (`SceneCollisionNet.query`). The classifier's
 first layer is linear in the concatenation [voxel feature, object feature, pose], so `encode`
 also precomputes its voxel and object parts: a query pays only the pose part, a gather, and the
-layers after the first.
+layers after the first. `SceneCollisionNet.query_stacked` answers several point sets (a robot's
+links) at once: their codes stacked, one gather, one matrix product per layer.
 
 Hard-negative mining (line 1061): `mined_loss` back-propagates the binary cross-entropy of the
 `hard` (10 %) highest-loss queries plus `random` (10 %) others drawn at random.
@@ -142,6 +143,20 @@ def make_net(cfg: NetConfig = NetConfig()):
             idx = self.voxel_index(t)
             rel = torch.cat([(t - self.centres[idx]) / cfg.voxel, poses[:, :3, 0], poses[:, :3, 1]], dim=1)
             return self.rest(torch.relu(code[idx] + self.first_pose(rel)))[:, 0]
+
+        def query_stacked(self, codes, poses):
+            """(n, B) collision logits of B point sets at n poses each, in one pass: codes (B, V,
+            hidden) from `encode` (one per set), poses (n, B, 4, 4) world-from-object; the same logits
+            as B calls of `query`, to round-off. For inference (in-place activations)."""
+            n, B = poses.shape[:2]
+            flat = poses.reshape(n * B, 4, 4)
+            t = flat[:, :3, 3]
+            idx = self.voxel_index(t)
+            rel = torch.cat([(t - self.centres[idx]) / cfg.voxel, flat[:, :3, 0], flat[:, :3, 1]], dim=1)
+            rows = idx + (torch.arange(B) * codes.shape[1]).repeat(n)
+            h = codes.reshape(B * codes.shape[1], -1).index_select(0, rows)
+            h.addmm_(rel, self.first_pose.weight.T).relu_()
+            return self.rest(h)[:, 0].reshape(n, B)
 
         def forward(self, scene_points, object_points, poses):
             return self.query(self.encode(scene_points, object_points), poses)

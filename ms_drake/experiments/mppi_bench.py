@@ -8,7 +8,8 @@ the gripper (its ArmModel's points) with the chosen checker, a start and a goal 
 the table, the start on its left half, the goal on its right, both free by the checker; seeded),
 so the way between them passes over or around the scene's objects. A run makes `steps` MPPI calls from the start, each
 moving to the returned waypoint (the reference executes the minimal-cost trajectory up to it), and
-reports the CPU time per call (one thread; link FK, the network's queries, sampling, selection),
+reports the CPU time per call (`threads` threads for torch and numpy's BLAS alike, so the CPU time is
+that of one core at the default; link FK, the network's queries, sampling, selection),
 the waypoints checked per second, and whether the goal was reached (joint distance < 0.05 rad).
 
 Planners: `ours` checks all T x H waypoints in one batch (the reference's single forward pass);
@@ -29,6 +30,7 @@ import time
 
 import numpy as np
 from pydrake.math import RigidTransform, RollPitchYaw
+from threadpoolctl import threadpool_limits
 
 from ms_drake.collision.checker import (
     NETWORKS,
@@ -144,7 +146,8 @@ def bench_mppi(method: str, scenes: int, seed_start: int = 0, trajectories: int 
     for k in range(scenes):
         seed = seed_start + k
         robot, q0, goal, lo, hi, keep = mppi_problem(seed, method, cache, net)
-        r = run(robot, q0, goal, lo, hi, MppiParams(trajectories=trajectories, horizon=horizon, seed=seed), steps)
+        with threadpool_limits(limits=threads, user_api="blas"):
+            r = run(robot, q0, goal, lo, hi, MppiParams(trajectories=trajectories, horizon=horizon, seed=seed), steps)
         out.append(dict(seed=seed, method=method, planner=planner, trajectories=trajectories, horizon=horizon,
                         threads=threads, hz=1e3 / r["ms_per_step"], **r))
         del keep

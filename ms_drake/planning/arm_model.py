@@ -14,6 +14,7 @@ of the robot against itself and the environment, for sampling planners (MPPI, Ch
   bodies); bodies held by a joint that is not one of the arm's (the gripper's fingers) keep the
   positions they have in the plant's context. Matches `plant.EvalBodyPoseInWorld` to 1e-9
   (tests/test_rearrange.py).
+  `link_poses_torch` is the same in torch (one graph with a network checker).
 - `self_collides`: the plant's geometry on its own context (SceneGraph's `HasCollisions`: robot
   against itself with adjacent links filtered, and against the environment's table), one
   configuration at a time; callers check lazily (few configurations).
@@ -114,6 +115,11 @@ class ArmModel:
         poses = {self.base_name: np.broadcast_to(self.X_W_base, (len(qs), 4, 4))}
         poses.update({name: X[:, k] for k, name in enumerate(self.body_names)})
         return poses
+
+    def link_poses_torch(self, qs):
+        """(n, len(body_names), 4, 4) float64 torch world-from-body poses of the moving bodies, in
+        the order of `body_names`, for configurations qs (n, dof): link_poses as one torch graph."""
+        return self._fk.torch(qs)
 
     def tool_pose(self, q) -> np.ndarray:
         """4x4 world-from-tool (the ik's frame) at arm configuration q."""

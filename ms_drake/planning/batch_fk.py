@@ -13,6 +13,12 @@ the child). Revolute, prismatic and weld joints are supported (the robots of thi
 joints whose positions are not in `positions` keep their values from the context given at
 construction (e.g. the gripper's fingers, another robot's arm). Free (floating) bodies keep the
 context's pose. The result matches `plant.EvalBodyPoseInWorld` to round-off (tests/test_batch_fk.py).
+
+`BatchFK.torch(q)` is the same kinematics as one torch graph (float64; torch imported there): each
+joint's pose in its parent, X_PF @ X_FM(q) @ inv(X_CM), is M0 + sin(q) M1 + (1 - cos(q)) M2 for a
+revolute joint (Rodrigues' formula with the fixed frames folded into three constant matrices) and
+M0 + q M1 for a prismatic one, so a body costs one batched 4x4 product; collision checkers run it
+next to their network without leaving torch.
 """
 
 from __future__ import annotations
@@ -110,3 +116,49 @@ class BatchFK:
                 A = A @ F
             X[child] = A @ X_MC
         return np.stack([X[int(b.index())] for b in self.bodies], axis=1)
+
+    def _torch_steps(self):
+        """The steps as constant torch matrices (M0, M1, M2) per joint (module doc), built once."""
+        if getattr(self, "_tsteps", None) is None:
+            import torch  # optional heavy dependency
+
+            steps = []
+            for child, parent, X_PF, X_MC, kind, axis, k, q0 in self.steps:
+                if kind in ("free", "weld"):
+                    M = (X_PF if kind == "free" else X_PF @ X_MC,)
+                elif kind == "revolute":
+                    a = axis / np.linalg.norm(axis)
+                    K = np.zeros((4, 4))
+                    K[:3, :3] = [[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]]
+                    M = (X_PF @ X_MC, X_PF @ K @ X_MC, X_PF @ K @ K @ X_MC)
+                else:  # prismatic
+                    D = np.zeros((4, 4))
+                    D[:3, 3] = axis
+                    M = (X_PF @ X_MC, X_PF @ D @ X_MC)
+                steps.append((child, parent, kind, k, q0, torch.tensor(np.concatenate(M, axis=1), dtype=torch.float64)))
+            self._tsteps = steps
+        return self._tsteps
+
+    def torch(self, q):
+        """(N, len(bodies), 4, 4) float64 torch poses for q (N, len(positions)), a torch tensor or array
+        (module doc); the same values as calling the BatchFK, to round-off."""
+        import torch  # optional heavy dependency
+
+        q = torch.as_tensor(q, dtype=torch.float64)
+        if q.ndim != 2 or q.shape[1] != len(self.positions):
+            raise BatchFKError(f"q must be (N, {len(self.positions)}), got shape {tuple(q.shape)}")
+        N = q.shape[0]
+        X = {self.world: None}  # None: the identity
+        for child, parent, kind, k, q0, M in self._torch_steps():
+            P = X[parent]
+            # P @ [M0 M1 M2]: one matrix product with the joint's constant matrices side by side
+            A = M.expand(N, 4, M.shape[1]) if P is None or kind == "free" else torch.matmul(P, M)
+            if kind in ("free", "weld"):
+                X[child] = A
+                continue
+            v = (q[:, k] if k is not None else torch.full((N,), q0, dtype=torch.float64))[:, None, None]
+            if kind == "prismatic":
+                X[child] = A[:, :, :4] + v * A[:, :, 4:]
+            else:
+                X[child] = A[:, :, :4] + torch.sin(v) * A[:, :, 4:8] + (1.0 - torch.cos(v)) * A[:, :, 8:]
+        return torch.stack([X[int(b.index())] for b in self.bodies], dim=1)
