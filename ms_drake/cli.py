@@ -92,6 +92,7 @@ from ms_drake.experiments.push_study import (
 )
 from ms_drake.experiments.rearrange import DEMO_SEED as REARRANGE_DEMO_SEED
 from ms_drake.experiments.rearrange import METHODS as REARRANGE_METHODS
+from ms_drake.experiments.rearrange import SCENE_SETS as REARRANGE_SCENE_SETS
 from ms_drake.experiments.perceive import PERCEIVE_SEGMENTERS, PerceiveError, load_camera, load_depth
 from ms_drake.experiments.perceive import perceive as run_perceive
 from ms_drake.experiments.perceive import write_perception
@@ -379,7 +380,10 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
          config: Optional[str] = typer.Option(None, "--config", help="bin: the search's named setting or YAML file, "
                                               "as `bench search --config` (default camera: learned masks, target "
                                               "matcher and occupancy on a noisy depth sensor, the search from the "
-                                              "camera alone; table_8_2: ground-truth masks); the demo's heap stays")):
+                                              "camera alone; table_8_2: ground-truth masks); the demo's heap stays"),
+         scene_set: Optional[str] = typer.Option(None, "--scene-set", help="rearrange: scene --seed (default 0) of "
+                                                 "a scene set, table | barrier | one_side, with --objects objects "
+                                                 "(default 3), instead of the demo's scene")):
     """A full search with per-step PNGs, a GIF and a Meshcat recording: `bin` (heap, X-Ray on the
     floating gripper: masks, occupancy, action) or `shelf` (a shelf scene searched by the Fetch with
     the bluction tool in Drake physics: depth, distribution, action)."""
@@ -387,12 +391,16 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
         _fail(f"demo {kind!r}: choose bin, shelf or rearrange")
     if kind == "rearrange":
         _choose("--method", method, REARRANGE_METHODS, quote=False)
+        if scene_set is not None:
+            _choose("--scene-set", scene_set, REARRANGE_SCENE_SETS, quote=False)
         station = _need_rearrange_scenario(scenario_file, scenario or "PandaTable")
         out = out or Path("out/demo_rearrange")
         t = time.perf_counter()
-        typer.echo(f"moving the target past the barrier with MPPI ({method}) on the Panda ...")
-        written = run_rearrange_demo(out, method=method, seed=REARRANGE_DEMO_SEED if seed is None else seed,
-                                     meshcat_html=meshcat, log=typer.echo, scenario=station)
+        where = "past the barrier" if scene_set is None else f"in {scene_set} scene {seed or 0}"
+        typer.echo(f"moving objects {where} with MPPI ({method}) on the Panda ...")
+        written = run_rearrange_demo(out, method=method, seed=(REARRANGE_DEMO_SEED if scene_set is None else 0)
+                                     if seed is None else seed, meshcat_html=meshcat, log=typer.echo,
+                                     scenario=station, scene_set=scene_set, objects=objects or 3)
         _echo_written(written)
         typer.echo(f"done in {time.perf_counter() - t:.1f} s")
         return
@@ -1075,11 +1083,16 @@ def bench_rearrange(method: Optional[str] = typer.Option(None, "--method",
                     table: bool = typer.Option(False, "--table", help="Only print the table of --out"),
                     scenario: str = typer.Option("PandaTable", "--scenario", help="The station: a table scenario "
                                                  "with the Panda and a front camera"),
-                    scenario_file: Optional[Path] = ScenarioFile):
-    """Rearrangement on the Panda in Drake physics (Table 6.3 analogue): scenes S..S+N-1 of K objects,
-    each moved (two attempts) to elsewhere on the table by the MPPI controller with the given collision
-    checker; one JSON line per scene (grasps attempted / successful, placements, sim minutes, cpu
-    seconds); resumable. --table: the table of every method in --out."""
+                    scenario_file: Optional[Path] = ScenarioFile,
+                    scene_set: str = typer.Option("table", "--scene-set", help="table (objects anywhere on the "
+                                                  "reachable table, placed anywhere on it) | barrier (a 28 cm box "
+                                                  "across the table, objects on its near side, the zone beyond) | "
+                                                  "one_side (the same without the barrier: the far half fills up)")):
+    """Rearrangement on the Panda in Drake physics (Table 6.3 analogue): scenes S..S+N-1 of K objects
+    of the scene set, each moved (two attempts) into the set's zone by the MPPI controller with the
+    given collision checker; one JSON line per scene (grasps attempted / successful, placements, sim
+    minutes, cpu seconds); resumable. --table: the table of every set and method in --out."""
+    _choose("--scene-set", scene_set, REARRANGE_SCENE_SETS, quote=False)
     if not table:
         _choose("--method", method, REARRANGE_METHODS, quote=False)
     _need_jsonl(out)
@@ -1089,12 +1102,12 @@ def bench_rearrange(method: Optional[str] = typer.Option(None, "--method",
         _need_rearrange_scenario(scenario_file, scenario)
         station = {} if scenario == "PandaTable" and scenario_file is None else {
             "scenario_name": scenario, "scenario_file": str(scenario_file) if scenario_file is not None else None}
-        params = load_config(RearrangeParams, config, set_ or (), **bench_params(method, 0).__dict__)
+        params = load_config(RearrangeParams, config, set_ or (), **bench_params(method, 0, scene_set).__dict__)
         overrides = {k: v for k, v in dataclasses.asdict(params).items() if k not in ("method", "seed")}
         progress = _RunProgress(scenes, out, "scene")
         try:
             run_rearrange_bench(method, scenes, seed_start, out, objects=objects, workers=workers, log=progress.write,
-                                progress=progress, **overrides, **station)
+                                progress=progress, scene_set=scene_set, **overrides, **station)
         except KeyboardInterrupt:
             progress.interrupted()
         progress.close()

@@ -237,9 +237,9 @@ def test_table_scene_and_bench_records(scenario, tmp_path):
     assert run_rearrange_bench("sdf", 1, 0, f, objects=10, log=lambda *a: None) == []  # already there
     # another controller config is another run: the table keeps them apart
     other = dict(rec, config=config_dict(bench_params("sdf", 0, trajectories=100)))
-    assert "| sdf (T=100, H=40) | 1 |" in rearrange_table(rearrange_records([f]) + [other])
+    assert "| table | sdf (T=100, H=40) | 1 |" in rearrange_table(rearrange_records([f]) + [other])
     table = rearrange_table([rec, dict(rec, seed=1)])
-    assert "| sdf (T=300, H=40) | 2 | 20 | 16 / 24 | 12 | 6.0 |" in table
+    assert "| table | sdf (T=300, H=40) | 2 | 20 | 16 / 24 | 12 | - | 6.0 |" in table
     with pytest.raises(ValueError, match="method 'fcl' unknown"):
         run_rearrange_bench("fcl", 1, 0, f)
 
