@@ -26,9 +26,12 @@ Sets:
   available_sets() (no heap draws from it); heaps place one on the floor first
   (ms_drake.scenes.layouts).
 
-- ``fixtures``: fixed parts of a scene that the robot does not move: ``barrier``, a tall wooden
-  box (64 x 6 x 28 cm, 20 kg: it does not tip over at a touch; `BARRIER_SIZE`) that divides the rearrangement table
-  (ms_drake.experiments.rearrange's `barrier` scenes). Not listed by available_sets().
+- ``fixtures``: fixed parts of a scene, welded to the world where their spec's
+  ``meta["fixed_pose"]`` (x, y, yaw on the environment's support surface, relative to its
+  centre) puts them (ms_drake.station.add_objects): ``barrier``, a tall box (64 x 6 x 28 cm,
+  `BARRIER_SIZE`) standing across the rearrangement table at x = -0.12 with its long side along
+  y (`BARRIER_AT`; ms_drake.experiments.rearrange's `barrier` scenes). Not listed by
+  available_sets().
 
 An object's full name is ``<set>/<name>``.
 """
@@ -301,15 +304,16 @@ def _target_box(ratio: int, scale: float = 1.0, name: str = "") -> ObjectSpec:
                       (x, y, z), (shape,), (shape,), TARGET_RGBA)
 
 
-#: The barrier fixture's size (x, y, z) [m] and mass [kg].
+#: The barrier fixture's size (x, y, z) [m], mass [kg] and place (x, y [m], yaw [rad]) on the table.
 BARRIER_SIZE = (0.64, 0.06, 0.28)
 BARRIER_MASS = 20.0
+BARRIER_AT = (-0.12, 0.0, float(np.pi / 2))
 
 
 def _barrier() -> ObjectSpec:
     shape = Shape("box", BARRIER_SIZE)
     return ObjectSpec("fixtures", "barrier", "test", Inertia(BARRIER_MASS, (0, 0, 0), *_box_inertia(BARRIER_MASS, *BARRIER_SIZE)),
-                      BARRIER_SIZE, (shape,), (shape,), (0.62, 0.50, 0.36, 1.0))
+                      BARRIER_SIZE, (shape,), (shape,), (0.62, 0.50, 0.36, 1.0), meta={"fixed_pose": BARRIER_AT})
 
 
 def available_sets() -> list[str]:

@@ -693,13 +693,15 @@ def scenario_with_heap(scenario: Scenario, heap: Heap) -> Scenario:
 
 def set_heap_poses(station, context, heap: Heap) -> None:
     """Put the heap's objects at their saved poses (zero velocity) in a station context made
-    from `scenario_with_heap(...)`."""
+    from `scenario_with_heap(...)`; fixtures (welded by the station) stay where they are."""
     plant = station.GetSubsystemByName("plant")
     pc = plant.GetMyMutableContextFromRoot(context)
     objs = station_objects(plant)
     if [o.full_name for o in objs] != heap.object_names():
         raise HeapError("the station's objects differ from the heap's; build it from scenario_with_heap(scenario, heap)")
     for o, op in zip(objs, heap.objects):
+        if plant.num_positions(o.model_instance) == 0:  # a fixture, welded where the station put it
+            continue
         plant.SetPositions(pc, o.model_instance, np.asarray(op.q))
         plant.SetVelocities(pc, o.model_instance, np.zeros(6))
 

@@ -117,9 +117,11 @@ def object_contact(compliance: str) -> dict:
 
 
 def add_objects(plant: MultibodyPlant, names: list[str], friction: float = 0.5, parser=None,
-                rgba_overrides: dict[int, tuple] | None = None, **contact) -> list:
+                rgba_overrides: dict[int, tuple] | None = None, origin=(0.0, 0.0, 0.0), **contact) -> list:
     """Add the objects `names` (full names) as free bodies; returns their model instances.
-    `contact`: object contact options (see ms_drake.objects.sdf.object_sdf)."""
+    A fixture (a spec with ``meta["fixed_pose"]`` = (x, y, yaw), ms_drake.objects.registry) is
+    welded to the world instead, standing on the support surface whose centre is `origin`, at
+    (x, y) from it turned by yaw. `contact`: object contact options (see ms_drake.objects.sdf.object_sdf)."""
     parser = parser or make_parser(plant)
     out = []
     for k, full in enumerate(names):
@@ -127,8 +129,17 @@ def add_objects(plant: MultibodyPlant, names: list[str], friction: float = 0.5, 
         rgba = (rgba_overrides or {}).get(k)
         (mi,) = parser.AddModelsFromString(
             spec.sdf(object_model_name(k, full), rgba=rgba, friction=friction, **contact), "sdf")
+        if "fixed_pose" in spec.meta:
+            plant.WeldFrames(plant.world_frame(), plant.get_body(plant.GetBodyIndices(mi)[0]).body_frame(),
+                             fixture_pose(spec, origin))
         out.append(mi)
     return out
+
+
+def fixture_pose(spec, origin=(0.0, 0.0, 0.0)) -> RigidTransform:
+    """World pose of a fixture's frame (its centre) standing on the surface centred at `origin`."""
+    x, y, yaw = spec.meta["fixed_pose"]
+    return RigidTransform(RollPitchYaw(0.0, 0.0, yaw), np.asarray(origin, float) + [x, y, spec.extents[2] / 2])
 
 
 def add_cameras(builder, cameras: list, plant, scene_graph) -> None:
@@ -207,7 +218,7 @@ def MakeStation(scenario: Scenario, meshcat=None, hardware: bool | None = None, 
 
     overrides = {target_index: TARGET_RGBA} if 0 <= target_index < len(names) else None
     instances = add_objects(plant, names, scenario.objects.friction, parser, overrides,
-                            **object_contact(scenario.objects.compliance))
+                            origin=scenario.environment.position, **object_contact(scenario.objects.compliance))
     for k, (full, sdf) in enumerate(extra_objects, start=len(names)):
         instances += parser.AddModelsFromString(sdf(object_model_name(k, full)), "sdf")
     robot_handle = None
