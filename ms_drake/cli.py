@@ -939,6 +939,9 @@ def bench_fidelity(heaps_: int = typer.Option(50, "--heaps", min=1, help="Heaps 
                                                        "this robot reaches, a scenario of diagrams/scenarios.yaml "
                                                        "(default: --scenario's, none with --scenario-file; '' for none)"),
                    scenario_file: Optional[Path] = ScenarioFile,
+                   pictures: Optional[Path] = typer.Option(None, "--pictures", help="Folder for a picture of "
+                                                           "every attempt whose outcomes differ (two cameras at the "
+                                                           "grasp, the last 2 s before the outcome)"),
                    json_out: Optional[Path] = JsonSummary):
     """The primitive search's first grasp attempts per heap, each replayed on a robot (full
     fidelity, --scenario) from the same scene with the same grasp: one JSON line per attempt
@@ -952,7 +955,8 @@ def bench_fidelity(heaps_: int = typer.Option(50, "--heaps", min=1, help="Heaps 
         s = run_fidelity(heaps_, seed_start, out, objects=objects, heap_dir=str(heap_dir) if heap_dir else None,
                          workers=workers, max_attempts=attempts, reach=reach,
                          scenario=ScenarioRef(scenario, str(scenario_file) if scenario_file is not None else None),
-                         progress=lambda rec: bar.update(1 if rec.get("kind") == "heap" else 0))
+                         progress=lambda rec: bar.update(1 if rec.get("kind") == "heap" else 0),
+                         pictures=str(pictures) if pictures is not None else None)
     typer.echo(format_fidelity_summary(s))
     if json_out is not None:
         _write_json(json_out, s)

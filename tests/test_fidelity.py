@@ -10,6 +10,8 @@ from ms_drake.execution.reach import PickReach
 from ms_drake.experiments.fidelity import (
     build_replay,
     fidelity_config,
+    grasp_cameras,
+    picture_strip,
     primitive_attempts,
     replay_full,
     summarize,
@@ -190,3 +192,33 @@ def test_scene_hits_within_a_margin():
     parts = [(sh, T.getRotation(), T.getTranslation(), r) for sh, T, r in zip(probe.shapes, probe.transforms, probe.radii)]
     assert not scene.hits(parts) and not scene.hits(parts, margin=0.01)
     assert scene.hits(parts, margin=0.02)
+
+
+def test_grasp_cameras_look_at_the_grasp_from_two_sides():
+    c = np.array([0.05, -0.02, 0.1])
+    cams = grasp_cameras(c, distance=0.5)
+    assert set(cams) == {"grasp_x", "grasp_y"}
+    sides = []
+    for cam in cams.values():
+        X = cam.X_PB.GetDeterministicValue()
+        R, p = X.rotation().matrix(), X.translation()
+        assert np.isclose(np.linalg.norm(p - c), 0.5)
+        assert np.allclose(R[:, 2], (c - p) / 0.5, atol=1e-9)  # +z (the optical axis) at the grasp
+        assert np.isclose(np.degrees(np.arcsin(-R[2, 2])), 45.0)  # 45 degrees down
+        assert R[2, 0] == pytest.approx(0.0, abs=1e-9) and R[2, 1] < 0  # level horizon, image +y down
+        sides.append(np.sign(np.round(p[:2] - c[:2], 6)))
+    assert {tuple(s) for s in sides} == {(1.0, 0.0), (0.0, -1.0)}
+
+
+def test_a_filmed_replay_renders_the_grasp_and_makes_a_picture(attempts4):
+    _, attempts, _ = attempts4
+    r = replay_full(attempts[0], max_sim_time=0.45, film=True)
+    assert [round(t, 2) for t, _ in r.frames] == [0.2, 0.4]
+    for _, images in r.frames:
+        assert set(images) == {"grasp_x", "grasp_y"}
+        for im in images.values():
+            assert im.shape == (240, 320, 3) and im.std() > 10  # a rendered scene, not a blank image
+    pic = picture_strip(r.frames, "title")
+    assert pic.shape == (30 + 2 * 240, 2 * 320, 3)
+    with pytest.raises(ValueError, match="no frames"):
+        picture_strip((), "title")

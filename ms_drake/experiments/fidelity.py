@@ -12,6 +12,12 @@ the other objects on the grasped one before the approach: `object_load`), CPU se
 not) with Wilson 95 % intervals, the agreement of the full outcome with the primitive's
 expected outcome (quality >= 0.5), and the rates for objects other objects press down apart
 (the grasp qualities are those of the object alone; the physical cup lifts the load too).
+
+Pictures (`run_fidelity(pictures=DIR)`, `bench fidelity --pictures DIR`): every attempt whose
+full outcome differs from the primitive's is also filmed by two colour cameras aimed at the grasp
+(`grasp_cameras`: 45 degrees down, from the bin's +x and -y sides) and written as
+DIR/<seed>_<step>.jpg: the last `STRIP_FRAMES` frames before the outcome, `FRAME_PERIOD` s
+apart (the jaw closing, the lift, the slip), one row per camera.
 """
 
 from __future__ import annotations
@@ -24,8 +30,12 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
+from pydrake.common.schema import Transform
+from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
+from pydrake.systems.sensors import CameraConfig
 from pydrake.systems.framework import DiagramBuilder
 
 from ms_drake.execution import (
@@ -111,6 +121,7 @@ class Replay:
     cpu_seconds: float
     load: float = float("nan")  # N, vertical force of the other objects on the grasped one before the approach
     pressed_by: int = 0  # other objects pressing on it from above (downward force > 0.1 N)
+    frames: tuple = ()  # (t, {camera: RGB image}) every FRAME_PERIOD s when filmed (replay_full(film=True))
 
 
 def object_load(plant, inspector, plant_context, body_index: int) -> tuple[float, int]:
@@ -138,12 +149,35 @@ def object_load(plant, inspector, plant_context, body_index: int) -> tuple[float
     return float(sum(forces.values())), int(sum(f < -0.1 for f in forces.values()))
 
 
-def build_replay(attempt: Attempt, scenario: str | ScenarioRef = "YuMiBin", seed: int = 0):
+FRAME_PERIOD = 0.2  # s between the pictures' frames
+STRIP_FRAMES = 10  # frames per picture, before the outcome
+
+
+def _look_at(eye, target) -> RigidTransform:
+    """A camera pose (Drake's: +z forward, +y down in the image) at `eye` looking at `target`."""
+    z = np.subtract(target, eye) / np.linalg.norm(np.subtract(target, eye))
+    y = np.array([0.0, 0.0, -1.0]) + z[2] * z  # world down, made normal to z
+    y /= np.linalg.norm(y)
+    return RigidTransform(RotationMatrix(np.column_stack([np.cross(y, z), y, z])), np.asarray(eye, float))
+
+
+def grasp_cameras(center, distance: float = 0.5) -> dict:
+    """Two colour cameras (320 x 240) `distance` m from the grasp centre (world), 45 degrees down,
+    from the bin's +x and -y sides."""
+    c = np.asarray(center, float)
+    h = distance / np.sqrt(2.0)
+    eyes = {"grasp_x": c + [h, 0.0, h], "grasp_y": c + [0.0, -h, h]}
+    return {k: CameraConfig(name=k, width=320, height=240, X_PB=Transform(_look_at(e, c)), rgb=True, depth=False,
+                            renderer_name="vtk") for k, e in eyes.items()}
+
+
+def build_replay(attempt: Attempt, scenario: str | ScenarioRef = "YuMiBin", seed: int = 0, cameras=None):
     """(simulator, station, executor, backend) of the full-fidelity station of `scenario` (a name or
     ScenarioRef) holding the attempt's scene, the robot parked, the attempt's grasp on the executor's
-    action input."""
+    action input; its cameras are `cameras` ({name: CameraConfig}; none by default: the executor
+    needs body poses only)."""
     s = scenario_with_heap(ScenarioRef.of(scenario).load(), attempt.state)
-    s.cameras = {}  # the executor needs body poses only
+    s.cameras = dict(cameras or {})
     builder = DiagramBuilder()
     station = builder.AddSystem(MakeStation(s))
     plant = get_plant(station)
@@ -166,12 +200,17 @@ def build_replay(attempt: Attempt, scenario: str | ScenarioRef = "YuMiBin", seed
 
 
 def replay_full(attempt: Attempt, scenario: str | ScenarioRef = "YuMiBin", max_sim_time: float = 30.0,
-                load_time: float = 0.15) -> Replay:
+                load_time: float = 0.15, film: bool = False) -> Replay:
     """Execute the attempt's grasp in full fidelity from its scene, up to the outcome check. The
     load of the other objects on the grasped one (`object_load`) is read once the arm has held
-    its park for `load_time` s (the pick plan rests 0.2 s at park before it moves)."""
+    its park for `load_time` s (the pick plan rests 0.2 s at park before it moves). film: also
+    render `grasp_cameras` every FRAME_PERIOD s (Replay.frames)."""
     t_cpu = time.process_time()
-    simulator, station, executor, backend = build_replay(attempt, scenario, seed=attempt.seed)
+    cameras = grasp_cameras(attempt.grasp.center) if film else None
+    simulator, station, executor, backend = build_replay(attempt, scenario, seed=attempt.seed, cameras=cameras)
+    station_context = station.GetMyContextFromRoot(simulator.get_context())
+    frames = []
+    every = max(1, int(round(FRAME_PERIOD / executor.period)))
     context = simulator.get_mutable_context()
     ex_ctx = executor.GetMyContextFromRoot(context)
     body = backend.objects.get(attempt.grasp.object_id)
@@ -185,6 +224,9 @@ def replay_full(attempt: Attempt, scenario: str | ScenarioRef = "YuMiBin", max_s
         simulator.AdvanceTo(t)
         if math.isnan(load[0]) and t >= load_time:
             load = object_load(plant, inspector, plant.GetMyContextFromRoot(context), body)
+        if cameras and k % every == 0:
+            frames.append((t, {c: station.GetOutputPort(f"{c}.rgb_image").Eval(station_context).data[:, :, :3].copy()
+                               for c in cameras}))
         history = executor.GetOutputPort("history").Eval(ex_ctx)
         if history:
             break
@@ -194,7 +236,27 @@ def replay_full(attempt: Attempt, scenario: str | ScenarioRef = "YuMiBin", max_s
         rise = float(as_rigid_transform(pose, "pose").translation()[2] - z0)
     out = history[0] if history else None
     return Replay(bool(out and out.success), out.message if out else "timeout", rise, float(t),
-                  time.process_time() - t_cpu, *load)
+                  time.process_time() - t_cpu, *load, frames=tuple(frames))
+
+
+def picture_strip(frames, title: str) -> np.ndarray:
+    """One picture of a filmed replay (Replay.frames): its last STRIP_FRAMES frames, one row per
+    camera, each frame stamped with its time, `title` on top; RGB."""
+    frames = list(frames)[-STRIP_FRAMES:]
+    if not frames:
+        raise ValueError("picture_strip: no frames (replay_full(film=True) films the attempt)")
+    rows = []
+    for cam in frames[0][1]:
+        tiles = []
+        for t, images in frames:
+            tile = np.ascontiguousarray(images[cam])
+            cv2.putText(tile, f"{t:.1f} s", (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 2)
+            tiles.append(tile)
+        rows.append(np.concatenate(tiles, axis=1))
+    body = np.concatenate(rows, axis=0)
+    head = np.full((30, body.shape[1], 3), 255, np.uint8)
+    cv2.putText(head, title, (6, 21), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1)
+    return np.concatenate([head, body], axis=0)
 
 
 # ------------------------------------------------------------------------------------ benchmark
@@ -206,6 +268,7 @@ def heap_job(job: tuple) -> list[dict]:
     default YuMiBin). Module level for pickling."""
     objects, seed, heap_dir, max_attempts, policy, reach, *rest = job
     ref = ScenarioRef.of(rest[0] if rest else "YuMiBin")
+    pictures = rest[1] if len(rest) > 1 else None
     scenario = str(ref)
     heap = cached_heap(HeapConfig("bin_set", objects), seed, heap_dir)
     t = time.process_time()
@@ -213,8 +276,15 @@ def heap_job(job: tuple) -> list[dict]:
     prim_cpu = time.process_time() - t
     recs = []
     for a in attempts:
-        r = replay_full(a, ref)
+        r = replay_full(a, ref, film=pictures is not None)
         g = a.grasp
+        if pictures is not None and r.lifted != a.primitive_lifted:
+            title = (f"heap {seed}, attempt {a.step}: {g.kind} on {g.object_id}, quality {g.quality:.2f}; primitive "
+                     f"{'lifted' if a.primitive_lifted else 'failed'}, {ref.name} {'lifted' if r.lifted else 'failed'}"
+                     f"{' (' + r.message + ')' if r.message else ''}")
+            Path(pictures).mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(Path(pictures) / f"{seed}_{a.step}.jpg"), picture_strip(r.frames, title)[:, :, ::-1],
+                        [cv2.IMWRITE_JPEG_QUALITY, 85])
         recs.append({"kind": "attempt", "seed": int(seed), "objects": int(objects), "reach": reach, "step": a.step,
                      "scenario": scenario,
                      "grasp": g.kind, "object": g.object_id, "target": a.target, "quality": float(g.quality),
@@ -240,11 +310,12 @@ def _read(path: Path) -> list[dict]:
 
 def run_fidelity(heaps: int, seed_start: int, out, objects: int = 10, heap_dir: str | None = None,
                  workers: int = 1, max_attempts: int | None = 3, policy: str = "largest", reach: str = "YuMiBin",
-                 progress=None, scenario: str | ScenarioRef = "YuMiBin") -> dict:
+                 progress=None, scenario: str | ScenarioRef = "YuMiBin", pictures: str | None = None) -> dict:
     """The paired benchmark, the attempts replayed on `scenario`'s robot (a name or ScenarioRef; the
     records keep it as str(ScenarioRef)): heaps S..S+K-1 not yet in
     `out` (a heap is done once its "heap" record is there; its records are written together, so a killed run loses only the heaps in
-    flight and the same command resumes). Returns `summarize` of the file."""
+    flight and the same command resumes). pictures: a folder for the pictures of the attempts
+    whose fidelities disagree (module docstring). Returns `summarize` of the file."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     ref = ScenarioRef.of(scenario)
@@ -253,7 +324,7 @@ def run_fidelity(heaps: int, seed_start: int, out, objects: int = 10, heap_dir: 
     # attempt records of heaps without their heap record (a torn run) are dropped before rerunning
     keep = [r for r in _read(out) if not mine(r) or int(r["seed"]) in done]
     out.write_text("".join(json.dumps(r) + "\n" for r in keep))
-    jobs = [(objects, k, heap_dir, max_attempts, policy, reach, ref)
+    jobs = [(objects, k, heap_dir, max_attempts, policy, reach, ref, pictures)
             for k in range(seed_start, seed_start + heaps) if k not in done]
     with out.open("a") as f:
         for res in run_jobs(heap_job, jobs, workers=workers):
