@@ -6,6 +6,7 @@ refused up front.
 The commands run in this process (ms_drake.cli.main with sys.argv set): an exception that escaped
 main() would fail the test, which is what "no traceback" means here."""
 
+import gzip
 import json
 import os
 import runpy
@@ -243,6 +244,15 @@ def test_read_record_file(tmp_path):
     assert read_record_file(f, resume=True) == []
     with pytest.raises(RecordFileError, match="no records"):
         read_record_file(f)
+    # the repository's records are gzipped: read as they are, a torn last line dropped, the file left alone
+    g = tmp_path / "r.jsonl.gz"
+    packed = gzip.compress(b'{"seed": 4}\n{"seed": 5, "pol')
+    g.write_bytes(packed)
+    assert [r["seed"] for r in read_record_file(g, resume=True)] == [4]
+    assert g.read_bytes() == packed
+    g.write_bytes(b'{"seed": 4}\n')  # named .gz, not compressed
+    with pytest.raises(RecordFileError, match="r.jsonl.gz: not a JSON-lines result file"):
+        read_record_file(g)
 
 
 def test_resuming_a_file_with_a_corrupt_line_stops_before_any_rollout(capsys, tmp_path):

@@ -100,20 +100,32 @@ def test_controller_park_pose_leaves_the_shelf_in_view(scenario):
     assert np.count_nonzero(label == system.sim.bodies["occ00"].body_index) > 500
 
 
-@pytest.fixture(scope="module")
-def hard_scene(scenario):
-    """Seed 7, 10 occluders: Bluction-DAR's best action in FOSS (a suction) is out of the Fetch's reach."""
+def _scene_with_backend(scenario, seed: int, occluders: int):
     geometry = ShelfGeometry.from_scenario(scenario)
-    scene = generate_shelf_scene(geometry, 7, 10, DEFAULT_TARGET).scene
+    scene = generate_shelf_scene(geometry, seed, occluders, DEFAULT_TARGET).scene
     objs = list(scene.objects) + [scene.target]
     bodies = {o.id: ShelfBody(k, o) for k, o in enumerate(objs)}
     backend = ShelfBackend(scenario, bodies, scene.target.id)
     return scene, backend, geometry, ground_truth_occupancy(geometry, scene).image_x
 
 
+@pytest.fixture(scope="module")
+def hard_scene(scenario):
+    """Seed 4, 10 occluders: Bluction-DAR's best action in FOSS (a suction) is out of the Fetch's
+    reach, its second best is not."""
+    return _scene_with_backend(scenario, 4, 10)
+
+
+@pytest.fixture(scope="module")
+def pull_out_scene(scenario):
+    """Seed 25, 10 occluders: Bluction-DAR's best action in FOSS is a suction whose object the
+    Fetch cannot lift and pull out."""
+    return _scene_with_backend(scenario, 25, 10)
+
+
 def test_feasible_selector_skips_what_the_fetch_cannot_do(hard_scene):
     scene, backend, geometry, dist = hard_scene
-    sel = FetchFeasibleSelector("bluction_dar", Foss(geometry), backend, ShelfPolicyParams(seed=7))
+    sel = FetchFeasibleSelector("bluction_dar", Foss(geometry), backend, ShelfPolicyParams(seed=4))
     best = sel.rules.select(scene, dist, ())
     assert backend.feasible(best.shelf, scene) != "ok"
     chosen = sel.choose(scene, dist, ())
@@ -123,16 +135,16 @@ def test_feasible_selector_skips_what_the_fetch_cannot_do(hard_scene):
     # the plan the executor makes from the park pose succeeds too
     assert not isinstance(backend.plan_scene(chosen.shelf, backend.q_park, scene), str)
     # with one candidate only, the selector stops instead of proposing an infeasible action
-    one = FetchFeasibleSelector("bluction_dar", Foss(geometry), backend, ShelfPolicyParams(seed=7), max_candidates=1)
+    one = FetchFeasibleSelector("bluction_dar", Foss(geometry), backend, ShelfPolicyParams(seed=4), max_candidates=1)
     stop = one.choose(scene, dist, ())
     assert stop.kind == "stop" and "feasible on the Fetch" in stop.reason
 
 
-def test_suction_out_of_reach_is_ruled_out_by_its_pull_out(hard_scene):
+def test_suction_out_of_reach_is_ruled_out_by_its_pull_out(pull_out_scene):
     """Every placement of an object whose lift and pull-out the Fetch cannot do is infeasible with
     the planner's status, found by one plan of the shared start (ShelfBackend.pulls_out)."""
-    scene, backend, geometry, dist = hard_scene
-    best = FetchFeasibleSelector("bluction_dar", Foss(geometry), backend, ShelfPolicyParams(seed=7)).rules.select(
+    scene, backend, geometry, dist = pull_out_scene
+    best = FetchFeasibleSelector("bluction_dar", Foss(geometry), backend, ShelfPolicyParams(seed=25)).rules.select(
         scene, dist, ()).shelf
     assert best.kind == "suction"
     status = backend.feasible(best, scene)
@@ -220,7 +232,7 @@ def test_search_diagram_executes_the_reachable_choice(sweep_scene):
 
 def test_feasible_selector_alone_fixed_inputs(hard_scene):
     scene, backend, geometry, dist = hard_scene
-    sel = FetchFeasibleSelector("bluction_dar", Foss(geometry), backend, ShelfPolicyParams(seed=7))
+    sel = FetchFeasibleSelector("bluction_dar", Foss(geometry), backend, ShelfPolicyParams(seed=4))
     ctx = sel.CreateDefaultContext()
     sel.GetInputPort("scene").FixValue(ctx, scene)
     sel.GetInputPort("occupancy").FixValue(ctx, ground_truth_occupancy(geometry, scene))
@@ -235,11 +247,11 @@ def test_feasible_selector_alone_fixed_inputs(hard_scene):
 def test_controller_uses_the_feasible_selector(scenario, hard_scene):
     scene, backend, _, _ = hard_scene
     sim = ShelfSimulationInfo(backend.bodies, scene.target.id)
-    c = MakeShelfSearchController(scenario, ShelfSearchConfig(policy="bluction_dar", seed=7), sim=sim)
+    c = MakeShelfSearchController(scenario, ShelfSearchConfig(policy="bluction_dar", seed=4), sim=sim)
     assert isinstance(c.GetSubsystemByName("policy_selector"), FetchFeasibleSelector)
     rules = c.GetSubsystemByName("policy_selector").rules.params
     assert (rules.min_move, rules.nil_move, rules.revisit) == (0.01, 0.01, 0.01)
-    der3 = MakeShelfSearchController(scenario, ShelfSearchConfig(policy="der3", seed=7), sim=sim)
+    der3 = MakeShelfSearchController(scenario, ShelfSearchConfig(policy="der3", seed=4), sim=sim)
     rules = der3.GetSubsystemByName("policy_selector").rules.params
     assert (rules.min_move, rules.nil_move, rules.revisit) == (0.0, 0.0, 0.0)  # DER-3 keeps its rule
     c2 = MakeShelfSearchController(scenario, ShelfSearchConfig(policy="bluction_dar", ablation=ShelfSearchAblation(foss_choice=True)), sim=sim)

@@ -32,7 +32,7 @@ def _script(**kw) -> dict:
 @pytest.mark.parametrize("policy, seed, occluders, horizon, perception, stop", [
     ("bluction_dar", 0, 2, None, "ground_truth", "target_visible"),
     ("der3", 22, 6, 1, "ground_truth", "horizon"),
-    ("der3", 11, 3, None, "depth", "target_visible"),
+    ("der3", 13, 2, None, "depth", "target_visible"),
 ])
 def test_script_agrees_with_the_benchmark(policy, seed, occluders, horizon, perception, stop):
     out = _script(seed=seed, policy=policy, occluders=occluders, horizon=horizon, perception=perception)

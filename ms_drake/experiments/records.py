@@ -9,6 +9,7 @@ record without a field the reader needs, is an error naming the file and the lin
 
 from __future__ import annotations
 
+import gzip
 import json
 from pathlib import Path
 
@@ -25,7 +26,8 @@ RECORD_FIELDS = {
 
 
 def read_record_file(path, required=("seed",), writer: str = "", resume: bool = False) -> list[dict]:
-    """The records of the JSON-lines file `path`, in file order.
+    """The records of the JSON-lines file `path` (gzipped when it ends in .gz, as the records kept
+    in the repository are), in file order.
 
     required: fields every record must have. writer: the command that writes such files (e.g.
     "bench search"), named in the errors. resume: reading a file a benchmark is about to append to:
@@ -39,7 +41,12 @@ def read_record_file(path, required=("seed",), writer: str = "", resume: bool = 
         raise RecordFileError(f"{path}: no such result file{how}")
     if path.is_dir():
         raise RecordFileError(f"{path} is a folder; give a result .jsonl file{how.replace('make it', 'made')}")
-    text = path.read_text()
+    packed = path.suffix == ".gz"  # the records kept in the repository are compressed
+    try:
+        text = gzip.decompress(path.read_bytes()).decode() if packed else path.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise RecordFileError(f"{path}: not a JSON-lines result file ({e}); give a .jsonl (or gzipped "
+                              f".jsonl.gz) file{how}") from None
     lines = text.split("\n")  # a file that ends with a newline gives a last empty piece
     torn = False
     recs = []
@@ -64,7 +71,7 @@ def read_record_file(path, required=("seed",), writer: str = "", resume: bool = 
             raise RecordFileError(f"{path}, line {n}: the record has no {', '.join(map(repr, missing))}; "
                                   f"give a result file of `ms-drake {writer or '...'}`, or delete that line")
         recs.append(rec)
-    if torn and resume:
+    if torn and resume and not packed:
         kept = text[:text.rfind("\n") + 1]
         path.write_text(kept)
     if not recs and not resume:
