@@ -1129,6 +1129,10 @@ def bench_shelf_physics_table(files: list[Path] = typer.Argument(..., help="Resu
                                   None, "--foss", help="FOSS result .jsonl (ms-drake bench shelf) of the same scenes: "
                                                        "also the search outcome in physics against FOSS, paired")):
     """The Table 9.2 analogue (markdown) from physics shelf result files."""
+    for f in files:  # a FOSS file among the physics ones would only be skipped
+        if f.is_file() and {r.get("fidelity") for r in read_record_file(f)} == {"foss"}:
+            _fail(f"{f} holds FOSS records (ms-drake bench shelf), not physics ones: give it with --foss {f} "
+                  "(one --foss per file)")
     _need_results(files, "bench shelf-physics")
     recs = physics_records(files, perception)
     typer.echo(physics_table(recs))

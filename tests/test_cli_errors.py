@@ -356,3 +356,9 @@ def _default_sigint():
     test worker may have inherited or set that."""
     import signal
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def test_shelf_physics_table_names_a_foss_file_given_as_a_physics_one(capsys):
+    code, _, err = run_cli(capsys, "bench", "shelf-physics-table", DOCS / "shelf_physics_der3.jsonl",
+                           DOCS / "shelf_dar.jsonl")
+    assert_one_error(code, err, "shelf_dar.jsonl holds FOSS records", "--foss")
