@@ -1009,18 +1009,23 @@ def bench_shelf(ctx: typer.Context,
                 set_: Optional[list[str]] = ShelfSetOption,
                 workers: int = _workers("Parallel workers (W)"),
                 ray: bool = Ray,
-                ray_address: Optional[str] = RayAddress):
+                ray_address: Optional[str] = RayAddress,
+                scenario: str = typer.Option("FetchShelf", "--scenario", help="Whose shelf and camera: a shelf "
+                                             "scenario (FetchShelf: the reference's simulated 0.6 m shelf; "
+                                             "FetchWideShelf: its physical 0.8 x 0.5 m one)")):
     """Shelf search in FOSS (Table 9.1): scenes S..S+K-1 for each occluder count; one JSON line per
-    search (resumable; each keeps its config), then success rates and median steps."""
+    search (resumable; each keeps its config and station), then success rates and median steps."""
     cfg = _shelf_config(policy, perception, config, set_, SHELF_PERCEPTIONS)
     counts = _occluder_counts(occluders, ctx.args)
     _need_jsonl(out)
+    _need_shelf_scenario(None, scenario)
     progress = _RunProgress(len(counts) * scenes, out, "scene", lambda rec: (
         f"occluders {rec['occluders']} seed {rec['seed']}: {rec.get('error', '')} (rerun to retry)"
         if rec.get("failure") == "worker_died" else None))
     try:
         s = run_shelf_bench(cfg, counts, scenes, seed_start, out, workers=workers,
-                            use_ray=ray or ray_address is not None, ray_address=ray_address, progress=progress)
+                            use_ray=ray or ray_address is not None, ray_address=ray_address, progress=progress,
+                            scenario_name=scenario)
     except KeyboardInterrupt:
         progress.interrupted()
     progress.close()

@@ -17,7 +17,7 @@ def test_all_shipped_scenarios_load():
     assert REQUIRED <= names
     environments = {"BinHeap15": "bin", "EmptyBin": "bin", "FloatingGripperBin": "bin", "FloatingGripperBinPhoXi": "bin",
                     "YuMiBin": "bin", "PandaBin": "bin",
-                    "FetchShelf": "shelf", "PandaTable": "table"}
+                    "FetchShelf": "shelf", "FetchWideShelf": "shelf", "PandaTable": "table"}
     assert names == set(environments)
     for n in names:
         s = load_scenario(None, n)

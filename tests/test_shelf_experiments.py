@@ -9,10 +9,17 @@ import pytest
 
 from ms_drake.errors import MsDrakeError
 from ms_drake.experiments.harness import read_records
-from ms_drake.experiments.shelf import plot_shelf, run_shelf_bench, shelf_records, shelf_rollout, shelf_table
+from ms_drake.experiments.shelf import (
+    plot_shelf,
+    run_shelf_bench,
+    shelf_geometry,
+    shelf_records,
+    shelf_rollout,
+    shelf_table,
+)
 from ms_drake.policies.shelf import ORACLE_EXHAUSTIVE_SECONDS, ORACLE_WIDE_SECONDS
 from ms_drake.policies.shelf_search import ShelfSearchAblation, ShelfSearchConfig
-from ms_drake.scenes.shelf import scene_from_dict
+from ms_drake.scenes.shelf import generate_shelf_scene, scene_from_dict
 
 CLI = [sys.executable, "-m", "ms_drake.cli"]
 TIMINGS = {"scene_ms", "perception_ms", "decision_ms", "decision_ms_max", "foss_ms", "seconds", "cpu_seconds", "pid"}
@@ -123,6 +130,24 @@ def test_suction_lift_rules_keep_their_records_and_columns(tmp_path):
         ShelfSearchAblation(suction_lift="top")
 
 
+def test_stations_keep_their_records_and_columns(tmp_path):
+    """The reference's physical shelf (FetchWideShelf, 0.8 x 0.5 m) beside the simulated one: its
+    scenes use its width, its records name it, resume apart and get a column of their own."""
+    out = tmp_path / "stations.jsonl"
+    wide = shelf_geometry("FetchWideShelf")
+    assert np.allclose(2 * wide.half[:2], [0.8, 0.5]) and np.allclose(2 * shelf_geometry().half[:2], [0.6, 0.6])
+    run_shelf_bench(cfg("bluction_dar"), [8], 1, 0, out)
+    s = run_shelf_bench(cfg("bluction_dar"), [8], 1, 0, out, scenario_name="FetchWideShelf")
+    assert s["resumed"] == 0
+    recs = read_records(out)
+    assert [r["scenario"] for r in recs] == ["FetchShelf", "FetchWideShelf"]
+    assert run_shelf_bench(cfg("bluction_dar"), [8], 1, 0, out, scenario_name="FetchWideShelf")["resumed"] == 1
+    assert "| Bluction-DAR | Bluction-DAR, FetchWideShelf |" in shelf_table(shelf_records([out]))
+    # the wide shelf's scene spreads beyond the 0.6 m shelf's walls
+    scene = generate_shelf_scene(wide, 0, 12).scene
+    assert max(abs(o.x) + o.width / 2 for o in scene.objects) > 0.3
+
+
 def test_cli_bench_shelf_and_table(tmp_path):
     out = tmp_path / "r.jsonl"
     p = run("bench", "shelf", "--policy", "oracle_p", "--occluders", 4, 6, "--scenes", 1, "--seed-start", 3,
@@ -135,6 +160,8 @@ def test_cli_bench_shelf_and_table(tmp_path):
     assert len(read_records(out)) == 4
     p = run("bench", "shelf", "--policy", "dar", "--occluders", 4, "x", "--out", out, check=False)
     assert p.returncode == 2 and "unexpected argument 'x'" in p.stderr
+    p = run("bench", "shelf", "--policy", "dar", "--scenario", "NoShelf", "--out", out, check=False)
+    assert p.returncode != 0 and "NoShelf" in p.stderr and "Traceback" not in p.stderr
     p = run("bench", "shelf", "--policy", "xray", "--out", out, check=False)
     assert p.returncode == 2 and "bluction_dar" in p.stderr
     p = run("bench", "shelf", "--policy", "dar", "--set", "oracle_seconds=10", "--out", out, check=False)

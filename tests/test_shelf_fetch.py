@@ -301,8 +301,14 @@ def test_physics_vs_foss_pairs_scenes_by_seed_and_occluders():
             rec("bluction_dar", 8, 3, False, perception="learned")]  # not the ground-truth FOSS run
     table = physics_vs_foss(phys, foss, ("bluction_dar",))
     assert "| Bluction-DAR | 3 | 2 | 2 | 1 | 1 (seeds 2) | 1 (seeds 1) | 1 |" in table
-    with pytest.raises(ShelfPhysicsError, match="bench shelf"):
-        physics_vs_foss(phys, [rec("der3", 8, 0, True)], ("bluction_dar",))
+    # a scene of another station is another scene
+    table = physics_vs_foss(phys, foss + [rec("bluction_dar", 8, 3, False, scenario="FetchWideShelf")],
+                            ("bluction_dar",))
+    assert "| Bluction-DAR | 3 | 2 | 2 | 1 | 1 (seeds 2) | 1 (seeds 1) | 1 |" in table
+    wide = [dict(r, scenario="FetchWideShelf") for r in phys]  # FOSS on the wide shelf: only scene 8 / 0
+    table = physics_vs_foss(wide, foss + [rec("bluction_dar", 8, 0, False, scenario="FetchWideShelf")],
+                            ("bluction_dar",))
+    assert "| Bluction-DAR | 1 | 1 | 0 | 0 | 1 (seeds 0) | 0 | 1 |" in table
 
 
 def test_physics_records_one_per_policy_and_seed(tmp_path):

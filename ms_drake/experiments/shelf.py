@@ -122,6 +122,18 @@ def build_shelf_search(foss: Foss, scene: ShelfScene, policy: str, params: Shelf
     return diagram
 
 
+def station_label(scenario_name: str, scenario_file=None) -> str:
+    """How a record names its station: the scenario's name (of diagrams/scenarios.yaml), else
+    "FILE:NAME"."""
+    return scenario_name if scenario_file is None else f"{scenario_file}:{scenario_name}"
+
+
+def record_scenario(rec: dict) -> str:
+    """The station a shelf record (physics or FOSS) was run on: its scenario name (records written
+    before scenarios were recorded ran on FetchShelf)."""
+    return rec.get("scenario", SCENARIO)
+
+
 def shelf_rollout(config: ShelfSearchConfig, occluders: int, seed: int, target_size=DEFAULT_TARGET,
                   scenario_name: str = SCENARIO) -> dict:
     """One search in FOSS (module docstring) with `config`'s policy, perception, horizon, cost ratio,
@@ -179,7 +191,7 @@ def shelf_rollout(config: ShelfSearchConfig, occluders: int, seed: int, target_s
         return float(1e3 * f(x)) if x else float("nan")
 
     return dict(seed=int(seed), occluders=int(occluders), objects=int(occluders), policy=policy, fidelity=FIDELITY,
-                perception=perception, config=config.record(),
+                perception=perception, scenario=scenario_name, config=config.record(),
                 success=not failure, steps=steps, actions=steps, pushes=kinds.count("push"),
                 suctions=kinds.count("suction"), refused=len(history) - len(done),
                 cost=kinds.count("push") + params.psi * kinds.count("suction"), failure=failure, stop_reason=reason,
@@ -192,9 +204,10 @@ def shelf_rollout(config: ShelfSearchConfig, occluders: int, seed: int, target_s
 
 
 def shelf_rollout_job(job: tuple) -> dict:
-    """(ShelfSearchConfig as a dict, occluders, seed) -> record; module-level for the worker pool."""
-    config, occluders, seed = job
-    return shelf_rollout(ShelfSearchConfig(**config), occluders, seed)
+    """(ShelfSearchConfig as a dict, occluders, seed, scenario name) -> record; module-level for the
+    worker pool."""
+    config, occluders, seed, scenario_name = job
+    return shelf_rollout(ShelfSearchConfig(**config), occluders, seed, scenario_name=scenario_name)
 
 
 def _config_key(config: dict) -> str:
@@ -212,16 +225,18 @@ def final_shelf_records(recs: list[dict]) -> list[dict]:
     settings in the same file stay apart."""
     out = {}
     for r in recs:
-        out[(_config_key(r["config"]), r.get("objects"), int(r["seed"]))] = r
+        out[(_config_key(r["config"]), record_scenario(r), r.get("objects"), int(r["seed"]))] = r
     return list(out.values())
 
 
 def run_shelf_bench(config: ShelfSearchConfig, occluders: list[int], scenes: int, seed_start: int, out,
-                    workers: int = 1, use_ray: bool = False, ray_address: str | None = None, progress=None) -> dict:
-    """Run the missing rollouts of `config` on seeds S..S+K-1 for every occluder count, append them
-    to `out` (JSON lines; a record of another config is not one of them); returns {occluders or
-    "all": summary} over the requested seeds. progress(rec) after each search; an object with a
-    `start(done, todo)` method hears first how many are already done."""
+                    workers: int = 1, use_ray: bool = False, ray_address: str | None = None, progress=None,
+                    scenario_name: str = SCENARIO) -> dict:
+    """Run the missing rollouts of `config` on seeds S..S+K-1 for every occluder count in the shelf of
+    the scenario `scenario_name`, append them to `out` (JSON lines; a record of another config or
+    station is not one of them); returns {occluders or "all": summary} over the requested seeds.
+    progress(rec) after each search; an object with a `start(done, todo)` method hears first how
+    many are already done."""
     bad = [n for n in occluders if not 2 <= n <= 12]
     if bad:
         raise MsDrakeError(f"--occluders {' '.join(map(str, bad))}: shelf scenes have 2 to 12 occluders")
@@ -229,10 +244,10 @@ def run_shelf_bench(config: ShelfSearchConfig, occluders: list[int], scenes: int
     out.parent.mkdir(parents=True, exist_ok=True)
     key = _config_key(config.record())
     mine = [r for r in final_shelf_records(read_shelf_records(out))
-            if r.get("fidelity") == FIDELITY and _config_key(r["config"]) == key]
+            if r.get("fidelity") == FIDELITY and _config_key(r["config"]) == key and record_scenario(r) == scenario_name]
     done = {(int(r["objects"]), int(r["seed"])) for r in mine if r.get("failure") != "worker_died"}
     seeds = range(seed_start, seed_start + scenes)
-    jobs = [(dataclasses.asdict(config), n, s) for n in occluders for s in seeds if (n, s) not in done]
+    jobs = [(dataclasses.asdict(config), n, s, scenario_name) for n in occluders for s in seeds if (n, s) not in done]
     if progress is not None and hasattr(progress, "start"):  # before any search: (already done, to run)
         progress.start(len(occluders) * len(seeds) - len(jobs), len(jobs))
     with open(out, "a") as f:
@@ -242,7 +257,8 @@ def run_shelf_bench(config: ShelfSearchConfig, occluders: list[int], scenes: int
             else:
                 err = (r.error or "").strip().splitlines()
                 rec = dict(seed=r.job[2], occluders=r.job[1], objects=r.job[1], policy=config.policy,
-                           fidelity=FIDELITY, perception=config.perception, config=config.record(), success=False,
+                           fidelity=FIDELITY, perception=config.perception, scenario=scenario_name,
+                           config=config.record(), success=False,
                            steps=0, actions=0, failure="worker_died", error=err[-1] if err else "")
             f.write(json.dumps(rec) + "\n")
             f.flush()
@@ -251,7 +267,7 @@ def run_shelf_bench(config: ShelfSearchConfig, occluders: list[int], scenes: int
                 progress(rec)
     recs = [r for r in final_shelf_records(read_shelf_records(out))
             if r.get("fidelity") == FIDELITY and _config_key(r["config"]) == key and int(r["seed"]) in seeds
-            and int(r["objects"]) in occluders]
+            and int(r["objects"]) in occluders and record_scenario(r) == scenario_name]
     summary = {n: summarize([r for r in recs if int(r["objects"]) == n]) for n in occluders}
     summary["all"] = summarize(recs)
     summary["resumed"] = sum(1 for n in occluders for s in seeds if (n, s) in done)
@@ -276,32 +292,34 @@ def _cell(recs: list[dict]) -> tuple[str, str]:
     return rate, steps
 
 
-def _column_key(r: dict) -> tuple[str, float, str, bool]:
+def _column_key(r: dict) -> tuple[str, float, str, bool, str]:
     c = r["config"]
     return (c["policy"], float(c["oracle_seconds"]), c["ablation"]["suction_lift"],
-            bool(c["ablation"]["oracle_push_target"]))
+            bool(c["ablation"]["oracle_push_target"]), record_scenario(r))
 
 
-def _columns(recs: list[dict], policies) -> list[tuple[str, float, str, bool]]:
+def _columns(recs: list[dict], policies) -> list[tuple[str, float, str, bool, str]]:
     """The table's columns present in `recs`: (policy, the budget of the oracle's last stage, the
-    suction lift rule, whether the oracle pushes the target), in policy order, an oracle's default
-    budget, the default lift and the target left where it is first."""
+    suction lift rule, whether the oracle pushes the target, the station), the default station
+    first, then in policy order, an oracle's default budget, the default lift and the target left
+    where it is first."""
     keys = {_column_key(r) for r in recs}
     return sorted((k for k in keys if k[0] in policies),
-                  key=lambda k: (k[2] != "over", list(policies).index(k[0]), k[3],
+                  key=lambda k: (k[4] != SCENARIO, k[4], k[2] != "over", list(policies).index(k[0]), k[3],
                                  k[1] != oracle_last_stage_seconds(k[0]), k[1]))
 
 
-def _column_name(key: tuple[str, float, str, bool]) -> str:
-    p, last, lift, push_target = key
+def _column_name(key: tuple[str, float, str, bool, str]) -> str:
+    p, last, lift, push_target, station = key
     name = POLICY_NAMES.get(p, p)
     if p in ("oracle_p", "oracle_ps") and last != oracle_last_stage_seconds(p):
         stage = "exhaustive" if p == "oracle_p" else "wide"
         name += f" ({stage} search {last:g} s)" if last else " (staged search only)"
-    return name + (", target pushed" if push_target else "") + (f", suction lift {lift}" if lift != "over" else "")
+    return (name + (", target pushed" if push_target else "") + (f", suction lift {lift}" if lift != "over" else "")
+            + (f", {station}" if station != SCENARIO else ""))
 
 
-def _in_column(r: dict, key: tuple[str, float, str, bool]) -> bool:
+def _in_column(r: dict, key: tuple[str, float, str, bool, str]) -> bool:
     return _column_key(r) == key
 
 

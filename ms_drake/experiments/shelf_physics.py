@@ -78,6 +78,7 @@ from ms_drake.errors import MsDrakeError
 from ms_drake.execution.shelf_backend import BLADE_UP, ShelfBackend, ShelfBody, agreement, observe
 from ms_drake.experiments.records import read_record_file
 from ms_drake.experiments.scene_images import write_search_pictures
+from ms_drake.experiments.shelf import record_scenario, station_label
 from ms_drake.experiments.shelf_segmentation import associate
 from ms_drake.foss import Foss
 from ms_drake.geometry import PinholeCamera
@@ -496,7 +497,9 @@ def shelf_physics_rollout(config: ShelfSearchConfig, seed: int, occluders: int |
     sample = generate_shelf_scene(geometry, seed, occluders, DEFAULT_TARGET)
     params = dataclasses.replace(config, seed=int(seed))
     system = build_shelf_physics(scenario, sample.scene, params, meshcat=meshcat, time_step=time_step)
-    return run_shelf_physics(system, sample.scene, params, keep_frames=keep_frames, meshcat=meshcat)
+    result = run_shelf_physics(system, sample.scene, params, keep_frames=keep_frames, meshcat=meshcat)
+    result.record["scenario"] = station_label(scenario_name, scenario_file)
+    return result
 
 
 @dataclass
@@ -605,7 +608,9 @@ def run_shelf_physics_bench(config: ShelfSearchConfig, scenes: int, seed_start: 
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     key = _config_key(config.record())
-    done = {int(r["seed"]) for r in read_physics_records(out) if _config_key(r["config"]) == key}
+    station = station_label(kwargs.get("scenario_name", SCENARIO), kwargs.get("scenario_file"))
+    done = {int(r["seed"]) for r in read_physics_records(out)
+            if _config_key(r["config"]) == key and record_scenario(r) == station}
     jobs = [(dataclasses.asdict(config), seed, occluders[i % len(occluders)] if occluders else None, dict(kwargs))
             for i, seed in enumerate(range(seed_start, seed_start + scenes)) if seed not in done]
     recs = []
@@ -715,8 +720,8 @@ def physics_vs_foss(phys: list[dict], foss: list[dict], policies=("der3", "bluct
     lines = ["| policy | scenes | physics | FOSS | both | physics only | FOSS only | sign test p |",
              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for p in policies:
-        a = {(r["occluders"], r["seed"]): bool(r["success"]) for r in phys if r["policy"] == p}
-        b = {(r["occluders"], r["seed"]): bool(r["success"]) for r in foss
+        a = {(record_scenario(r), r["occluders"], r["seed"]): bool(r["success"]) for r in phys if r["policy"] == p}
+        b = {(record_scenario(r), r["occluders"], r["seed"]): bool(r["success"]) for r in foss
              if r["policy"] == p and r.get("perception", "ground_truth") == "ground_truth"}
         keys = sorted(set(a) & set(b))
         if not keys:
@@ -727,12 +732,13 @@ def physics_vs_foss(phys: list[dict], foss: list[dict], policies=("der3", "bluct
         pval = float(binomtest(len(only_a), n, 0.5).pvalue) if n else 1.0
 
         def seeds(ks):
-            return f"{len(ks)}" + (" (seeds " + ", ".join(str(s) for _, s in ks) + ")" if ks else "")
+            return f"{len(ks)}" + (" (seeds " + ", ".join(str(s) for *_, s in ks) + ")" if ks else "")
         lines.append(f"| {names.get(p, p)} | {len(keys)} | {sum(a[k] for k in keys)} | {sum(b[k] for k in keys)} | "
                      f"{sum(a[k] and b[k] for k in keys)} | {seeds(only_a)} | {seeds(only_b)} | {pval:.2g} |")
     if len(lines) == 2:
-        raise ShelfPhysicsError("no scene is in both the physics and the FOSS records (same seed, occluders, policy): "
-                                "run `ms-drake bench shelf` with the physics run's --occluders and --seed-start")
+        raise ShelfPhysicsError("no scene is in both the physics and the FOSS records (same station, seed, occluders, "
+                                "policy): run `ms-drake bench shelf` with the physics run's --scenario, --occluders "
+                                "and --seed-start")
     return "\n".join(lines)
 
 
@@ -826,7 +832,7 @@ def physics_records(files, perception: str | None = None) -> list[dict]:
     out, seen = [], set()
     for f in files:
         for r in read_record_file(Path(f), ("seed", "config"), writer="bench shelf-physics"):
-            key = (_config_key(r["config"]), r["perception"], r["seed"])
+            key = (_config_key(r["config"]), r["perception"], r["seed"], record_scenario(r))
             if r.get("fidelity") == FIDELITY and key not in seen and perception in (None, key[1]):
                 seen.add(key)
                 out.append(r)
