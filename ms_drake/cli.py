@@ -144,6 +144,7 @@ from ms_drake.perception.occupancy_net import load_model as load_occupancy_net
 from ms_drake.perception.segmentation_net import load_model as load_segmentation_net
 from ms_drake.perception.shelf_occupancy_net import load_model as load_shelf_occupancy_net
 from ms_drake.perception.target import BACKENDS as DETECTOR_BACKENDS
+from ms_drake.perception.weights import torch_device
 from ms_drake.policies.bin_search import (
     DEFAULT_SCENARIOS,
     ControllerError,
@@ -174,6 +175,11 @@ JsonSummary = typer.Option(None, "--json", help="Write the summary as JSON")
 DatasetSeed = typer.Option(0, "--seed", min=0, help="Dataset seed")
 TrainingSeed = typer.Option(0, "--seed", min=0, help="Seed")
 TorchThreads = typer.Option(1, "--threads", min=1, help="torch threads")
+TrainDevice = typer.Option("cpu", "--device", help="Where the network trains: cpu, cuda (a GPU; an error on a "
+                           "machine without one) or auto (cuda where a GPU exists, else cpu). The weights are "
+                           "saved with CPU tensors and load anywhere")
+Device = typer.Option("cpu", "--device", help="Where the learned network runs: cpu, cuda (a GPU; an error on a "
+                      "machine without one) or auto (cuda where a GPU exists, else cpu)")
 OverwriteShipped = typer.Option(False, "--overwrite-shipped", help="Allow --out inside the shipped models/weights/ "
                                 "folder (replaces the weights the package uses by default)")
 
@@ -346,6 +352,11 @@ def _epoch_bar(epochs: int):
     return bar, progress
 
 
+def _device_args(device: str) -> list[str]:
+    """The --device of a training's recorded command line (none for the default, cpu)."""
+    return ["--device", device] if device != "cpu" else []
+
+
 def _echo_trained(out: Path, meta: dict, epochs: int, loss_format: str = ".5f") -> None:
     """Each epoch's loss and time from a training's meta, then where the weights went."""
     for h in meta["history"]:
@@ -502,12 +513,16 @@ def perceive(depth: Path = typer.Argument(..., help="Depth image of a bin from a
              target_size: Optional[tuple[float, float, float]] = typer.Option(
                  None, "--target-size", help="The target's box size L W T [m] (instead of --target)"),
              segmenter: str = typer.Option("learned", "--segmenter", help="learned | euclidean | region_growing"),
-             out: Path = typer.Option(Path("out/perceive"), "--out", help="Output folder")):
+             out: Path = typer.Option(Path("out/perceive"), "--out", help="Output folder"),
+             device: str = typer.Option("cpu", "--device", help="Where the learned segmenter and occupancy "
+                                        "networks run: cpu, cuda (a GPU; an error on a machine without one) or auto "
+                                        "(cuda where a GPU exists, else cpu)")):
     """The perception stack on your own depth image: instance masks (PNG and COCO JSON), the target
     and its occupancy distribution when a target is given, and each stage's CPU time."""
     _choose("--segmenter", segmenter, PERCEIVE_SEGMENTERS)
     if target and target_size:
         _fail("--target and --target-size: give one of them")
+    torch_device(device)
     try:
         d = load_depth(depth)
         camera = load_camera(intrinsics, d.shape)
@@ -518,7 +533,7 @@ def perceive(depth: Path = typer.Argument(..., help="Depth image of a bin from a
                 raise PerceiveError(f"{rgb}: not a readable colour image")
             colour = img[..., ::-1].copy()
         result = run_perceive(d, camera, segmenter=segmenter, rgb=colour, target=target,
-                              target_size=list(target_size) if target_size else None)
+                              target_size=list(target_size) if target_size else None, device=device)
     except PerceiveError as e:
         _fail(str(e))
     written = write_perception(out, depth, result, d)
@@ -1323,8 +1338,10 @@ def train_occupancy_cmd(data: Path = typer.Option(..., "--data", help="Dataset f
                                                               "(> 0.1) count 1 + W times"),
                         init: Optional[Path] = typer.Option(None, "--init", help="Start from these weights "
                                                             "(fine-tuning; their network configuration)"),
+                        device: str = TrainDevice,
                         overwrite_shipped: bool = OverwriteShipped):
     """Train the occupancy network; resumes from OUT.ckpt; writes OUT (weights + meta)."""
+    torch_device(device)
     _need_training_out(out, overwrite_shipped)
     if init is not None:
         _need_weights("--init", init, load_occupancy_net, "occupancy")
@@ -1332,10 +1349,10 @@ def train_occupancy_cmd(data: Path = typer.Option(..., "--data", help="Dataset f
     cmd = " ".join(["ms-drake", "train", "occupancy", "--data", str(data), "--out", str(out), "--epochs", str(epochs),
                     "--batch", str(batch), "--seed", str(seed), "--threads", str(threads), "--lr", str(lr),
                     "--positive-weight", str(positive_weight)] + (["--init", str(init)] if init else [])
-                   + (["--overwrite-shipped"] if overwrite_shipped else []))
+                   + _device_args(device) + (["--overwrite-shipped"] if overwrite_shipped else []))
     meta = train_occupancy(data, out, epochs=epochs, batch=batch, seed=seed, threads=threads,
                            max_minutes=max_minutes, progress=progress, command=cmd, lr=lr,
-                           positive_weight=positive_weight, init=init)
+                           positive_weight=positive_weight, init=init, device=device)
     bar.close()
     _echo_trained(out, meta, epochs)
 
@@ -1402,11 +1419,14 @@ def bench_occupancy_cmd(data: Path = typer.Option(..., "--data", help="Dataset f
                             None, "--sensor", help="Depth sensor preset (none | phoxi | l515 | primesense): bench on "
                             "DATA/<preset>, a test set made first if absent with that sensor model and hole filling"),
                         images: int = typer.Option(96, "--images", min=1, help="With --sensor: images of the test set"),
-                        sensor_seed: int = typer.Option(7, "--sensor-seed", help="With --sensor: the test set's seed")):
+                        sensor_seed: int = typer.Option(7, "--sensor-seed", help="With --sensor: the test set's seed"),
+                        device: str = Device):
     """Table 8.1: balanced accuracy and IoU per aspect ratio on the held-out test shards, and the
     inference time per image on one core."""
+    torch_device(device)
     _need_weights("--weights", weights, load_occupancy_net, "occupancy")
-    res = bench_occupancy(data, weights, scaling, sensor=sensor, sensor_images=images, sensor_seed=sensor_seed)
+    res = bench_occupancy(data, weights, scaling, sensor=sensor, sensor_images=images, sensor_seed=sensor_seed,
+                          device=device)
     typer.echo("| ratio | images | hidden | bal. acc. % | IoU | MSE |")
     typer.echo("|---|---|---|---|---|---|")
     for r, raw in zip(res["rows"], res["raw_rows"]):
@@ -1530,9 +1550,11 @@ def train_segmentation_cmd(
         threads: int = TorchThreads,
         max_minutes: float = typer.Option(60.0, "--max-minutes", help="Stop after the epoch that would end past "
                                           "this wall time"),
+        device: str = TrainDevice,
         overwrite_shipped: bool = OverwriteShipped):
     """Train the depth segmentation network; resumes from OUT.ckpt; writes OUT (weights + meta) after
     every epoch."""
+    torch_device(device)
     _need_training_out(out, overwrite_shipped)
     if init is not None:
         _need_weights("--init", init, load_segmentation_net, "segmentation")
@@ -1544,11 +1566,11 @@ def train_segmentation_cmd(
                    + (["--init", str(init)] if init else [])
                    + (["--object-fraction", str(object_fraction)] if object_fraction is not None else [])
                    + (["--noise", str(noise), "--dropout", str(dropout)] if noise > 0 or dropout > 0 else [])
-                   + (["--overwrite-shipped"] if overwrite_shipped else []))
+                   + _device_args(device) + (["--overwrite-shipped"] if overwrite_shipped else []))
     meta = train_segmentation(data, out, epochs=epochs, batch=batch, seed=seed, threads=threads, lr=lr,
                               max_minutes=max_minutes, progress=progress, command=cmd, max_images=max_images,
                               steps_per_epoch=steps_per_epoch, init=init, object_fraction=object_fraction,
-                              noise=noise, dropout=dropout)
+                              noise=noise, dropout=dropout, device=device)
     bar.close()
     _echo_trained(out, meta, epochs)
 
@@ -1564,14 +1586,17 @@ def bench_collision_cmd(
         weights: Optional[Path] = typer.Option(None, "--weights", help="Network weights (default "
                                                "models/weights/collision.pt; pointnet_grid: "
                                                "collision_pointnet_grid.pt)"),
-        threads: int = typer.Option(1, "--threads", min=1, help="torch threads (net)")):
+        threads: int = typer.Option(1, "--threads", min=1, help="torch threads (net)"),
+        device: str = Device):
     """Table 6.1: collision accuracy, AP and CPU time per query of one method on held-out scenes."""
     _choose("--method", method, COLLISION_METHODS)
     if method in COLLISION_NETWORKS:
+        torch_device(device)
         _need_weights("--weights", weights or default_collision_weights(method),
                       lambda p: load_collision_net(p, method), "collision")
     bar = tqdm(total=scenes, desc=method, unit="scene")
-    res = bench_collision(method, scenes, seed_start, cache, weights, threads, progress=lambda k: bar.update(1))
+    res = bench_collision(method, scenes, seed_start, cache, weights, threads, progress=lambda k: bar.update(1),
+                          device=device)
     bar.close()
     typer.echo(f"{method}: {res['queries']} queries ({100 * res['positive']:.1f} % in collision): accuracy "
                f"{100 * res['accuracy']:.1f} %, AP {res['ap']:.3f}, {res['us_per_query']:.1f} us CPU per query, "
@@ -1593,17 +1618,21 @@ def bench_mppi_cmd(
         out: Optional[Path] = typer.Option(None, "--out", help="Write the records (one per scene) as JSON"),
         cache: Optional[Path] = typer.Option(None, "--cache", help="Keep / reuse the scenes in this folder"),
         weights: Optional[Path] = typer.Option(None, "--weights", help="Network weights (default: shipped)"),
-        threads: int = TorchThreads):
+        threads: int = TorchThreads,
+        device: str = typer.Option("cpu", "--device", help="Where the collision network's queries and "
+                                   "pytorch_mppi's rollouts run: cpu, cuda (a GPU; an error on a machine without "
+                                   "one) or auto (cuda where a GPU exists, else cpu); kinematics stay on the CPU")):
     """Speed of one MPPI call on the Panda (T x H waypoints, every link and the gripper checked
     against the scene cloud): CPU ms per call and rate, ours or pytorch_mppi's."""
     _choose("--method", method, COLLISION_METHODS)
     _choose("--planner", planner, MPPI_PLANNERS)
+    torch_device(device)
     if method in COLLISION_NETWORKS:
         _need_weights("--weights", weights or default_collision_weights(method),
                       lambda p: load_collision_net(p, method), "collision")
     bar = tqdm(total=scenes, desc=f"{planner} {method}", unit="scene")
     recs = bench_mppi(method, scenes, seed_start, trajectories, horizon, steps, planner, cache, weights, threads,
-                      progress=lambda r: bar.update(1))
+                      progress=lambda r: bar.update(1), device=device)
     bar.close()
     ms = np.median([r["ms_per_step"] for r in recs])
     typer.echo(f"{planner} with {method}, T = {trajectories}, H = {horizon}: median {ms:.0f} ms CPU per call "
@@ -1628,14 +1657,16 @@ def bench_segmentation_cmd(
         sensor: str = typer.Option("none", "--sensor", help="Depth sensor model preset: none | phoxi | l515 | "
                                    "primesense (ms_drake.station.sensor_model)"),
         fill_holes: bool = typer.Option(True, "--fill-holes/--no-fill-holes",
-                                        help="Fill the depth's holes before segmenting (geometry.preprocess_depth)")):
+                                        help="Fill the depth's holes before segmenting (geometry.preprocess_depth)"),
+        device: str = Device):
     """Table B.1: COCO mask AP / AR@100 of one segmentation backend on held-out heap images made from
     the seeds."""
     if backend == "learned":
+        torch_device(device)
         _need_weights("--weights", weights, load_segmentation_net, "segmentation")
     bar = tqdm(total=images, desc=f"bench {backend}", unit="image")
     res = bench_segmentation(backend, images, seed_start, workers, noise, dropout, weights, progress=bar.update,
-                             cache=cache, sensor=sensor, fill_holes=fill_holes)
+                             cache=cache, sensor=sensor, fill_holes=fill_holes, device=device)
     bar.close()
     typer.echo(f"{backend}: AP {res['ap']:.3f}, AP50 {res['ap50']:.3f}, AR@100 {res['ar']:.3f} on {res['images']} "
                f"images ({res['gt']} masks, {res['dt']} detections); median {res['seconds_median'] * 1000:.0f} ms "
@@ -1709,8 +1740,10 @@ def train_collision_cmd(
         encoders: Optional[Path] = typer.Option(None, "--encoders", help="Weights file whose scene and object "
                                                 "encoders are copied and frozen: only the query classifier "
                                                 "trains"),
+        device: str = TrainDevice,
         overwrite_shipped: bool = OverwriteShipped):
     """Train SceneCollisionNet (Ch. 6); resumes from OUT.ckpt; writes OUT (weights + meta)."""
+    torch_device(device)
     _need_training_out(out, overwrite_shipped)
     if encoders is not None:
         _need_weights("--encoders", encoders, load_collision_net, "collision")
@@ -1719,7 +1752,7 @@ def train_collision_cmd(
                     "--query-layers", str(query_layers), "--voxel-features", str(voxel_features)]
                    + (["--pointnet-grid"] if pointnet_grid else [])
                    + (["--encoders", str(encoders)] if encoders is not None else [])
-                   + (["--overwrite-shipped"] if overwrite_shipped else []))
+                   + _device_args(device) + (["--overwrite-shipped"] if overwrite_shipped else []))
     config = CollisionNetConfig(hidden=hidden, query_layers=query_layers, voxel_features=voxel_features,
                                 conv_layers=0 if pointnet_grid else 3)
     bar = tqdm(desc="training", unit="scene")
@@ -1733,7 +1766,7 @@ def train_collision_cmd(
 
     meta = train_collision(data, out, epochs=epochs, seed=seed, threads=threads, lr=lr, max_minutes=max_minutes,
                            config=config, encoders=encoders,
-                           progress=progress, command=cmd)
+                           progress=progress, command=cmd, device=device)
     bar.close()
     last = meta["history"][-1] if meta["history"] else {}
     typer.echo(f"{meta['epochs_done']} epochs on {meta['train_scenes']} scenes in {meta['seconds'] / 60:.1f} min; "
@@ -1753,16 +1786,19 @@ def train_matcher_cmd(
         threads: int = TorchThreads,
         max_minutes: float = typer.Option(15.0, "--max-minutes", help="Stop after the epoch that would end past "
                                           "this wall time"),
+        device: str = TrainDevice,
         overwrite_shipped: bool = OverwriteShipped):
     """Train the siamese target matcher; resumes from OUT.ckpt; writes OUT (weights + meta) after
     every epoch."""
+    torch_device(device)
     _need_training_out(out, overwrite_shipped)
     bar, progress = _epoch_bar(epochs)
     cmd = " ".join(["ms-drake", "train", "matcher", "--data", str(data), "--out", str(out), "--epochs", str(epochs),
                     "--steps", str(steps), "--batch", str(batch), "--lr", str(lr), "--seed", str(seed),
-                    "--threads", str(threads)] + (["--overwrite-shipped"] if overwrite_shipped else []))
+                    "--threads", str(threads)] + _device_args(device)
+                   + (["--overwrite-shipped"] if overwrite_shipped else []))
     meta = train_matcher(data, out, epochs=epochs, steps=steps, batch=batch, seed=seed, threads=threads, lr=lr,
-                         max_minutes=max_minutes, progress=progress, command=cmd)
+                         max_minutes=max_minutes, progress=progress, command=cmd, device=device)
     bar.close()
     for h in meta["history"]:
         typer.echo(f"epoch {h['epoch']}: loss {h['loss']:.4f}, held-out loss {h['val_loss']:.4f}, accuracy "
@@ -1783,7 +1819,8 @@ def bench_target_detection_cmd(
         scene_dir: Optional[Path] = typer.Option(None, "--scene-dir", help="Folder caching the rendered images "
                                                  "(scene_<seed>.npz), shared by the runs of several backends"),
         sensor: str = typer.Option("none", "--sensor", help="Depth sensor model preset of the depth image the "
-                                   "detector gets: none | phoxi | l515 | primesense (ms_drake.station.sensor_model)")):
+                                   "detector gets: none | phoxi | l515 | primesense (ms_drake.station.sensor_model)"),
+        device: str = Device):
     """Target detection on held-out heaps with the target 20-80 % occluded (half of them with a second
     red object): precision, recall, F1, also on the shared-colour subset."""
     _choose("--backend", backend, DETECTOR_BACKENDS)
@@ -1791,9 +1828,11 @@ def bench_target_detection_cmd(
     if out.suffix != ".json":
         _fail(f"--out {out}: give a .json file")
     if backend == "learned":
+        torch_device(device)
         _need_weights("--weights", weights, load_matcher, "matcher")
     bar, progress = _job_bar(images, backend, "image")
-    res = bench_target_detection(backend, images, seed_start, out, workers, weights, progress, scene_dir, sensor)
+    res = bench_target_detection(backend, images, seed_start, out, workers, weights, progress, scene_dir, sensor,
+                                 device)
     bar.close()
     for name, m in (("all", res), ("shared colour", res["shared_colour"]), ("distinct colours", res["distinct_colour"])):
         typer.echo(f"{backend}, {name}: {m['images']} images, precision {m['precision']:.3f}, recall "

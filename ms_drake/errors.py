@@ -45,3 +45,7 @@ class RecordFileError(MsDrakeError, ValueError):
     """A result (JSON-lines record) file that cannot be read: missing, empty, a line that is not a
     record, or records without the fields the reader needs (names the file, the line and the
     command that writes it)."""
+
+
+class DeviceError(MsDrakeError, ValueError):
+    """A torch device that is unknown or absent on this machine (names the value and the choices)."""

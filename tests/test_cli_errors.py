@@ -92,6 +92,25 @@ def test_train_refuses_the_shipped_weights_folder(capsys, tmp_path, path):
     assert sorted(model_path("weights").iterdir()) == before  # nothing written, not even a checkpoint
 
 
+DEVICE_TRAIN = [path for path in TRAIN if any("--device" in p.opts for p in dict(_commands())[path].params)]
+
+
+def test_the_learned_models_train_on_a_chosen_device():
+    assert {p[1] for p in DEVICE_TRAIN} >= {"occupancy", "segmentation", "collision", "matcher"}
+
+
+@pytest.mark.parametrize("path", DEVICE_TRAIN, ids=" ".join)
+def test_train_on_cuda_without_a_gpu_is_one_error(capsys, tmp_path, path):
+    import torch  # noqa: PLC0415 - the CLI's other tests need no torch
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a GPU")
+    out = tmp_path / "w" / "m.pt"
+    code, _, err = run_cli(capsys, *path, "--data", tmp_path, "--out", out, "--device", "cuda")
+    assert_one_error(code, err, "'cuda'", "--device cpu", "--device auto")
+    assert not out.parent.exists()  # nothing started
+
+
 def test_overwrite_shipped_lets_the_check_pass(tmp_path):
     cli._need_training_out(model_path("weights") / "occupancy.pt", overwrite_shipped=True)  # no exit
     cli._need_training_out(tmp_path / "w.pt", overwrite_shipped=False)

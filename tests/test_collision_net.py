@@ -155,6 +155,23 @@ def test_training_resumes_and_evaluation_reports_the_table_keys(tmp_path):
     assert {"accuracy", "ap", "us_per_query", "queries"} <= set(r)
 
 
+def test_train_command_takes_the_device_and_writes_weights_that_load_on_the_cpu(tmp_path):
+    from typer.testing import CliRunner  # noqa: PLC0415
+
+    from ms_drake.cli import app  # noqa: PLC0415
+    from ms_drake.collision.checker import load_collision_net  # noqa: PLC0415
+
+    for k in range(2):
+        _synthetic_shard(tmp_path / f"shard_{k:05d}_train.npz", k)
+    out = tmp_path / "w" / "c.pt"
+    r = CliRunner().invoke(app, ["train", "collision", "--data", str(tmp_path), "--epochs", "1", "--hidden", "16",
+                                 "--voxel-features", "16", "--device", "cpu", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    net, ck = load_collision_net(out, device="cpu")
+    assert ck["meta"]["device"] == "cpu" and "--device" not in ck["meta"]["command"]  # the default is not spelled out
+    assert all(t.device.type == "cpu" for t in ck["model"].values())
+
+
 def test_a_classifier_on_frozen_encoders_keeps_them_and_learns_its_own_layers(tmp_path):
     from ms_drake.collision.checker import load_collision_net  # noqa: PLC0415
     from ms_drake.collision.scene_net import NetConfig  # noqa: PLC0415

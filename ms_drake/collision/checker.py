@@ -14,7 +14,9 @@
 
 Baselines answer 0 or 1; the networks a probability; `collides` thresholds either at 0.5.
 The network's weights default to models/weights/collision.pt (pointnet_grid:
-collision_pointnet_grid.pt).
+collision_pointnet_grid.pt); it runs on the device it was loaded to (`load_collision_net(...,
+device=)`, `SceneChecker(..., device=)`: cpu | cuda | auto); points and poses go in and
+probabilities come out as numpy arrays either way.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import numpy as np
 from ms_drake.collision.baselines import BASELINES, make_baseline
 from ms_drake.collision.scene_net import CollisionNetError, NetConfig, make_net
 from ms_drake.paths import model_path
+from ms_drake.perception.weights import torch_device
 
 NETWORKS = ("net", "pointnet_grid")
 METHODS = NETWORKS + BASELINES
@@ -38,11 +41,12 @@ def default_weights(method: str) -> Path:
     return model_path(WEIGHTS[method])
 
 
-def load_collision_net(path, method: str | None = None):
-    """(network in eval mode, checkpoint dict) from a weights file of `ms-drake train collision`;
-    with `method`, checks that the file holds that kind of network."""
+def load_collision_net(path, method: str | None = None, device="cpu"):
+    """(network in eval mode on `device` (cpu | cuda | auto), checkpoint dict) from a weights file of
+    `ms-drake train collision`; with `method`, checks that the file holds that kind of network."""
     import torch  # optional heavy dependency: only the learned checkers need it
 
+    dev = torch_device(device)
     path = Path(path)
     if not path.is_file():
         raise CollisionNetError(f"collision weights {path} not found: train them with `ms-drake train collision`"
@@ -50,7 +54,7 @@ def load_collision_net(path, method: str | None = None):
     fix = "give a weights file written by `ms-drake train collision`" + (" --pointnet-grid" if method == "pointnet_grid"
                                                                           else "")
     try:
-        ck = torch.load(path, map_location="cpu", weights_only=False)
+        ck = torch.load(path, map_location=dev, weights_only=False)
     except Exception as e:  # garbage bytes, a truncated file: torch / pickle raise many types
         raise CollisionNetError(f"collision weights {path} cannot be read ({type(e).__name__}: "
                                 f"{str(e).splitlines()[0] if str(e) else 'unreadable'}); {fix}") from None
@@ -61,7 +65,7 @@ def load_collision_net(path, method: str | None = None):
         raise CollisionNetError(f"weights {path} hold a network with conv_layers={conv}: not a {method!r} network; "
                                 f"{fix}")
     try:
-        net = make_net(NetConfig(**ck["config"]))
+        net = make_net(NetConfig(**ck["config"])).to(dev)
         net.load_state_dict(ck["model"])
     except Exception as e:  # another network's file: unknown config keys, missing / mis-shaped tensors
         raise CollisionNetError(f"{path} does not hold a collision network ({type(e).__name__}: "
@@ -70,9 +74,10 @@ def load_collision_net(path, method: str | None = None):
 
 
 class SceneChecker:
-    """P(collision) of named point sets at poses against one scene cloud (module doc)."""
+    """P(collision) of named point sets at poses against one scene cloud (module doc). A given `net`
+    runs on its own device; one loaded here (from `weights`) on `device`."""
 
-    def __init__(self, method: str, scene_points: np.ndarray, weights=None, net=None):
+    def __init__(self, method: str, scene_points: np.ndarray, weights=None, net=None, device="cpu"):
         if method not in METHODS:
             raise CollisionNetError(f"collision method {method!r} unknown; choose one of {', '.join(METHODS)}")
         scene_points = np.asarray(scene_points, np.float32)
@@ -86,9 +91,14 @@ class SceneChecker:
             import torch  # optional heavy dependency
 
             self.torch = torch
-            self.net = net if net is not None else load_collision_net(weights or default_weights(method), method)[0]
+            self.net = net if net is not None else \
+                load_collision_net(weights or default_weights(method), method, device)[0]
+            self.device = self.net.centres.device
             with torch.inference_mode():
-                self._voxels = self.net.first_voxel(self.net.scene_features(torch.from_numpy(scene_points)))
+                self._voxels = self.net.first_voxel(self.net.scene_features(self._tensor(scene_points)))
+
+    def _tensor(self, a: np.ndarray):
+        return self.torch.from_numpy(a).to(self.device)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -101,7 +111,7 @@ class SceneChecker:
             raise CollisionNetError(f"point set {name!r} must be an (m >= 4, 3) array, got shape {points.shape}")
         if self.net is not None:
             with self.torch.inference_mode():
-                obj = self.net.first_object(self.net.object_features(self.torch.from_numpy(points)))
+                obj = self.net.first_object(self.net.object_features(self._tensor(points)))
                 self._sets[name] = self._voxels + obj
         else:
             self._sets[name] = make_baseline(self.method, self.scene_points, points)
@@ -125,8 +135,8 @@ class SceneChecker:
             return np.zeros(0)
         if self.net is not None:
             with self.torch.inference_mode():
-                logits = self.net.query(self._sets[name], self.torch.from_numpy(poses))
-                return self.torch.sigmoid(logits).numpy().astype(float)
+                logits = self.net.query(self._sets[name], self._tensor(poses))
+                return self.torch.sigmoid(logits).cpu().numpy().astype(float)
         return self._sets[name].query(poses).astype(float)
 
     def collides(self, name: str, poses: np.ndarray) -> np.ndarray:

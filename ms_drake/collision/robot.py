@@ -15,8 +15,10 @@ With a network checker the whole check is one torch graph (`SceneCollisionNet.qu
 forward kinematics of a chunk of `CHUNK` configurations (`ArmModel.link_poses_torch`), the table
 test (a configuration with a link below the table is 1 without asking the network), and every
 link's and held object's query in one gather and one matrix product per layer,
-chunk by chunk so that the activations stay in the CPU's cache. The table test takes a link's
-lowest point over its points only where the link's bounding sphere reaches below the table.
+chunk by chunk so that the activations stay in the CPU's cache (the kinematics and the table
+test run on the CPU; the poses go to the network's device for its queries). The table test
+takes a link's lowest point over its points only where the link's bounding sphere reaches
+below the table.
 The answers are those of the per-link path that the baselines take (tests/test_robot_collision.py).
 """
 
@@ -125,8 +127,8 @@ class RobotSceneCollision:
                     low = np.zeros(len(p), bool)
                 if len(X):
                     poses = torch.cat([links] + [X[:, b:b + 1] @ X_BO for b, X_BO in g["held"]], dim=1)
-                    logits = self.checker.net.query_stacked(g["codes"], poses.float())
-                    p[~low] = torch.sigmoid(logits).double().amax(dim=1).numpy()
+                    logits = self.checker.net.query_stacked(g["codes"], poses.float().to(self.checker.device))
+                    p[~low] = torch.sigmoid(logits).double().amax(dim=1).cpu().numpy()
         return out
 
     def _below_table(self, links, g) -> np.ndarray:

@@ -1,4 +1,5 @@
-"""SceneCollisionNet (Ch. 6.3, lines 1053-1057) in pure torch, for the CPU.
+"""SceneCollisionNet (Ch. 6.3, lines 1053-1057) in pure torch, sized for the CPU; it computes on
+the device its module is on (`.to(device)`), its inputs given there.
 
 - Scene encoder: the scene point cloud (world frame) is cut into voxels of `NetConfig.voxel`
   (10 cm) over `SCENE_BOUNDS` (the table's volume: 10 x 8 x 5 voxels); each point, relative to its
@@ -72,7 +73,6 @@ def make_net(cfg: NetConfig = NetConfig()):
 
     shape = grid_shape(cfg)
     V = int(np.prod(shape))
-    lo = torch.tensor([b[0] for b in SCENE_BOUNDS], dtype=torch.float32)
 
     def mlp(*sizes, last_relu=True):
         layers = []
@@ -87,6 +87,9 @@ def make_net(cfg: NetConfig = NetConfig()):
             super().__init__()
             self.cfg = cfg
             self.register_buffer("centres", torch.tensor(voxel_centres(cfg), dtype=torch.float32))
+            # the grid's lower corner; not saved (weights files hold the centres only)
+            self.register_buffer("lo", torch.tensor([b[0] for b in SCENE_BOUNDS], dtype=torch.float32),
+                                 persistent=False)
             self.point_mlp = mlp(3, 32, cfg.point_features)
             c = cfg.voxel_features
             if cfg.conv_layers == 0 and cfg.point_features != c:
@@ -107,7 +110,7 @@ def make_net(cfg: NetConfig = NetConfig()):
         # -- encoders ---------------------------------------------------------------------------
         def voxel_index(self, p):
             """(n,) flat voxel index of world points p (n, 3), clamped into the grid."""
-            ijk = torch.floor((p - lo) / cfg.voxel).long()
+            ijk = torch.floor((p - self.lo) / cfg.voxel).long()
             for a, n in enumerate(shape):
                 ijk[:, a] = ijk[:, a].clamp(0, n - 1)
             return (ijk[:, 0] * shape[1] + ijk[:, 1]) * shape[2] + ijk[:, 2]
@@ -116,7 +119,7 @@ def make_net(cfg: NetConfig = NetConfig()):
             """(V, voxel_features) from a scene cloud (n, 3) in the world frame."""
             idx = self.voxel_index(points)
             f = self.point_mlp((points - self.centres[idx]) / cfg.voxel)
-            pooled = torch.zeros(V, f.shape[1], dtype=f.dtype)
+            pooled = torch.zeros(V, f.shape[1], dtype=f.dtype, device=f.device)
             pooled = pooled.scatter_reduce(0, idx[:, None].expand_as(f), f, reduce="amax", include_self=True)
             grid = pooled.T.reshape(1, -1, *shape)
             return self.convs(grid).reshape(cfg.voxel_features, V).T
@@ -153,7 +156,7 @@ def make_net(cfg: NetConfig = NetConfig()):
             t = flat[:, :3, 3]
             idx = self.voxel_index(t)
             rel = torch.cat([(t - self.centres[idx]) / cfg.voxel, flat[:, :3, 0], flat[:, :3, 1]], dim=1)
-            rows = idx + (torch.arange(B) * codes.shape[1]).repeat(n)
+            rows = idx + (torch.arange(B, device=idx.device) * codes.shape[1]).repeat(n)
             h = codes.reshape(B * codes.shape[1], -1).index_select(0, rows)
             h.addmm_(rel, self.first_pose.weight.T).relu_()
             return self.rest(h)[:, 0].reshape(n, B)
@@ -172,8 +175,8 @@ def farthest_points(points, k: int):
     if n == 0:
         raise CollisionNetError("the object point cloud is empty")
     k = min(k, n)
-    chosen = torch.zeros(k, dtype=torch.long)
-    dist = torch.full((n,), float("inf"))
+    chosen = torch.zeros(k, dtype=torch.long, device=points.device)
+    dist = torch.full((n,), float("inf"), device=points.device)
     last = 0
     for i in range(1, k):
         dist = torch.minimum(dist, ((points - points[last]) ** 2).sum(dim=1))
@@ -193,9 +196,9 @@ def mined_loss(logits, labels, hard: float = 0.1, random: float = 0.1, generator
     n = loss.numel()
     k = max(1, int(round(hard * n)))
     top = loss.topk(k).indices
-    rest = torch.ones(n, dtype=torch.bool)
+    rest = torch.ones(n, dtype=torch.bool, device=loss.device)
     rest[top] = False
     others = torch.nonzero(rest)[:, 0]
     m = min(len(others), int(round(random * n)))
-    pick = others[torch.randperm(len(others), generator=generator)[:m]]
+    pick = others[torch.randperm(len(others), generator=generator)[:m].to(others.device)]
     return loss[torch.cat([top, pick])].mean()

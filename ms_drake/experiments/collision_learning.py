@@ -4,7 +4,9 @@ A step is one scene of the train shards (ms-drake data collision): its point clo
 object are encoded once and all its 2,048 queries classified, the loss mined (10 % hardest + 10 %
 random, line 1061); Adam with a cosine schedule; the scenes of an epoch in a seeded random order.
 `FILE.ckpt` holds the state a killed run resumes from (experiments.training); the weights file
-holds the model, its NetConfig and the run's metadata.
+holds the model, its NetConfig and the run's metadata. Training, evaluation and the bench run the
+network on `device` (cpu | cuda | auto; perception.weights.torch_device); the files hold CPU
+tensors.
 
 `evaluate_collision` scores a network on the test shards (held-out scenes and objects):
 accuracy at P = 0.5, average precision (scikit-learn), and the CPU time per query of the batched
@@ -29,13 +31,14 @@ from ms_drake.collision.scene_net import NetConfig, make_net, mined_loss
 from ms_drake.errors import DatasetError
 from ms_drake.experiments.collision_data import load_collision_shards, make_scene
 from ms_drake.experiments.training import resume, save_atomically, save_checkpoint, torch_setup
+from ms_drake.perception.weights import torch_device
 
 
-def _tensors(torch, d: dict, i: int):
-    return (torch.from_numpy(np.asarray(d["scene_points"][i], np.float32)),
-            torch.from_numpy(np.asarray(d["object_points"][i], np.float32)),
-            torch.from_numpy(np.asarray(d["poses"][i], np.float32)),
-            torch.from_numpy(np.asarray(d["labels"][i])))
+def _tensors(torch, d: dict, i: int, device):
+    return (torch.from_numpy(np.asarray(d["scene_points"][i], np.float32)).to(device),
+            torch.from_numpy(np.asarray(d["object_points"][i], np.float32)).to(device),
+            torch.from_numpy(np.asarray(d["poses"][i], np.float32)).to(device),
+            torch.from_numpy(np.asarray(d["labels"][i])).to(device))
 
 
 ENCODERS = ("point_mlp", "convs", "group_mlp", "object_mlp")  # the per-observation part of the network
@@ -43,7 +46,7 @@ ENCODERS = ("point_mlp", "convs", "group_mlp", "object_mlp")  # the per-observat
 
 def _frozen_encoders(net, encoders) -> None:
     """Copy the scene and object encoders of the weights file `encoders` into `net` and freeze them."""
-    src = load_collision_net(encoders)[0]
+    src = load_collision_net(encoders, device=net.centres.device)[0]
     for name in ENCODERS:
         try:
             getattr(net, name).load_state_dict(getattr(src, name).state_dict())
@@ -56,13 +59,14 @@ def _frozen_encoders(net, encoders) -> None:
 
 def train_collision(data, out, epochs: int = 20, seed: int = 0, threads: int = 1, lr: float = 1e-3,
                     config: NetConfig = NetConfig(), max_minutes: float = 90.0, hard: float = 0.1,
-                    random: float = 0.1, progress=None, command: str = "", encoders=None) -> dict:
+                    random: float = 0.1, progress=None, command: str = "", encoders=None, device="cpu") -> dict:
     """Train on the train shards of `data`; write `out` (weights + meta) and `out`.ckpt (resume).
     Stops early (after a whole epoch) when `max_minutes` of wall time would be exceeded.
     `encoders`: a weights file whose scene and object encoders are copied and frozen; only the query
     classifier trains (a smaller, faster classifier on a larger network's features), on encodings
-    computed once per scene."""
+    computed once per scene. device: where the network trains (cpu | cuda | auto)."""
     torch = torch_setup(seed, threads)
+    dev = torch_device(device)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     ckpt = out.with_suffix(".ckpt")
@@ -70,7 +74,7 @@ def train_collision(data, out, epochs: int = 20, seed: int = 0, threads: int = 1
     n = len(d["labels"])
     if n < 1:
         raise DatasetError(f"{data}: no training scenes; write them with `ms-drake data collision`")
-    net = make_net(config)
+    net = make_net(config).to(dev)
     if encoders is not None:
         _frozen_encoders(net, encoders)
     opt = torch.optim.Adam([q for q in net.parameters() if q.requires_grad], lr=lr)
@@ -90,7 +94,7 @@ def train_collision(data, out, epochs: int = 20, seed: int = 0, threads: int = 1
         net.train()
         total, right = 0.0, 0.0
         for b, i in enumerate(order):
-            scene, obj, poses, labels = _tensors(torch, d, i)
+            scene, obj, poses, labels = _tensors(torch, d, i, dev)
             opt.zero_grad()
             if encoders is None:
                 logits = net(scene, obj, poses)
@@ -113,23 +117,25 @@ def train_collision(data, out, epochs: int = 20, seed: int = 0, threads: int = 1
         save_checkpoint(torch, ckpt, settings, net, opt, sched, epoch + 1, history, time.perf_counter() - t0)
     meta = dict(data=str(data), encoders=settings["encoders"], train_scenes=n, train_queries=int(d["labels"].size), epochs_done=len(history),
                 epochs=epochs, seed=seed, lr=lr, hard=hard, random=random, seconds=time.perf_counter() - t0,
-                history=history, command=command, torch=torch.__version__)
+                history=history, command=command, torch=torch.__version__, device=str(dev))
     save_atomically(torch, dict(model=net.state_dict(), config=asdict(config), meta=meta), out)
     return meta
 
 
 def evaluate_collision(net, data, split: str = "test", max_scenes: int | None = None, threads: int = 1) -> dict:
-    """Accuracy, AP and CPU time per query of `net` on the `split` shards of `data` (module doc)."""
+    """Accuracy, AP and CPU time per query of `net` (on its device) on the `split` shards of `data`
+    (module doc)."""
     import torch  # optional heavy dependency
 
     torch.set_num_threads(threads)
+    dev = net.centres.device
     d = load_collision_shards(data, split)
     n = len(d["labels"]) if max_scenes is None else min(max_scenes, len(d["labels"]))
     scores, labels = [], []
     encode_s, query_s = 0.0, 0.0
     with torch.inference_mode():
         for i in range(n):
-            scene, obj, poses, lab = _tensors(torch, d, i)
+            scene, obj, poses, lab = _tensors(torch, d, i, dev)
             t = time.process_time()
             code = net.encode(scene, obj)
             t1 = time.process_time()
@@ -137,8 +143,8 @@ def evaluate_collision(net, data, split: str = "test", max_scenes: int | None = 
             t2 = time.process_time()
             encode_s += t1 - t
             query_s += t2 - t1
-            scores.append(torch.sigmoid(logits).numpy())
-            labels.append(lab.numpy())
+            scores.append(torch.sigmoid(logits).cpu().numpy())
+            labels.append(lab.cpu().numpy())
     s, y = np.concatenate(scores), np.concatenate(labels)
     return dict(scenes=n, queries=int(len(y)), positive=float(y.mean()), accuracy=float(((s > 0.5) == y).mean()),
                 ap=float(average_precision_score(y, s)) if 0 < y.sum() < len(y) else float("nan"),
@@ -160,10 +166,10 @@ def bench_scene(seed: int, cache=None) -> dict:
 
 
 def bench_collision(method: str, scenes: int, seed_start: int = 0, cache=None, weights=None, threads: int = 1,
-                    progress=None) -> dict:
+                    progress=None, device: str = "cpu") -> dict:
     """Table 6.1: one method on held-out scenes seed_start.. (module doc); accuracy at 0.5, AP, CPU
     microseconds per query (one thread; the per-scene set-up -- encoding, reconstruction --
-    reported apart as ms per scene)."""
+    reported apart as ms per scene). device: where the network runs (cpu | cuda | auto)."""
     if method not in METHODS:
         raise DatasetError(f"collision method {method!r} unknown; choose one of {', '.join(METHODS)}")
     net = None
@@ -172,7 +178,7 @@ def bench_collision(method: str, scenes: int, seed_start: int = 0, cache=None, w
 
         torch.set_num_threads(threads)
         weights = weights or default_weights(method)
-        net = load_collision_net(weights, method)[0]
+        net = load_collision_net(weights, method, device)[0]
     scores, labels = [], []
     setup_s = query_s = 0.0
     for k in range(scenes):
@@ -194,4 +200,5 @@ def bench_collision(method: str, scenes: int, seed_start: int = 0, cache=None, w
                 accuracy=float(((sc > 0.5) == y).mean()),
                 ap=float(average_precision_score(y, sc)) if 0 < y.sum() < len(y) else float("nan"),
                 us_per_query=1e6 * query_s / len(y), setup_ms_per_scene=1e3 * setup_s / scenes,
-                weights=str(weights) if net is not None else None)
+                weights=str(weights) if net is not None else None,
+                device=str(net.centres.device) if net is not None else None)

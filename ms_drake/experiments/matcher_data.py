@@ -75,6 +75,7 @@ from ms_drake.objects.registry import _PALETTE
 from ms_drake.parallel import run_jobs, run_shard_jobs
 from ms_drake.perception.matcher_net import crop
 from ms_drake.perception.target import TargetDetector, Template
+from ms_drake.perception.weights import torch_device
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import HeapParams, generate_heap
 from ms_drake.station.sensor_model import PRESETS, apply_depth_sensor
@@ -359,12 +360,14 @@ def load_scene(path: Path) -> dict:
 
 
 def bench_detection_job(job: tuple) -> dict:
-    """(backend, seed, weights[, scene_dir[, sensor]]) -> one benchmark record; module-level for
-    pickling. scene_dir: images are read from / saved to it (scene_<seed>.npz); sensor: the depth
-    sensor preset the heap's depth image goes through (seeded by the image's seed)."""
+    """(backend, seed, weights[, scene_dir[, sensor[, device]]]) -> one benchmark record; module-level
+    for pickling. scene_dir: images are read from / saved to it (scene_<seed>.npz); sensor: the depth
+    sensor preset the heap's depth image goes through (seeded by the image's seed); device: where
+    the learned backend's network runs (cpu | cuda | auto)."""
     backend, seed, weights, *rest = job
     cache = Path(rest[0]) / f"scene_{seed}.npz" if rest and rest[0] else None
     sensor = rest[1] if len(rest) > 1 and rest[1] else "none"
+    device = rest[2] if len(rest) > 2 else "cpu"
     if sensor not in PRESETS:
         raise DatasetError(f"sensor {sensor!r} unknown; choose one of {', '.join(PRESETS)}")
     if cache is not None and cache.exists():
@@ -383,7 +386,7 @@ def bench_detection_job(job: tuple) -> dict:
         depth = apply_depth_sensor(depth, PRESETS[sensor], np.random.default_rng([seed, 31]), cam.fx, cam.fy, cam.cx,
                                    cam.cy, sc["rgb"])
     det = TargetDetector(backend, width=w, height=h, templates=sc["templates"] if backend != "color" else None,
-                         weights=weights, camera=cam)
+                         weights=weights, camera=cam, device=device)
     t0, c0 = time.perf_counter(), time.process_time()
     est = det.detect(sc["rgb"], sc["masks"], depth)
     secs, cpu = time.perf_counter() - t0, time.process_time() - c0
@@ -406,15 +409,18 @@ def detection_metrics(recs: list[dict]) -> dict:
 
 
 def bench_target_detection(backend: str, images: int, seed_start: int, out, workers: int = 1, weights=None,
-                           progress=None, scene_dir=None, sensor: str = "none") -> dict:
+                           progress=None, scene_dir=None, sensor: str = "none", device: str = "cpu") -> dict:
     """Run the missing images of seeds S..S+N-1 (one JSON line each in OUT.jsonl next to `out`,
     resumable), then write `out` (JSON: metrics overall and on the shared-colour subset).
     scene_dir: a folder caching the rendered images, shared by the backends' runs. sensor: the
-    depth sensor preset (station.sensor_model.PRESETS) of the depth image the detector gets."""
+    depth sensor preset (station.sensor_model.PRESETS) of the depth image the detector gets.
+    device: where the learned backend's network runs in each worker (cpu | cuda | auto)."""
     if backend not in DETECTORS:
         raise DatasetError(f"backend {backend!r} unknown; choose one of {', '.join(DETECTORS)}")
     if sensor not in PRESETS:
         raise DatasetError(f"sensor {sensor!r} unknown; choose one of {', '.join(PRESETS)}")
+    if backend == "learned":
+        torch_device(device)  # a device this machine lacks fails here, before any job
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     lines = out.with_suffix(".jsonl")
@@ -431,7 +437,7 @@ def bench_target_detection(backend: str, images: int, seed_start: int, out, work
 
     done = {r["seed"] for r in recs if mine(r)}
     jobs = [(backend, s, None if weights is None else str(weights), None if scene_dir is None else str(scene_dir),
-             sensor) for s in range(seed_start, seed_start + images) if s not in done]
+             sensor, device) for s in range(seed_start, seed_start + images) if s not in done]
     with open(lines, "a") as f:
         for r in run_jobs(bench_detection_job, jobs, workers=workers):
             if r.ok:

@@ -15,7 +15,8 @@ same/different output). Adam, lr 1e-3 with cosine decay (the reference: 1e-4 for
 a frozen backbone; ours trains the encoder from scratch), batches of 64 pairs.
 
 An epoch is `steps` batches; batches of epoch e come from (seed, e), so a killed run resumes with
-the same command (FILE.ckpt after every epoch, experiments.training). Validation after every
+the same command (FILE.ckpt after every epoch, experiments.training). It trains on `device` (cpu |
+cuda | auto; perception.weights.torch_device); the files hold CPU tensors. Validation after every
 epoch on fixed pairs of the test shards (held-out objects), drawn from `seed` the same way:
 loss, accuracy, precision and recall of "same" at t_r = 0.9.
 """
@@ -32,6 +33,7 @@ from ms_drake.errors import DatasetError
 from ms_drake.experiments.matcher_data import load_matcher_data
 from ms_drake.experiments.training import resume, save_atomically, save_checkpoint, torch_setup
 from ms_drake.perception.matcher_net import THRESHOLD, MatcherConfig, make_net, occlude
+from ms_drake.perception.weights import torch_device
 
 
 class PairSampler:
@@ -94,10 +96,12 @@ def _rot_flip(x: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 
 def evaluate(net, torch, a, b, y) -> dict:
+    """Loss, accuracy, precision and recall of `net` (on its device) on the pairs (a, b) labelled y."""
     net.eval()
+    dev = next(net.parameters()).device
     with torch.no_grad():
-        logits = torch.cat([net(torch.from_numpy(a[k:k + 256]), torch.from_numpy(b[k:k + 256]))
-                            for k in range(0, len(a), 256)])
+        logits = torch.cat([net(torch.from_numpy(a[k:k + 256]).to(dev), torch.from_numpy(b[k:k + 256]).to(dev))
+                            for k in range(0, len(a), 256)]).cpu()
         loss = float(torch.nn.functional.binary_cross_entropy_with_logits(logits, torch.from_numpy(y)))
         s = torch.sigmoid(logits).numpy()
     pred = s >= THRESHOLD
@@ -108,11 +112,12 @@ def evaluate(net, torch, a, b, y) -> dict:
 
 def train_matcher(data, out, epochs: int = 10, steps: int = 150, batch: int = 64, seed: int = 0, threads: int = 1,
                   lr: float = 1e-3, val_pairs: int = 2000, max_minutes: float = 15.0, progress=None,
-                  command: str = "", config: MatcherConfig | None = None) -> dict:
+                  command: str = "", config: MatcherConfig | None = None, device="cpu") -> dict:
     """Train on the train shards of `data`; write `out` (weights + config + meta) and `out`.ckpt
     after every epoch; stop early (after a whole epoch) when `max_minutes` of wall time would be
-    exceeded."""
+    exceeded. device: where the network trains (cpu | cuda | auto)."""
     torch = torch_setup(seed, threads)
+    dev = torch_device(device)
     config = config or MatcherConfig()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -120,7 +125,7 @@ def train_matcher(data, out, epochs: int = 10, steps: int = 150, batch: int = 64
     train = PairSampler(load_matcher_data(data, "train"))
     test = PairSampler(load_matcher_data(data, "test"))
     va, vb, vy = test.pairs(val_pairs, np.random.default_rng([seed, 999]), augment=False)
-    net = make_net(config)
+    net = make_net(config).to(dev)
     opt = torch.optim.Adam(net.parameters(), lr=lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs * steps)
     settings = dict(config=asdict(config), epochs=epochs, steps=steps, batch=batch, lr=lr, seed=seed,
@@ -139,7 +144,7 @@ def train_matcher(data, out, epochs: int = 10, steps: int = 150, batch: int = 64
             a, b, y = train.pairs(batch, rng)
             opt.zero_grad()
             loss = torch.nn.functional.binary_cross_entropy_with_logits(
-                net(torch.from_numpy(a), torch.from_numpy(b)), torch.from_numpy(y))
+                net(torch.from_numpy(a).to(dev), torch.from_numpy(b).to(dev)), torch.from_numpy(y).to(dev))
             loss.backward()
             opt.step()
             sched.step()
@@ -153,7 +158,7 @@ def train_matcher(data, out, epochs: int = 10, steps: int = 150, batch: int = 64
         meta = dict(data=str(data), train_crops=train.n, test_crops=test.n, train_objects=int(len(np.unique(train.ident))),
                     test_objects=int(len(np.unique(test.ident))), epochs_done=len(history), epochs=epochs, steps=steps,
                     batch=batch, seed=seed, lr=lr, seconds=time.perf_counter() - t0, history=list(history),
-                    command=command, torch=torch.__version__, threads=threads)
+                    command=command, torch=torch.__version__, threads=threads, device=str(dev))
         save_atomically(torch, dict(model=net.state_dict(), config=asdict(config), meta=meta), out)
     if not meta:  # every epoch was already in the checkpoint: the weights file holds its meta
         meta = torch.load(out, map_location="cpu", weights_only=False)["meta"] if out.exists() else dict(

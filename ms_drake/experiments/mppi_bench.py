@@ -22,6 +22,10 @@ same dynamics (the joint step x + u, clipped to the limits), the same cost (join
 goal, plus 1000 for a colliding configuration from the same checker), the same number of samples
 T and horizon H; its running cost is evaluated once per horizon step on all samples, as its API
 prescribes. The per-step noise is Sigma / H per joint, so its H-step rollouts spread like ours.
+
+`device` (cpu | cuda | auto) is where the collision network answers its queries and where
+pytorch_mppi samples and rolls out; the forward kinematics, ours' sampling and selection, and the
+baselines stay on the CPU. The times are CPU times of this process (`time.process_time`).
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ from ms_drake.errors import MsDrakeError
 from ms_drake.experiments.collision_learning import bench_scene
 from ms_drake.planning.arm_model import ArmModel
 from ms_drake.planning.mppi import MppiParams, mppi_step
+from ms_drake.perception.weights import torch_device
 from ms_drake.planning.sequences import arm_ik
 from ms_drake.scenario import load_scenario
 
@@ -94,29 +99,30 @@ def run_ours(robot, q0, goal, lower, upper, params: MppiParams, steps: int, lazy
                 reached=bool(np.linalg.norm(q - goal) < GOAL_TOLERANCE), final_distance=float(np.linalg.norm(q - goal)))
 
 
-def run_pytorch_mppi(robot, q0, goal, lower, upper, params: MppiParams, steps: int) -> dict:
+def run_pytorch_mppi(robot, q0, goal, lower, upper, params: MppiParams, steps: int, device="cpu") -> dict:
     import torch  # optional heavy dependency
     from pytorch_mppi import MPPI  # the `bench` extra
 
+    dev = torch_device(device)
     torch.manual_seed(params.seed)
-    lo, hi = torch.tensor(lower), torch.tensor(upper)
-    g = torch.tensor(goal)
+    lo, hi = torch.tensor(lower, device=dev), torch.tensor(upper, device=dev)
+    g = torch.tensor(goal, device=dev)
     H = params.horizon
 
     def dynamics(x, u):
         return torch.clamp(x + u, lo, hi)
 
     def running_cost(x, u):
-        hit = torch.from_numpy(robot.collides(x.numpy()).astype(np.float64))
+        hit = torch.from_numpy(robot.collides(x.cpu().numpy()).astype(np.float64)).to(dev)
         return torch.linalg.norm(x - g, dim=1) + 1000.0 * hit
 
     n = len(q0)
-    sigma = (params.sigma / H) ** 2 * torch.eye(n, dtype=torch.float64)
+    sigma = (params.sigma / H) ** 2 * torch.eye(n, dtype=torch.float64, device=dev)
     step = np.linalg.norm(goal - q0) / H
     mppi = MPPI(dynamics, running_cost, n, noise_sigma=sigma, num_samples=params.trajectories, horizon=H,
-                lambda_=params.temperature, u_min=-torch.full((n,), 3 * step), u_max=torch.full((n,), 3 * step),
-                device="cpu")
-    q, times = torch.tensor(q0), []
+                lambda_=params.temperature, u_min=-torch.full((n,), 3 * step, device=dev),
+                u_max=torch.full((n,), 3 * step, device=dev), device=dev)
+    q, times = torch.tensor(q0, device=dev), []
     for _ in range(steps):
         t = time.process_time()
         u = mppi.command(q)
@@ -131,17 +137,20 @@ def run_pytorch_mppi(robot, q0, goal, lower, upper, params: MppiParams, steps: i
 
 
 def bench_mppi(method: str, scenes: int, seed_start: int = 0, trajectories: int = 300, horizon: int = 40,
-               steps: int = 5, planner: str = "ours", cache=None, weights=None, threads: int = 1, progress=None) -> list[dict]:
+               steps: int = 5, planner: str = "ours", cache=None, weights=None, threads: int = 1, progress=None,
+               device: str = "cpu") -> list[dict]:
     """One record per scene (module doc)."""
     if planner not in PLANNERS:
         raise MsDrakeError(f"planner {planner!r} unknown; choose one of {', '.join(PLANNERS)}")
+    dev = torch_device(device)
     net = None
     if method in NETWORKS:
         import torch  # optional heavy dependency
 
         torch.set_num_threads(threads)
-        net = load_collision_net(weights or default_weights(method), method)[0]
-    run = {"ours": run_ours, "ours_lazy": lambda *a: run_ours(*a, lazy=True), "pytorch_mppi": run_pytorch_mppi}[planner]
+        net = load_collision_net(weights or default_weights(method), method, dev)[0]
+    run = {"ours": run_ours, "ours_lazy": lambda *a: run_ours(*a, lazy=True),
+           "pytorch_mppi": lambda *a: run_pytorch_mppi(*a, device=dev)}[planner]
     out = []
     for k in range(scenes):
         seed = seed_start + k
@@ -149,7 +158,7 @@ def bench_mppi(method: str, scenes: int, seed_start: int = 0, trajectories: int 
         with threadpool_limits(limits=threads, user_api="blas"):
             r = run(robot, q0, goal, lo, hi, MppiParams(trajectories=trajectories, horizon=horizon, seed=seed), steps)
         out.append(dict(seed=seed, method=method, planner=planner, trajectories=trajectories, horizon=horizon,
-                        threads=threads, hz=1e3 / r["ms_per_step"], **r))
+                        threads=threads, device=str(dev), hz=1e3 / r["ms_per_step"], **r))
         del keep
         if progress is not None:
             progress(out[-1])

@@ -11,9 +11,10 @@ fine-tuning). Samples whose target is not its ratio's training box (``ms-drake d
 input scaling zooms at inference. Our choices where the reference's (ResNet-50
 FCN, SGD with momentum 0.99, lr 1e-5, 40 epochs on a V100) does not fit two shared CPU cores.
 Deterministic from `seed` (torch and numpy generators; the batch order of epoch e comes from
-(seed, e)). After every epoch the model, optimizer and scheduler go to ``FILE.ckpt`` (written
-atomically), so a killed run resumes with the same command; the shipped ``FILE`` holds the
-weights, the network configuration and a `meta` dict (data, command, epochs, seconds).
+(seed, e)). It trains on `device` (cpu | cuda | auto; perception.weights.torch_device). After
+every epoch the model, optimizer and scheduler go to ``FILE.ckpt`` (written atomically, tensors on
+the CPU), so a killed run resumes with the same command; the shipped ``FILE`` holds the
+weights, the network configuration and a `meta` dict (data, command, epochs, seconds, device).
 
 `occupancy_metrics`: line 1466's definitions, on maps scaled to a maximum of 1. A ground-truth
 pixel is positive when its value exceeds 0.1; a prediction is right when it lies within 0.2 of
@@ -53,6 +54,7 @@ from ms_drake.perception.occupancy_net import (
     visible_support,
     zoom,
 )
+from ms_drake.perception.weights import torch_device
 
 POSITIVE = 0.1
 TOLERANCE = 0.2
@@ -153,11 +155,13 @@ def make_optimizer(net, lr: float = 1e-3, weight_decay: float = 5e-4):
 def train_occupancy(data, out, epochs: int = 12, batch: int = 32, seed: int = 0, threads: int = 1,
                     config: NetConfig = NetConfig(), max_minutes: float = 60.0, progress=None,
                     command: str = "", lr: float = 1e-3, positive_weight: float = 0.0,
-                    init: str | Path | None = None) -> dict:
+                    init: str | Path | None = None, device="cpu") -> dict:
     """Train on the train shards of `data`; write `out` (weights + meta) and `out`.ckpt (resume).
     Stops early (after a whole epoch) when `max_minutes` of wall time would be exceeded.
-    init: a weights file to start from (its network configuration replaces `config`)."""
+    init: a weights file to start from (its network configuration replaces `config`).
+    device: where the network trains (cpu | cuda | auto)."""
     torch = torch_setup(seed, threads)
+    dev = torch_device(device)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     ckpt = out.with_suffix(".ckpt")
@@ -168,10 +172,10 @@ def train_occupancy(data, out, epochs: int = 12, batch: int = 32, seed: int = 0,
         raise DatasetError(f"{data}: {n} training images, fewer than a batch ({batch}); make more with "
                            "`ms-drake data occupancy --count ...`")
     if init is not None:
-        net, ck0 = load_model(init)
+        net, ck0 = load_model(init, dev)
         config = NetConfig(**ck0["config"])
     else:
-        net = make_net(config)
+        net = make_net(config).to(dev)
     opt = make_optimizer(net, lr=lr)
     steps_per_epoch = n // batch
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs * steps_per_epoch)
@@ -193,8 +197,8 @@ def train_occupancy(data, out, epochs: int = 12, batch: int = 32, seed: int = 0,
             x, y = _flip(d["x"][idx].astype(np.float32), d["y"][idx].astype(np.float32), rng)
             sup, flo = batch_constraint(x, diag[idx])
             opt.zero_grad()
-            loss = ratio_loss(net(torch.from_numpy(x)), torch.from_numpy(y), torch.from_numpy(d["ratio"][idx]),
-                              torch.from_numpy(sup), torch.from_numpy(flo), positive_weight)
+            xt, yt, rt, st, ft = (torch.from_numpy(a).to(dev) for a in (x, y, d["ratio"][idx], sup, flo))
+            loss = ratio_loss(net(xt), yt, rt, st, ft, positive_weight)
             loss.backward()
             opt.step()
             sched.step()
@@ -206,7 +210,7 @@ def train_occupancy(data, out, epochs: int = 12, batch: int = 32, seed: int = 0,
     meta = dict(data=str(data), train_images=n, epochs_done=len(history), epochs=epochs, batch=batch, seed=seed,
                 lr=lr, positive_weight=positive_weight, init=str(init) if init is not None else None,
                 rescaled_images=rescaled, seconds=time.perf_counter() - t0, history=history, command=command,
-                ratios=list(TARGET_RATIOS), torch=torch.__version__)
+                ratios=list(TARGET_RATIOS), torch=torch.__version__, device=str(dev))
     save_atomically(torch, dict(model=net.state_dict(), config=asdict(config), meta=meta), out)
     return meta
 
@@ -215,17 +219,18 @@ def predict(net, x: np.ndarray, ratio: np.ndarray, scales: np.ndarray | None = N
             diag: np.ndarray | None = None) -> np.ndarray:
     """(n, 96, 128) predictions of each sample's ratio channel; `scales` (n,): input scaling per
     sample; `diag` (n,): target diagonals [m], gives what the estimator returns
-    (occupancy_net.estimator_output; None: the network's raw output)."""
+    (occupancy_net.estimator_output; None: the network's raw output). On the device of `net`."""
     import torch  # optional heavy dependency: only the learned occupancy needs it
 
     net.eval()
+    dev = next(net.parameters()).device
     out = np.zeros((len(x), *x.shape[2:]), np.float32)
     with torch.inference_mode():
         for i in range(0, len(x), batch):
             xb = np.asarray(x[i:i + batch], np.float32)
             if scales is not None:
                 xb = np.stack([zoom(xi, 1.0 / s) for xi, s in zip(xb, scales[i:i + batch])])
-            y = net(torch.from_numpy(xb)).numpy()
+            y = net(torch.from_numpy(xb).to(dev)).cpu().numpy()
             y = y[np.arange(len(xb)), ratio[i:i + batch]]
             if scales is not None:
                 y = np.stack([zoom(yi[None], s)[0] for yi, s in zip(y, scales[i:i + batch])])
@@ -264,7 +269,8 @@ def sensor_test_set(folder, sensor: str, images: int, seed: int = 7, workers: in
 
 
 def bench_occupancy(data, weights=None, scaling: bool = False, timed: int = 50, seed: int = 0,
-                    sensor: str | None = None, sensor_images: int = 96, sensor_seed: int = 7) -> dict:
+                    sensor: str | None = None, sensor_images: int = 96, sensor_seed: int = 7,
+                    device="cpu") -> dict:
     """Table 8.1 rows on the test shards of `data` (the estimator's output: the network under the
     seen-target constraint, scaled to a maximum of 1; `raw_rows`: the network alone), two
     baselines, and the inference time. sensor: bench on `sensor_test_set(data, sensor,
@@ -274,12 +280,14 @@ def bench_occupancy(data, weights=None, scaling: bool = False, timed: int = 50, 
     to a maximum of 1); "modal" predicts the observed modal mask (nothing when hidden).
     Timing: `LearnedOccupancy.estimate` on full 640 x 480 inputs (preprocessing, forward pass,
     upsampling; the cost does not depend on the content), one torch thread, median of `timed` calls,
-    wall and CPU time of the process (on a shared machine the CPU time is the cost on one core)."""
+    wall and CPU time of the process (on a shared machine the CPU time is the cost on one core).
+    device: where the network runs (cpu | cuda | auto)."""
+    dev = torch_device(device)
     if sensor is not None:
         data = sensor_test_set(data, sensor, sensor_images, sensor_seed)
     torch = torch_setup(seed, 1)
     d = load_dataset(data, "test")
-    net, ck = load_model(weights)
+    net, ck = load_model(weights, dev)
     d["y"] = d["y"].astype(np.float32)
     scales = None
     if scaling:
@@ -295,7 +303,7 @@ def bench_occupancy(data, weights=None, scaling: bool = False, timed: int = 50, 
     for name, p in (("uniform", uni), ("modal", modal)):
         m = occupancy_metrics(p, d["y"])
         base[name] = {k: float(np.mean(v)) for k, v in m.items()}
-    est = LearnedOccupancy((0.03, 0.03, 0.005), weights=weights, input_scaling=False)
+    est = LearnedOccupancy((0.03, 0.03, 0.005), weights=weights, input_scaling=False, device=dev)
     depth, mask = np.full(FULL_SHAPE, 0.8, np.float32), np.zeros(FULL_SHAPE, bool)
     est.estimate(depth, mask)  # warm-up
     times, cpu = [], []
@@ -307,4 +315,4 @@ def bench_occupancy(data, weights=None, scaling: bool = False, timed: int = 50, 
     return dict(rows=rows, raw_rows=raw_rows, baselines=base, ms_per_image=1000 * float(np.median(times)),
                 cpu_ms_per_image=1000 * float(np.median(cpu)), timed=timed,
                 scaling=scaling, weights=str(weights or "shipped"), test_images=len(pred), data=str(data), sensor=sensor,
-                files=len(d["files"]), torch_threads=torch.get_num_threads())
+                files=len(d["files"]), torch_threads=torch.get_num_threads(), device=str(dev))

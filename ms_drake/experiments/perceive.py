@@ -170,10 +170,11 @@ def _target_size(target: str | None, target_size) -> TargetBox | None:
 
 
 def perceive(depth: np.ndarray, camera: Camera | None = None, segmenter: str = "learned", rgb: np.ndarray | None = None,
-             target: str | None = None, target_size=None) -> dict:
+             target: str | None = None, target_size=None, device: str = "cpu") -> dict:
     """The perception of one image: {"masks": InstanceMasks, "target": TargetEstimate | None,
     "occupancy": (H, W) | None, "ms": {stage: CPU milliseconds of the inference, models loaded}} at
-    the depth image's size."""
+    the depth image's size. device: where the learned networks (segmenter, occupancy) run (cpu |
+    cuda | auto)."""
     if segmenter not in PERCEIVE_SEGMENTERS:
         raise PerceiveError(f"segmenter {segmenter!r} unknown; choose one of {', '.join(PERCEIVE_SEGMENTERS)}")
     camera = camera or load_camera(None, depth.shape)
@@ -184,7 +185,7 @@ def perceive(depth: np.ndarray, camera: Camera | None = None, segmenter: str = "
     filled = preprocess_depth(depth)
     model_depth = filled if (w, h) == MODEL_SIZE else _resize(filled, MODEL_SIZE)
     ms["preprocess"] = 1000 * (time.process_time() - t)
-    seg = (Segmenter("learned") if segmenter == "learned" else
+    seg = (Segmenter("learned", device=device) if segmenter == "learned" else
            Segmenter(segmenter, camera=camera.camera, workspace=camera.workspace))  # (loads the network)
     t = time.process_time()
     if segmenter == "learned":
@@ -208,7 +209,7 @@ def perceive(depth: np.ndarray, camera: Camera | None = None, segmenter: str = "
     occupancy = None
     if box is not None:
         mask = found.mask if found is not None and found.visible else np.zeros((h, w), bool)
-        est = OccupancyEstimator("learned", target_size=box)
+        est = OccupancyEstimator("learned", target_size=box, device=device)
         est.backend.estimate(model_depth, np.zeros(model_depth.shape, bool))  # (loads the network)
         t = time.process_time()
         occ = est.backend.estimate(model_depth, mask if (w, h) == MODEL_SIZE else _resize(mask.astype(np.uint8),

@@ -8,10 +8,11 @@ cross-entropy on the three classes of segmentation_net. Our choices where the re
 lr 0.01, momentum 0.9, 60 epochs on a Titan X) does not fit two shared CPU cores: the network is
 fully convolutional, so it learns from windows and runs on the whole image, at a quarter of the
 cost per image. Deterministic from `seed` (the batch order and windows of epoch e come from
-(seed, e)). After every epoch the model, optimizer and scheduler go to ``FILE.ckpt``
-(experiments.training), so a killed run resumes with the same command; ``FILE`` (written after
-every epoch too) holds the weights, the network configuration and a `meta` dict (data, command,
-epochs, seconds, losses).
+(seed, e)). It trains on `device` (cpu | cuda | auto; perception.weights.torch_device). After
+every epoch the model, optimizer and scheduler go to ``FILE.ckpt`` (experiments.training; tensors
+on the CPU), so a killed run resumes with the same command; ``FILE`` (written after every epoch
+too) holds the weights, the network configuration and a `meta` dict (data, command, epochs,
+seconds, losses, device).
 
 `bench_segmentation` (``ms-drake bench segmentation --backend B --images N --seed-start S``): image
 s is heap s of held-out objects (the test split of its object set; sets taken in turn by seed,
@@ -62,6 +63,7 @@ from ms_drake.perception.segmentation_net import (
     segmentation_loss,
     working_inputs,
 )
+from ms_drake.perception.weights import torch_device
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import HeapParams, generate_heap
 from ms_drake.station.sensor_model import apply_depth_sensor, depth_sensor_params, image_rng
@@ -216,7 +218,7 @@ def train_segmentation(data, out, epochs: int = 8, batch: int = 16, seed: int = 
                        config: NetConfig | None = None, max_minutes: float = 60.0, progress=None, command: str = "",
                        lr: float = 2e-3, max_images: int | None = None, steps_per_epoch: int | None = None,
                        init=None, object_fraction: float | None = None, noise: float = 0.0,
-                       dropout: float = 0.0) -> dict:
+                       dropout: float = 0.0, device="cpu") -> dict:
     """Train on the train shards of `data` (the first `max_images` if given); write `out` (weights +
     meta) and `out`.ckpt (resume). Stops early (after a whole epoch) when `max_minutes` of wall
     time would be exceeded.
@@ -229,8 +231,10 @@ def train_segmentation(data, out, epochs: int = 8, batch: int = 16, seed: int = 
     subset is drawn from `seed`).
     noise, dropout: sensor augmentation: each image of a batch, with probability 1/2, is made again
     from its full-resolution depth through `sensor_model(depth, rng, noise, dropout)` (the writer's
-    sensor model) before its window is cut."""
+    sensor model) before its window is cut.
+    device: where the network trains (cpu | cuda | auto)."""
     torch = torch_setup(seed, threads)
+    dev = torch_device(device)
     config = config or NetConfig()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -250,6 +254,7 @@ def train_segmentation(data, out, epochs: int = 8, batch: int = 16, seed: int = 
     net = make_net(config)
     if init is not None:
         net.load_state_dict(ck["model"])
+    net.to(dev)
     opt = make_optimizer(net, lr)
     steps = steps_per_epoch or n // batch
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs * steps)
@@ -280,7 +285,7 @@ def train_segmentation(data, out, epochs: int = 8, batch: int = 16, seed: int = 
             else:
                 xb, yb = make_batch(images.x, images.y, idx, rng)
             opt.zero_grad()
-            loss = segmentation_loss(net(torch.from_numpy(xb)), torch.from_numpy(yb))
+            loss = segmentation_loss(net(torch.from_numpy(xb).to(dev)), torch.from_numpy(yb).to(dev))
             loss.backward()
             opt.step()
             sched.step()
@@ -291,18 +296,18 @@ def train_segmentation(data, out, epochs: int = 8, batch: int = 16, seed: int = 
         save_checkpoint(torch, ckpt, settings, net, opt, sched, epoch + 1, history, time.perf_counter() - t0)
         save_atomically(torch, dict(model=net.state_dict(), config=asdict(config),
                                     meta=_meta(data, n, history, epochs, batch, seed, lr, t0, command, torch,
-                                               images, noise, dropout)), out)
-    meta = _meta(data, n, history, epochs, batch, seed, lr, t0, command, torch, images, noise, dropout)
+                                               images, noise, dropout, dev)), out)
+    meta = _meta(data, n, history, epochs, batch, seed, lr, t0, command, torch, images, noise, dropout, dev)
     save_atomically(torch, dict(model=net.state_dict(), config=asdict(config), meta=meta), out)
     return meta
 
 
 def _meta(data, n, history, epochs, batch, seed, lr, t0, command, torch, images, noise=0.0,
-          dropout=0.0) -> dict:
+          dropout=0.0, device="cpu") -> dict:
     return dict(data=str(data), train_images=n, epochs_done=len(history), epochs=epochs, batch=batch, seed=seed,
                 lr=lr, crop=list(CROP_SHAPE), seconds=time.perf_counter() - t0, history=list(history),
-                command=command, torch=torch.__version__, object_fraction=images.object_fraction,
-                noise=noise, dropout=dropout,
+                command=command, torch=torch.__version__, device=str(device),
+                object_fraction=images.object_fraction, noise=noise, dropout=dropout,
                 **images.object_counts())
 
 
@@ -343,9 +348,9 @@ def sensor_rng(seed: int, cam: PinholeCamera, scenario=None) -> np.random.Genera
 
 
 def make_segmenter(backend: str, cam: PinholeCamera, workspace: Workspace, weights=None,
-                   fill_holes: bool = True) -> Segmenter:
+                   fill_holes: bool = True, device="cpu") -> Segmenter:
     if backend == "learned":
-        return Segmenter("learned", weights=weights, fill_holes=fill_holes)
+        return Segmenter("learned", weights=weights, fill_holes=fill_holes, device=device)
     return Segmenter(backend, camera=cam, workspace=workspace, label_to_id={}, fill_holes=fill_holes)
 
 
@@ -391,12 +396,13 @@ def cached_bench_image(seed: int, noise: float, dropout: float, scenario, cache)
 
 
 def bench_job(job: tuple) -> list[dict]:
-    """(backend, seeds, noise, dropout, weights[, cache[, sensor[, fill_holes]]]) -> per image: RLEs of
-    ground truth and detections, seconds; module-level for pickling."""
+    """(backend, seeds, noise, dropout, weights[, cache[, sensor[, fill_holes[, device]]]]) -> per image:
+    RLEs of ground truth and detections, seconds; module-level for pickling."""
     backend, seeds, noise, dropout, weights = job[:5]
     cache = job[5] if len(job) > 5 else None
     sensor = job[6] if len(job) > 6 else "none"
     fill_holes = job[7] if len(job) > 7 else True
+    device = job[8] if len(job) > 8 else "cpu"
     scenario = load_scenario(None, "BinHeap15")
     ws = Workspace.from_scenario(scenario)
     out, learned = [], None
@@ -408,7 +414,7 @@ def bench_job(job: tuple) -> list[dict]:
             continue
         depth = sensor_image(depth, s, cam, sensor)
         if backend == "learned":
-            learned = learned or make_segmenter("learned", cam, ws, weights, fill_holes)
+            learned = learned or make_segmenter("learned", cam, ws, weights, fill_holes, device)
             seg = learned
         else:
             seg = make_segmenter(backend, cam, ws, fill_holes=fill_holes)
@@ -421,17 +427,21 @@ def bench_job(job: tuple) -> list[dict]:
 
 def bench_segmentation(backend: str, images: int, seed_start: int, workers: int = 1, noise: float = 0.0,
                        dropout: float = 0.0, weights=None, progress=None, chunk: int = 10, cache=None,
-                       sensor: str = "none", fill_holes: bool = True) -> dict:
+                       sensor: str = "none", fill_holes: bool = True, device: str = "cpu") -> dict:
     """Table B.1 row of `backend` on images seed_start .. seed_start + images - 1 (module doc).
     cache: a folder keeping the rendered images (and ground truth) for the other backends.
     sensor: a depth sensor preset applied to each image (`sensor_image`; the cache keeps the
-    clean image); fill_holes: the segmenter reads its depth through geometry.preprocess_depth."""
+    clean image); fill_holes: the segmenter reads its depth through geometry.preprocess_depth;
+    device: where the learned backend's network runs in each worker (cpu | cuda | auto)."""
     if backend not in BENCH_BACKENDS:
         raise DatasetError(f"--backend {backend!r}: choose one of {', '.join(BENCH_BACKENDS)}")
     depth_sensor_params(sensor)  # an unknown preset fails here, before any job
+    if backend == "learned":
+        torch_device(device)  # so does a device this machine lacks
     seeds = list(range(seed_start, seed_start + images))
     jobs = [(backend, tuple(seeds[i:i + chunk]), noise, dropout, None if weights is None else str(weights),
-             None if cache is None else str(cache), sensor, bool(fill_holes)) for i in range(0, len(seeds), chunk)]
+             None if cache is None else str(cache), sensor, bool(fill_holes), device)
+            for i in range(0, len(seeds), chunk)]
     rows = []
     for r in run_jobs(bench_job, jobs, workers=workers, max_tasks_per_child=5):
         if not r.ok:
@@ -448,4 +458,4 @@ def bench_segmentation(backend: str, images: int, seed_start: int, workers: int 
                 failed_images=[r["seed"] for r in rows if "gt" not in r], seed_start=seed_start, noise=noise,
                 dropout=dropout, sensor=sensor, fill_holes=bool(fill_holes), seconds_median=statistics.median(secs) if secs else 0.0,
                 cpu_seconds_median=statistics.median([r["cpu_seconds"] for r in ok]) if ok else 0.0,
-                weights=None if weights is None else str(weights))
+                weights=None if weights is None else str(weights), device=device if backend == "learned" else None)

@@ -2,7 +2,9 @@
 shelf-occupancy`): the seeded, deterministic torch set-up, optimizer steps on one fixed batch
 (the learned models' overfitting checks), atomic saves, and the checkpoint a
 killed run resumes from (`FILE.ckpt` next to the weights; it holds the settings it was made with
-and refuses to resume under others)."""
+and refuses to resume under others). Whatever device a model trains on (the commands' --device,
+ms_drake.perception.weights.torch_device), every file is saved with its tensors on the CPU, so
+weights and checkpoints load on a machine without a GPU; a checkpoint resumes on any device."""
 
 from __future__ import annotations
 
@@ -36,17 +38,33 @@ def fit_batch(net, opt, loss, steps: int) -> list[float]:
     return losses
 
 
+def on_cpu(torch, obj):
+    """`obj` with every tensor in it (in dicts, lists and tuples, e.g. state dicts) moved to the CPU."""
+    if isinstance(obj, torch.Tensor):
+        return obj.detach().cpu()
+    if isinstance(obj, dict):
+        out = type(obj)((k, on_cpu(torch, v)) for k, v in obj.items())
+        if hasattr(obj, "_metadata"):  # a module's state dict: its version information
+            out._metadata = obj._metadata
+        return out
+    if type(obj) in (list, tuple):
+        return type(obj)(on_cpu(torch, v) for v in obj)
+    return obj
+
+
 def save_atomically(torch, obj, path: Path) -> None:
-    """torch.save to a temporary file, then rename: an interrupted save never leaves a torn file."""
+    """torch.save of `obj` with its tensors on the CPU (`on_cpu`) to a temporary file, then rename:
+    an interrupted save never leaves a torn file."""
     path = Path(path)
     tmp = path.with_suffix(f".{os.getpid()}.tmp")
-    torch.save(obj, tmp)
+    torch.save(on_cpu(torch, obj), tmp)
     os.replace(tmp, path)
 
 
 def resume(torch, ckpt: Path, settings: dict, net, opt, sched) -> tuple[int, list, float]:
     """(first epoch, history, seconds so far) from `ckpt` (model, optimizer and scheduler loaded),
-    or (0, [], 0.0) without one. A checkpoint made with other settings raises DatasetError."""
+    or (0, [], 0.0) without one; the states go to the device of `net`'s parameters. A checkpoint
+    made with other settings raises DatasetError."""
     ckpt = Path(ckpt)
     if not ckpt.exists():
         return 0, [], 0.0

@@ -126,20 +126,22 @@ def make_net(config: MatcherConfig = MatcherConfig()):
     return SiameseMatcher(config)
 
 
-def load_matcher(path: Path | str | None = None):
-    """(network in eval mode, checkpoint dict) from a weights file of `ms-drake train matcher`."""
+def load_matcher(path: Path | str | None = None, device="cpu"):
+    """(network in eval mode on `device` (cpu | cuda | auto), checkpoint dict) from a weights file of
+    `ms-drake train matcher`."""
     return load_network(path, default_weights, "matcher", "matcher --heaps 400", lambda config: make_net(
-        MatcherConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in config.items()})))
+        MatcherConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in config.items()})), device)
 
 
 class LearnedMatcher:
     """Scores the masks of an image against the target's template views with the siamese network.
 
     templates: objects with `rgb` (h, w, 3) uint8 and `mask` (h, w) bool (perception.target.Template).
-    threshold: t_r; min_pixels: smaller masks score 0."""
+    threshold: t_r; min_pixels: smaller masks score 0; device: where the network runs (cpu | cuda |
+    auto)."""
 
     def __init__(self, templates, weights: Path | str | None = None, threshold: float = THRESHOLD,
-                 min_pixels: int = 20, threads: int | None = 1):
+                 min_pixels: int = 20, threads: int | None = 1, device="cpu"):
         import torch  # optional heavy dependency: only the learned matcher needs it
 
         if not templates:
@@ -153,10 +155,11 @@ class LearnedMatcher:
         if threads is not None:
             torch.set_num_threads(int(threads))
         self.torch = torch
-        self.net, self.checkpoint = load_matcher(weights)
+        self.net, self.checkpoint = load_matcher(weights, device)
+        self.device = next(self.net.parameters()).device
         self.threshold, self.min_pixels = float(threshold), int(min_pixels)
         with torch.no_grad():
-            x = torch.from_numpy(np.stack([crop(t.rgb, t.mask) for t in templates]))
+            x = torch.from_numpy(np.stack([crop(t.rgb, t.mask) for t in templates])).to(self.device)
             self.template_features = self.net.embed(x)
 
     def scores_of_crops(self, crops: np.ndarray) -> np.ndarray:
@@ -165,12 +168,12 @@ class LearnedMatcher:
         if len(crops) == 0:
             return np.zeros(0)
         with torch.no_grad():
-            fb = self.net.embed(torch.from_numpy(np.ascontiguousarray(crops, np.float32)))
+            fb = self.net.embed(torch.from_numpy(np.ascontiguousarray(crops, np.float32)).to(self.device))
             t = len(self.template_features)
             fa = self.template_features.repeat(len(fb), 1)
             fbr = fb.repeat_interleave(t, dim=0)
             s = torch.sigmoid(self.net.score_features(fa, fbr)).reshape(len(fb), t)
-        return s.amax(dim=1).numpy().astype(float)
+        return s.amax(dim=1).cpu().numpy().astype(float)
 
     def scores(self, rgb: np.ndarray, masks) -> np.ndarray:
         """(K,) scores of the K masks of an InstanceMasks in the (H, W, 3) uint8 image."""

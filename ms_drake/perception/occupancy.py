@@ -558,7 +558,8 @@ class OccupancyEstimator(LeafSystem):
     backend: an object with ``estimate(depth (H, W), target_mask (H, W) bool) -> (H, W)`` (e.g.
     AnalyticOccupancy, RenderedOccupancy, LearnedOccupancy), or a name: "analytic" with camera,
     workspace and target_size given; "learned" (ms_drake.perception.occupancy_net) with
-    target_size (the target's size only, never its pose; keywords weights=, input_scaling=).
+    target_size (the target's size only, never its pose; keywords weights=, input_scaling=,
+    device=).
     """
 
     def __init__(self, backend="analytic", camera: PinholeCamera | None = None, workspace: Workspace | None = None,

@@ -227,7 +227,7 @@ def ratio_loss(pred, target, ratio_index, support=None, floor=None, positive_wei
     squared error of a ground-truth positive (> 0.1, line 1466) counts 1 + w times."""
     import torch  # optional heavy dependency: only the learned backend needs it
 
-    sel = pred[torch.arange(pred.shape[0]), ratio_index]
+    sel = pred[torch.arange(pred.shape[0], device=pred.device), ratio_index]
     if support is not None:
         sel = torch.maximum(sel * support, floor)
     err = (sel - target) ** 2
@@ -236,10 +236,11 @@ def ratio_loss(pred, target, ratio_index, support=None, floor=None, positive_wei
     return err.mean()
 
 
-def load_model(path: Path | str | None = None):
-    """(model in eval mode, checkpoint dict) from a weights file written by `ms-drake train occupancy`."""
+def load_model(path: Path | str | None = None, device="cpu"):
+    """(model in eval mode on `device` (cpu | cuda | auto), checkpoint dict) from a weights file
+    written by `ms-drake train occupancy`."""
     return load_network(path, default_weights, "occupancy", "occupancy --count 5000",
-                        lambda config: make_net(NetConfig(**config)))
+                        lambda config: make_net(NetConfig(**config)), device)
 
 
 class LearnedOccupancy:
@@ -249,12 +250,13 @@ class LearnedOccupancy:
     output channel of the closest trained aspect ratio, and with `input_scaling` the zoom s.
     threads: torch's intra-op threads for this process (default 1: the harness runs one process
     per core, and on a loaded machine two threads per process were 5x slower than one, their
-    OpenMP workers spinning while they wait; None leaves torch's setting)."""
+    OpenMP workers spinning while they wait; None leaves torch's setting).
+    device: where the network runs (cpu | cuda | auto)."""
 
     name = "learned"
 
     def __init__(self, target_size, weights: Path | str | None = None, input_scaling: bool = True,
-                 ratio_index: int | None = None, threads: int | None = 1):
+                 ratio_index: int | None = None, threads: int | None = 1, device="cpu"):
         import torch  # optional heavy dependency: only the learned backend needs it
 
         if threads is not None:
@@ -271,7 +273,8 @@ class LearnedOccupancy:
         self.diagonal = float(np.hypot(length, width))
         self.ratio_index = k if ratio_index is None else int(ratio_index)
         self.scale = s if input_scaling else 1.0
-        self.net, self.checkpoint = load_model(weights)
+        self.net, self.checkpoint = load_model(weights, device)
+        self.device = next(self.net.parameters()).device
         self.weights = Path(weights) if weights is not None else default_weights()
         self._torch = torch
         self.last_seconds = 0.0
@@ -283,7 +286,8 @@ class LearnedOccupancy:
         t = time.perf_counter()
         xin = zoom(x, 1.0 / self.scale)
         with torch.inference_mode():
-            y = self.net(torch.from_numpy(np.ascontiguousarray(xin))[None])[0, self.ratio_index].numpy()
+            xt = torch.from_numpy(np.ascontiguousarray(xin))[None].to(self.device)
+            y = self.net(xt)[0, self.ratio_index].cpu().numpy()
         y = estimator_output(zoom(y[None], self.scale)[0], x[0], self.diagonal)
         self.last_seconds = time.perf_counter() - t
         return y

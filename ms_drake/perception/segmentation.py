@@ -181,14 +181,15 @@ class Segmenter(LeafSystem):
     workspace: the bin's inner box (Workspace.from_scenario), for the point-cloud backends.
     label_to_id: render label -> object id (masks.object_labels(plant)), for ground_truth.
     params: EuclideanParams / RegionGrowingParams (defaults: tuned values).
-    weights: the learned backend's weights file (default: the shipped models/weights/segmentation.pt).
+    weights: the learned backend's weights file (default: the shipped models/weights/segmentation.pt);
+    device: where its network runs (cpu | cuda | auto).
     fill_holes: the depth backends read the depth through geometry.preprocess_depth (the sensor's
     holes filled; a clean render is unchanged); False reads the raw depth (for ablations).
     """
 
     def __init__(self, backend: str, camera: PinholeCamera | None = None, workspace: Workspace | None = None,
                  label_to_id: dict[int, str] | None = None, params=None, min_pixels: int = 20, weights=None,
-                 fill_holes: bool = True):
+                 fill_holes: bool = True, device="cpu"):
         super().__init__()
         if backend not in BACKENDS:
             raise PerceptionError(f"Segmenter backend {backend!r} unknown; choose one of {', '.join(BACKENDS)}")
@@ -212,7 +213,7 @@ class Segmenter(LeafSystem):
         if params is None:
             params = {"euclidean": EuclideanParams(), "region_growing": RegionGrowingParams()}.get(backend)
         self.params = params
-        self.learned = LearnedSegmentation(weights) if backend == "learned" else None
+        self.learned = LearnedSegmentation(weights, device=device) if backend == "learned" else None
         self.fill_holes = bool(fill_holes)
 
     def segment(self, depth=None, labels=None) -> InstanceMasks:

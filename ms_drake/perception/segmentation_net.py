@@ -154,7 +154,7 @@ def segmentation_loss(logits, targets):
     whose target is IGNORE carry no loss."""
     import torch  # optional heavy dependency: only the learned backend needs it
 
-    w = torch.tensor(CLASS_WEIGHTS, dtype=logits.dtype)
+    w = torch.tensor(CLASS_WEIGHTS, dtype=logits.dtype, device=logits.device)
     return torch.nn.functional.cross_entropy(logits, targets, weight=w, ignore_index=IGNORE)
 
 
@@ -201,25 +201,28 @@ def full_resolution_masks(labels: np.ndarray, scores: np.ndarray, min_pixels: in
                          np.asarray(scores)[keep].astype(float))
 
 
-def load_model(path: Path | str | None = None):
-    """(model in eval mode, checkpoint dict) from a weights file written by `ms-drake train segmentation`."""
+def load_model(path: Path | str | None = None, device="cpu"):
+    """(model in eval mode on `device` (cpu | cuda | auto), checkpoint dict) from a weights file
+    written by `ms-drake train segmentation`."""
     return load_network(path, default_weights, "segmentation", "segmentation --count 4000",
-                        lambda config: make_net(NetConfig(**config)))
+                        lambda config: make_net(NetConfig(**config)), device)
 
 
 class LearnedSegmentation:
     """``segment(depth) -> InstanceMasks`` with the trained network (one torch thread by default:
-    the harness runs one process per core; None leaves torch's setting)."""
+    the harness runs one process per core; None leaves torch's setting) on `device` (cpu | cuda |
+    auto)."""
 
     name = "learned"
 
     def __init__(self, weights: Path | str | None = None, threads: int | None = 1, min_seed: int = 4,
-                 grow: float = 4.0):
+                 grow: float = 4.0, device="cpu"):
         import torch  # optional heavy dependency: only the learned backend needs it
 
         if threads is not None:
             torch.set_num_threads(int(threads))
-        self.net, self.checkpoint = load_model(weights)
+        self.net, self.checkpoint = load_model(weights, device)
+        self.device = next(self.net.parameters()).device
         self.weights = Path(weights) if weights is not None else default_weights()
         self.min_seed, self.grow = int(min_seed), float(grow)
         self._torch = torch
@@ -229,7 +232,8 @@ class LearnedSegmentation:
         """(2, 192, 256) inputs -> (3, 192, 256) class probabilities."""
         torch = self._torch
         with torch.inference_mode():
-            return torch.softmax(self.net(torch.from_numpy(np.ascontiguousarray(x))[None]), dim=1)[0].numpy()
+            x = torch.from_numpy(np.ascontiguousarray(x))[None].to(self.device)
+            return torch.softmax(self.net(x), dim=1)[0].cpu().numpy()
 
     def segment(self, depth) -> InstanceMasks:
         t = time.perf_counter()

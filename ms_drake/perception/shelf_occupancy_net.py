@@ -38,6 +38,7 @@ import numpy as np
 
 from ms_drake.errors import PerceptionError
 from ms_drake.paths import models_dir
+from ms_drake.perception.weights import torch_device
 
 #: Heads in this order: the keys of ms_drake.scenes.shelf.TARGET_SIZES (cube, flat, tall).
 HEAD_SIZES = ((0.06, 0.06, 0.06), (0.06, 0.06, 0.03), (0.06, 0.06, 0.12))
@@ -158,11 +159,12 @@ def distribution_loss(logits, target):
     return (ce * ok).sum() / ok.sum().clamp_min(1)
 
 
-def load_model(path=None):
-    """(net in eval mode, meta) from a weights file written by training; PerceptionError naming the
-    command that makes it when missing."""
+def load_model(path=None, device="cpu"):
+    """(net in eval mode on `device` (cpu | cuda | auto), meta) from a weights file written by
+    training; PerceptionError naming the command that makes it when missing."""
     import torch  # optional heavy dependency: only the learned shelf occupancy needs it
 
+    dev = torch_device(device)
     path = Path(path) if path is not None else default_weights()
     if not path.exists():
         raise PerceptionError(f"shelf occupancy weights {path} not found; the learned shelf occupancy needs them: "
@@ -171,12 +173,13 @@ def load_model(path=None):
                               "backend='ground_truth'")
     fix = f"give a weights file written by `ms-drake train shelf-occupancy`, or make it with `{MAKE_WEIGHTS}`"
     try:
-        blob = torch.load(path, map_location="cpu", weights_only=False)
+        blob = torch.load(path, map_location=dev, weights_only=False)
     except Exception as e:  # garbage bytes, a truncated file: torch / pickle raise many types
         raise PerceptionError(f"shelf occupancy weights {path} cannot be read ({type(e).__name__}: "
                               f"{str(e).splitlines()[0] if str(e) else 'unreadable'}); {fix}") from None
     try:
-        net = make_net(NetConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in blob["config"].items()}))
+        net = make_net(NetConfig(**{k: tuple(v) if isinstance(v, list) else v
+                                    for k, v in blob["config"].items()})).to(dev)
         net.load_state_dict(blob["state_dict"])
     except Exception as e:  # another network's file: no config / state_dict, mis-shaped tensors
         raise PerceptionError(f"{path} does not hold the shelf occupancy network ({type(e).__name__}: "
@@ -190,12 +193,14 @@ def config_dict(config: NetConfig) -> dict:
 
 
 class LearnedShelfOccupancy:
-    """The loaded network: `predict(depth, target_size)` -> P(x) over the 640 image columns."""
+    """The loaded network: `predict(depth, target_size)` -> P(x) over the 640 image columns; it runs
+    on `device` (cpu | cuda | auto)."""
 
-    def __init__(self, path=None, threads: int = 1):
+    def __init__(self, path=None, threads: int = 1, device="cpu"):
         import torch  # optional heavy dependency: only the learned shelf occupancy needs it
 
-        self.net, self.meta = load_model(path)
+        self.net, self.meta = load_model(path, device)
+        self.device = next(self.net.parameters()).device
         self.threads = threads
         self._torch = torch
 
@@ -205,7 +210,8 @@ class LearnedShelfOccupancy:
         if torch.get_num_threads() != self.threads:
             torch.set_num_threads(self.threads)
         with torch.inference_mode():
-            return torch.softmax(self.net(torch.from_numpy(np.ascontiguousarray(inputs, np.float32))), -1).numpy()
+            x = torch.from_numpy(np.ascontiguousarray(inputs, np.float32)).to(self.device)
+            return torch.softmax(self.net(x), -1).cpu().numpy()
 
     def predict(self, depth: np.ndarray, target_size) -> np.ndarray:
         """P(x) (640,) of the head nearest to target_size from a 480 x 640 depth image (metres)."""

@@ -457,13 +457,14 @@ class TargetDetector(LeafSystem):
     template | learned; params: ColorParams (color); templates, threshold (t_r): template and
     learned; max_area_ratio, geometry (GeometryParams) and camera (the intrinsics, fx, fy, cx, cy
     attributes, e.g. a PinholeCamera): template, whose geometric check runs when the depth input
-    is connected and camera is given; weights (learned).
+    is connected and camera is given; weights and device (cpu | cuda | auto, where the network runs):
+    learned.
     """
 
     def __init__(self, backend: str = "color", width: int = 640, height: int = 480,
                  params: ColorParams | None = None, templates: list[Template] | None = None,
                  threshold: float = 0.9, max_area_ratio: float = 1.5, weights=None, camera=None,
-                 geometry: GeometryParams | None = None):
+                 geometry: GeometryParams | None = None, device="cpu"):
         super().__init__()
         if backend not in BACKENDS:
             raise PerceptionError(f"TargetDetector backend {backend!r} unknown; choose one of {', '.join(BACKENDS)}")
@@ -479,7 +480,8 @@ class TargetDetector(LeafSystem):
         self.params = params or ColorParams()
         self.matcher = TemplateMatcher(templates or [], threshold, max_area_ratio,
                                        geometry=geometry or GeometryParams()) if backend == "template" else None
-        self.learned = LearnedMatcher(templates or [], weights, threshold) if backend == "learned" else None
+        self.learned = LearnedMatcher(templates or [], weights, threshold, device=device) if backend == "learned" \
+            else None
 
     def detect(self, rgb, masks: InstanceMasks, depth=None, camera=None) -> TargetEstimate:
         """depth (H, W) [m] and camera (default: the constructor's): the template backend's
