@@ -514,9 +514,7 @@ def perceive(depth: Path = typer.Argument(..., help="Depth image of a bin from a
                  None, "--target-size", help="The target's box size L W T [m] (instead of --target)"),
              segmenter: str = typer.Option("learned", "--segmenter", help="learned | euclidean | region_growing"),
              out: Path = typer.Option(Path("out/perceive"), "--out", help="Output folder"),
-             device: str = typer.Option("cpu", "--device", help="Where the learned segmenter and occupancy "
-                                        "networks run: cpu, cuda (a GPU; an error on a machine without one) or auto "
-                                        "(cuda where a GPU exists, else cpu)")):
+             device: str = Device):
     """The perception stack on your own depth image: instance masks (PNG and COCO JSON), the target
     and its occupancy distribution when a target is given, and each stage's CPU time."""
     _choose("--segmenter", segmenter, PERCEIVE_SEGMENTERS)
@@ -1455,15 +1453,18 @@ def train_shelf_occupancy_cmd(
         seed: int = TrainingSeed,
         threads: int = typer.Option(1, "--threads", min=1, help="torch threads (1 on this shared machine)"),
         max_minutes: float = typer.Option(30.0, "--max-minutes", help="Stop after the epoch that ends past this"),
+        device: str = TrainDevice,
         overwrite_shipped: bool = OverwriteShipped):
     """Train the shelf occupancy network; resumes from OUT.ckpt; writes OUT (weights + meta)."""
+    torch_device(device)
     _need_training_out(out, overwrite_shipped)
     bar, progress = _epoch_bar(epochs)
     cmd = " ".join(["ms-drake", "train", "shelf-occupancy", "--data", str(data), "--out", str(out), "--epochs",
                     str(epochs), "--batch", str(batch), "--seed", str(seed), "--threads", str(threads),
-                    "--max-minutes", f"{max_minutes:g}"] + (["--overwrite-shipped"] if overwrite_shipped else []))
+                    "--max-minutes", f"{max_minutes:g}"] + _device_args(device)
+                   + (["--overwrite-shipped"] if overwrite_shipped else []))
     meta = train_shelf_occupancy(data, out, epochs=epochs, batch=batch, seed=seed, threads=threads,
-                                 max_minutes=max_minutes, progress=progress, command=cmd)
+                                 max_minutes=max_minutes, progress=progress, command=cmd, device=device)
     bar.close()
     _echo_trained(out, meta, epochs, loss_format=".4f")
 
@@ -1472,11 +1473,13 @@ def train_shelf_occupancy_cmd(
 def bench_shelf_occupancy_cmd(
         data: Path = typer.Option(..., "--data", help="Dataset folder with test/ (ms-drake data shelf --depth-block 4)"),
         weights: Optional[Path] = typer.Option(None, "--weights", help="Weights (default: shipped)"),
-        out: Optional[Path] = typer.Option(None, "--out", help="Also write the results as JSON here")):
+        out: Optional[Path] = typer.Option(None, "--out", help="Also write the results as JSON here"),
+        device: str = Device):
     """Held-out accuracy of the learned shelf occupancy: total variation of P(x), balanced accuracy
     and IoU (at the reference's thresholds) per target height, against a uniform P(x); inference ms."""
+    torch_device(device)
     _need_weights("--weights", weights, load_shelf_occupancy_net, "shelf-occupancy")
-    res = bench_shelf_occupancy(data, weights)
+    res = bench_shelf_occupancy(data, weights, device=device)
     typer.echo(f"{res['test_scenes']} test scenes (seeds {res['test_seeds'][0]}-{res['test_seeds'][1]})")
     typer.echo("| target (w x d x h cm) | scenes | TV | bal. acc. % | IoU | TV, all images | uniform TV | "
                "uniform bal. acc. % | uniform IoU |")

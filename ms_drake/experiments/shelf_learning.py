@@ -55,6 +55,7 @@ from ms_drake.perception.shelf_occupancy_net import (
     network_input,
     pool_bins,
 )
+from ms_drake.perception.weights import torch_device
 
 
 def load_shelf_dataset(folder) -> dict:
@@ -110,9 +111,11 @@ def train_steps(net, opt, x, y, steps: int = 1) -> list[float]:
 
 def train_shelf_occupancy(data, out, epochs: int = 8, batch: int = 32, seed: int = 0, threads: int = 1,
                           config: NetConfig = NetConfig(), max_minutes: float = 30.0, progress=None,
-                          command: str = "") -> dict:
-    """Train on DATA/train; write `out` (weights + meta) and `out`.ckpt (resume); module docstring."""
+                          command: str = "", device="cpu") -> dict:
+    """Train on DATA/train; write `out` (weights + meta) and `out`.ckpt (resume); module docstring.
+    device: where the network trains (cpu | cuda | auto)."""
     torch = torch_setup(seed, threads)
+    dev = torch_device(device)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     ckpt = out.with_suffix(".ckpt")
@@ -127,6 +130,7 @@ def train_shelf_occupancy(data, out, epochs: int = 8, batch: int = 32, seed: int
     for m in net.modules():  # the seed's initial weights
         if hasattr(m, "reset_parameters"):
             m.reset_parameters()
+    net.to(dev)
     opt = make_optimizer(net)
     steps_per_epoch = n // batch
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs * steps_per_epoch)
@@ -146,7 +150,7 @@ def train_shelf_occupancy(data, out, epochs: int = 8, batch: int = 32, seed: int
             idx = np.sort(order[b * batch:(b + 1) * batch])
             x, y = batch_arrays(d["depth"][idx], d["image_x_sizes"][idx], mirror[idx])
             opt.zero_grad()
-            loss = distribution_loss(net(torch.from_numpy(x)), torch.from_numpy(y))
+            loss = distribution_loss(net(torch.from_numpy(x).to(dev)), torch.from_numpy(y).to(dev))
             loss.backward()
             opt.step()
             sched.step()
@@ -160,7 +164,7 @@ def train_shelf_occupancy(data, out, epochs: int = 8, batch: int = 32, seed: int
     done = history[-1]["epoch"] if history else 0
     meta = dict(data=str(data), scenes=n, seeds=[int(d["seeds"].min()), int(d["seeds"].max())], epochs=epochs,
                 epochs_done=done, batch=batch, seed=seed, threads=threads, seconds=seconds, history=history,
-                command=command, torch=torch.__version__)
+                command=command, torch=torch.__version__, device=str(dev))
     save_atomically(torch, dict(config=config_dict(config), state_dict=net.state_dict(), meta=meta), out)
     return meta
 
@@ -184,9 +188,9 @@ def distribution_metrics(pred: np.ndarray, gt: np.ndarray) -> dict:
                 balanced_accuracy=float(np.mean(m["balanced_accuracy"])), iou=float(np.mean(m["iou"])))
 
 
-def bench_shelf_occupancy(data, weights=None, timed: int = 50, seed: int = 0) -> dict:
-    """The module docstring's metrics on DATA/test."""
-    model = LearnedShelfOccupancy(weights, threads=1)
+def bench_shelf_occupancy(data, weights=None, timed: int = 50, seed: int = 0, device="cpu") -> dict:
+    """The module docstring's metrics on DATA/test, the network on `device` (cpu | cuda | auto)."""
+    model = LearnedShelfOccupancy(weights, threads=1, device=device)
     d = load_shelf_dataset(Path(data) / "test")
     n = len(d["depth"])
     pred = np.concatenate([model.predict_bins(network_input(d["depth"][i:i + 64])) for i in range(0, n, 64)])
