@@ -76,7 +76,7 @@ from ms_drake.experiments.figures import save_png
 from ms_drake.experiments.harness import paired_comparison, plot, read_search_records, run_suite
 from ms_drake.experiments.records import read_record_file
 from ms_drake.experiments.segmentation_learning import bench_job as segmentation_job
-from ms_drake.experiments.shelf import plot_shelf, run_shelf_bench, shelf_records, shelf_table
+from ms_drake.experiments.shelf import plot_shelf, record_scenario, run_shelf_bench, shelf_records, shelf_table
 from ms_drake.experiments.shelf_physics import physics_records, physics_table, run_shelf_physics_bench
 from ms_drake.grasping import labels as grasp_labels
 from ms_drake.parallel import run_jobs
@@ -726,26 +726,28 @@ TABLE_9_1_REF = tuple(Ref(f"{n} occluders, {row}", metric, v)
 # ----------------------------------------------------------------------------------- Table 9.2
 SHELF_POLICIES_92 = (("DER-3", "der3"), ("Bluction-DAR", "bluction_dar"))
 PHYSICS_OCCLUDERS = (8, 10, 12)  # cycled over the seeds, the reference's physical densities
+PHYSICS_STATION = "FetchWideShelf"  # the reference's physical shelf, 0.8 x 0.5 x 0.5 m
 
 
 def _table_9_2(run: Run) -> Result:
-    """`bench shelf-physics` (the Fetch with the bluction tool in Drake physics, ground-truth
-    perception) for DER-3 and Bluction-DAR on scenes S..S+N-1, occluders cycling 8, 10, 12; one
-    JSON line per scene in OUT/table_9_2/<policy>.jsonl."""
+    """`bench shelf-physics` (the Fetch with the bluction tool in Drake physics at the reference's
+    physical shelf, ground-truth perception) for DER-3 and Bluction-DAR on scenes S..S+N-1,
+    occluders cycling 8, 10, 12; one JSON line per scene in OUT/table_9_2/<policy>.jsonl."""
     scenes = run.size["scenes"]
     seeds = _seeds(run, scenes)
     horizon = run.size.get("horizon")
     measures, files, recs = [], [], []
 
     def mine(path):
-        return [r for r in (physics_records([path], "ground_truth") if path.exists() else []) if int(r["seed"]) in seeds]
+        return [r for r in (physics_records([path], "ground_truth") if path.exists() else [])
+                if int(r["seed"]) in seeds and record_scenario(r) == PHYSICS_STATION]
 
     for k, (row, policy) in enumerate(SHELF_POLICIES_92):
         path = run.dir / f"{policy}.jsonl"
         files.append(path)
         run.progress.set(k * scenes + len(mine(path)))
         run_shelf_physics_bench(ShelfSearchConfig(policy=policy, horizon=horizon), scenes, seeds.start, path,
-                                list(PHYSICS_OCCLUDERS), workers=run.workers,
+                                list(PHYSICS_OCCLUDERS), workers=run.workers, scenario_name=PHYSICS_STATION,
                                 log=lambda msg, k=k, path=path: (run.log(msg),
                                                                  run.progress.set(k * scenes + len(mine(path)))))
         rs = mine(path)
@@ -763,7 +765,8 @@ def _table_9_2(run: Run) -> Result:
                      Measure(f"All, {row}", "median steps (IQR)", _quartiles([r["steps"] for r in rs if r["success"]]))]
     return Result(measures, records=files, bench_table=physics_table(recs, tuple(p for _, p in SHELF_POLICIES_92)),
                   notes=[f"{scenes} simulated scenes per policy (seeds {seeds.start}-{seeds.stop - 1}, occluders "
-                         "cycling 8, 10, 12) on the FetchShelf station in Drake physics, target 6 x 6 x 6 cm, "
+                         f"cycling 8, 10, 12) on the {PHYSICS_STATION} station (the reference's physical shelf, "
+                         "0.8 x 0.5 x 0.5 m) in Drake physics, target 6 x 6 x 6 cm, "
                          "ground-truth perception" + (f", horizon {horizon}" if horizon else ", H = 2n")
                          + "; the reference: 9 physical scenes (3 per density), 6 x 6 x 3 cm target, its camera."])
 
