@@ -124,6 +124,7 @@ from ms_drake.experiments.shelf_learning import (
     train_shelf_occupancy,
 )
 from ms_drake.experiments.shelf_physics import DEMO_OCCLUDERS as SHELF_DEMO_OCCLUDERS
+from ms_drake.experiments.shelf_physics import DEMO_SCENARIO as SHELF_DEMO_SCENARIO
 from ms_drake.experiments.shelf_physics import DEMO_SEED as SHELF_DEMO_SEED
 from ms_drake.experiments.shelf_physics import (
     ShelfPhysicsError,
@@ -378,14 +379,15 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
                                                          "(default: bluction_dar)"),
          horizon: Optional[int] = typer.Option(None, min=1, help="Action budget H (default 10 / 2n)"),
          meshcat: bool = typer.Option(True, help="Write a Meshcat HTML recording"),
-         perception: str = typer.Option("ground_truth", "--perception",
-                                        help="shelf: the controller's perception, ground_truth (the simulation's "
-                                             "body poses) or depth (the camera images only, as on hardware)"),
+         perception: str = typer.Option("depth", "--perception",
+                                        help="shelf: the controller's perception, depth (the camera's images only, "
+                                             "as on hardware) or ground_truth (the simulation's body poses)"),
          method: str = typer.Option("coal_reconstruction", "--method",
                                     help=f"rearrange: the collision checker, {', '.join(REARRANGE_METHODS)}"),
          scenario: str = typer.Option("", "--scenario", help="bin: the station (default FloatingGripperBin; a "
                                       "robot's, e.g. YuMiBin or PandaBin, searches with that robot in physics); "
-                                      "shelf: a shelf scenario with the Fetch (default FetchShelf); rearrange: a "
+                                      f"shelf: a shelf scenario with the Fetch (default {SHELF_DEMO_SCENARIO}: "
+                                      "FetchShelf's camera with its L515-like sensor model); rearrange: a "
                                       "table scenario with the Panda (default PandaTable)"),
          scenario_file: Optional[Path] = ScenarioFile,
          config: Optional[str] = typer.Option(None, "--config", help="bin: the search's named setting or YAML file, "
@@ -424,7 +426,7 @@ def demo(kind: str = typer.Argument("bin", help="bin (X-Ray on the floating grip
         _choose("--perception", perception, SHELF_CONTROLLER_PERCEPTIONS, quote=False)
         out = out or Path("out/demo_shelf")
         t = time.perf_counter()
-        station = _need_shelf_scenario(scenario_file, scenario or "FetchShelf")
+        station = _need_shelf_scenario(scenario_file, scenario or SHELF_DEMO_SCENARIO)
         typer.echo(f"searching shelf scene {seed} ({objects} occluders) with {policy} on the Fetch "
                    f"({perception} perception) ...")
         written = run_shelf_demo(out, seed=seed, occluders=objects, policy=policy, horizon=horizon,

@@ -17,7 +17,8 @@ def test_all_shipped_scenarios_load():
     assert REQUIRED <= names
     environments = {"BinHeap15": "bin", "EmptyBin": "bin", "FloatingGripperBin": "bin", "FloatingGripperBinPhoXi": "bin",
                     "YuMiBin": "bin", "PandaBin": "bin",
-                    "FetchShelf": "shelf", "FetchWideShelf": "shelf", "PandaTable": "table"}
+                    "FetchShelf": "shelf", "FetchShelfL515": "shelf", "FetchWideShelf": "shelf",
+                    "PandaTable": "table"}
     assert names == set(environments)
     for n in names:
         s = load_scenario(None, n)
@@ -27,6 +28,13 @@ def test_all_shipped_scenarios_load():
         for cam in s.cameras.values():
             assert (cam.width, cam.height) == (640, 480)
             assert cam.renderer_name == "vtk"
+    # the camera-only stations are their base station with the camera's sensor model, nothing else
+    for noisy, base, camera, preset in (("FloatingGripperBinPhoXi", "FloatingGripperBin", "overhead", "phoxi"),
+                                        ("FetchShelfL515", "FetchShelf", "front", "l515")):
+        a, b = load_scenario(None, noisy), load_scenario(None, base)
+        assert a.depth_sensors[camera].preset == preset and not b.depth_sensors
+        assert (a.environment, a.robot, a.objects, list(a.cameras)) == (b.environment, b.robot, b.objects, list(b.cameras))
+        assert a.plant_config.time_step == b.plant_config.time_step
 
 
 def test_environment_of_each_station():

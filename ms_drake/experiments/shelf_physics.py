@@ -48,7 +48,8 @@ The Diagram is the whole search; a user's script is plain Drake (sims/shelf_sear
   played open loop on the station (no controller), with a log of the acted-on object (sealed,
   tilt, position): checks of single actions, e.g. a suction grip of a given box.
 - `run_shelf_demo(out, ...)`: `ms-drake demo shelf`: one search with per-step images, a GIF and a
-  Meshcat recording.
+  Meshcat recording; by default from the camera (perception "depth" on DEMO_SCENARIO, whose camera
+  has the L515-like depth sensor model).
 """
 
 from __future__ import annotations
@@ -745,6 +746,7 @@ def physics_vs_foss(phys: list[dict], foss: list[dict], policies=("der3", "bluct
 # ------------------------------------------------------------------------------ demo
 DEMO_SEED = 0
 DEMO_OCCLUDERS = 6
+DEMO_SCENARIO = "FetchShelfL515"  # FetchShelf with its camera's L515-like sensor model: the search from the camera
 
 
 def _depth_panel(depth: np.ndarray) -> np.ndarray:
@@ -794,13 +796,13 @@ def _action_panel(rgb: np.ndarray, frame: ShelfFrame, system: ShelfPhysicsSystem
 
 def run_shelf_demo(out, seed: int = DEMO_SEED, occluders: int = DEMO_OCCLUDERS, policy: str = "bluction_dar",
                    horizon: int | None = None, meshcat_html: bool = True, log=print,
-                   perception: str = "ground_truth", scenario=None) -> dict:
+                   perception: str = "depth", scenario=None) -> dict:
     """One search on the Fetch (module docstring) with the controller's `perception`: step_kk.png
     (depth | distribution | action on the observed scene), search.gif, search.json and
     meshcat_recording.html in `out`."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    scenario = scenario if scenario is not None else load_scenario(None, SCENARIO)
+    scenario = scenario if scenario is not None else load_scenario(None, DEMO_SCENARIO)
     check_shelf_scenario(scenario)
     sample = generate_shelf_scene(ShelfGeometry.from_scenario(scenario), seed, occluders, DEFAULT_TARGET)
     params = ShelfSearchConfig(policy=policy, horizon=horizon, seed=seed, perception=perception)
