@@ -17,7 +17,9 @@ class InstanceMasks:
     """Instance segmentation of one image.
 
     masks: (K, H, W) bool, one visible (modal) mask per instance.
-    ids: length-K labels; in simulation the model-instance name of the object, else "seg_k".
+    ids: length-K labels; in simulation the model-instance name of the object, else "seg_k". A
+      segmenter that cuts one simulated object into pieces gives its largest piece the object's
+      name and each other piece ``<name>@<k>`` (`object_of` gives the object back).
     scores: length-K confidences in [0, 1].
     """
 
@@ -40,6 +42,14 @@ class InstanceMasks:
 
     def areas(self) -> np.ndarray:
         return self.masks.reshape(len(self), -1).sum(axis=1)
+
+
+FRAGMENT_MARK = "@"
+
+
+def object_of(mask_id: str) -> str:
+    """The simulated object a mask id names: ``name@k`` (another piece of one object) -> ``name``."""
+    return mask_id.split(FRAGMENT_MARK, 1)[0]
 
 
 @dataclass(frozen=True, eq=False)

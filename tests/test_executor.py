@@ -318,6 +318,17 @@ def test_nominal_grasp_outcome_is_the_grasps_nominal_lift_verdict():
         nom.outcome(grasp(1.0, None), None, poses(), 0, ())
 
 
+def test_a_grasp_on_a_piece_lifts_its_object_and_on_no_object_lifts_nothing():
+    def grasp(oid):
+        return Action("grasp", grasp=Grasp("suction", (0, 0, 0.02), (0, 0, -1), quality=1.0, object_id=oid, lifts=True))
+
+    nom = PrimitiveBackend({"a": 1, "b": 2}, WS, tcp_offset=0.1, target_id="b", seed=5, grasp_outcome="nominal")
+    piece = nom.outcome(grasp("b@3"), None, poses(), 0, ())[0]  # a segmenter's second piece of the target
+    assert (piece.success, piece.removed_object) == (True, "b")
+    bin_mask = nom.outcome(grasp("seg_4"), None, poses(), 0, ())[0]  # a mask no object covers half of
+    assert (bin_mask.success, bin_mask.removed_object, bin_mask.message) == (False, "", "no_object")
+
+
 def test_the_full_jaw_grips_with_the_grasp_models_closing_force():
     from ms_drake.execution import FullBackend
     from ms_drake.grasping.evaluator import GraspEvaluator

@@ -32,7 +32,7 @@ from ms_drake.policies.bin_search import (
 )
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.heaps import set_heap_poses
-from ms_drake.types import InstanceMasks
+from ms_drake.types import InstanceMasks, object_of
 
 OBJ_A, OBJ_B = "ycb/010_potted_meat_can", "procedural/box_330"
 
@@ -148,14 +148,21 @@ def test_mask_association_alone():
     m[2, :2, :3] = True  # a smaller piece of object 5
     masks = InstanceMasks(m, ("seg_0", "seg_1", "seg_2"), np.array([0.9, 0.8, 0.7]))
     out = associate(masks, labels, {5: "a", 7: "b"})
-    assert out.ids == ("a", "b", "seg_2") and np.array_equal(out.masks, m) and np.allclose(out.scores, masks.scores)
+    # the smaller piece names its object too, uniquely; object_of gives the object back
+    assert out.ids == ("a", "b", "a@2") and np.array_equal(out.masks, m) and np.allclose(out.scores, masks.scores)
+    assert [object_of(i) for i in out.ids] == ["a", "b", "a"]
+    bin_only = np.zeros((1, 20, 30), bool)
+    bin_only[0, :, 8:12] = True  # half on object 5, half on 7: no object covers half of it
+    labels_bin = labels.copy()
+    labels_bin[:, 9:11] = 0  # (the bin's label)
+    assert associate(InstanceMasks(bin_only, ("a@1",), np.ones(1)), labels_bin, {5: "a", 7: "b"}).ids == ("seg_0",)
     sys = MaskAssociation({5: "a", 7: "b"}, width=30, height=20)
     ctx = sys.CreateDefaultContext()
     img = ImageLabel16I(30, 20)
     np.array(img.mutable_data, copy=False)[:, :, 0] = labels
     sys.GetInputPort("label_image").FixValue(ctx, img)
     sys.GetInputPort("masks").FixValue(ctx, masks)
-    assert sys.GetOutputPort("masks").Eval(ctx).ids == ("a", "b", "seg_2")
+    assert sys.GetOutputPort("masks").Eval(ctx).ids == ("a", "b", "a@2")
     with pytest.raises(PerceptionError, match="differ"):
         associate(masks, labels[:10], {5: "a"})
 

@@ -45,7 +45,7 @@ from ms_drake.planning.sequences import Schedule, arm_ik, nearest_equivalent, pl
 from ms_drake.robots import CLOSING_FORCE, GRIPPERS, ParallelJawConfig
 from ms_drake.scenario import resolve_robot_config
 from ms_drake.station.environments import dropoff_points
-from ms_drake.types import Action, ActionOutcome
+from ms_drake.types import Action, ActionOutcome, object_of
 
 FIDELITIES = ("primitive", "full")
 # PrimitiveBackend's grasp outcomes (module docstring).
@@ -123,7 +123,9 @@ class _Base:
 
 class PrimitiveBackend(_Base):
     """The floating gripper (FloatingGripperBin). tcp_offset: the tcp's z in the gripper body frame
-    (`tcp_offset_of(plant)`); the body points down (roll = pi)."""
+    (`tcp_offset_of(plant)`); the body points down (roll = pi). A grasp's outcome is decided on the
+    object its mask names (`types.object_of`: any piece of a cut object lifts the object); a grasp
+    on a mask that names no object (a piece of bin) lifts nothing (message ``no_object``)."""
 
     def __init__(self, objects: dict, workspace, tcp_offset: float, target_id: str = "", seed: int = 0,
                  settle: float = 0.5, travel_speed: float = 0.5, push_speed: float = 0.15,
@@ -182,6 +184,9 @@ class PrimitiveBackend(_Base):
 
     def outcome(self, action: Action, motion: Motion, poses, step: int, removed):
         if action.kind == "grasp":
+            oid = object_of(action.grasp.object_id)
+            if oid not in self.objects:  # a mask on no object (mostly bin): the cup or jaw lifts nothing
+                return self._finish(action, False, "", poses, removed, "no_object")
             if self.grasp_outcome in ("threshold", "checked"):
                 ok = float(action.grasp.quality) >= LIFT_THRESHOLD
             elif self.grasp_outcome == "nominal":
@@ -192,8 +197,7 @@ class PrimitiveBackend(_Base):
                 ok = bool(action.grasp.lifts)
             else:
                 ok = bool(np.random.default_rng([self.seed, step, 4242]).random() < float(action.grasp.quality))
-            return self._finish(action, ok, action.grasp.object_id, poses, removed,
-                                "" if ok else "grasp_failed")
+            return self._finish(action, ok, oid, poses, removed, "" if ok else "grasp_failed")
         return self._finish(action, True, "", poses, removed)
 
 
@@ -351,7 +355,7 @@ class FullBackend(_Base):
             plan = self.plan_grasp(g, np.asarray(hold[f"{arm}.position"], float))
             if not plan.success:
                 return plan.status
-            b = self.objects.get(g.object_id)
+            b = self.objects.get(object_of(g.object_id))
             z0 = as_rigid_transform(poses[b], f"poses[{b}]").translation()[2] if poses is not None and b is not None \
                 else None
             release = {f"{port}.position": [JAW_OPENING]} if g.kind == "parallel_jaw" else {f"{port}.suction": [0.0]}
@@ -393,7 +397,7 @@ class FullBackend(_Base):
 
     def outcome(self, action: Action, motion: Motion, poses, step: int, removed):
         if action.kind == "grasp":
-            oid = action.grasp.object_id
+            oid = object_of(action.grasp.object_id)
             z0 = motion.info.get("z0")
             b = self.objects.get(oid)
             ok = (poses is not None and z0 is not None and b is not None

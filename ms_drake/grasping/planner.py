@@ -21,7 +21,8 @@ the smallest nominal wrench residual (those that resist first, nearest-first amo
 robust evaluation, stopping at the first robust quality of 1.0. Candidates whose jaws find no
 contact pair (miss, jaw collision) are never chosen; an object without any other gets its first
 candidate with quality 0.0. When `objects` holds geometry with the mask's id the exact
-mesh, pose and mass are used (simulation); otherwise (hardware) the object is approximated by
+mesh, pose and mass are used (simulation; a piece ``<id>@<k>`` of a cut object uses the object's
+(`types.object_of`)); otherwise (hardware) the object is approximated by
 the convex hull of its visible points extruded down to the lowest point seen in the image (the
 bin floor), with `default_mass` -- a choice of ours; the reference plans on known meshes in
 simulation and with a learned GQ-CNN on hardware.
@@ -56,7 +57,7 @@ from ms_drake.grasping.samplers import (
     sample_suction_grasps_depth,
 )
 from ms_drake.grasping.suction import SuctionEvaluator
-from ms_drake.types import Grasp, InstanceMasks, ObjectGeometry
+from ms_drake.types import Grasp, InstanceMasks, ObjectGeometry, object_of
 
 
 JAW_CONTACTS = ("center", "pad")  # GraspPlanner.jaw_contact
@@ -174,7 +175,7 @@ class GraspPlanner(LeafSystem):
                 cands = self.jaw_candidates(depth, mask, X_WC, seed, K)
             if not cands:
                 continue
-            geom = geoms.get(oid)
+            geom = geoms.get(object_of(oid))
             if geom is not None:
                 X_WO = as_matrix4(geom.X_WO, f"objects[{oid!r}].X_WO")
                 mesh, mass, com = self._mesh(geom), geom.mass, geom.com
@@ -355,7 +356,7 @@ class LazyGraspPlanner(LeafSystem):
         """Every planner's best grasp for mask `oid` (the computation behind one lookup)."""
         k = masks.ids.index(oid)
         mask = masks.masks[k]
-        geom = geoms.get(oid)
+        geom = geoms.get(object_of(oid))
         rows, cols = np.nonzero(mask)
         if len(rows) == 0:
             return ()
