@@ -281,10 +281,13 @@ def test_a_failed_grasp_is_passed_over_on_its_state_when_retries_are_off():
     no_retry = SelectorParams(retry_failed=False)
     assert chosen(select_action("largest", M, TARGET, g, history=(failed_big,))) == "big"
     assert chosen(select_action("largest", M, TARGET, g, history=(failed_big,), params=no_retry)) == "mid"
-    # the same grasp moved by more than 5 mm is another grasp
-    moved = tuple(Grasp("suction", (0.01, 0.0, 0.0), (0.0, 0.0, -1.0), quality=0.5, object_id="big") if x.object_id == "big"
-                  else x for x in g)
-    assert chosen(select_action("largest", M, TARGET, moved, history=(failed_big,), params=no_retry)) == "big"
+    # a re-plan more than 5 mm away is another grasp when it is better; no better, it is passed over
+    # (a noisy camera's re-plan of the failed grasp)
+    def moved(q):
+        return tuple(Grasp("suction", (0.01, 0.0, 0.0), (0.0, 0.0, -1.0), quality=q, object_id="big")
+                     if x.object_id == "big" else x for x in g)
+    assert chosen(select_action("largest", M, TARGET, moved(0.75), history=(failed_big,), params=no_retry)) == "big"
+    assert chosen(select_action("largest", M, TARGET, moved(0.5), history=(failed_big,), params=no_retry)) == "mid"
     # after a successful action the state changed: big's grasp may be tried again
     later = (failed_big, outcome("grasp", removed="small", oid="small"))
     assert chosen(select_action("largest", M, TARGET, g, history=later, params=no_retry)) == "big"

@@ -25,7 +25,7 @@ Selectors (the priority list decides which object is tried first):
 
 Execution criteria (Ch. 7.4): walk the priority list and execute the best grasp on the first
 mask whose best grasp quality exceeds t(o) (with `retry_failed` False, a best grasp that failed
-on the current state is passed over; with `skip_failed`, every mask a grasp failed on since the last
+on the current state, or a re-plan of it that is no better (`same_grasp`), is passed over; with `skip_failed`, every mask a grasp failed on since the last
 successful action): t(target) = t_thresh; t(other) = t_high with pushing,
 t_thresh without. With pushing, when no grasp qualifies, walk the list again and push the first
 object that has a valid push. Termination (an Action of kind "stop" with `reason`):
@@ -208,10 +208,11 @@ def failed_on_this_state(history) -> list[Grasp]:
 
 
 def same_grasp(a: Grasp, b: Grasp, tol: float = 0.005) -> bool:
-    """The same object, gripper kind and contact point within `tol` metres (a re-plan on a settled
-    state moves a grasp by a fraction of a millimetre)."""
+    """A re-plan of failed grasp `b`: the same object and gripper kind, and the contact point within
+    `tol` metres (perfect depth re-plans a grasp on a settled state to a fraction of a millimetre)
+    or a quality no higher than `b`'s (a noisy camera re-plans it centimetres away, no better)."""
     return (a.object_id == b.object_id and a.kind == b.kind
-            and float(np.linalg.norm(np.subtract(a.center, b.center))) <= tol)
+            and (float(np.linalg.norm(np.subtract(a.center, b.center))) <= tol or a.quality <= b.quality))
 
 
 def select_action(policy: str, masks: InstanceMasks, target: TargetEstimate | None = None,
