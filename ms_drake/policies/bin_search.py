@@ -9,10 +9,11 @@ In simulation, start the robot where the controller expects it (parked out of th
 
 Inside (docs/concepts.md, "Data flow"; every planner is a system of the diagram):
   <cam>.label_image -> Segmenter("ground_truth")   (simulation)  |  <cam>.depth_image -> Segmenter(params.segmenter)
-    (simulation with a depth segmenter: -> MaskAssociation(<cam>.label_image), the masks named
-    after the objects behind them so the simulated executor knows what a grasp lifted)
   <cam>.rgb_image + <cam>.depth_image + masks -> TargetDetector(params.detector) -> target (the depth: the
     template detector's geometric check)
+  with a depth segmenter: masks + target -> TargetInstance -> masks, target (a target seen in no
+    mask of its own gets one); in simulation -> MaskAssociation(<cam>.label_image), the masks
+    named after the objects behind them so the simulated executor knows what a grasp lifted
   <cam>.depth_image + target -> OccupancyEstimator(params.occupancy_estimator) -> occupancy (given target_shape; xray reads it)
   depth + masks (+ body_poses: exact meshes in simulation) -> LazyGraspPlanner -> grasps
     (simulation, params.grasp_planner "indexed": IndexedGraspPlanner on the objects' grasp sets,
@@ -74,6 +75,7 @@ from ms_drake.perception.segmentation import BACKENDS as SEGMENTATION_BACKENDS
 from ms_drake.perception.segmentation import Segmenter
 from ms_drake.perception.target import BACKENDS as DETECTOR_BACKENDS
 from ms_drake.perception.target import TargetDetector, render_templates
+from ms_drake.perception.target_instance import TargetInstance
 from ms_drake.policies.bin_selectors import OCCUPANCY_POLICIES, PUSHING, SelectorParams, check_policy
 from ms_drake.policies.selector import PolicySelector
 from ms_drake.pushing import PushPlanner, PushPolicySystem, check_push_policy
@@ -369,14 +371,7 @@ def MakeBinSearchController(scenario, params: BinSearchConfig | None = None, sim
         depth_inputs.append(seg.GetInputPort("depth_image"))
     seg.set_name("segmenter")
     masks = seg.GetOutputPort("masks")
-    if (segmenter is not None or params.segmenter != "ground_truth") and sim is not None:
-        # Simulation: the segmenter's masks named after the objects behind them, so the simulated
-        # executor knows what a grasp lifted (perception.association; pixels unchanged).
-        assoc = builder.AddSystem(MaskAssociation(object_labels(sim.plant), camera.width, camera.height))
-        assoc.set_name("mask_association")
-        builder.Connect(masks, assoc.GetInputPort("masks"))
-        export_input([assoc.GetInputPort("label_image")], f"{cam}.label_image")
-        masks = assoc.GetOutputPort("masks")
+    segmented = segmenter is not None or params.segmenter != "ground_truth"
     templates = None
     if params.detector != "color" and target_detector is None:
         templates = target_templates
@@ -396,6 +391,23 @@ def MakeBinSearchController(scenario, params: BinSearchConfig | None = None, sim
         rgb_inputs.append(det.GetInputPort("rgb_image"))
         depth_inputs.append(det.GetInputPort("depth_image"))
     builder.Connect(masks, det.GetInputPort("masks"))
+    target = det.GetOutputPort("target")
+    if segmented:
+        # A segmenter's masks: the target seen inside another object's mask, or in none, gets a
+        # mask of its own (perception.target_instance), so that it can be grasped.
+        carve = builder.AddSystem(TargetInstance(camera.width, camera.height))
+        carve.set_name("target_instance")
+        builder.Connect(masks, carve.GetInputPort("masks"))
+        builder.Connect(target, carve.GetInputPort("target"))
+        masks, target = carve.GetOutputPort("masks"), carve.GetOutputPort("target")
+    if segmented and sim is not None:
+        # Simulation: the segmenter's masks named after the objects behind them, so the simulated
+        # executor knows what a grasp lifted (perception.association; pixels unchanged).
+        assoc = builder.AddSystem(MaskAssociation(object_labels(sim.plant), camera.width, camera.height))
+        assoc.set_name("mask_association")
+        builder.Connect(masks, assoc.GetInputPort("masks"))
+        export_input([assoc.GetInputPort("label_image")], f"{cam}.label_image")
+        masks = assoc.GetOutputPort("masks")
 
     color_cam, _ = cfg.MakeCameras()
     planners = [GraspPlanner(color_cam.core().intrinsics(), camera.X_WC, model=m, num_samples=params.grasp_samples,
@@ -445,9 +457,9 @@ def MakeBinSearchController(scenario, params: BinSearchConfig | None = None, sim
                                                 target_id=target_id, width=camera.width, height=camera.height))
     selector.set_name("policy_selector")
     builder.Connect(masks, selector.GetInputPort("masks"))
-    builder.Connect(det.GetOutputPort("target"), selector.GetInputPort("target"))
+    builder.Connect(target, selector.GetInputPort("target"))
     builder.Connect(grasp.GetOutputPort("grasps"), selector.GetInputPort("grasps"))
-    outputs = {"masks": masks, "target": det.GetOutputPort("target"), "grasps": grasp.GetOutputPort("grasps")}
+    outputs = {"masks": masks, "target": target, "grasps": grasp.GetOutputPort("grasps")}
     if params.policy.endswith("_push"):
         pushes = builder.AddSystem(PushPolicySystem(params.push_policy, camera, workspace, source="image",
                                                     seed=params.seed) if params.push_policy
@@ -468,7 +480,7 @@ def MakeBinSearchController(scenario, params: BinSearchConfig | None = None, sim
                                                        target_size=target_shape, **weights))
             occ.set_name("occupancy_estimator")
             depth_inputs.append(occ.GetInputPort("depth_image"))
-        builder.Connect(det.GetOutputPort("target"), occ.GetInputPort("target"))
+        builder.Connect(target, occ.GetInputPort("target"))
         if params.policy in OCCUPANCY_POLICIES:
             builder.Connect(occ.GetOutputPort("occupancy"), selector.GetInputPort("occupancy"))
         outputs["occupancy"] = occ.GetOutputPort("occupancy")
