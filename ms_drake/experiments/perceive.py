@@ -11,7 +11,8 @@ registry object name, or its box size). Output, in a folder:
 The depth goes through the stations' preprocessing (geometry.preprocess_depth: the sensor's
 holes filled), then the segmenter (default "learned"), the target detector (with a colour image:
 "template", views of the target object rendered here, its masks' size checked on the depth, or
-"color" for a red target without a name) and the learned occupancy (from the target's size). The camera: `--intrinsics FILE`, a
+"color" for a red target without a name; a target seen in no mask of its own gets one, as in the
+search: perception.target_instance) and the learned occupancy (from the target's size). The camera: `--intrinsics FILE`, a
 YAML or JSON mapping with width, height, fx, fy, cx, cy, and optionally `pose` ({xyz: [..],
 rpy_deg: [..]}, the camera in the bin's frame: floor centre, z up; default 0.8 m above the floor
 looking straight down) and `bin` ([x, y, z] inner size, default 0.50 x 0.40 x 0.12 m). Without
@@ -40,6 +41,7 @@ from ms_drake.perception.occupancy import OccupancyEstimator, TargetBox
 from ms_drake.perception.segmentation import BACKENDS as SEGMENTERS
 from ms_drake.perception.segmentation import Segmenter
 from ms_drake.perception.target import TargetDetector, render_templates
+from ms_drake.perception.target_instance import target_instance
 from ms_drake.scenario import load_scenario
 from ms_drake.types import InstanceMasks
 
@@ -205,6 +207,7 @@ def perceive(depth: np.ndarray, camera: Camera | None = None, segmenter: str = "
         det = TargetDetector("template" if target else "color", width=w, height=h, templates=templates)
         t = time.process_time()
         found = det.detect(rgb, masks, depth, camera.camera)  # depth: the template's size check
+        masks, found = target_instance(masks, found)  # a target seen in no mask of its own gets one
         ms["target_detection"] = 1000 * (time.process_time() - t)
     occupancy = None
     if box is not None:
