@@ -14,6 +14,9 @@ import pytest
 from ms_drake.execution import FullBackend
 from ms_drake.experiments.picks import TASKS, plan_task, run_task
 from ms_drake.geometry import Workspace
+from pydrake.math import RigidTransform, RotationMatrix
+
+from ms_drake.execution.backends import grasp_tool_pose
 from ms_drake.planning import ik_pose, plan_joint_motion
 from ms_drake.planning.sequences import Schedule, Timeline, jaw_opening
 from ms_drake.robots import PICK_APPROACH
@@ -125,3 +128,40 @@ def test_jaw_opening_sets_the_ik_fingers_and_restores_them():
     assert np.array_equal(plant.GetPositions(ctx), before)
     with jaw_opening(ik, None):
         assert np.array_equal(plant.GetPositions(ctx), before)
+
+
+def test_a_pick_takes_the_pregrasp_posture_whose_straight_lines_solve():
+    # A vertical suction grasp at the bin's far end (station-reach heap 9404): the YuMi's left arm
+    # reaches its pre-grasp from park in a posture whose straight approach leaves the joint limits;
+    # the plan goes on to the restarts' postures and finds one whose approach and lift solve.
+    s = load_scenario(None, "YuMiBin")
+    backend = FullBackend(s, {}, Workspace.from_scenario(s))
+    g = Grasp(kind="suction", center=(0.1815, -0.0901, 0.1575), approach=(0.0014, -0.0011, -1.0), axis=(0.0, 0.0, 0.0),
+              width=0.0, quality=1.0, object_id="probe")
+    ik = backend.ik[backend.suction[0]][0]
+    restarts, ik.restarts = ik.restarts, 0
+    try:
+        only_park = backend.plan_grasp(g)
+    finally:
+        ik.restarts = restarts
+    assert not only_park.success  # the park posture's lines fail ...
+    plan = backend.plan_grasp(g)
+    assert plan.success, plan.status  # ... and the pick is planned from another posture
+    tl = plan.timeline
+    P = ik_pose(ik, tl.value(tl.marks["contact"]))
+    assert np.linalg.norm(P.translation() - grasp_tool_pose(g).translation()) < 2e-3
+
+
+def test_an_ik_solve_does_not_depend_on_the_solves_before_it():
+    s = load_scenario(None, "YuMiBin")
+    backend = FullBackend(s, {}, Workspace.from_scenario(s))
+    ik, _, q_home = backend.ik[backend.suction[0]]
+    far = RigidTransform(RotationMatrix.MakeXRotation(np.pi), [0.2, 0.15, 0.25])
+    near = RigidTransform(RotationMatrix.MakeXRotation(np.pi), [-0.1, 0.0, 0.25])
+    fresh = ik.solve(far, q_seed=q_home, axis_only=True)
+    ik.solve(near, q_seed=q_home, axis_only=True)
+    again = ik.solve(far, q_seed=q_home, axis_only=True)
+    assert fresh.status == again.status and np.array_equal(fresh.q, again.q)
+    sols = [r for r in ik.solutions(near, q_seed=q_home, axis_only=True) if r.success]
+    assert len(sols) >= 2 and all(np.linalg.norm(ik_pose(ik, r.q).translation() - near.translation()) < 2e-3
+                                  for r in sols)

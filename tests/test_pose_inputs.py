@@ -115,7 +115,6 @@ def _panda():
 
 def _ik():
     ik, limits, q_home, _, _ = _panda()
-    ik.rng = np.random.default_rng(0)  # the restarts' seeds: the same for every call
     return ik, limits, q_home
 
 

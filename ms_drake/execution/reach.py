@@ -133,18 +133,15 @@ class PickReach:
     (module docstring). `checks` counts the calls, `reached` the grasps found reachable and
     `arm_blocked` those whose plan exists but whose arm runs into the scene.
 
-    The pre-grasp IK is solved from the park configuration only, without the random restarts:
-    the backend's IK tries that same seed first (and its straight lines have no restarts), so a
-    grasp reached here is reached by the backend whatever state its random restarts are in;
-    a grasp only a random restart reaches is left out (conservative)."""
+    The plan is the backend's own, with the same IK (park first, then its fixed restarts; an IK
+    solve does not depend on the solves before it), so a grasp reached here is one the backend
+    plans."""
 
     checks_scene = True  # IndexedGraspPlanner passes its Scene
 
     def __init__(self, scenario, seed: int = 0, approach_samples: int = 5, transit_step: float = 0.02,
                  transit_clearance: float = 0.02, descent_clearance: float = PICK_APPROACH.descent_clearance):
         self.backend = FullBackend(scenario, {}, Workspace.from_scenario(scenario), seed=seed)
-        for ik, _, _ in self.backend.ik.values():
-            ik.restarts = 0
         self.links = {arm: ArmLinks(ik, keep[0])
                       for (arm, (ik, _, _)), keep in zip(self.backend.ik.items(), self.backend._keep)}
         self.approach_samples = int(approach_samples)

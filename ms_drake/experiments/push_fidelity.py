@@ -142,8 +142,6 @@ class FidelityPair:
         """The push in one world from the loaded state: status, object motion, after Q*_o, CPU s."""
         w, snap = self.worlds[fidelity]
         w.restore(snap)
-        for ik, _, _ in getattr(w.backend, "ik", {}).values():
-            ik.rng = np.random.default_rng(0)  # IK restarts as a fresh backend's: rows do not depend on order
         c = time.process_time()
         try:
             done = w.execute_push(push)
@@ -333,8 +331,6 @@ def reach_probe(heap_dirs, heaps: int, seed_start: int = 0, heights=(0.0, 0.02, 
                 a = np.array(pr["start"], float)
                 e = np.array(pr["end"], float)
                 a[2] = e[2] = max(a[2], floor + h)
-                for ik, _, _ in b.ik.values():
-                    ik.rng = np.random.default_rng(0)
                 plan = b.plan(Action("push", push=Push(tuple(a), tuple(e), pr.get("object", ""))), b.initial_commands(), 0)
                 out["reachable"][str(h)] += not isinstance(plan, str)
     z = np.array(out.pop("push_z"))

@@ -14,8 +14,11 @@ Targets:
 Result: `IkResult(success, q, status, ...)`; status "ok", "unreachable" (no solution satisfies the
 pose constraints within the restarts) or "collision" (pose reached only in collision). `solve`
 never raises on a failed solve, so it is safe inside a running diagram.
-Restarts: the first solve starts at the seed; then `restarts` random seeds within the joint limits
-drawn from `numpy.random.default_rng(seed)`.
+Restarts: the first solve starts at the given seed; then the first `restarts` of a fixed list of
+configurations drawn once, within the joint limits, from `numpy.random.default_rng(seed)`. A solve
+does not depend on the solves before it: the same target and seed give the same answer, so a
+reach check and the station that executes the grasp agree. `solutions` yields the solution from
+each seed in turn, for plans that need a configuration whose onward straight lines also solve.
 """
 
 from __future__ import annotations
@@ -59,7 +62,7 @@ class ArmIk:
 
     def __init__(self, plant, plant_context, joint_names, frame, min_distance: float | None = 0.005,
                  influence_distance: float = 0.03, position_tolerance: float = 1e-3,
-                 angle_tolerance: float = 1e-2, restarts: int = 3, seed: int = 0):
+                 angle_tolerance: float = 1e-2, restarts: int = 3, seed: int = 0, max_restarts: int = 16):
         self.plant = plant
         self.context = plant_context
         self.frame = frame
@@ -72,7 +75,10 @@ class ArmIk:
         self.pos_tol = position_tolerance
         self.ang_tol = angle_tolerance
         self.restarts = restarts
-        self.rng = np.random.default_rng(seed)
+        lo = np.where(np.isfinite(self.lower), self.lower, -np.pi)
+        hi = np.where(np.isfinite(self.upper), self.upper, np.pi)
+        rng = np.random.default_rng(seed)
+        self.restart_seeds = [rng.uniform(lo, hi) for _ in range(max(int(max_restarts), int(restarts)))]
         self._snopt = SnoptSolver()
 
     def arm_positions(self) -> np.ndarray:
@@ -92,24 +98,40 @@ class ArmIk:
             ae = float(X.rotation().InvertAndCompose(X_WT.rotation()).ToAngleAxis().angle())
         return pe, ae
 
+    def _seeds(self, q_seed):
+        seed = self.arm_positions() if q_seed is None else np.asarray(q_seed, float)
+        return [np.clip(seed, self.lower, self.upper)] + self.restart_seeds[:self.restarts]
+
     def solve(self, X_WT: RigidTransform, q_seed=None, axis_only: bool = False) -> IkResult:
-        """Arm joints that put the frame at X_WT (RigidTransform or 4x4 array). A failed solve is
-        a result, never an exception; a pose that is not a rigid transform raises ValueError."""
+        """Arm joints that put the frame at X_WT (RigidTransform or 4x4 array): the first success
+        from q_seed (default: the context's) and the restarts, else the best failed attempt. A
+        failed solve is a result, never an exception; a pose that is not a rigid transform raises
+        ValueError."""
+        best = None
+        for res in self._attempts(X_WT, q_seed, axis_only):
+            if res.success:
+                return res
+            if best is None or res.position_error + res.angle_error < best.position_error + best.angle_error:
+                best = res
+        return best
+
+    def solutions(self, X_WT: RigidTransform, q_seed=None, axis_only: bool = False):
+        """Each successful solve, from q_seed and then from each restart in turn (lazily: stop
+        iterating once one serves); the last item is the best failed attempt when none succeeded."""
+        best, any_ok = None, False
+        for res in self._attempts(X_WT, q_seed, axis_only):
+            if res.success:
+                any_ok = True
+                yield res
+            elif best is None or res.position_error + res.angle_error < best.position_error + best.angle_error:
+                best = res
+        if not any_ok:
+            yield best
+
+    def _attempts(self, X_WT, q_seed, axis_only):
         X_WT = as_rigid_transform(X_WT, "X_WT")
         q_now = self.plant.GetPositions(self.context).copy()
-        seed = self.arm_positions() if q_seed is None else np.asarray(q_seed, float)
-        seeds = [np.clip(seed, self.lower, self.upper)]
-        lo = np.where(np.isfinite(self.lower), self.lower, -np.pi)
-        hi = np.where(np.isfinite(self.upper), self.upper, np.pi)
-        seeds += [self.rng.uniform(lo, hi) for _ in range(self.restarts)]
-        try:
-            return self._solve_seeds(X_WT, q_now, seeds, axis_only)
-        finally:
-            self.plant.SetPositions(self.context, q_now)  # the solver evaluates in this context
-
-    def _solve_seeds(self, X_WT, q_now, seeds, axis_only):
-        best = None
-        for s in seeds:
+        for s in self._seeds(q_seed):
             try:
                 # Lazy collision constraint: solve without it first (a few ms), add it only when
                 # the solution is in collision (most targets in free space need no second solve).
@@ -118,11 +140,9 @@ class ArmIk:
                     res = self._solve_once(X_WT, q_now, res.q, axis_only, with_collision=True)
             except RuntimeError as e:  # e.g. a geometry pair Drake cannot measure
                 res = IkResult(False, s, "unreachable", message=str(e))
-            if res.success:
-                return res
-            if best is None or res.position_error + res.angle_error < best.position_error + best.angle_error:
-                best = res
-        return best
+            finally:
+                self.plant.SetPositions(self.context, q_now)  # the solver evaluates in this context
+            yield res
 
     def _solve_once(self, X_WT, q_now, seed, axis_only, with_collision=True):
         ik = InverseKinematics(self.plant, self.context, with_joint_limits=True)

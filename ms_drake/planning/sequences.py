@@ -158,7 +158,7 @@ def arm_ik(scenario, arm: str, frame: str = "tcp", min_distance: float | None = 
                 q[j.position_start()] = j.position_lower_limits()[0] if sign < 0 else j.position_upper_limits()[0]
     plant.SetPositions(pc, q)
     a = spec.arms[arm]
-    ik = ArmIk(plant, pc, a.joints, plant.GetFrameByName(frame, g[arm]), min_distance=min_distance, restarts=5,
+    ik = ArmIk(plant, pc, a.joints, plant.GetFrameByName(frame, g[arm]), min_distance=min_distance, restarts=8,
                seed=seed)
     limits = JointLimits(np.array(a.velocity_limits), np.array(a.acceleration_limits), np.array(a.jerk_limits))
     return ik, limits, np.array(a.home, float), (diagram, ctx)
@@ -254,21 +254,28 @@ def jaw_opening(ik, opening: float | None):
 
 
 def _pick_lines(ik, limits, q_home, X_grasp, approach, lift, speed, axis_only):
-    """(q_pre, approach line, lift line) of a pick at X_grasp, or the failing step's IK status."""
+    """(q_pre, approach line, lift line) of a pick at X_grasp, or the failing step's IK status.
+    The pre-grasp configurations come from ik.solutions (from q_home, then each restart) until one
+    whose straight approach and lift also solve: an arm often reaches the pre-grasp in a posture
+    whose straight lines leave the joint limits, and in another whose lines do not."""
     pre = approach_pose(X_grasp, approach)
-    res = ik.solve(pre, q_seed=q_home, axis_only=axis_only)
-    if not res.success:
-        return res.status
-    q_pre = nearest_equivalent(ik, res.q, q_home)
-    X_pre = ik_pose(ik, q_pre) if axis_only else pre
-    approach_plan = plan_cartesian_line(ik, X_pre, approach * X_grasp.rotation().matrix()[:, 2], q_pre, limits,
-                                        axis_only=axis_only, max_speed=speed)
-    if not approach_plan.success:
-        return approach_plan.status
-    lift_plan = _line(ik, approach_plan.trajectory.final(), [0, 0, lift], limits, speed)
-    if not lift_plan.success:
-        return lift_plan.status
-    return q_pre, approach_plan, lift_plan
+    failure = None
+    for res in ik.solutions(pre, q_seed=q_home, axis_only=axis_only):
+        if not res.success:
+            return failure or res.status
+        q_pre = nearest_equivalent(ik, res.q, q_home)
+        X_pre = ik_pose(ik, q_pre) if axis_only else pre
+        approach_plan = plan_cartesian_line(ik, X_pre, approach * X_grasp.rotation().matrix()[:, 2], q_pre, limits,
+                                            axis_only=axis_only, max_speed=speed)
+        if not approach_plan.success:
+            failure = failure or approach_plan.status
+            continue
+        lift_plan = _line(ik, approach_plan.trajectory.final(), [0, 0, lift], limits, speed)
+        if not lift_plan.success:
+            failure = failure or lift_plan.status
+            continue
+        return q_pre, approach_plan, lift_plan
+    return failure or "unreachable"
 
 
 def plan_pick(ik, limits, q_home, X_grasp: RigidTransform, arm: str, gripper_port: str, kind: str,
@@ -351,14 +358,10 @@ def _push_lines_from_above(ik, limits, q_home, X_start, u, distance, approach, r
     return q_above, down, push, up
 
 
-def _push_lines(ik, limits, q_seed, q_ref, X_start, u, distance, approach, retreat, speed):
+def _push_lines(ik, limits, q_start, X_start, u, distance, approach, retreat, speed):
     """(q_above, down, push, up) of a push from X_start along unit u, planned from the push's
-    start configuration outwards (down is the line up from the start, reversed), or the failing
-    step's status."""
-    res = ik.solve(X_start, q_seed=q_seed)
-    if not res.success:
-        return res.status
-    q_start = nearest_equivalent(ik, res.q, q_ref)
+    start configuration q_start outwards (down is the line up from the start, reversed), or the
+    failing step's status."""
     push = plan_cartesian_line(ik, X_start, u * distance, q_start, limits, max_speed=speed)
     if not push.success:
         return push.status
@@ -376,30 +379,29 @@ def _push_lines(ik, limits, q_seed, q_ref, X_start, u, distance, approach, retre
 def plan_push(ik, limits, q_home, X_start: RigidTransform, direction, distance: float, arm: str,
               gripper_port: str | None = None, approach: float = 0.10, retreat: float = 0.05,
               speed: float = 0.1, blade: float = 0.0, settle: float = 0.3, from_home: bool = True,
-              branches: int = 4) -> PickPlan:
+              branches: int = 6) -> PickPlan:
     """A straight push: down onto X_start (from `approach` above), `distance` along `direction`
     (world), then up by `retreat`. For the bluction the blade is commanded to `blade` (down).
     X_start: RigidTransform or 4x4 array. First the IK solution above the start nearest q_home and
     the lines down, along and up from it; when a line fails there (a joint limit or a jump of a
     redundant arm along it), the lines are planned outwards from up to `branches` IK solutions at
-    the push's start: the one from q_home, then others (seeds drawn by a generator of its own,
-    seeded 0, so the same push gets the same seeds whatever the IK solved before); branches=0
+    the push's start (ik.solutions: from q_home, then from the IK's fixed restarts); branches=0
     keeps to the first plan."""
     X_start = as_rigid_transform(X_start, "X_start")
     u = np.asarray(direction, float)
     u = u / np.linalg.norm(u)
     lines = _push_lines_from_above(ik, limits, q_home, X_start, u, distance, approach, retreat, speed)
     failure = lines if isinstance(lines, str) else None
-    lo = np.where(np.isfinite(ik.lower), ik.lower, -np.pi)
-    hi = np.where(np.isfinite(ik.upper), ik.upper, np.pi)
-    rng = np.random.default_rng(0)
-    for k in range(max(0, int(branches)) if failure else 0):
-        seed = np.asarray(q_home, float) if k == 0 else rng.uniform(lo, hi)
-        lines = _push_lines(ik, limits, seed, q_home, X_start, u, distance, approach, retreat, speed)
-        if not isinstance(lines, str):
-            break
-    else:
-        if failure:
+    if failure:
+        solutions = ik.solutions(X_start, q_seed=q_home) if branches > 0 else ()
+        for k, res in enumerate(solutions):
+            if not res.success or k >= branches:
+                break
+            lines = _push_lines(ik, limits, nearest_equivalent(ik, res.q, q_home), X_start, u, distance, approach,
+                                retreat, speed)
+            if not isinstance(lines, str):
+                break
+        if isinstance(lines, str):
             return PickPlan(False, failure, arm, X_target=X_start)
     q_above, down, push, up = lines
     tl = _start(q_home, q_above, from_home, limits)
