@@ -1181,14 +1181,18 @@ def bench_shelf_segmentation_cmd(
         out: Path = typer.Option(..., "--out", help="Result .jsonl (one line per scene; resumes)"),
         noise: float = typer.Option(0.0, "--noise", min=0.0, help="Depth noise std [m]"),
         dropout: float = typer.Option(0.0, "--dropout", min=0.0, max=0.99, help="Fraction of pixels lost"),
+        scenario: str = typer.Option("FetchShelf", "--scenario",
+                                     help="Whose shelf and camera render the scenes: a shelf scenario (FetchShelfL515 "
+                                          "renders through its L515-like depth sensor model)"),
         workers: int = _workers("Local worker processes", max=None),
         use_ray: bool = typer.Option(False, "--ray", help="Run on Ray")):
     """How well the ShelfSegmenter recovers Table 9.1's scenes from the front camera's depth image."""
     bad = [n for n in occluders if not 2 <= n <= 12]
     if bad:
         _fail(f"--occluders {' '.join(map(str, bad))}: shelf scenes have 2 to 12 occluders")
+    _need_shelf_scenario(None, scenario)
     r = bench_shelf_segmentation(scenes, occluders, seed_start, out, noise=noise, dropout=dropout, workers=workers,
-                                 use_ray=use_ray)
+                                 use_ray=use_ray, scenario=scenario)
     typer.echo(json.dumps(r, indent=1))
 
 

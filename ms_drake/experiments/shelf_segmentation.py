@@ -7,8 +7,10 @@ label pixels), the instances found, those matched to one occluder (mask IoU >= 0
 match the estimated object against the true one: kind, centre and size errors and the IoU of the
 footprints (seen from above). Over all scenes: COCO mask AP / AR@100 (pycocotools, the bin
 segmentation's metric) and the time per image. One JSON line per scene in `out` (resumable), the
-summary returned and printed. `noise` (m) and `dropout` (a fraction of pixels lost) make the depth
-image a sensor's: Gaussian noise on every depth, and missing pixels, drawn from the scene's seed.
+summary returned and printed. `scenario`: whose shelf and camera render the scene (FetchShelf;
+FetchShelfL515 renders through its camera's L515-like sensor model). `noise` (m) and `dropout` (a
+fraction of pixels lost) add Gaussian noise on every depth and missing pixels to the render, drawn
+from the scene's seed.
 
 `AssociateShelfObjects` (simulation only): the segmenter's objects named after the true objects
 they stand for, so that an action a policy plans on the estimate can be applied by FOSS to the true
@@ -107,31 +109,35 @@ def scene_record(scenario, geometry: ShelfGeometry, seed: int, occluders: int, m
             "shape": list(render.depth.shape), "gt_rle": _rle(gt), "found_rle": _rle(masks)}
 
 
-@functools.lru_cache(maxsize=1)
-def _shelf() -> tuple:
-    scenario = load_scenario(None, SCENARIO)
+@functools.lru_cache(maxsize=2)
+def _shelf(name: str = SCENARIO) -> tuple:
+    scenario = load_scenario(None, name)
     return scenario, ShelfGeometry.from_scenario(scenario)
 
 
 def scene_job(job: tuple) -> dict:
-    """(occluders, seed, min_pixels, noise, dropout) -> scene_record(...); module-level for the pool."""
-    n, seed, min_pixels, noise, dropout = job
-    scenario, geometry = _shelf()
-    return scene_record(scenario, geometry, seed, n, min_pixels, ShelfSegmentationParams(), noise, dropout)
+    """(occluders, seed, min_pixels, noise, dropout, scenario name) -> scene_record(...); module-level
+    for the pool."""
+    n, seed, min_pixels, noise, dropout, name = job
+    scenario, geometry = _shelf(name)
+    rec = scene_record(scenario, geometry, seed, n, min_pixels, ShelfSegmentationParams(), noise, dropout)
+    rec["scenario"] = name
+    return rec
 
 
 def bench_shelf_segmentation(scenes: int, occluders: list[int], seed_start: int, out: Path,
                              min_pixels: int = 500, noise: float = 0.0, dropout: float = 0.0, workers: int = 1,
-                             use_ray: bool = False) -> dict:
+                             use_ray: bool = False, scenario: str = SCENARIO) -> dict:
     """Segment `scenes` scenes per occluder count; one JSON line per scene in `out` (resumes: the
     scenes already there are kept, failed ones are tried again) and the summary over all of the
     requested scenes in the file (module docstring; `failed`: scenes whose worker died this time)."""
     sensor_depth(np.zeros((1, 1)), noise, dropout, 0)  # checks the arguments before any work
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    same = lambda r: r.get("noise", 0.0) == noise and r.get("dropout", 0.0) == dropout
+    same = lambda r: (r.get("noise", 0.0) == noise and r.get("dropout", 0.0) == dropout
+                      and r.get("scenario", SCENARIO) == scenario)
     done = {(r["occluders"], r["seed"]) for r in read_records(out) if same(r)} if out.exists() else set()
-    jobs = [(n, s, min_pixels, noise, dropout) for n in occluders for s in range(seed_start, seed_start + scenes)
+    jobs = [(n, s, min_pixels, noise, dropout, scenario) for n in occluders for s in range(seed_start, seed_start + scenes)
             if (n, s) not in done]
     failed = []
     with open(out, "a") as f:

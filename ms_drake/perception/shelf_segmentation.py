@@ -14,9 +14,12 @@ and its policies work on those masks and on the objects they imply. Here:
 3. Objects. Each instance becomes an upright ShelfObject (what FOSS and the policies plan with):
    - height: the highest point; x extent: the instance's; front: its frontmost y (each leaving out
      the `outliers` percent of points at the ends, which a noisy sensor scatters);
-   - cylinder or box: along x, the frontmost point of each 1 cm column of the lower 80 % of the
-     instance follows a circular arc for a cylinder and stays at the front for a box; the instance
-     is a cylinder when the columns' mean setback exceeds `cylinder_setback` of the half-width;
+   - cylinder or box: along x, the front of each 1 cm column of the lower 80 % of the instance (the
+     `front_percentile` of its y, not the frontmost point, which a noisy sensor's stray points set)
+     follows a circular arc for a cylinder and stays at the front for a box; the instance is a
+     cylinder when the mean setback of the columns within `inner` of the half-width from the
+     centre (the outer columns of a box seen from the side hold its side face) behind the front
+     (the same percentile of the column fronts) exceeds `cylinder_setback` of the half-width;
    - depth: a box's top face is seen from the camera above the shelf, so its y extent is the box's
      depth (when the top is hidden, e.g. behind a taller object in front, the depth is the width);
      a cylinder's diameter is the larger of its x extent and its top's y extent.
@@ -56,18 +59,23 @@ class ShelfSegmentationParams:
     """tolerance: largest distance [m] between neighbouring pixels' points of one object;
     min_pixels: smallest instance kept; margin: points this close [m] to the floor, walls or
     ceiling are the shelf; column: x bin width [m] of the cylinder test; cylinder_setback: the
-    cylinder test's threshold (mean setback of the columns' fronts / half-width; a cylinder's is
-    about 1 - pi / 4 = 0.21, a box's 0); min_depth: a box top's y extent below this [m] counts as
+    cylinder test's threshold (mean setback of the inner columns' fronts / half-width; a cylinder's
+    is about 0.12 with inner = 0.8, a box's 0); inner: the columns the test uses, as a fraction of
+    the half-width from the centre; min_depth: a box top's y extent below this [m] counts as
     unseen (the depth is then the width); outliers: the percentage of an instance's points at each end
-of its x, y and z ranges left out of the extents (a noisy sensor's stray points)."""
+of its x, y and z ranges left out of the extents (a noisy sensor's stray points); front_percentile:
+the percentile of a column's y taken as its front in the cylinder test (with 0, the frontmost
+point, the L515 sensor model's stray points make boxes look round)."""
 
     tolerance: float = 0.006
     min_pixels: int = 150
     margin: float = 0.005
     column: float = 0.01
-    cylinder_setback: float = 0.08
+    cylinder_setback: float = 0.035
+    inner: float = 0.8
     min_depth: float = 0.015
     outliers: float = 0.2
+    front_percentile: float = 10.0
 
     def __post_init__(self):
         if self.tolerance <= 0 or self.min_pixels < 1 or self.margin < 0 or self.column <= 0:
@@ -129,10 +137,12 @@ def estimate_object(object_id: str, points: np.ndarray, geometry: ShelfGeometry,
     setback = 0.0
     if side.sum() >= 3:
         bins = np.floor((x[side] - x_lo) / params.column).astype(int)
-        fronts = np.full(bins.max() + 1, np.inf)
-        np.minimum.at(fronts, bins, y[side])
-        fronts = fronts[np.isfinite(fronts)]
-        setback = float(np.mean(fronts - fronts.min())) / half_width if len(fronts) >= 3 else 0.0
+        ys = y[side]
+        columns = [b for b in np.unique(bins) if abs((b + 0.5) * params.column / half_width - 1.0) <= params.inner]
+        fronts = np.array([np.percentile(ys[bins == b], params.front_percentile) for b in columns])
+        if len(fronts) >= 3:
+            ref = np.percentile(fronts, params.front_percentile)
+            setback = float(np.mean(np.maximum(fronts - ref, 0.0))) / half_width
     top = points[z > height - 0.004]
     top_extent = float(np.subtract(*np.percentile(top[:, 1], [hi, lo]))) if len(top) else 0.0
     back = 0.5 * geometry.size[1]
