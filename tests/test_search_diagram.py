@@ -219,6 +219,7 @@ def test_the_diagram_example_agrees_with_bench_search_action_by_action(tmp_path,
     (["bench", "rearrange", "--method", "ik_line", "--scenario", "FetchShelf"], "runs on a table with the Panda"),
     (["bench", "fidelity", "--scenario", "FetchShelf"], "a bin search needs a bin scenario"),
     (["bench", "shelf-physics", "--policy", "der3", "--scenario", "YuMiBin"], "the shelf search needs a shelf"),
+    (["bench", "shelf-segmentation", "--scenario", "YuMiBin"], "the shelf search needs a shelf"),
 ])
 def test_unsuitable_scenarios_get_one_clear_error(tmp_path, args, message):
     out = subprocess.run([str(Path(sys.executable).parent / "ms-drake"), *args, "--out", str(tmp_path / "o.jsonl")],

@@ -1,5 +1,7 @@
 """ShelfSegmenter: shelf objects from the front camera's depth image (Drake renders of generated scenes)."""
 
+import json
+
 import numpy as np
 import pytest
 from pydrake.systems.framework import DiagramBuilder
@@ -144,6 +146,11 @@ def test_bench_writes_scene_lines_and_resumes(tmp_path):
     assert len(out.read_text().splitlines()) == 2
     noisy = bench_shelf_segmentation(1, [4], 0, out, noise=0.002, dropout=0.05)
     assert noisy["scenes"] == 1 and len(out.read_text().splitlines()) == 3
+    # the same scene through the L515 sensor model of FetchShelfL515: its own line, a worse image
+    l515 = bench_shelf_segmentation(1, [4], 0, out, scenario="FetchShelfL515")
+    assert l515["scenes"] == 1 and len(out.read_text().splitlines()) == 4
+    assert json.loads(out.read_text().splitlines()[-1])["scenario"] == "FetchShelfL515"
+    assert l515["ap"] < bench_shelf_segmentation(1, [4], 0, out)["ap"]
     with pytest.raises(ValueError, match="dropout"):
         bench_shelf_segmentation(1, [4], 0, out, dropout=1.5)
 
