@@ -156,9 +156,27 @@ def detect_color(rgb, masks: InstanceMasks, params: ColorParams = ColorParams())
 _H_BINS, _S_BINS = 30, 32  # the hue-saturation histogram's bins
 
 
-def _hs_hist(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    hsv = cv2.cvtColor(_rgb_array(rgb), cv2.COLOR_RGB2HSV)
-    hist = cv2.calcHist([hsv], [0, 1], mask.astype(np.uint8), [_H_BINS, _S_BINS], [0, 180, 0, 256])
+def _hsv(rgb) -> np.ndarray:
+    return cv2.cvtColor(_rgb_array(rgb), cv2.COLOR_RGB2HSV)
+
+
+def _box(mask: np.ndarray, pad: int = 0):
+    """(row slice, column slice) of the mask's bounding box grown by `pad` pixels, or None if empty."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if not len(rows):
+        return None
+    return (slice(max(rows[0] - pad, 0), rows[-1] + 1 + pad), slice(max(cols[0] - pad, 0), cols[-1] + 1 + pad))
+
+
+def _hs_hist(rgb: np.ndarray, mask: np.ndarray, hsv: np.ndarray | None = None) -> np.ndarray:
+    """The mask's hue-saturation histogram (L1-normalised); hsv: the image in HSV, if at hand.
+    Computed on the mask's bounding box: the same histogram, at a box's cost."""
+    hsv = _hsv(rgb) if hsv is None else hsv
+    box = _box(mask)
+    if box is None:
+        box = (slice(0, 0), slice(0, 0))
+    hist = cv2.calcHist([np.ascontiguousarray(hsv[box])], [0, 1], np.ascontiguousarray(mask[box]).astype(np.uint8),
+                        [_H_BINS, _S_BINS], [0, 180, 0, 256])
     return cv2.normalize(hist, hist, 1.0, 0.0, cv2.NORM_L1)
 
 
@@ -276,9 +294,9 @@ class TemplateMatcher:
             return not np.any(e[:2] < (1.0 - g.whole_tolerance) * self.extent_min[:2] - g.whole_margin)
         return True
 
-    def target_colours(self, rgb) -> np.ndarray:
+    def target_colours(self, rgb, hsv: np.ndarray | None = None) -> np.ndarray:
         """(H, W) bool: pixels whose hue-saturation bin is one of the target's colours."""
-        hsv = cv2.cvtColor(_rgb_array(rgb), cv2.COLOR_RGB2HSV)
+        hsv = _hsv(rgb) if hsv is None else hsv
         h = np.minimum(hsv[..., 0].astype(np.int32) * _H_BINS // 180, _H_BINS - 1)
         s = hsv[..., 1].astype(np.int32) * _S_BINS // 256
         return self.colour_bins[h, s]
@@ -288,30 +306,29 @@ class TemplateMatcher:
         target_colours), after a 3x3 opening, the largest 4-connected piece (all False if none)."""
         mask = np.asarray(mask, bool)
         out = np.zeros(mask.shape, bool)
-        ys, xs = np.nonzero(mask)
-        if not len(ys):
-            return out
         # (within the mask's bounding box and 2 px around it: the same result, at a box's cost)
-        box = (slice(max(ys.min() - 2, 0), ys.max() + 3), slice(max(xs.min() - 2, 0), xs.max() + 3))
+        box = _box(mask, 2)
+        if box is None:
+            return out
         part = cv2.morphologyEx((mask[box] & colours[box]).astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
         n, lab, stats, _ = cv2.connectedComponentsWithStats(part, connectivity=4)
         if n > 1:
             out[box] = lab == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
         return out
 
-    def colour_score(self, rgb, mask: np.ndarray) -> float:
+    def colour_score(self, rgb, mask: np.ndarray, hsv: np.ndarray | None = None) -> float:
         """The region's hue-saturation histogram correlation, best over the templates, in [0, 1]."""
-        h = _hs_hist(rgb, mask)
+        h = _hs_hist(rgb, mask, hsv)
         return min(max(max(cv2.compareHist(h, t, cv2.HISTCMP_CORREL) for t in self.hists), 0.0), 1.0)
 
     def _score(self, rgb, mask: np.ndarray, d, camera, colour: float | None = None, surface=None,
-               may_be_whole: bool = True) -> float:
+               may_be_whole: bool = True, hsv: np.ndarray | None = None) -> float:
         """One region's score: 0 outside the area limits or when it (or `surface`, its pixels of
-        the target's surface) fails the geometric check."""
+        the target's surface) fails the geometric check. hsv: the image in HSV, if at hand."""
         area = int(mask.sum())
         if area < self.min_pixels or area > self.max_area_ratio * self.max_area:
             return 0.0
-        s = self.colour_score(rgb, mask) if colour is None else colour
+        s = self.colour_score(rgb, mask, hsv) if colour is None else colour
         if s >= self.threshold and d is not None and not self.geometry_ok(mask, d, camera, surface, may_be_whole):
             return 0.0
         return s
@@ -326,17 +343,18 @@ class TemplateMatcher:
         d = self._depth(depth) if camera is not None else None
         out, regions, is_part = np.zeros(len(masks)), [None] * len(masks), np.zeros(len(masks), bool)
         colours = None
+        hsv = _hsv(rgb)  # the image in HSV once, for every region's histogram
         for k in range(len(masks)):
             m = masks.masks[k]
             regions[k] = m
             if m.sum() < self.min_pixels:
                 continue
-            c = self.colour_score(rgb, m)
+            c = self.colour_score(rgb, m, hsv)
             if not self.parts:
                 out[k] = self._score(rgb, m, d, camera, c)
                 continue
             if colours is None:
-                colours = self.target_colours(rgb)
+                colours = self.target_colours(rgb, hsv)
             part = self.target_part(m, colours)
             if c >= self.threshold:
                 # The target's colours: judged whole (another object of its colour is not cut down),
@@ -345,7 +363,7 @@ class TemplateMatcher:
                 continue
             if part.sum() >= self.min_pixels:
                 # Never seen whole: the depth did not separate it from the rest of its mask.
-                s = self._score(rgb, part, d, camera, may_be_whole=False)
+                s = self._score(rgb, part, d, camera, may_be_whole=False, hsv=hsv)
                 if s >= self.threshold:
                     out[k], regions[k], is_part[k] = s, part, True
         return out, regions, is_part
