@@ -129,6 +129,7 @@ def load_config(schema, path=None, overrides=(), named: dict | None = None, **fi
                 raise ConfigError(f"--set {item!r}: {str(e).splitlines()[0]}; the keys are the fields of {name} "
                                   f"({', '.join(f.name for f in dataclasses.fields(schema))}) and of its parts") \
                     from None
+        if overrides:  # checked once all are applied: one may need another (a planner and its outcome)
             base = _rebuild(schema, base)
     except ConfigError:
         raise

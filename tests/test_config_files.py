@@ -61,3 +61,14 @@ def test_bad_files_are_named(tmp_path):
     f.write_text("polcy: der3\n")
     with pytest.raises(ConfigError, match="bad.yaml"):
         load_config(ShelfSearchConfig, f)
+
+
+def test_overrides_are_checked_together():
+    # The defaults' grasp outcome ("nominal") needs the image planner: switching the planner and
+    # the outcome works in either order, and the result alone is checked.
+    pairs = ["grasp_planner=indexed", "ablation.grasp_outcome=draw"]
+    for order in (pairs, pairs[::-1]):
+        c = load_config(BinSearchConfig, None, order)
+        assert (c.grasp_planner, c.ablation.grasp_outcome) == ("indexed", "draw")
+    with pytest.raises(ConfigError, match="grasp_outcome 'nominal'.*indexed"):
+        load_config(BinSearchConfig, None, pairs[:1])
