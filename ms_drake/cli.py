@@ -41,6 +41,7 @@ from ms_drake.collision.checker import load_collision_net
 from ms_drake.collision.scene_net import NetConfig as CollisionNetConfig
 from ms_drake.config_files import load_config
 from ms_drake.errors import MsDrakeError
+from ms_drake.execution.lift_rates import count_attempts, describe_source, rows_text, write_lift_rates
 from ms_drake.execution import FIDELITIES
 from ms_drake.experiments.collision_data import (
     SCENES_PER_SHARD as COLLISION_SCENES_PER_SHARD,
@@ -975,6 +976,25 @@ def bench_fidelity(heaps_: int = typer.Option(50, "--heaps", min=1, help="Heaps 
     typer.echo(format_fidelity_summary(s))
     if json_out is not None:
         _write_json(json_out, s)
+
+
+@bench_app.command("lift-rates")
+def bench_lift_rates(files: list[Path] = typer.Argument(..., help="Result files (.jsonl or .jsonl.gz) of `ms-drake "
+                                                        "bench search --fidelity full` or `ms-drake bench fidelity`"),
+                     station: str = typer.Option(..., "--station", help="The robot's station the records ran on "
+                                                 "(PandaBin, YuMiBin)"),
+                     out: Optional[Path] = typer.Option(None, "--out", help="Write the station's entry into this "
+                                                        "lift-rate YAML (other stations' entries are kept); the "
+                                                        "shipped one is diagrams/lift_rates.yaml")):
+    """A station's lift rate per gripper kind and grasp quality in physics, from its full-fidelity
+    grasp attempts: what the primitive search standing for it (--set reach=STATION) draws a grasp's
+    outcome from."""
+    rates = count_attempts(files, station)
+    rates.source = describe_source(files, f"ms-drake bench lift-rates --station {station}")
+    typer.echo(rows_text(rates))
+    if out is not None:
+        write_lift_rates(out, station, rates)
+        typer.echo(f"wrote {station}'s lift rates into {out}")
 
 
 def _occluder_counts(first: list[int], extra: list[str]) -> list[int]:

@@ -77,7 +77,7 @@ SLOW_CHAINS = {("train", "collision")}  # data collision: a whole shard of scene
 ELSEWHERE = {
     ("demo",): "test_cli.py", ("scene",): "test_cli.py", ("heaps",): "test_cli.py", ("diagram",): "test_cli.py",
     ("bench", "search"): "test_harness.py", ("bench", "replay"): "test_harness.py", ("perceive",): "test_perceive.py",
-    ("bench", "config"): "test_harness.py",
+    ("bench", "config"): "test_harness.py", ("bench", "lift-rates"): "test_lift_rates.py",
 }
 # --help only, and why
 HELP_ONLY = {
