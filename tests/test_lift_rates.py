@@ -90,10 +90,10 @@ def test_the_command_prints_and_writes_the_table(tmp_path):
     rec.write_text(json.dumps(search_record(["parallel_jaw"] * 3, [1.0, 1.0, 0.5], [True, False, True])) + "\n")
     out = tmp_path / "rates.yaml"
     run = subprocess.run([sys.executable, "-m", "ms_drake.cli", "bench", "lift-rates", str(rec), "--station",
-                          "PandaBin", "--out", str(out)], capture_output=True, text=True)
+                          "PandaBin", "--out", str(out)], capture_output=True, text=True, check=False)
     assert run.returncode == 0, run.stderr
     assert "parallel_jaw" in run.stdout and "1 / 2" in run.stdout
     assert load_lift_rates("PandaBin", out).counts == {"parallel_jaw": {1.0: [1, 2], 0.5: [1, 1]}}
     bad = subprocess.run([sys.executable, "-m", "ms_drake.cli", "bench", "lift-rates", str(rec), "--station",
-                          "YuMiBin"], capture_output=True, text=True)
+                          "YuMiBin"], capture_output=True, text=True, check=False)
     assert bad.returncode == 2 and "not 'YuMiBin'" in bad.stderr

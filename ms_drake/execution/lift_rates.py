@@ -198,7 +198,3 @@ def rows_text(rates: LiftRates) -> str:
         q = "all" if row["quality"] is None else f"{row['quality']:.2f}"
         out.append(f"{row['kind']:<13} {q:>7}  {row['lifts']:>6} / {row['attempts']:<8}  {row['rate']:.2f}")
     return "\n".join(out)
-
-
-__all__ = ["LiftRates", "LiftRateError", "PRIOR_ATTEMPTS", "count_attempts", "default_lift_rates_file",
-           "describe_source", "load_lift_rates", "rows_text", "write_lift_rates"]
