@@ -78,6 +78,9 @@ class Grasp:
     quality: the robust quality (fraction of perturbed trials that lift the object); lifts: the
     nominal (unperturbed) contact model's verdict that the grasp lifts the object under
     quasi-static conditions (None: not evaluated, e.g. a pre-computed grasp set's grasp).
+    posture: which of a robot's pick plans of the grasp to execute (the rank in
+    planning.sequences.pick_plans; 0 the first that plans): the one a reach check found clear of
+    the scene (execution.reach.PickReach).
     """
 
     kind: str
@@ -89,6 +92,7 @@ class Grasp:
     model: str = ""
     object_id: str = ""
     lifts: bool | None = None
+    posture: int = 0
 
 
 @dataclass(frozen=True)

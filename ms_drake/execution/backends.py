@@ -43,7 +43,7 @@ from pydrake.math import RigidTransform, RotationMatrix
 from ms_drake.execution.executor import ExecutionError, Motion
 from ms_drake.geometry import as_rigid_transform
 from ms_drake.planning import ik_pose, plan_joint_motion
-from ms_drake.planning.sequences import Schedule, arm_ik, nearest_equivalent, plan_pick, plan_push
+from ms_drake.planning.sequences import Schedule, arm_ik, nearest_equivalent, nth_plan, pick_plans, plan_push
 from ms_drake.robots import CLOSING_FORCE, GRIPPERS, ParallelJawConfig
 from ms_drake.scenario import resolve_robot_config
 from ms_drake.station.environments import dropoff_points
@@ -309,19 +309,25 @@ class FullBackend(_Base):
         """The grasp kinds this robot executes ("parallel_jaw", "suction")."""
         return tuple(k for k, g in (("parallel_jaw", self.jaw), ("suction", self.suction)) if g is not None)
 
-    def plan_grasp(self, g, q_now=None):
-        """The pick plan of grasp g (ms_drake.planning.sequences.plan_pick) by the arm carrying its
-        gripper kind, from arm configuration q_now (default: park): the jaw comes down opened to
-        pick_opening(g); the string "no_<kind>_gripper" when the robot has none."""
+    def pick_plans(self, g, q_now=None):
+        """Each pick plan of grasp g in turn (ms_drake.planning.sequences.pick_plans) by the arm
+        carrying its gripper kind, from arm configuration q_now (default: park): the jaw comes down
+        opened to pick_opening(g); the string "no_<kind>_gripper" when the robot has none."""
         tool = self.jaw if g.kind == "parallel_jaw" else self.suction
         if tool is None:
             return f"no_{g.kind}_gripper"
         arm, port = tool
         ik, limits, q_home = self.ik[arm]
         opening = pick_opening(g) if g.kind == "parallel_jaw" else JAW_OPENING
-        return plan_pick(ik, limits, q_home if q_now is None else q_now, grasp_tool_pose(g), arm, port, g.kind,
-                         lift=self.lift, speed=self.speed, close_time=self.close_time, hold_time=self.hold_time,
-                         force_limit=self.grip_force, max_opening=opening, via_z=self.via_z)
+        return pick_plans(ik, limits, q_home if q_now is None else q_now, grasp_tool_pose(g), arm, port, g.kind,
+                          lift=self.lift, speed=self.speed, close_time=self.close_time, hold_time=self.hold_time,
+                          force_limit=self.grip_force, max_opening=opening, via_z=self.via_z)
+
+    def plan_grasp(self, g, q_now=None):
+        """The pick plan of grasp g (pick_plans): its plan number g.posture (the first when there
+        are fewer), or the failed plan when none plans; "no_<kind>_gripper" when the robot has none."""
+        plans = self.pick_plans(g, q_now)
+        return plans if isinstance(plans, str) else nth_plan(plans, g.posture)
 
     def initial_commands(self) -> dict:
         out = {f"{arm}.position": q_home for arm, (_, _, q_home) in self.ik.items()}

@@ -25,6 +25,8 @@ grasp must also keep the arm clear of it:
 
 from __future__ import annotations
 
+import dataclasses
+
 import coal
 import numpy as np
 import trimesh
@@ -135,12 +137,15 @@ class PickReach:
 
     The plan is the backend's own, with the same IK (park first, then its fixed restarts; an IK
     solve does not depend on the solves before it), so a grasp reached here is one the backend
-    plans."""
+    plans. Of the grasp's pick plans (its arm postures, at most `max_postures`) the first whose arm
+    clears the scene is taken: the call then returns the grasp with that plan's number
+    (Grasp.posture), which the backend executes."""
 
     checks_scene = True  # IndexedGraspPlanner passes its Scene
 
     def __init__(self, scenario, seed: int = 0, approach_samples: int = 5, transit_step: float = 0.02,
-                 transit_clearance: float = 0.02, descent_clearance: float = PICK_APPROACH.descent_clearance):
+                 transit_clearance: float = 0.02, descent_clearance: float = PICK_APPROACH.descent_clearance,
+                 max_postures: int = 4):
         self.backend = FullBackend(scenario, {}, Workspace.from_scenario(scenario), seed=seed)
         self.links = {arm: ArmLinks(ik, keep[0])
                       for (arm, (ik, _, _)), keep in zip(self.backend.ik.items(), self.backend._keep)}
@@ -151,12 +156,39 @@ class PickReach:
                              f">= 0 (e.g. 0.02 and 0.005)")
         self.transit_step, self.transit_clearance = float(transit_step), float(transit_clearance)
         self.descent_clearance = float(descent_clearance)
+        if int(max_postures) < 1:
+            raise ValueError(f"PickReach: max_postures must be >= 1 pick plan per grasp, got {max_postures!r}")
+        self.max_postures = int(max_postures)
         self.checks = self.reached = self.arm_blocked = 0
 
     def plan(self, grasp: Grasp):
         """The backend's pick plan of the grasp from park (FullBackend.plan_grasp), or the string
         "no_<kind>_gripper"."""
         return self.backend.plan_grasp(grasp)
+
+    def choose(self, grasp: Grasp, scene=None):
+        """(plan, posture, hit): of the grasp's pick plans from park (FullBackend.pick_plans, at
+        most `max_postures`), the first whose arm stays clear of the scene, its number and "";
+        when none does, the first plan, 0 and what of its arm hits the scene (arm_hit). The plan
+        is the string "no_<kind>_gripper" when the robot has none, a failed plan when none plans."""
+        plans = self.backend.pick_plans(grasp)
+        if isinstance(plans, str):
+            return plans, 0, ""
+        first, first_hit = None, ""
+        try:
+            for k, plan in enumerate(plans):
+                if not plan.success:
+                    return plan, 0, ""
+                hit = self.arm_hit(plan, scene) if scene is not None else ""
+                if not hit:
+                    return plan, k, ""
+                if first is None:
+                    first, first_hit = plan, hit
+                if k + 1 >= self.max_postures:
+                    break
+        finally:
+            plans.close()
+        return first, 0, first_hit
 
     def status(self, grasp: Grasp) -> str:
         """"ok", the IK status of the failing step, or "no_<kind>_gripper"."""
@@ -213,11 +245,10 @@ class PickReach:
         "arm_hits_scene" (a plan exists; the arm's links or its tool hit the objects: detail
         "<stretch>:<body>"). step: "pre_grasp" or "approach_or_lift" (the failing IK step), or the
         stretch of an arm_hits_scene ("transit", "descent", "approach"); "" when ok."""
-        plan = self.plan(grasp)
+        plan, _, hit = self.choose(grasp, scene)
         if isinstance(plan, str):
             return {"reason": "no_gripper", "step": "", "detail": plan}
         if plan.success:
-            hit = self.arm_hit(plan, scene) if scene is not None else ""
             return {"reason": "arm_hits_scene", "step": hit.split(":", 1)[0],
                     "detail": hit} if hit else {"reason": "ok", "step": "", "detail": ""}
         b = self.backend
@@ -292,12 +323,14 @@ class PickReach:
         finally:
             plant.SetPositions(ctx, old)
 
-    def __call__(self, grasp: Grasp, scene=None) -> bool:
+    def __call__(self, grasp: Grasp, scene=None):
+        """False when the robot does not execute the grasp; else True, or the grasp with the
+        posture (Grasp.posture) whose arm clears the scene when it is not the first plan."""
         self.checks += 1
-        plan = self.plan(grasp)
-        ok = not isinstance(plan, str) and plan.success
-        if ok and scene is not None and self.arm_hits(plan, scene):
-            self.arm_blocked += 1
-            ok = False
+        plan, posture, hit = self.choose(grasp, scene)
+        ok = not isinstance(plan, str) and plan.success and not hit
+        self.arm_blocked += bool(hit)
         self.reached += ok
+        if ok and posture != grasp.posture:
+            return dataclasses.replace(grasp, posture=posture)
         return ok

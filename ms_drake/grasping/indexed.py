@@ -22,8 +22,9 @@ descent_clearance clear, until above everything). At most `max_checks`
 candidates per kind and object are checked (candidates are sorted; the cap bounds a buried
 object's cost). Objects without a grasp set, or whose set has no free grasp at their pose, go to
 `fallback` (a LazyGraspPlanner: the image-based planners) when given, else get no grasp.
-With `reach` (a callable Grasp -> bool, e.g. ms_drake.execution.reach.PickReach of a robot) a
-free grasp must also be one the robot reaches; at most `max_reach_checks` free candidates per
+With `reach` (a callable Grasp -> bool or Grasp, e.g. ms_drake.execution.reach.PickReach of a
+robot) a free grasp must also be one the robot reaches (a Grasp returned is the grasp to use: the
+same with the arm posture that reaches it); at most `max_reach_checks` free candidates per
 kind and object are tried (each check is an IK plan, 20-250 ms); the fallback's grasps are
 checked too. A reach with a true `checks_scene` attribute is called as reach(grasp, scene) with
 the step's Scene (PickReach: the arm's links must stay clear of the objects along the approach).
@@ -345,9 +346,10 @@ class IndexedGraspPlanner(LeafSystem):
             parts = parts_at(pre + np.array([0.0, 0.0, rise]))
         return True
 
-    def _reaches(self, grasp, scene: Scene) -> bool:
-        """`reach` of the grasp (True without one); a reach with `checks_scene` (PickReach) is
-        given the scene too, to keep the arm clear of it."""
+    def _reaches(self, grasp, scene: Scene):
+        """`reach` of the grasp (True without one): a bool, or the grasp to use instead (e.g. with
+        the arm posture that reaches it); a reach with `checks_scene` (PickReach) is given the
+        scene too, to keep the arm clear of it."""
         if self.reach is None:
             return True
         return self.reach(grasp, scene) if getattr(self.reach, "checks_scene", False) else self.reach(grasp)
@@ -356,8 +358,9 @@ class IndexedGraspPlanner(LeafSystem):
         """The first of the collision-free grasps (best first) the robot reaches: without `reach`
         the first; with it, among at most `max_reach_checks` of them; None when there is none."""
         for checks, g in enumerate(free_grasps, start=1):
-            if self._reaches(g, scene):
-                return g
+            reached = self._reaches(g, scene)
+            if reached:
+                return reached if isinstance(reached, Grasp) else g
             if checks >= self.max_reach_checks:
                 return None
         return None
@@ -383,6 +386,9 @@ class IndexedGraspPlanner(LeafSystem):
             if "depth" not in state:  # no set, or no free grasp in it: the image planners
                 state["depth"] = np.asarray(self.depth_port.Eval(context).data, float)[..., 0]
             grasps = self.fallback.plan_object(state["depth"], masks, geoms, oid)
-            return grasps if self.reach is None else tuple(g for g in grasps if self._reaches(g, scene()))
+            if self.reach is None:
+                return grasps
+            reached = (self._reaches(g, scene()) for g in grasps)
+            return tuple(r if isinstance(r, Grasp) else g for g, r in zip(grasps, reached) if r)
 
         output.set_value(LazyGrasps(plan_one, masks.ids))

@@ -254,15 +254,15 @@ def jaw_opening(ik, opening: float | None):
 
 
 def _pick_lines(ik, limits, q_home, X_grasp, approach, lift, speed, axis_only):
-    """(q_pre, approach line, lift line) of a pick at X_grasp, or the failing step's IK status.
-    The pre-grasp configurations come from ik.solutions (from q_home, then each restart) until one
-    whose straight approach and lift also solve: an arm often reaches the pre-grasp in a posture
-    whose straight lines leave the joint limits, and in another whose lines do not."""
+    """Each (q_pre, approach line, lift line) of a pick at X_grasp in turn, or (last) the failing
+    step's IK status when none plans. The pre-grasp configurations come from ik.solutions (from
+    q_home, then each restart): an arm often reaches the pre-grasp in a posture whose straight
+    lines leave the joint limits, and in another whose lines do not."""
     pre = approach_pose(X_grasp, approach)
-    failure = None
+    failure, found = None, False
     for res in ik.solutions(pre, q_seed=q_home, axis_only=axis_only):
         if not res.success:
-            return failure or res.status
+            break
         q_pre = nearest_equivalent(ik, res.q, q_home)
         X_pre = ik_pose(ik, q_pre) if axis_only else pre
         approach_plan = plan_cartesian_line(ik, X_pre, approach * X_grasp.rotation().matrix()[:, 2], q_pre, limits,
@@ -274,41 +274,45 @@ def _pick_lines(ik, limits, q_home, X_grasp, approach, lift, speed, axis_only):
         if not lift_plan.success:
             failure = failure or lift_plan.status
             continue
-        return q_pre, approach_plan, lift_plan
-    return failure or "unreachable"
+        found = True
+        yield q_pre, approach_plan, lift_plan
+    if not found:
+        yield failure or res.status or "unreachable"
 
 
-def plan_pick(ik, limits, q_home, X_grasp: RigidTransform, arm: str, gripper_port: str, kind: str,
-              approach: float = PICK_APPROACH.distance, lift: float = 0.20, force_limit: float = CLOSING_FORCE,
-              max_opening: float = 0.10,
-              close_time: float = 0.8, hold_time: float = 0.5, speed: float = 0.15,
-              blade: float | None = None, from_home: bool = True, via_z: float | None = None) -> PickPlan:
-    """Plan a pick at the tool pose X_grasp (kind: parallel_jaw | suction | bluction).
-    from_home False: the timeline starts at the pre-grasp configuration (build_run puts the arm
-    there), skipping the joint motion from home. via_z: the move from home passes above the
-    pre-grasp pose at this world height (e.g. above a bin's walls and heap; None: straight there)
-    and comes straight down to it (timeline mark "descent"). max_opening: the jaw's opening [m]
-    from the start to contact, also held by the IK's fingers while the pick is planned (e.g.
-    ms_drake.execution.backends.pick_opening of the grasp). X_grasp: RigidTransform or 4x4 array."""
+def pick_plans(ik, limits, q_home, X_grasp: RigidTransform, arm: str, gripper_port: str, kind: str,
+               approach: float = PICK_APPROACH.distance, lift: float = 0.20, force_limit: float = CLOSING_FORCE,
+               max_opening: float = 0.10, close_time: float = 0.8, hold_time: float = 0.5, speed: float = 0.15,
+               blade: float | None = None, from_home: bool = True, via_z: float | None = None):
+    """Each pick plan of a grasp in turn (lazily; plan_pick's arguments): per tool pose (a jaw's
+    also turned by pi about its axis), each arm posture whose pre-grasp, straight approach and lift
+    plan. Only successful plans are yielded; when none plans, one failed PickPlan with the first
+    failing step's status. The order is fixed (ArmIk's fixed restarts), so the k-th plan of a grasp
+    is the same plan wherever it is asked for."""
     X_grasp = as_rigid_transform(X_grasp, "X_grasp")
     axis_only = kind != "parallel_jaw"
     # A parallel jaw is symmetric: the tool turned by pi about its axis is the same grasp (the
     # fingers swap), and often the only one of the two the wrist reaches.
     poses = [X_grasp] if axis_only else [X_grasp, X_grasp @ RigidTransform(RotationMatrix.MakeZRotation(np.pi))]
-    failure = None
+    failure, found = None, False
     with jaw_opening(ik, max_opening if kind == "parallel_jaw" else None):
         for X in poses:
-            lines = _pick_lines(ik, limits, q_home, X, approach, lift, speed, axis_only)
-            if isinstance(lines, str):
-                failure = failure or lines
-                continue
-            break
-        else:
-            return PickPlan(False, failure, arm, X_target=X_grasp)
-        q_pre, approach_plan, lift_plan = lines
-        X_grasp = X
-        q_via, descent = _via(ik, q_pre, ik_pose(ik, q_pre), via_z, axis_only, limits, speed) if from_home \
-            else (None, None)
+            for lines in _pick_lines(ik, limits, q_home, X, approach, lift, speed, axis_only):
+                if isinstance(lines, str):
+                    failure = failure or lines
+                    continue
+                q_pre, approach_plan, lift_plan = lines
+                q_via, descent = _via(ik, q_pre, ik_pose(ik, q_pre), via_z, axis_only, limits, speed) \
+                    if from_home else (None, None)
+                found = True
+                yield _pick_plan(q_home, q_pre, from_home, limits, q_via, descent, approach_plan, lift_plan, X, arm,
+                                 gripper_port, kind, force_limit, max_opening, close_time, hold_time, blade)
+    if not found:
+        yield PickPlan(False, failure, arm, X_target=X_grasp)
+
+
+def _pick_plan(q_home, q_pre, from_home, limits, q_via, descent, approach_plan, lift_plan, X_grasp, arm, gripper_port,
+               kind, force_limit, max_opening, close_time, hold_time, blade) -> PickPlan:
     tl = _start(q_home, q_pre, from_home, limits, q_via, descent)
     tl.mark("approach")
     tl.play(approach_plan.trajectory)
@@ -335,6 +339,39 @@ def plan_pick(ik, limits, q_home, X_grasp: RigidTransform, arm: str, gripper_por
             b.set(0.0, np.pi if blade is None else blade)
             commands[f"{gripper_port}.position"] = b
     return PickPlan(True, "ok", arm, tl, commands, X_grasp, max_opening if kind == "parallel_jaw" else None)
+
+
+def plan_pick(ik, limits, q_home, X_grasp: RigidTransform, arm: str, gripper_port: str, kind: str,
+              approach: float = PICK_APPROACH.distance, lift: float = 0.20, force_limit: float = CLOSING_FORCE,
+              max_opening: float = 0.10,
+              close_time: float = 0.8, hold_time: float = 0.5, speed: float = 0.15,
+              blade: float | None = None, from_home: bool = True, via_z: float | None = None,
+              posture: int = 0) -> PickPlan:
+    """Plan a pick at the tool pose X_grasp (kind: parallel_jaw | suction | bluction).
+    from_home False: the timeline starts at the pre-grasp configuration (build_run puts the arm
+    there), skipping the joint motion from home. via_z: the move from home passes above the
+    pre-grasp pose at this world height (e.g. above a bin's walls and heap; None: straight there)
+    and comes straight down to it (timeline mark "descent"). max_opening: the jaw's opening [m]
+    from the start to contact, also held by the IK's fingers while the pick is planned (e.g.
+    ms_drake.execution.backends.pick_opening of the grasp). X_grasp: RigidTransform or 4x4 array.
+    posture: the plan's rank among pick_plans (0: the first that plans; e.g. the one a reach check
+    found clear of the scene); the first plan when there are fewer."""
+    return nth_plan(pick_plans(ik, limits, q_home, X_grasp, arm, gripper_port, kind, approach, lift, force_limit,
+                               max_opening, close_time, hold_time, speed, blade, from_home, via_z), posture)
+
+
+def nth_plan(plans, k: int) -> PickPlan:
+    """Plan number k of a pick_plans iterator (the first when there are fewer; its failed plan when
+    none plans). Closes the iterator (which restores the IK's fingers)."""
+    first = None
+    try:
+        for i, plan in enumerate(plans):
+            first = first or plan
+            if i == k or not plan.success:
+                return plan
+        return first
+    finally:
+        plans.close()
 
 
 def _push_lines_from_above(ik, limits, q_home, X_start, u, distance, approach, retreat, speed):
