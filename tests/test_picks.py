@@ -7,6 +7,9 @@ and runs one pick and one push from the home pose the same way; the `slow` varia
 task's whole motion from the home pose as the sims/pick_*.py scripts do."""
 
 import dataclasses
+import itertools
+
+import coal
 
 import numpy as np
 import pytest
@@ -17,6 +20,8 @@ from ms_drake.geometry import Workspace
 from pydrake.math import RigidTransform, RotationMatrix
 
 from ms_drake.execution.backends import grasp_tool_pose
+from ms_drake.execution.reach import PickReach
+from ms_drake.grasping.indexed import Scene
 from ms_drake.planning import ik_pose, plan_joint_motion
 from ms_drake.planning.sequences import Schedule, Timeline, jaw_opening
 from ms_drake.robots import PICK_APPROACH
@@ -165,3 +170,40 @@ def test_an_ik_solve_does_not_depend_on_the_solves_before_it():
     sols = [r for r in ik.solutions(near, q_seed=q_home, axis_only=True) if r.success]
     assert len(sols) >= 2 and all(np.linalg.norm(ik_pose(ik, r.q).translation() - near.translation()) < 2e-3
                                   for r in sols)
+
+
+def test_pick_plans_come_in_a_fixed_order_and_a_grasp_names_one_by_its_posture():
+    s = load_scenario(None, "YuMiBin")
+    backend = FullBackend(s, {}, Workspace.from_scenario(s))
+    g = Grasp(kind="suction", center=(0.0, 0.02, 0.08), approach=(0.0, 0.0, -1.0), quality=1.0, object_id="probe")
+    plans = list(itertools.islice(backend.pick_plans(g), 3))
+    assert len(plans) >= 2 and all(p.success for p in plans)
+    starts = [p.timeline.value(p.timeline.marks["approach"]) for p in plans]
+    assert not np.allclose(starts[0], starts[1], atol=1e-3)  # two arm postures at the pre-grasp
+    again = list(itertools.islice(backend.pick_plans(g), 3))
+    assert all(np.array_equal(a.timeline.value(a.timeline.marks["approach"]), s_) for a, s_ in zip(again, starts))
+    second = backend.plan_grasp(dataclasses.replace(g, posture=1))
+    assert np.array_equal(second.timeline.value(second.timeline.marks["approach"]), starts[1])
+    beyond = backend.plan_grasp(dataclasses.replace(g, posture=50))  # fewer plans: the first
+    assert np.array_equal(beyond.timeline.value(beyond.timeline.marks["approach"]), starts[0])
+
+
+def test_reach_takes_the_posture_whose_arm_clears_the_scene_and_the_backend_executes_it():
+    # A 1 cm sphere where the first plan's arm passes (on its way from park) and the second's does
+    # not: the reach check returns the grasp with posture 1, and the backend plans that plan.
+    reach = PickReach(load_scenario(None, "YuMiBin"))
+    g = Grasp(kind="suction", center=(0.1, 0.05, 0.08), approach=(0.0, 0.0, -1.0), quality=1.0, object_id="probe")
+    first, second = itertools.islice(reach.backend.pick_plans(g), 2)
+    c = np.array([-0.0065, 0.108, 0.4759])
+    T = np.eye(4)
+    T[:3, 3] = c
+    scene = Scene([(coal.Sphere(0.01), T, c, 0.01)])
+    assert reach.arm_hit(first, scene) and not reach.arm_hit(second, scene)
+    chosen = reach(g, scene)
+    assert isinstance(chosen, Grasp) and chosen.posture == 1
+    plan = reach.backend.plan_grasp(chosen)
+    assert np.array_equal(plan.timeline.value(plan.timeline.marks["approach"]),
+                          second.timeline.value(second.timeline.marks["approach"]))
+    assert reach(g) is True  # no scene: the first plan
+    one = PickReach(load_scenario(None, "YuMiBin"), max_postures=1)  # only the first plan: blocked
+    assert one(g, scene) is False and one.arm_blocked == 1
