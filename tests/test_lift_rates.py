@@ -12,6 +12,7 @@ import pytest
 from ms_drake.execution import PrimitiveBackend
 from ms_drake.execution.lift_rates import (
     PRIOR_ATTEMPTS,
+    check_rates,
     LiftRateError,
     LiftRates,
     count_attempts,
@@ -97,3 +98,14 @@ def test_the_command_prints_and_writes_the_table(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "ms_drake.cli", "bench", "lift-rates", str(rec), "--station",
                           "YuMiBin"], capture_output=True, text=True, check=False)
     assert bad.returncode == 2 and "not 'YuMiBin'" in bad.stderr
+
+
+def test_the_check_compares_the_rates_and_the_quality_on_other_attempts():
+    rates = LiftRates({"suction": {0.25: [9, 10], 1.0: [10, 10]}})
+    attempts = [("suction", 0.25, True)] * 8 + [("suction", 0.25, False)] * 2 + [("suction", 1.0, True)] * 10
+    c = check_rates(rates, attempts)
+    assert c["attempts"] == 20 and c["lifted"] == pytest.approx(0.9)
+    assert c["quality"]["predicted"] == pytest.approx((10 * 0.25 + 10) / 20)
+    assert c["rates"]["agreement_likelier"] == pytest.approx(0.9)  # always "lifts"
+    assert c["quality"]["agreement_likelier"] == pytest.approx(0.6)  # the 0.25s "fail"
+    assert c["rates"]["agreement_draw"] > c["quality"]["agreement_draw"]

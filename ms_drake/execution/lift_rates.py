@@ -20,6 +20,7 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 from pydrake.common.yaml import yaml_load_file
 
 from ms_drake.errors import MsDrakeError
@@ -95,11 +96,12 @@ def _open(path: Path):
     return gzip.open(path, "rt") if str(path).endswith(".gz") else open(path)
 
 
-def count_attempts(files, station: str) -> LiftRates:
-    """The lifts and attempts of `station`'s full-fidelity grasps in result files (.jsonl or
-    .jsonl.gz) of `ms-drake bench search --fidelity full` (every grasp of a search) and `ms-drake
-    bench fidelity` (its replayed attempts). Records of another station or fidelity are an error."""
-    rates = LiftRates()
+def read_attempts(files, station: str) -> list[tuple[str, float, bool]]:
+    """(gripper kind, quality, lifted) of each of `station`'s full-fidelity grasps in result files
+    (.jsonl or .jsonl.gz) of `ms-drake bench search --fidelity full` (every grasp of a search) and
+    `ms-drake bench fidelity` (its replayed attempts). Records of another station or fidelity are an
+    error."""
+    out = []
     for path in map(Path, files):
         if not path.is_file():
             raise LiftRateError(f"{path}: no such file; give result files of `ms-drake bench search --fidelity full` "
@@ -115,9 +117,8 @@ def count_attempts(files, station: str) -> LiftRates:
                 if r.get("kind") == "heap" or r.get("error"):
                     continue
                 if r.get("kind") == "attempt":  # bench fidelity
-                    name = str(r.get("scenario", "")).split(" of ")[0]
-                    _check_station(path, n, name, station)
-                    rates.add(r["grasp"], r["quality"], r["full_lifted"])
+                    _check_station(path, n, str(r.get("scenario", "")).split(" of ")[0], station)
+                    out.append((r["grasp"], float(r["quality"]), bool(r["full_lifted"])))
                     continue
                 if "grasp_qualities" not in r or "fidelity" not in r:
                     raise LiftRateError(f"{path}:{n}: neither a search record with grasp_qualities nor a fidelity "
@@ -127,12 +128,45 @@ def count_attempts(files, station: str) -> LiftRates:
                     raise LiftRateError(f"{path}:{n}: a {r['fidelity']!r} search; lift rates come from full-fidelity "
                                         "searches (--fidelity full)")
                 _check_station(path, n, (r.get("config") or {}).get("scenario", r.get("scenario", "")), station)
-                for kind, q, ok in zip(r["grasp_kinds"], r["grasp_qualities"], r["action_successes"]):
-                    if kind:  # "" for a push
-                        rates.add(kind, q, ok)
-    if not rates.counts:
+                out += [(kind, float(q), bool(ok)) for kind, q, ok in
+                        zip(r["grasp_kinds"], r["grasp_qualities"], r["action_successes"]) if kind]  # "": a push
+    if not out:
         raise LiftRateError(f"no grasp attempt of {station} in {', '.join(map(str, files))}")
+    return out
+
+
+def count_attempts(files, station: str) -> LiftRates:
+    """The LiftRates of `station`'s full-fidelity grasps in result files (read_attempts)."""
+    rates = LiftRates()
+    for kind, q, ok in read_attempts(files, station):
+        rates.add(kind, q, ok)
     return rates
+
+
+def check_rates(rates: LiftRates, attempts) -> dict:
+    """How well the lift rates predict other attempts (kind, quality, lifted) in physics, beside the
+    quality alone: the attempts, their share lifted, the mean predicted probability of a lift, and
+    the agreement attempt by attempt, expected of a draw and of the likelier outcome (p >= 0.5),
+    for the rates ("rates") and for the quality as the probability ("quality")."""
+    y = np.array([ok for _, _, ok in attempts], float)
+    preds = {"rates": np.array([rates.rate(k, q) if rates.rate(k, q) is not None else q for k, q, _ in attempts]),
+             "quality": np.array([q for _, q, _ in attempts])}
+    out = {"attempts": len(attempts), "lifted": float(y.mean())}
+    for name, p in preds.items():
+        out[name] = {"predicted": float(p.mean()), "agreement_draw": float(np.mean(p * y + (1 - p) * (1 - y))),
+                     "agreement_likelier": float(np.mean((p >= 0.5) == (y > 0.5)))}
+    return out
+
+
+def check_text(c: dict) -> str:
+    """check_rates as plain text."""
+    lines = [f"held-out attempts: {c['attempts']}, lifted in physics {100 * c['lifted']:.1f} %"]
+    for name, label in (("rates", "the lift rates"), ("quality", "the quality")):
+        d = c[name]
+        lines.append(f"  {label:<15} predict {100 * d['predicted']:.1f} % lifted; agree attempt by attempt "
+                     f"{100 * d['agreement_draw']:.1f} % (a draw), {100 * d['agreement_likelier']:.1f} % "
+                     "(the likelier outcome)")
+    return "\n".join(lines)
 
 
 def _check_station(path, n, name: str, station: str):
