@@ -12,9 +12,9 @@ import pytest
 from ms_drake.execution import PrimitiveBackend
 from ms_drake.execution.lift_rates import (
     PRIOR_ATTEMPTS,
-    check_rates,
     LiftRateError,
     LiftRates,
+    check_rates,
     count_attempts,
     load_lift_rates,
     write_lift_rates,
