@@ -16,10 +16,14 @@ from ms_drake.execution.lift_rates import (
     LiftRates,
     check_rates,
     count_attempts,
+    default_lift_rates_file,
     load_lift_rates,
     write_lift_rates,
 )
+from ms_drake.experiments.rollout import build_search
 from ms_drake.geometry import Workspace
+from ms_drake.policies.bin_search import config_scenario, load_bin_search_config
+from ms_drake.scenes.layouts import HeapConfig, layout_heap
 from ms_drake.types import Action, Grasp
 
 WS = Workspace((0.0, 0.0), (0.5, 0.4), 0.0, 0.12)
@@ -109,3 +113,24 @@ def test_the_check_compares_the_rates_and_the_quality_on_other_attempts():
     assert c["rates"]["agreement_likelier"] == pytest.approx(0.9)  # always "lifts"
     assert c["quality"]["agreement_likelier"] == pytest.approx(0.6)  # the 0.25s "fail"
     assert c["rates"]["agreement_draw"] > c["quality"]["agreement_draw"]
+
+
+def test_shipped_rates_are_read_for_the_station_the_search_stands_for():
+    shipped = load_lift_rates("PandaBin")
+    assert shipped is not None and shipped.overall("parallel_jaw")[1] >= 50, \
+        f"{default_lift_rates_file()} should hold PandaBin's measured jaw attempts"
+    assert shipped.rate("suction", 1.0) is None  # the Panda has no cup
+    assert load_lift_rates("EmptyBin") is None
+
+
+def test_a_primitive_search_standing_for_a_robot_draws_from_its_lift_rates():
+    # The controller of a primitive search standing for the Panda executes with the Panda's
+    # shipped rates; standing for no robot, with the qualities.
+    heap = layout_heap(HeapConfig(layout="bin_set", objects=4), 0)
+    for reach, expect in (("PandaBin", True), ("", False)):
+        cfg = load_bin_search_config("ch7", [f"reach={reach}", "heap.objects=4"])
+        system = build_search(config_scenario(cfg), heap, cfg)
+        backend = system.controller.GetSubsystemByName("action_executor").backend
+        assert (backend.lift_rates is not None) == expect
+        if expect:
+            assert backend.lift_rates.counts == load_lift_rates("PandaBin").counts
