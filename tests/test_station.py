@@ -5,6 +5,7 @@ import copy
 import numpy as np
 import pytest
 from pydrake.multibody.plant import MultibodyPlant
+from pydrake.math import RigidTransform
 from pydrake.systems.analysis import Simulator
 
 from conftest import no_robot
@@ -81,6 +82,23 @@ def test_models_package_resolves_and_drake_models_is_refused():
     assert not parser.package_map().Contains("drake_models")
     with pytest.raises(RuntimeError):
         parser.AddModels(url="package://drake_models/iiwa_description/sdf/iiwa14_no_collision.sdf")
+
+
+def test_an_object_knocked_off_the_support_lands_on_the_room_floor(bin_scenario):
+    # Without the room floor a body falling for tens of seconds spins up until the step diverges.
+    s = copy.deepcopy(bin_scenario)
+    s.objects.count = 1
+    station = MakeStation(s)
+    sim = Simulator(station)
+    plant = get_plant(station)
+    pc = plant.GetMyMutableContextFromRoot(sim.get_mutable_context())
+    body = plant.get_body(station_objects(plant)[0].body_index)
+    plant.SetFreeBodyPose(pc, body, RigidTransform([1.0, 0.0, 0.2]))  # beyond the support's edge (0.8 m)
+    sim.AdvanceTo(2.0)
+    p = plant.EvalBodyPoseInWorld(pc, body).translation()
+    floor = -s.environment.wall_thickness - 0.7
+    assert np.all(np.isfinite(plant.GetPositionsAndVelocities(pc)))
+    assert floor - 0.005 < p[2] < floor + 0.2 and abs(p[0] - 1.0) < 0.3, p
 
 
 def test_default_environment_files_match_generator():

@@ -7,7 +7,10 @@ Conventions (environment frame E, placed at `EnvironmentConfig.position` in the 
   objects that leave the bin land next to it (and are removed by the heap generator). Two
   drop-off trays stand on the support beside the bin's +y and -y walls (`dropoff_points`), out
   of the overhead camera's view: a lifted object is carried to the nearer one and released there
-  (by the robot in full fidelity, by execution.ObjectCarrier in the primitive mode).
+  (by the robot in full fidelity, by execution.ObjectCarrier in the primitive mode). The stations
+  also model the room floor 0.7 m below the support's top (hidden from the overhead camera by
+  the support): an object knocked off the support lands there instead of falling for ever (a body
+  falling for tens of seconds spins up until the plant's step diverges).
 - shelf: inner [-x/2, x/2] x [-y/2, y/2] x [0, z] with the open front facing -y (towards the
   robot and camera); back wall, two side walls, top and floor; it stands on a cabinet down to
   z = -0.7 (the room floor, which is also modelled).
@@ -107,12 +110,14 @@ def _boxes(type_: str, size, t: float) -> list[tuple[str, Shape, tuple]]:
 def environment_sdf(type_: str, size, wall_thickness: float = 0.03, friction: float = 0.5,
                     model_name: str = "environment", dropoffs: bool = True) -> str:
     """SDF text of the environment `type_` with inner `size` (see module docstring); a bin's
-    drop-off trays only with `dropoffs` (the stations have them; the heap generators' drop worlds
-    do not, so a heap does not depend on them)."""
+    drop-off trays and room floor only with `dropoffs` (the stations have them; the heap
+    generators' drop worlds do not, so a heap does not depend on them)."""
     parts = []
     boxes = _boxes(type_, size, wall_thickness)
     if dropoffs and type_ == "bin":
-        boxes = boxes + _tray_boxes(size, wall_thickness)
+        t = wall_thickness
+        boxes = boxes + _tray_boxes(size, t) + [
+            ("room_floor", Shape("box", (4.0, 4.0, 0.05), pose=(0, 0, -t - 0.725, 0, 0, 0)), FLOOR_RGBA)]
     for name, shape, rgba in boxes:
         geom = _geometry_xml(shape)
         parts.append(
