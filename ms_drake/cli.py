@@ -41,15 +41,7 @@ from ms_drake.collision.checker import load_collision_net
 from ms_drake.collision.scene_net import NetConfig as CollisionNetConfig
 from ms_drake.config_files import load_config
 from ms_drake.errors import MsDrakeError
-from ms_drake.execution.lift_rates import (
-    check_rates,
-    check_text,
-    count_attempts,
-    describe_source,
-    read_attempts,
-    rows_text,
-    write_lift_rates,
-)
+from ms_drake.execution.lift_rates import check_rates, check_text, count_attempts, read_attempts, rows_text
 from ms_drake.execution import FIDELITIES
 from ms_drake.experiments.collision_data import (
     SCENES_PER_SHARD as COLLISION_SCENES_PER_SHARD,
@@ -991,23 +983,15 @@ def bench_lift_rates(files: list[Path] = typer.Argument(..., help="Result files 
                                                         "bench search --fidelity full` or `ms-drake bench fidelity`"),
                      station: str = typer.Option(..., "--station", help="The robot's station the records ran on "
                                                  "(PandaBin, YuMiBin)"),
-                     out: Optional[Path] = typer.Option(None, "--out", help="Write the station's entry into this "
-                                                        "lift-rate YAML (other stations' entries are kept); the "
-                                                        "shipped one is diagrams/lift_rates.yaml"),
                      check: Optional[list[Path]] = typer.Option(None, "--check", help="Records of other attempts "
                                                                 "(repeatable): how well the rates predict their "
                                                                 "lifts, beside the quality alone")):
     """A station's lift rate per gripper kind and grasp quality in physics, from its full-fidelity
-    grasp attempts: what the primitive search standing for it (--set reach=STATION) draws a grasp's
-    outcome from."""
+    grasp attempts; with --check, how well the rates and the quality alone predict other attempts."""
     rates = count_attempts(files, station)
-    rates.source = describe_source(files, f"ms-drake bench lift-rates --station {station}")
     typer.echo(rows_text(rates))
     if check:
         typer.echo(check_text(check_rates(rates, read_attempts(check, station))))
-    if out is not None:
-        write_lift_rates(out, station, rates)
-        typer.echo(f"wrote {station}'s lift rates into {out}")
 
 
 def _occluder_counts(first: list[int], extra: list[str]) -> list[int]:

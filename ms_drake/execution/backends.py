@@ -3,8 +3,6 @@
 PrimitiveBackend (floating gripper, large benchmarks):
   grasp  grasp_outcome "draw" (default): success with probability = the grasp's robust
          contact-model quality (Grasp.quality from the GraspPlanner), drawn from (seed, step);
-         given `lift_rates` (a robot station's, execution.lift_rates), with the probability that
-         the station lifts a grasp of this gripper kind and quality in physics;
          "threshold": success exactly when the quality is >= LIFT_THRESHOLD, a deterministic
          outcome as the reference's X-Ray simulation decides "whether it would result in the
          object being lifted" (lines 1504-1507; a failed grasp leaves the state unchanged, and the
@@ -132,9 +130,8 @@ class PrimitiveBackend(_Base):
     def __init__(self, objects: dict, workspace, tcp_offset: float, target_id: str = "", seed: int = 0,
                  settle: float = 0.5, travel_speed: float = 0.5, push_speed: float = 0.15,
                  travel_height: float = 0.10, push_force: float = 40.0, transfer_speed: float | None = None,
-                 grasp_outcome: str = "draw", lift_rates=None):
+                 grasp_outcome: str = "draw"):
         super().__init__(objects, workspace, target_id, seed, settle)
-        self.lift_rates = lift_rates
         if grasp_outcome not in GRASP_OUTCOMES:
             raise ExecutionError(f"grasp_outcome {grasp_outcome!r} unknown; choose one of {', '.join(GRASP_OUTCOMES)}")
         self.grasp_outcome = grasp_outcome
@@ -199,9 +196,7 @@ class PrimitiveBackend(_Base):
                                          "has none: plan grasps with the image GraspPlanner (grasp_planner='image')")
                 ok = bool(action.grasp.lifts)
             else:
-                g = action.grasp
-                p = self.lift_rates.rate(g.kind, g.quality) if self.lift_rates is not None else None
-                ok = bool(np.random.default_rng([self.seed, step, 4242]).random() < (float(g.quality) if p is None else p))
+                ok = bool(np.random.default_rng([self.seed, step, 4242]).random() < float(action.grasp.quality))
             return self._finish(action, ok, oid, poses, removed, "" if ok else "grasp_failed")
         return self._finish(action, True, "", poses, removed)
 

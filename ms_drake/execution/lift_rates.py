@@ -1,41 +1,31 @@
-"""A robot station's lift rate per grasp, measured in Drake physics: what the primitive mode draws a
-grasp's outcome from when it stands for that robot.
+"""A robot station's lift rates in Drake physics per gripper kind and grasp quality, and how well
+they predict other attempts beside the quality alone (`ms-drake bench lift-rates`).
 
 The primitive mode's draw lifts a grasp with probability equal to its robust quality (the share of
-the contact model's perturbed trials that lift the object). On a robot in physics the quality
-predicts a lift poorly (the compliant pads and the cup hold most grasps of quality 0.25 as well as
-of 1.0, and lose some of 1.0 to the heap's load). So when the primitive search stands for a robot
-(`BinSearchConfig.reach` names its station), a grasp lifts with that station's measured rate at the
-grasp's gripper kind and quality level: the counts of lifts and attempts of the station's
-full-fidelity grasp attempts (`diagrams/lift_rates.yaml`, written by `ms-drake bench lift-rates`
-from `bench search --fidelity full` and `bench fidelity` records), each level's share shrunk toward
-its kind's overall share with PRIOR_ATTEMPTS pseudo-attempts: (lifts + k p) / (attempts + k).
+the contact model's perturbed trials that lift the object). Whether a robot in physics lifts
+grasps at those rates is measured here: the lifts and attempts of a station's full-fidelity grasp
+attempts (`bench search --fidelity full`, `bench fidelity` records) per gripper kind and quality
+level, each level's rate shrunk toward its kind's overall rate with PRIOR_ATTEMPTS pseudo-attempts,
+(lifts + k p) / (attempts + k); and, on other attempts, the rates' and the quality's predictions
+side by side (share lifted, agreement attempt by attempt, Brier score).
 """
 
 from __future__ import annotations
 
-import datetime
 import gzip
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from pydrake.common.yaml import yaml_load_file
 
 from ms_drake.errors import MsDrakeError
-from ms_drake.scenario import default_scenarios_file
 
 PRIOR_ATTEMPTS = 4.0  # pseudo-attempts at the kind's overall rate added to each quality level
 
 
 class LiftRateError(MsDrakeError):
     """A lift-rate file or record that cannot be read, with what to do."""
-
-
-def default_lift_rates_file() -> Path:
-    """The shipped lift rates: diagrams/lift_rates.yaml beside the scenario file."""
-    return default_scenarios_file().parent / "lift_rates.yaml"
 
 
 def _level(quality: float) -> float:
@@ -47,7 +37,6 @@ class LiftRates:
     """Lifts and attempts per gripper kind and quality level: counts[kind][level] = [lifts, attempts]."""
 
     counts: dict = field(default_factory=dict)
-    source: str = ""
 
     def add(self, kind: str, quality: float, lifted: bool):
         c = self.counts.setdefault(kind, {}).setdefault(_level(quality), [0, 0])
@@ -81,15 +70,6 @@ class LiftRates:
             rows.append({"kind": kind, "quality": None, "lifts": lifts, "attempts": attempts,
                          "rate": lifts / attempts})
         return rows
-
-    def to_yaml(self, station: str) -> str:
-        lines = [f"{station}:", f"  source: {json.dumps(self.source)}"]
-        for kind in sorted(self.counts):
-            lines.append(f"  {kind}:")
-            for q in sorted(self.counts[kind]):
-                lifts, attempts = self.counts[kind][q]
-                lines.append(f"    - {{quality: {q}, lifts: {lifts}, attempts: {attempts}}}")
-        return "\n".join(lines) + "\n"
 
 
 def _open(path: Path):
@@ -146,15 +126,17 @@ def count_attempts(files, station: str) -> LiftRates:
 def check_rates(rates: LiftRates, attempts) -> dict:
     """How well the lift rates predict other attempts (kind, quality, lifted) in physics, beside the
     quality alone: the attempts, their share lifted, the mean predicted probability of a lift, and
-    the agreement attempt by attempt, expected of a draw and of the likelier outcome (p >= 0.5),
-    for the rates ("rates") and for the quality as the probability ("quality")."""
+    the agreement attempt by attempt, expected of a draw and of the likelier outcome (p >= 0.5), and
+    the Brier score (mean squared error of the probability; lower is better), for the rates
+    ("rates") and for the quality as the probability ("quality")."""
     y = np.array([ok for _, _, ok in attempts], float)
     preds = {"rates": np.array([rates.rate(k, q) if rates.rate(k, q) is not None else q for k, q, _ in attempts]),
              "quality": np.array([q for _, q, _ in attempts])}
     out = {"attempts": len(attempts), "lifted": float(y.mean())}
     for name, p in preds.items():
         out[name] = {"predicted": float(p.mean()), "agreement_draw": float(np.mean(p * y + (1 - p) * (1 - y))),
-                     "agreement_likelier": float(np.mean((p >= 0.5) == (y > 0.5)))}
+                     "agreement_likelier": float(np.mean((p >= 0.5) == (y > 0.5))),
+                     "brier": float(np.mean((p - y) ** 2))}
     return out
 
 
@@ -165,7 +147,7 @@ def check_text(c: dict) -> str:
         d = c[name]
         lines.append(f"  {label:<15} predict {100 * d['predicted']:.1f} % lifted; agree attempt by attempt "
                      f"{100 * d['agreement_draw']:.1f} % (a draw), {100 * d['agreement_likelier']:.1f} % "
-                     "(the likelier outcome)")
+                     f"(the likelier outcome); Brier score {d['brier']:.3f}")
     return "\n".join(lines)
 
 
@@ -173,56 +155,6 @@ def _check_station(path, n, name: str, station: str):
     if name != station:
         raise LiftRateError(f"{path}:{n}: a record of station {name!r}, not {station!r}; give the records of one "
                             "station (--station)")
-
-
-def load_lift_rates(station: str, path=None) -> LiftRates | None:
-    """The measured lift rates of `station` in `path` (default: the shipped diagrams/lift_rates.yaml),
-    or None when the file holds none for it."""
-    path = Path(path) if path is not None else default_lift_rates_file()
-    if not path.is_file():
-        if path == default_lift_rates_file():
-            return None
-        raise LiftRateError(f"{path}: no such lift-rate file")
-    try:
-        data = yaml_load_file(str(path)) or {}
-    except RuntimeError as e:
-        raise LiftRateError(f"{path}: {str(e).splitlines()[0]}") from None
-    entry = data.get(station)
-    if entry is None:
-        return None
-    rates = LiftRates(source=str(entry.get("source", "")))
-    for kind, rows in entry.items():
-        if kind == "source":
-            continue
-        for row in rows:
-            try:
-                rates.counts.setdefault(kind, {})[_level(row["quality"])] = [int(row["lifts"]), int(row["attempts"])]
-            except (KeyError, TypeError, ValueError):
-                raise LiftRateError(f"{path}: {station}.{kind}: a row {row!r}; write "
-                                    "{quality: Q, lifts: L, attempts: A}") from None
-    return rates
-
-
-def write_lift_rates(path, station: str, rates: LiftRates):
-    """Write (or replace) `station`'s entry of a lift-rate file, keeping the other stations'."""
-    path = Path(path)
-    entries = {}
-    if path.is_file():
-        data = yaml_load_file(str(path)) or {}
-        for name in data:
-            if name != station:
-                entries[name] = load_lift_rates(name, path).to_yaml(name)
-    entries[station] = rates.to_yaml(station)
-    header = ("# Lift rates of the robot stations' grasps in Drake physics (ms_drake.execution.lift_rates):\n"
-              "# the primitive search that stands for a station (reach=<station>) draws a grasp's outcome\n"
-              "# from them. Written by `ms-drake bench lift-rates`.\n")
-    path.write_text(header + "\n".join(entries[k] for k in sorted(entries)))
-
-
-def describe_source(files, command: str) -> str:
-    """A lift-rate entry's provenance: the command, the records' names and the date."""
-    names = ", ".join(Path(f).name for f in files)
-    return f"{command} ({names}), {datetime.date.today().isoformat()}"
 
 
 def rows_text(rates: LiftRates) -> str:

@@ -60,7 +60,6 @@ from ms_drake.execution import (
     PrimitiveBackend,
     tcp_offset_of,
 )
-from ms_drake.execution.lift_rates import load_lift_rates
 from ms_drake.execution.reach import PickReach
 from ms_drake.geometry import PinholeCamera, Workspace
 from ms_drake.grasping.grasp_sets import load_grasp_set
@@ -164,10 +163,8 @@ class BinSearchConfig:
     image) or "indexed" (in simulation: each object's pre-computed grasp set at its current pose,
     checked against the scene). grasp_models: the planners whose best grasps are compared per object
     (a parallel-jaw contact model and "suction"); grasp_params: GraspEvaluator keywords of the jaw
-    models, e.g. {closing_force: 40.0}. reach: the robot the search stands for ("" none, "robot" the
-    station's, or a scenario name): with the indexed planner only the grasps it reaches are planned,
-    and in the primitive mode a grasp lifts with the station's lift rate measured in physics
-    (execution.lift_rates, diagrams/lift_rates.yaml) where one is shipped, instead of its quality. push_policy: the pushes of the
+    models, e.g. {closing_force: 40.0}. reach: with the indexed planner, keep only grasps a robot
+    reaches ("" none, "robot" the station's, or a scenario name). push_policy: the pushes of the
     *_push selectors: "" the Ch. 7 free-space push, or a Ch. 4 policy of ms_drake.pushing.POLICIES.
     camera: the camera the controller reads; period: the executor's update period [s].
     """
@@ -293,11 +290,8 @@ def _backend(scenario, params: BinSearchConfig, workspace: Workspace, sim: Simul
             raise ControllerError("fidelity 'primitive' runs in simulation on the floating gripper "
                                   "(FloatingGripperBin, with sim=SimulationInfo.from_station(station)); "
                                   "use fidelity 'full' for a robot or the hardware station")
-        rates = None
-        if params.reach and params.ablation.grasp_outcome == "draw":  # the search stands for a robot
-            rates = load_lift_rates(params.scenario if params.reach == "robot" else params.reach)
         return PrimitiveBackend(bodies, workspace, tcp_offset_of(sim.plant), target_id=target_id, seed=params.seed,
-                                grasp_outcome=params.ablation.grasp_outcome, lift_rates=rates)
+                                grasp_outcome=params.ablation.grasp_outcome)
     return FullBackend(scenario, bodies, workspace, target_id=target_id, seed=params.seed)
 
 
