@@ -15,9 +15,7 @@ from ms_drake.execution.lift_rates import (
     check_rates,
     count_attempts,
 )
-from ms_drake.geometry import Workspace
 
-WS = Workspace((0.0, 0.0), (0.5, 0.4), 0.0, 0.12)
 
 
 def search_record(kinds, qualities, successes, scenario="PandaBin", fidelity="full"):
