@@ -17,7 +17,6 @@ from ms_drake.execution.lift_rates import (
 )
 
 
-
 def search_record(kinds, qualities, successes, scenario="PandaBin", fidelity="full"):
     return {"seed": 1, "fidelity": fidelity, "config": {"scenario": scenario}, "grasp_kinds": kinds,
             "grasp_qualities": qualities, "action_successes": successes, "error": ""}
