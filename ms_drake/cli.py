@@ -107,7 +107,7 @@ from ms_drake.experiments.rearrange import (
     run_rearrange_demo,
 )
 from ms_drake.experiments.scene_images import make_scene, write_scene_images
-from ms_drake.experiments.segmentation_data import write_segmentation_dataset
+from ms_drake.experiments.segmentation_data import SENSOR_OPTIONS, write_segmentation_dataset
 from ms_drake.experiments.segmentation_learning import (
     bench_segmentation,
     train_segmentation,
@@ -1613,16 +1613,19 @@ def bench_collision_cmd(
                                                "models/weights/collision.pt; pointnet_grid: "
                                                "collision_pointnet_grid.pt)"),
         threads: int = typer.Option(1, "--threads", min=1, help="torch threads (net)"),
+        sensor: str = typer.Option("none", "--sensor", help="Depth sensor preset of the scene clouds: none | phoxi "
+                                   "| l515 | primesense (the same scenes and queries)"),
         device: str = Device):
     """Table 6.1: collision accuracy, AP and CPU time per query of one method on held-out scenes."""
     _choose("--method", method, COLLISION_METHODS)
+    _choose("--sensor", sensor, DEPTH_SENSOR_PRESETS)
     if method in COLLISION_NETWORKS:
         torch_device(device)
         _need_weights("--weights", weights or default_collision_weights(method),
                       lambda p: load_collision_net(p, method), "collision")
     bar = tqdm(total=scenes, desc=method, unit="scene")
     res = bench_collision(method, scenes, seed_start, cache, weights, threads, progress=lambda k: bar.update(1),
-                          device=device)
+                          device=device, sensor=sensor)
     bar.close()
     typer.echo(f"{method}: {res['queries']} queries ({100 * res['positive']:.1f} % in collision): accuracy "
                f"{100 * res['accuracy']:.1f} %, AP {res['ap']:.3f}, {res['us_per_query']:.1f} us CPU per query, "
@@ -1710,15 +1713,20 @@ def bench_segmentation_cmd(
 def data_collision(count: int = typer.Option(..., "--count", min=1, help="Scenes, rounded up to whole shards"),
                    out: Path = typer.Option(..., "--out", help="Output folder (shard_<k>_<split>.npz; resumes)"),
                    seed: int = DatasetSeed,
+                   sensor: str = typer.Option("none", "--sensor", help="Depth sensor model of the scene clouds: none "
+                                              "| random (a preset and its parameters drawn per scene) | phoxi | l515 "
+                                              "| primesense"),
                    workers: int = _workers(),
                    ray: bool = Ray,
                    ray_address: Optional[str] = RayAddress):
     """Tabletop scenes (point cloud from the PandaTable camera) with a query object and 2,048 poses
     along 64 trajectories labelled by exact mesh collision (Ch. 6); split by scene and object;
     shards already written are kept."""
+    _choose("--sensor", sensor, SENSOR_OPTIONS)
     t0 = time.perf_counter()
     bar, progress = _job_bar(-(-count // COLLISION_SCENES_PER_SHARD), "shards", "shard")
-    res = write_collision_dataset(out, count, seed, workers, ray or ray_address is not None, ray_address, progress)
+    res = write_collision_dataset(out, count, seed, workers, ray or ray_address is not None, ray_address, progress,
+                                  sensor=sensor)
     bar.close()
     per = f"; {res['cpu'] / res['scenes']:.2f} CPU-s per scene" if res["scenes"] else ""
     typer.echo(f"{res['written']} shards ({res['scenes']} scenes, {res['queries']} queries, "

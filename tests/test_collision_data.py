@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import cKDTree
 
 from ms_drake.errors import DatasetError
 from ms_drake.experiments.collision_data import (
@@ -106,3 +107,19 @@ def test_object_mesh_frames_are_the_placement_frames():
     # the scene's labels use object_mesh in the body frame the placements are given in
     m = object_mesh("ycb/077_rubiks_cube")
     assert m.is_watertight and np.linalg.norm(m.bounds.mean(axis=0)) < 0.05
+
+
+def test_a_sensor_model_changes_the_cloud_and_nothing_else():
+    clean = make_scene(3, 0, 1, "train")
+    noisy = make_scene(3, 0, 1, "train", sensor="primesense")
+    again = make_scene(3, 0, 1, "train", sensor="primesense")
+    assert clean["sensor"] == "none" and noisy["sensor"] == "primesense"
+    for key in ("objects", "query", "poses", "labels", "object_points", "X_WC"):
+        assert np.array_equal(clean[key], noisy[key]), key
+    assert np.array_equal(noisy["scene_points"], again["scene_points"])  # drawn from the seed
+    assert not np.array_equal(clean["scene_points"], noisy["scene_points"])
+    # the same surfaces, seen through the sensor: each noisy point lies near the clean cloud
+    d, _ = cKDTree(clean["scene_points"]).query(noisy["scene_points"])
+    assert np.median(d) < 0.01
+    with pytest.raises(DatasetError, match="sensor 'kinect'"):
+        write_collision_dataset("unused", 1, sensor="kinect")

@@ -37,6 +37,7 @@ seeds.
 
 from __future__ import annotations
 
+import copy
 import os
 import time
 from pathlib import Path
@@ -50,12 +51,14 @@ from scipy.spatial.transform import Rotation, Slerp
 from ms_drake.collision.scene_net import SCENE_BOUNDS
 from ms_drake.errors import DatasetError, HeapError
 from ms_drake.experiments.occupancy_data import HeapRenderer, shard_split
+from ms_drake.experiments.segmentation_data import draw_sensor
 from ms_drake.geometry import PinholeCamera, transform_points
 from ms_drake.grasping.meshes import object_mesh
 from ms_drake.objects import get_object_set
 from ms_drake.parallel import run_jobs
 from ms_drake.scenario import load_scenario
 from ms_drake.scenes.tabletop import place_objects
+from ms_drake.station.sensor_model import apply_depth_sensor
 
 SCENARIO = "PandaTable"
 OBJECT_SETS = ("ycb", "random_urdfs")
@@ -183,8 +186,9 @@ class SceneCollisions:
         return out
 
 
-def make_scene(seed: int, shard: int, j: int, split: str, scenario=None) -> dict:
-    """Scene j of shard `shard` (module doc): arrays of one scene."""
+def make_scene(seed: int, shard: int, j: int, split: str, scenario=None, sensor: str = "none") -> dict:
+    """Scene j of shard `shard` (module doc): arrays of one scene. sensor: none | random | a preset
+    (module doc, step 2); with one, also `sensor` (the preset drawn)."""
     scenario = scenario or load_scenario(None, SCENARIO)
     rng = np.random.default_rng([seed, shard, j])
     oset = get_object_set(OBJECT_SETS[(shard * SCENES_PER_SHARD + j) % len(OBJECT_SETS)])
@@ -204,7 +208,11 @@ def make_scene(seed: int, shard: int, j: int, split: str, scenario=None) -> dict
             names.pop(int(rng.integers(len(names))))
     cam = jitter_camera(PinholeCamera.from_config(scenario.cameras["front"]), rng)
     depth = HeapRenderer(scenario, heap).depth(cam)
-    cloud = scene_cloud(depth, cam, rng)
+    drawn, cloud_rng = "none", copy.deepcopy(rng)
+    cloud = scene_cloud(depth, cam, rng)  # the clean cloud's draws move `rng` on, sensor or not
+    if sensor != "none":
+        drawn, params, srng = draw_sensor(sensor, seed, shard, j, 0)
+        cloud = scene_cloud(apply_depth_sensor(depth, params, srng, cam.fx, cam.fy, cam.cx, cam.cy), cam, cloud_rng)
     query_name = pool[int(rng.integers(len(pool)))]
     query = object_mesh(query_name)  # its own frame: object_points and poses use it
     size = scenario.environment.resolved_size()
@@ -219,7 +227,7 @@ def make_scene(seed: int, shard: int, j: int, split: str, scenario=None) -> dict
     pts, _ = trimesh.sample.sample_surface(query, OBJECT_POINTS, seed=int(rng.integers(2**31)))
     return {"scene_points": cloud, "object_points": np.asarray(pts, np.float32), "poses": poses.astype(np.float32),
             "labels": labels, "X_WC": cam.X_WC.GetAsMatrix4().astype(np.float32), "object_poses": object_poses,
-            "objects": ",".join(o.name for o in heap.objects), "query": query_name, "seed": j}
+            "objects": ",".join(o.name for o in heap.objects), "query": query_name, "seed": j, "sensor": drawn}
 
 
 def shard_path(out, k: int) -> Path:
@@ -227,11 +235,12 @@ def shard_path(out, k: int) -> Path:
 
 
 def shard_job(job: tuple) -> dict:
-    """(out, k, seed, scenes) -> write shard k; module-level for the worker pool."""
-    out, k, seed, scenes = job
+    """(out, k, seed, scenes[, sensor]) -> write shard k; module-level for the worker pool."""
+    out, k, seed, scenes, *rest = job
+    sensor = rest[0] if rest else "none"
     t0 = time.process_time()
     scenario = load_scenario(None, SCENARIO)
-    rows = [make_scene(seed, k, j, shard_split(k), scenario) for j in range(scenes)]
+    rows = [make_scene(seed, k, j, shard_split(k), scenario, sensor) for j in range(scenes)]
     arrays = {key: np.stack([r[key] for r in rows]) for key in rows[0]}
     path = shard_path(out, k)
     tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
@@ -242,14 +251,17 @@ def shard_job(job: tuple) -> dict:
 
 
 def write_collision_dataset(out, count: int, seed: int = 0, workers: int = 1, use_ray: bool = False,
-                            ray_address: str | None = None, progress=None, scenes_per_shard: int = SCENES_PER_SHARD) -> dict:
-    """Write ceil(count / scenes_per_shard) shards into `out`, skipping those on disk (resumable)."""
+                            ray_address: str | None = None, progress=None, scenes_per_shard: int = SCENES_PER_SHARD,
+                            sensor: str = "none") -> dict:
+    """Write ceil(count / scenes_per_shard) shards into `out`, skipping those on disk (resumable).
+    sensor: the depth sensor model of the scene clouds (module doc, step 2)."""
     if count < 1:
         raise DatasetError(f"count={count}: write at least one scene")
+    draw_sensor(sensor, seed, 0, 0, 0)  # an unknown sensor fails here, before any worker starts
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     shards = -(-count // scenes_per_shard)
-    jobs = [(str(out), k, seed, scenes_per_shard) for k in range(shards) if not shard_path(out, k).exists()]
+    jobs = [(str(out), k, seed, scenes_per_shard, sensor) for k in range(shards) if not shard_path(out, k).exists()]
     res = {"written": 0, "skipped": shards - len(jobs), "scenes": 0, "queries": 0, "positive": [], "cpu": 0.0,
            "failed": []}
     for r in run_jobs(shard_job, jobs, workers=workers, use_ray=use_ray, ray_address=ray_address):

@@ -151,12 +151,14 @@ def evaluate_collision(net, data, split: str = "test", max_scenes: int | None = 
                 us_per_query=1e6 * query_s / len(y), ms_encode_per_scene=1e3 * encode_s / n)
 
 
-def bench_scene(seed: int, cache=None) -> dict:
-    """Held-out scene `seed` (test objects; collision_data.make_scene), read from / saved to `cache`."""
-    path = Path(cache) / f"scene_{seed}.npz" if cache is not None else None
+def bench_scene(seed: int, cache=None, sensor: str = "none") -> dict:
+    """Held-out scene `seed` (test objects; collision_data.make_scene), its cloud through the depth
+    sensor preset `sensor`, read from / saved to `cache`."""
+    name = f"scene_{seed}.npz" if sensor == "none" else f"scene_{seed}_{sensor}.npz"
+    path = Path(cache) / name if cache is not None else None
     if path is not None and path.exists():
         return dict(np.load(path))
-    s = make_scene(seed, 0, 0, "test")
+    s = make_scene(seed, 0, 0, "test", sensor=sensor)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp.npz")
@@ -166,10 +168,11 @@ def bench_scene(seed: int, cache=None) -> dict:
 
 
 def bench_collision(method: str, scenes: int, seed_start: int = 0, cache=None, weights=None, threads: int = 1,
-                    progress=None, device: str = "cpu") -> dict:
+                    progress=None, device: str = "cpu", sensor: str = "none") -> dict:
     """Table 6.1: one method on held-out scenes seed_start.. (module doc); accuracy at 0.5, AP, CPU
     microseconds per query (one thread; the per-scene set-up -- encoding, reconstruction --
-    reported apart as ms per scene). device: where the network runs (cpu | cuda | auto)."""
+    reported apart as ms per scene). device: where the network runs (cpu | cuda | auto); sensor:
+    the depth sensor preset of the scene clouds (the same scenes, objects and queries)."""
     if method not in METHODS:
         raise DatasetError(f"collision method {method!r} unknown; choose one of {', '.join(METHODS)}")
     net = None
@@ -182,7 +185,7 @@ def bench_collision(method: str, scenes: int, seed_start: int = 0, cache=None, w
     scores, labels = [], []
     setup_s = query_s = 0.0
     for k in range(scenes):
-        s = bench_scene(seed_start + k, cache)
+        s = bench_scene(seed_start + k, cache, sensor)
         t = time.process_time()
         checker = SceneChecker(method, s["scene_points"], net=net)
         checker.add("query", s["object_points"])
@@ -196,7 +199,8 @@ def bench_collision(method: str, scenes: int, seed_start: int = 0, cache=None, w
         if progress is not None:
             progress(k)
     sc, y = np.concatenate(scores), np.concatenate(labels)
-    return dict(method=method, scenes=scenes, seed_start=seed_start, queries=int(len(y)), positive=float(y.mean()),
+    return dict(method=method, scenes=scenes, seed_start=seed_start, sensor=sensor, queries=int(len(y)),
+                positive=float(y.mean()),
                 accuracy=float(((sc > 0.5) == y).mean()),
                 ap=float(average_precision_score(y, sc)) if 0 < y.sum() < len(y) else float("nan"),
                 us_per_query=1e6 * query_s / len(y), setup_ms_per_scene=1e3 * setup_s / scenes,
