@@ -7,9 +7,11 @@ suction cup) from that very scene with that very grasp, and both outcomes are co
 One record per attempt (`attempt_records`): seed, step, grasp kind, object, quality, the
 primitive outcome (a draw with probability = quality), the full outcome (lifted, the executor's
 message: "" / "not_lifted" / "plan_failed:<ik status>", how far the object rose, the load of
-the other objects on the grasped one before the approach: `object_load`), CPU seconds.
+the other objects on the grasped one before the approach: `object_load`; whether a lifted object
+reached the tray), CPU seconds.
 `summarize` gives per-attempt success in each fidelity, their agreement (both lifted or both
-not) with Wilson 95 % intervals, the agreement of the full outcome with the primitive's
+not) with Wilson 95 % intervals, the share of the objects lifted in full fidelity that reach the
+tray (`full_delivered`: outside the bin when the action ends; the primitive carrier drops none), the agreement of the full outcome with the primitive's
 expected outcome (quality >= 0.5), and the rates for objects other objects press down apart
 (the grasp qualities are those of the object alone; the physical cup lifts the load too).
 
@@ -121,6 +123,7 @@ class Replay:
     cpu_seconds: float
     load: float = float("nan")  # N, vertical force of the other objects on the grasped one before the approach
     pressed_by: int = 0  # other objects pressing on it from above (downward force > 0.1 N)
+    delivered: bool | None = None  # a lifted object lies outside the bin when the action ends (None: not lifted)
     frames: tuple = ()  # (t, {camera: RGB image}) every FRAME_PERIOD s when filmed (replay_full(film=True))
 
 
@@ -201,10 +204,12 @@ def build_replay(attempt: Attempt, scenario: str | ScenarioRef = "YuMiBin", seed
 
 def replay_full(attempt: Attempt, scenario: str | ScenarioRef = "YuMiBin", max_sim_time: float = 30.0,
                 load_time: float = 0.15, film: bool = False) -> Replay:
-    """Execute the attempt's grasp in full fidelity from its scene, up to the outcome check. The
-    load of the other objects on the grasped one (`object_load`) is read once the arm has held
-    its park for `load_time` s (the pick plan rests 0.2 s at park before it moves). film: also
-    render `grasp_cameras` every FRAME_PERIOD s (Replay.frames)."""
+    """Execute the attempt's grasp in full fidelity from its scene: up to the outcome check, and a
+    lifted object on to the drop-off tray (the action's end: Replay.delivered says whether the
+    object then lies outside the bin, or fell back into it). The load of the other objects on the
+    grasped one (`object_load`) is read once the arm has held its park for `load_time` s (the pick
+    plan rests 0.2 s at park before it moves). film: also render `grasp_cameras` every
+    FRAME_PERIOD s up to the outcome (Replay.frames)."""
     t_cpu = time.process_time()
     cameras = grasp_cameras(attempt.grasp.center) if film else None
     simulator, station, executor, backend = build_replay(attempt, scenario, seed=attempt.seed, cameras=cameras)
@@ -235,8 +240,15 @@ def replay_full(attempt: Attempt, scenario: str | ScenarioRef = "YuMiBin", max_s
         pose = executor.poses_port.Eval(ex_ctx)[body]
         rise = float(as_rigid_transform(pose, "pose").translation()[2] - z0)
     out = history[0] if history else None
+    delivered = None
+    if out is not None and out.success:  # on to the tray: the action ends when the executor is idle
+        while t < max_sim_time and executor.GetOutputPort("status").Eval(ex_ctx).busy:
+            k += 1
+            t = k * executor.period
+            simulator.AdvanceTo(t)
+        delivered = attempt.grasp.object_id in backend.left_bin(executor.poses_port.Eval(ex_ctx))
     return Replay(bool(out and out.success), out.message if out else "timeout", rise, float(t),
-                  time.process_time() - t_cpu, *load, frames=tuple(frames))
+                  time.process_time() - t_cpu, *load, delivered=delivered, frames=tuple(frames))
 
 
 def picture_strip(frames, title: str) -> np.ndarray:
@@ -293,7 +305,7 @@ def heap_job(job: tuple) -> list[dict]:
                      "width": float(g.width), "primitive_lifted": a.primitive_lifted, "full_lifted": r.lifted,
                      "full_message": r.message, "full_rise": None if math.isnan(r.rise) else r.rise,
                      "full_sim_seconds": r.sim_seconds, "full_cpu_seconds": r.cpu_seconds,
-                     "full_load": r.load, "full_pressed_by": r.pressed_by})
+                     "full_load": r.load, "full_pressed_by": r.pressed_by, "full_delivered": r.delivered})
     recs.append({"kind": "heap", "seed": int(seed), "objects": int(objects), "reach": reach, "policy": policy,
                  "primitive_success": bool(res.success), "primitive_actions": int(res.actions),
                  "primitive_grasps": sum(1 for k in res.action_kinds if k == "grasp"),
@@ -387,7 +399,9 @@ def summarize(recs: list[dict]) -> dict:
             by_load[name] = {"primitive": _rate(sum(r["primitive_lifted"] for r in a), len(a)),
                              "full": _rate(sum(r["full_lifted"] for r in a), len(a)),
                              "agreement": _rate(sum(r["primitive_lifted"] == r["full_lifted"] for r in a), len(a))}
+    carried = [r for r in att if r["full_lifted"] and r.get("full_delivered") is not None]
     return {"heaps": len(heaps), "attempts": n, "primitive": _rate(prim, n), "full": _rate(full, n),
+            "delivered": _rate(sum(r["full_delivered"] for r in carried), len(carried)),
             "difference_points": 100.0 * (prim - full) / n if n else float("nan"),
             "agreement": _rate(agree, n), "agreement_with_quality": _rate(expect, n),
             "full_failures": dict(sorted(messages.items(), key=lambda kv: -kv[1])), "by_kind": by_kind,
@@ -406,6 +420,7 @@ def format_summary(s: dict) -> str:
              f"  lifted, primitive: {r(s['primitive'])}", f"  lifted, full:      {r(s['full'])}",
              f"  difference: {s['difference_points']:.1f} points", f"  agreement:  {r(s['agreement'])}",
              f"  full vs quality >= 0.5: {r(s['agreement_with_quality'])}",
+             f"  lifted objects that reach the tray (full): {r(s['delivered'])}",
              f"  full failures: {s['full_failures']}",
              f"  primitive search success: {r(s['primitive_search'])}",
              f"  full CPU s per attempt: {s['full_cpu_seconds_per_attempt']:.1f}"]
