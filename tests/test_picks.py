@@ -26,7 +26,8 @@ from ms_drake.planning import ik_pose, plan_joint_motion
 from ms_drake.planning.sequences import Schedule, Timeline, jaw_opening
 from ms_drake.robots import PICK_APPROACH
 from ms_drake.scenario import load_scenario
-from ms_drake.types import Grasp, JointLimits
+from ms_drake.station.environments import dropoff_points
+from ms_drake.types import Action, Grasp, JointLimits
 
 
 def _check(out, task):
@@ -207,3 +208,22 @@ def test_reach_takes_the_posture_whose_arm_clears_the_scene_and_the_backend_exec
     assert reach(g) is True  # no scene: the first plan
     one = PickReach(load_scenario(None, "YuMiBin"), max_postures=1)  # only the first plan: blocked
     assert one(g, scene) is False and one.arm_blocked == 1
+
+
+def test_a_lifted_object_leaves_the_bin_straight_up_before_the_carry_to_the_tray():
+    s = load_scenario(None, "YuMiBin")
+    ws = Workspace.from_scenario(s)
+    backend = FullBackend(s, {}, ws)
+    cx, cy = ws.center_xy
+    g = Grasp(kind="suction", center=(cx, cy, ws.floor_z + 0.03), approach=(0.0, 0.0, -1.0), axis=(1.0, 0.0, 0.0),
+              width=0.0, quality=1.0, object_id="probe")
+    arm = backend.suction[0]
+    motion = backend.plan(Action("grasp", grasp=g), backend.initial_commands(), 0)
+    ik = backend.ik[arm][0]
+    q = motion.commands[f"{arm}.position"]
+    P = np.array([ik_pose(ik, q(t)).translation() for t in np.linspace(motion.check_time, motion.settle_from, 300)])
+    up = int(np.argmax(P[:, 2] >= backend.via_z - 2e-3))  # the first sample at the carry height
+    assert P[up, 2] >= backend.via_z - 2e-3 > ws.floor_z + ws.wall_height + 0.2
+    assert np.abs(P[:up + 1, :2] - P[0, :2]).max() < 5e-3  # straight up from the lift's end
+    trays = [np.linalg.norm(P[:, :2] - d[:2], axis=1).min() for d in dropoff_points(s.environment)]
+    assert min(trays) < 0.02  # and on to above a tray

@@ -40,7 +40,7 @@ from pydrake.math import RigidTransform, RotationMatrix
 
 from ms_drake.execution.executor import ExecutionError, Motion
 from ms_drake.geometry import as_rigid_transform
-from ms_drake.planning import ik_pose, plan_joint_motion
+from ms_drake.planning import ik_pose, plan_cartesian_line, plan_joint_motion
 from ms_drake.planning.sequences import Schedule, arm_ik, nearest_equivalent, nth_plan, pick_plans, plan_push
 from ms_drake.robots import CLOSING_FORCE, GRIPPERS, ParallelJawConfig
 from ms_drake.scenario import resolve_robot_config
@@ -287,16 +287,22 @@ class FullBackend(_Base):
                 q_home = ik.solve(X_park, q_home).q
             self.ik[arm] = (ik, limits, np.asarray(q_home, float))
             self._keep.append(keep)
-        # Each arm's drop-off configurations: tool down above a tray, nearest tray first.
+        # Each arm's drop-off configurations, nearest tray first: (tool down above the tray at the
+        # carry height, and `drop_height` above its floor); the carry comes over the tray high and
+        # then down, so a held object does not sweep across the bin's walls.
         self.drops = {}
         for arm, (ik, _, q_home) in self.ik.items():
             p_tool = ik_pose(ik, q_home).translation()
             qs = []
             for tray in sorted(dropoff_points(scenario.environment), key=lambda d: np.linalg.norm(d[:2] - p_tool[:2])):
-                X = RigidTransform(RotationMatrix.MakeXRotation(np.pi), tray + np.array([0.0, 0.0, drop_height]))
-                res = ik.solve(X, q_home)
-                if res.success:
-                    qs.append(nearest_equivalent(ik, res.q, q_home))
+                down = RotationMatrix.MakeXRotation(np.pi)
+                high = ik.solve(RigidTransform(down, [tray[0], tray[1], max(self.via_z, tray[2] + drop_height)]), q_home)
+                if not high.success:
+                    continue
+                q_high = nearest_equivalent(ik, high.q, q_home)
+                low = ik.solve(RigidTransform(down, tray + np.array([0.0, 0.0, drop_height])), q_high)
+                if low.success:
+                    qs.append((q_high, nearest_equivalent(ik, low.q, q_high)))
             self.drops[arm] = qs
 
     @property
@@ -333,12 +339,16 @@ class FullBackend(_Base):
         return out
 
     def _finish_motion(self, plan, arm, release: dict, info: dict, drop: bool = False):
-        """The plan's motion, then (drop) to the arm's drop-off configuration; release; back to park."""
-        _, limits, q_home = self.ik[arm]
+        """The plan's motion, then (drop) straight up to the carry height and to the arm's drop-off
+        configuration; release; back to park."""
+        ik, limits, q_home = self.ik[arm]
         tl = plan.timeline
         check = release_at = tl.duration
         if drop and self.drops.get(arm):
-            tl.play(plan_joint_motion([tl.final(), self.drops[arm][0]], limits))
+            rise = self._rise(ik, tl.final(), limits)
+            if rise is not None:
+                tl.play(rise)
+            tl.play(plan_joint_motion([tl.final(), *self.drops[arm][0]], limits))
             release_at = tl.duration
             tl.hold(0.4)  # the gripper opens, the object falls into the tray
         tl.play(plan_joint_motion([tl.final(), q_home], limits))  # back to park, out of the camera's view
@@ -348,6 +358,17 @@ class FullBackend(_Base):
             commands[port] = Schedule(steps)
         return Motion(commands, check_time=check, duration=tl.duration + self.settle, info=info,
                       settle_from=tl.duration)
+
+    def _rise(self, ik, q, limits):
+        """The tool's straight line up from arm configuration q to the carry height `via_z` (None
+        when it is there already or the arm cannot follow the line): a held object leaves the bin
+        upwards before the joint motion to the tray, which would sweep it low over the walls."""
+        X = ik_pose(ik, q)
+        up = self.via_z - X.translation()[2]
+        if up < 0.01:
+            return None
+        line = plan_cartesian_line(ik, X, [0.0, 0.0, up], q, limits, max_speed=self.speed)
+        return line.trajectory if line.success else None
 
     def plan(self, action: Action, hold: dict, step: int, poses=None):
         if action.kind == "grasp":
