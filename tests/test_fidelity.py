@@ -80,12 +80,13 @@ def test_wilson_and_summary():
     lo, hi = wilson(8, 10)
     assert 0.44 < lo < 0.5 and 0.94 < hi < 0.97
     recs = [{"kind": "attempt", "grasp": "suction", "quality": 0.9, "primitive_lifted": p, "full_lifted": f,
-             "full_message": "" if f else "not_lifted", "full_cpu_seconds": 1.0}
-            for p, f in ((True, True), (True, False), (False, False), (True, True))]
+             "full_message": "" if f else "not_lifted", "full_cpu_seconds": 1.0, "full_delivered": d}
+            for p, f, d in ((True, True, True), (True, False, None), (False, False, None), (True, True, False))]
     recs.append({"kind": "heap", "primitive_success": True})
     s = summarize(recs)
     assert (s["attempts"], s["primitive"]["k"], s["full"]["k"], s["agreement"]["k"]) == (4, 3, 2, 3)
     assert s["difference_points"] == pytest.approx(25.0) and s["full_failures"] == {"not_lifted": 2}
+    assert (s["delivered"]["k"], s["delivered"]["n"]) == (1, 2)  # of the lifted objects, one reached the tray
 
 
 @pytest.fixture(scope="module")
@@ -123,6 +124,7 @@ def test_a_reached_grasp_is_lifted_by_the_yumi(attempts4):
     _, attempts, _ = attempts4
     r = replay_full(attempts[0])
     assert r.lifted and r.message == "" and r.rise > 0.075
+    assert r.delivered  # carried on to the tray, out of the bin
 
 
 def test_pick_reach_keeps_the_arm_clear_of_the_scene(yumi_reach):
