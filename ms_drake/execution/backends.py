@@ -27,8 +27,9 @@ FullBackend (YuMi, Panda, floating gripper): IK + ruckig through ms_drake.planni
   (plan_pick / plan_push) from the arm's current configuration; parallel-jaw grasps and pushes on
   the arm with the jaw (compliant pads), suction grasps on the arm with the suction cup; a grasp
   succeeds when the object rose by more than half the lift; then the arm carries it to the
-  nearest drop-off tray it reaches (station.environments.dropoff_points), releases it there, in
-  physics, and returns to park (out of the camera view).
+  nearest drop-off tray it reaches (station.environments.dropoff_points): straight up to the carry
+  height over the walls, over the tray at that height, down; releases it there, in physics, and
+  returns to park (out of the camera view).
 Both: after an action, every object (other than the grasped one) that left the bin (fell over a
 wall, or below the floor) is reported; the target among them sets message "target_removed".
 """
@@ -242,7 +243,8 @@ class FullBackend(_Base):
     parallel jaw, suction grasps to the first arm carrying a suction cup (`grasp_kinds` says which
     the robot can do). A grasp succeeds when the object rose by more than half the lift (needs
     body_poses; on hardware, without them, every grasp reports "not_lifted"); then the arm moves
-    above the nearest drop-off tray it reaches (`drop_height` above the tray's floor, tool down),
+    above the nearest drop-off tray it reaches (straight up to `via_z`, over the tray at that height,
+    down to `drop_height` above the tray's floor, tool down),
     the gripper releases, and the arm returns to its park configuration out of the camera's view:
     ArmSpec.home for arms, beside the bin for the floating gripper. A station without trays (or
     none the arm reaches) releases the object at the top of the lift.
